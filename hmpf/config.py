@@ -1,0 +1,135 @@
+"""Hierarchy configuration: YAML presets validated by pydantic (unknown keys are errors).
+
+Example (``configs/handcrafted.yaml``)::
+
+    name: handcrafted
+    mode: default            # or "faithful": the original's duplicate-keeping fusion
+    methods:                 # optional: parameters per method id (id = method name by default)
+      kaze: {max_keypoints: 500}
+    tiers:                   # tier 1 first; k = candidates passed on (final tier: list length)
+      - {methods: [hog, gist], k: 50}
+      - {methods: [sad], k: 10}
+      - {methods: [kaze], k: 1}
+    weights: [0.5, 0.75, 1.0]   # optional, tier 1 first
+
+A method id may name a registered method directly, or be declared under ``methods`` with
+``type: <registered name>`` plus parameters, so one method can appear with two settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from hmpf.errors import ConfigError
+from hmpf.fusion import default_weights
+from hmpf.methods import Method, create_method, get_method_class
+from hmpf.methods.registry import format_validation_error
+
+__all__ = ["HierarchyConfig", "TierConfig", "build_methods", "load_config"]
+
+
+class TierConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    methods: list[str] = Field(min_length=1)
+    k: int = Field(ge=1, description="candidates each method passes on (final tier: list size)")
+
+
+class HierarchyConfig(BaseModel):
+    """A hierarchy: ordered tiers of methods, candidate counts, weights and fusion mode."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "unnamed"
+    description: str = ""
+    mode: Literal["default", "faithful"] = "default"
+    methods: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    tiers: list[TierConfig] = Field(min_length=1)
+    weights: list[float] | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> HierarchyConfig:
+        for i, tier in enumerate(self.tiers):
+            if len(set(tier.methods)) != len(tier.methods):
+                raise ValueError(f"tiers.{i}.methods lists a method twice")
+        if self.weights is not None and len(self.weights) != len(self.tiers):
+            raise ValueError(f"weights has {len(self.weights)} entries for {len(self.tiers)} tiers")
+        if self.weights is None and len(self.tiers) > 3:
+            raise ValueError("more than 3 tiers need explicit weights")
+        return self
+
+    @property
+    def faithful(self) -> bool:
+        return self.mode == "faithful"
+
+    @property
+    def tier_weights(self) -> tuple[float, ...]:
+        return tuple(self.weights) if self.weights is not None else default_weights(len(self.tiers))
+
+    @property
+    def method_ids(self) -> list[str]:
+        """Every method id the tiers use, in first-use order."""
+        seen: dict[str, None] = {}
+        for tier in self.tiers:
+            for m in tier.methods:
+                seen.setdefault(m, None)
+        return list(seen)
+
+    def method_spec(self, method_id: str) -> tuple[str, dict[str, Any]]:
+        """(registered type, parameters) of a method id."""
+        spec = dict(self.methods.get(method_id, {}))
+        return str(spec.pop("type", method_id)), spec
+
+    def digest(self) -> str:
+        """sha256 of the canonical JSON of this config."""
+        return hashlib.sha256(
+            json.dumps(self.model_dump(), sort_keys=True).encode()
+        ).hexdigest()
+
+
+def build_methods(config: HierarchyConfig) -> dict[str, Method]:
+    """Instantiate every method the hierarchy uses, keyed by method id."""
+    unused = set(config.methods) - set(config.method_ids)
+    if unused:
+        raise ConfigError(f"methods declared but used by no tier: {', '.join(sorted(unused))}")
+    out: dict[str, Method] = {}
+    for mid in config.method_ids:
+        kind, params = config.method_spec(mid)
+        get_method_class(kind)  # UnknownMethodError lists the valid names
+        try:
+            out[mid] = create_method(kind, params)
+        except ConfigError as exc:
+            raise ConfigError(f"methods.{mid}: {exc}") from None
+    return out
+
+
+def parse_config(data: Any, source: str = "<config>") -> HierarchyConfig:
+    """Validate a mapping; errors name the offending key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level")
+    try:
+        config = HierarchyConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source)) from None
+    build_methods(config)  # method names and parameters are checked now, not at first use
+    return config
+
+
+def load_config(path: str | Path) -> HierarchyConfig:
+    """Read and validate a YAML hierarchy preset."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {str(p)!r}: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: invalid YAML: {exc}") from None
+    return parse_config(data, str(p))

@@ -1,0 +1,186 @@
+"""Feature extraction over image lists, in parallel processes, with an on-disk cache.
+
+The cache is keyed by the method's :meth:`~hmpf.methods.base.Method.cache_key` (name, code
+version, config) and by the sha256 of the image file's bytes, so a second run re-extracts
+nothing and a change to either the method or the image invalidates the entry. Entries are
+``.npz`` files written atomically (temporary file + rename); a corrupt entry is re-extracted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+import zipfile
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from hmpf.imageio import load_image
+from hmpf.methods import Method
+from hmpf.runtime import set_compute_threads
+
+__all__ = ["ExtractionResult", "FeatureCache", "default_cache_dir", "extract_images", "file_digest"]
+
+
+def default_cache_dir() -> Path:
+    """``$HMPF_CACHE_DIR`` or ``~/.cache/hmpf/features``."""
+    env = os.environ.get("HMPF_CACHE_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "hmpf" / "features"
+
+
+def file_digest(path: str | os.PathLike[str]) -> str:
+    """sha256 hex digest of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class FeatureCache:
+    """Per-image, per-method feature files under ``root/<method key>/<sha[:2]>/<sha>.npz``."""
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+
+    def _path(self, method: Method, digest: str) -> Path:
+        return self.root / method.cache_key() / digest[:2] / f"{digest}.npz"
+
+    def get(self, method: Method, digest: str) -> tuple[Any, float] | None:
+        """(feature, extraction ms when it was computed) or None."""
+        p = self._path(method, digest)
+        if not p.exists():
+            return None
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+            return None  # corrupt or partial entry: recompute
+        ms = float(arrays.pop("__ms__", np.nan))
+        return method.from_arrays(arrays), ms
+
+    def put(self, method: Method, digest: str, feature: Any, ms: float) -> None:
+        p = self._path(method, digest)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, __ms__=np.float64(ms), **method.to_arrays(feature))
+        os.replace(tmp, p)
+
+
+@dataclass
+class ExtractionResult:
+    """Features of every image per method id, plus per-image extraction times (ms).
+
+    ``ms[mid]`` holds the time measured when each feature was computed (this run or the run
+    that filled the cache); ``cached[mid]`` counts the images taken from the cache.
+    """
+
+    features: dict[str, list[Any]]
+    ms: dict[str, np.ndarray]
+    cached: dict[str, int] = field(default_factory=dict)
+    decode_ms: float = float("nan")
+
+
+_WORKER_METHODS: dict[str, Method] = {}
+
+
+def _init_worker(methods: Mapping[str, Method], single_thread: bool = True) -> None:
+    if single_thread:
+        set_compute_threads(1)
+    _WORKER_METHODS.clear()
+    _WORKER_METHODS.update(methods)
+
+
+def _extract_one(path: str, method_ids: Sequence[str]) -> tuple[dict[str, Any], dict[str, float], float]:
+    t0 = time.perf_counter()
+    image = load_image(path)
+    decode_ms = (time.perf_counter() - t0) * 1e3
+    feats: dict[str, Any] = {}
+    times: dict[str, float] = {}
+    for mid in method_ids:
+        t = time.perf_counter()
+        feats[mid] = _WORKER_METHODS[mid].extract(image)
+        times[mid] = (time.perf_counter() - t) * 1e3
+    return feats, times, decode_ms
+
+
+def extract_images(
+    paths: Sequence[str | os.PathLike[str]],
+    methods: Mapping[str, Method],
+    *,
+    cache: FeatureCache | None = None,
+    workers: int | None = None,
+    progress: bool = False,
+    desc: str = "extract",
+) -> ExtractionResult:
+    """Extract every method's feature for every image (cached ones are loaded, not recomputed).
+
+    Args:
+        paths: image files.
+        methods: method id -> instance.
+        cache: feature cache, or None to always extract.
+        workers: processes (default: CPU count; 1 runs in this process).
+        progress: show a progress bar with images/s and ETA on stderr.
+
+    Raises:
+        ImageError: an image cannot be read (the message names it).
+    """
+    n = len(paths)
+    ids = list(methods)
+    features: dict[str, list[Any]] = {m: [None] * n for m in ids}
+    ms: dict[str, np.ndarray] = {m: np.full(n, np.nan) for m in ids}
+    cached = {m: 0 for m in ids}
+    todo: dict[int, list[str]] = {}
+    digests = [file_digest(p) for p in paths] if cache is not None else [""] * n
+    for i in range(n):
+        for mid in ids:
+            hit = cache.get(methods[mid], digests[i]) if cache is not None else None
+            if hit is None:
+                todo.setdefault(i, []).append(mid)
+            else:
+                features[mid][i], ms[mid][i] = hit
+                cached[mid] += 1
+    decode: list[float] = []
+    jobs = sorted(todo)
+    if jobs:
+        n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+        bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
+
+        def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
+            feats, times, dms = res
+            decode.append(dms)
+            for mid, f in feats.items():
+                features[mid][i] = f
+                ms[mid][i] = times[mid]
+                if cache is not None:
+                    cache.put(methods[mid], digests[i], f, times[mid])
+            bar.update(1)
+
+        try:
+            if n_workers == 1:
+                _init_worker(methods, single_thread=False)
+                for i in jobs:
+                    collect(i, _extract_one(str(paths[i]), todo[i]))
+            else:
+                with ProcessPoolExecutor(
+                    n_workers, initializer=_init_worker, initargs=(dict(methods),)
+                ) as pool:
+                    futs = {i: pool.submit(_extract_one, str(paths[i]), todo[i]) for i in jobs}
+                    try:
+                        for i in jobs:
+                            collect(i, futs[i].result())
+                    except BaseException:
+                        pool.shutdown(wait=False, cancel_futures=True)
+                        raise
+        finally:
+            bar.close()
+    return ExtractionResult(
+        features, ms, cached, float(np.median(decode)) if decode else float("nan")
+    )

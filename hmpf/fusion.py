@@ -1,0 +1,168 @@
+"""Fusion maths as small pure functions (METHODS.md §5).
+
+Shapes: ``N`` is the database size, ``F`` the number of candidates entering the final tier.
+All scores produced here follow one convention: **higher is better, best = 1, worst = 0**.
+Off-candidate entries of a full-length (N,) score vector are ``0`` in faithful mode (the
+original's zero scatter) and ``NaN`` in the default mode ("not a candidate").
+
+Two modes, selected with ``faithful``:
+
+* ``faithful=True`` reproduces ``Multi_SLAM_Fusion.m``: a constant score vector normalises to
+  NaN (MATLAB 0/0), NaN is skipped by max/min/top-k, unions keep duplicates.
+* ``faithful=False`` (default) de-duplicates unions and maps a constant vector to all ones
+  ("every entry is equally the best"), so no NaN appears.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_WEIGHTS",
+    "combined_score",
+    "default_weights",
+    "flat_fusion",
+    "minmax_normalise",
+    "nan_argmax",
+    "top_k",
+    "union",
+    "zscore",
+]
+
+#: Tier weights of the original scripts, tier 1 first (the paper's "1, 0.75, 0.5" from the
+#: final tier backwards).
+DEFAULT_WEIGHTS = (0.5, 0.75, 1.0)
+
+
+def default_weights(n_tiers: int) -> tuple[float, ...]:
+    """The original's weights aligned to the final tier: 1 tier -> (1,), 2 -> (0.75, 1), ..."""
+    if n_tiers > len(DEFAULT_WEIGHTS):
+        raise ValueError(f"{n_tiers} tiers need explicit weights (defaults cover 3)")
+    return DEFAULT_WEIGHTS[len(DEFAULT_WEIGHTS) - n_tiers :]
+
+
+def minmax_normalise(
+    raw: np.ndarray, higher_is_better: bool = False, *, faithful: bool = False
+) -> np.ndarray:
+    """Min-max normalise to best = 1, worst = 0 (NaN entries stay NaN and are ignored).
+
+    Args:
+        raw: (n,) raw scores (distances when ``higher_is_better`` is False).
+        higher_is_better: direction of ``raw``.
+        faithful: constant input gives NaN everywhere (MATLAB 0/0) instead of all ones.
+
+    Returns:
+        (n,) float64.
+    """
+    x = np.asarray(raw, dtype=np.float64)
+    finite = x[~np.isnan(x)]
+    if finite.size == 0:
+        return np.full(x.shape, np.nan)
+    lo, hi = finite.min(), finite.max()
+    if hi == lo:
+        return np.full(x.shape, np.nan) if faithful else np.where(np.isnan(x), np.nan, 1.0)
+    return (x - lo) / (hi - lo) if higher_is_better else (hi - x) / (hi - lo)
+
+
+def top_k(scores: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` highest scores, descending; ties -> lower index; NaN skipped.
+
+    This is the original's repeated max-then-blank selection. Fewer than ``k`` non-NaN
+    entries give a shorter list.
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    valid = np.flatnonzero(~np.isnan(s))
+    if k <= 0 or valid.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    v = s[valid]
+    if k < valid.size:
+        # Partial selection, then an exact stable ordering of the survivors.
+        kth = np.partition(-v, k - 1)[k - 1]
+        keep = np.flatnonzero(-v <= kth)
+        order = keep[np.lexsort((valid[keep], -v[keep]))][:k]
+    else:
+        order = np.lexsort((valid, -v))
+    return valid[order].astype(np.int64)
+
+
+def union(lists: Sequence[np.ndarray], *, faithful: bool = False) -> np.ndarray:
+    """Combine per-method candidate lists of a tier.
+
+    Faithful: plain concatenation, duplicates kept (length = sum of lengths). Default: the
+    same order with later repeats removed.
+    """
+    cat = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if lists else np.zeros(
+        0, np.int64
+    )
+    if faithful:
+        return cat
+    _, first = np.unique(cat, return_index=True)
+    return cat[np.sort(first)]
+
+
+def zscore(x: np.ndarray) -> np.ndarray:
+    """MATLAB ``zscore``: sample std (n - 1); constant or single entry -> zeros; NaN -> all NaN."""
+    v = np.asarray(x, dtype=np.float64)
+    if v.size == 0:
+        return v.copy()
+    if np.isnan(v).any():
+        return np.full(v.shape, np.nan)
+    if v.size == 1:
+        return np.zeros_like(v)
+    sd = v.std(ddof=1)
+    if sd == 0:
+        return np.zeros_like(v)
+    return (v - v.mean()) / sd
+
+
+def nan_argmax(x: np.ndarray) -> int:
+    """MATLAB ``max`` index: first maximum, NaN skipped; all NaN -> 0."""
+    v = np.asarray(x, dtype=np.float64)
+    if v.size == 0 or np.isnan(v).all():
+        return 0
+    return int(np.nanargmax(v))
+
+
+def combined_score(
+    tier_values: Sequence[np.ndarray], weights: Sequence[float], *, faithful: bool = False
+) -> np.ndarray:
+    """Cross-tier Combined score over the final candidates (METHODS.md §5.3).
+
+    Args:
+        tier_values: per tier, the (F,) tier score gathered at the final candidates: the
+            element-wise max over a non-final tier's methods, the mean for the final tier.
+        weights: per tier, tier 1 first.
+        faithful: NaN semantics of the original (constant vector -> NaN).
+
+    Returns:
+        (F,) ``Dsuper = sum_t w_t * minmax(x_t)``; z-score it with :func:`zscore`.
+    """
+    if len(tier_values) != len(weights):
+        raise ValueError("one weight per tier is required")
+    total: np.ndarray | None = None
+    for x, w in zip(tier_values, weights, strict=True):
+        part = minmax_normalise(x, higher_is_better=True, faithful=faithful) * float(w)
+        total = part if total is None else total + part
+    assert total is not None
+    return total
+
+
+def flat_fusion(
+    raw_by_method: Sequence[np.ndarray], higher_is_better: Sequence[bool], *, faithful: bool = False
+) -> np.ndarray:
+    """Parallel (flat) fusion baseline: mean of each method's whole-database normalised score.
+
+    Args:
+        raw_by_method: per method, (N,) raw scores of one query against the whole database.
+        higher_is_better: per method, the direction of its raw score.
+
+    Returns:
+        (N,) fused score, higher is better.
+    """
+    norm = [
+        minmax_normalise(r, h, faithful=faithful)
+        for r, h in zip(raw_by_method, higher_is_better, strict=True)
+    ]
+    return np.mean(norm, axis=0)

@@ -1,0 +1,153 @@
+"""The HMPF hierarchy: tiers narrowing the candidate list, scores fused across tiers.
+
+Per query (METHODS.md §5.2-5.3):
+
+1. Tier 1 scores the whole database with each of its methods (normalised over the database).
+2. A non-final tier passes on the union of its methods' top-k; the next tier scores only
+   those candidates, normalised over them.
+3. The final tier averages its methods; its own top-k is reported (per-tier recall) but is
+   not the answer.
+4. The answer is the argmax of the z-scored Combined score over the candidates *entering* the
+   final tier: earlier tiers contribute the max over their methods, the final tier its mean,
+   each min-max normalised over those candidates and weighted (1, 0.75, 0.5 from the final
+   tier backwards). The max z is the answer's quality.
+
+Unlike the original, any number of tiers (one included: the candidates entering it are the
+whole database) and of methods per tier is allowed, and a method may appear in several tiers.
+Scores come from a ``score_fn(method_id, subset)`` callback so the same code runs on cached
+features (evaluation) and on an index (service).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hmpf.config import HierarchyConfig
+from hmpf.fusion import combined_score, minmax_normalise, nan_argmax, top_k, union, zscore
+from hmpf.methods import Method
+
+__all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult"]
+
+#: ``score_fn(method_id, subset)`` -> raw scores for ``subset`` (reference indices, in order),
+#: or for the whole database when ``subset`` is None.
+ScoreFn = Callable[[str, np.ndarray | None], np.ndarray]
+
+
+@dataclass
+class TierResult:
+    """One tier of one query.
+
+    Attributes:
+        methods: method ids of the tier.
+        inputs: reference indices the tier scored (``None``: the whole database). In faithful
+            mode this list may contain duplicates.
+        scores: per method, the (N,) normalised score (best = 1); off-input entries are 0
+            (faithful) or NaN (default).
+        candidates: the tier's output list: union of per-method top-k (non-final tiers) or the
+            top-k of the averaged score (final tier).
+        time_ms: wall time of the tier (scoring, normalisation, selection).
+    """
+
+    methods: list[str]
+    inputs: np.ndarray | None
+    scores: dict[str, np.ndarray]
+    candidates: np.ndarray
+    time_ms: float
+
+    def mean_score(self) -> np.ndarray:
+        """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input)."""
+        return np.mean([self.scores[m] for m in self.methods], axis=0)
+
+    def max_score(self) -> np.ndarray:
+        """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``)."""
+        stack = np.stack([self.scores[m] for m in self.methods])
+        out = np.full(stack.shape[1], np.nan)
+        has = ~np.isnan(stack).all(axis=0)
+        out[has] = np.nanmax(stack[:, has], axis=0)
+        return out
+
+
+@dataclass
+class HierarchyResult:
+    """The answer for one query and the evidence behind it."""
+
+    match: int
+    quality: float
+    final_candidates: np.ndarray
+    combined: np.ndarray  # z-scores over final_candidates
+    tiers: list[TierResult] = field(default_factory=list)
+    fusion_ms: float = 0.0
+
+    def ranking(self) -> np.ndarray:
+        """Final candidates ranked by Combined z-score, duplicates removed (an extension)."""
+        z = np.where(np.isnan(self.combined), -np.inf, self.combined)
+        order = np.argsort(-z, kind="stable")
+        return union([self.final_candidates[order]], faithful=False)
+
+
+class Hierarchy:
+    """Runs a :class:`HierarchyConfig` over one query's scores."""
+
+    def __init__(self, config: HierarchyConfig, methods: Mapping[str, Method]) -> None:
+        missing = [m for m in config.method_ids if m not in methods]
+        if missing:
+            raise ValueError(f"no method instance for {missing}")
+        self.config = config
+        self.methods = dict(methods)
+
+    def run(self, score_fn: ScoreFn, n_db: int) -> HierarchyResult:
+        """Run every tier for one query against a database of ``n_db`` references."""
+        cfg = self.config
+        faithful = cfg.faithful
+        off = 0.0 if faithful else np.nan
+        tiers: list[TierResult] = []
+        inputs: np.ndarray | None = None
+        n_tiers = len(cfg.tiers)
+        for t, tier in enumerate(cfg.tiers):
+            start = time.perf_counter()
+            scores: dict[str, np.ndarray] = {}
+            if inputs is not None:
+                uniq, inverse = np.unique(inputs, return_inverse=True)
+            for mid in tier.methods:
+                method = self.methods[mid]
+                if inputs is None:
+                    raw = np.asarray(score_fn(mid, None), dtype=np.float64)
+                    full = minmax_normalise(raw, method.higher_is_better, faithful=faithful)
+                else:
+                    raw_u = np.asarray(score_fn(mid, uniq), dtype=np.float64)
+                    # Normalise over the listed entries (duplicates included, as the original).
+                    norm = minmax_normalise(raw_u[inverse], method.higher_is_better,
+                                            faithful=faithful)
+                    full = np.full(n_db, off)
+                    full[inputs] = norm
+                scores[mid] = full
+            if t < n_tiers - 1:
+                cands = union([top_k(scores[m], tier.k) for m in tier.methods], faithful=faithful)
+            else:
+                cands = top_k(np.mean([scores[m] for m in tier.methods], axis=0), tier.k)
+            tiers.append(TierResult(list(tier.methods), inputs, scores, cands,
+                                    (time.perf_counter() - start) * 1e3))
+            inputs = cands
+        start = time.perf_counter()
+        final_in = tiers[-1].inputs
+        F = np.arange(n_db, dtype=np.int64) if final_in is None else final_in
+        values = [
+            (tr.mean_score() if t == n_tiers - 1 else tr.max_score())[F]
+            for t, tr in enumerate(tiers)
+        ]
+        if len(F) == 0:
+            return HierarchyResult(-1, float("nan"), F, np.zeros(0), tiers)
+        z = zscore(combined_score(values, cfg.tier_weights, faithful=faithful))
+        j = nan_argmax(z)
+        return HierarchyResult(
+            match=int(F[j]),
+            quality=float(z[j]),
+            final_candidates=F,
+            combined=z,
+            tiers=tiers,
+            fusion_ms=(time.perf_counter() - start) * 1e3,
+        )

@@ -1,0 +1,96 @@
+"""Image input: decode from a path or from bytes into an RGB ``uint8`` array.
+
+Every failure (missing, empty, truncated or non-image data) raises :class:`hmpf.errors.ImageError`
+naming the source, never a raw OpenCV error.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from hmpf.errors import ImageError
+
+__all__ = ["IMAGE_EXTENSIONS", "decode_image", "load_image", "to_rgb"]
+
+#: File suffixes treated as images when a folder is listed.
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff")
+
+_JPEG_SOI = b"\xff\xd8"
+_JPEG_EOI = b"\xff\xd9"
+_PNG_SIG = b"\x89PNG\r\n\x1a\n"
+_PNG_IEND = b"IEND"
+
+
+def _check_complete(data: bytes, source: str) -> None:
+    """Reject JPEG/PNG streams whose end marker is missing.
+
+    libjpeg decodes a truncated JPEG into a partly grey image with only a warning on stderr;
+    a missing end-of-image marker is the reliable sign of a truncated upload or file.
+    """
+    if data.startswith(_JPEG_SOI):
+        # Some writers append padding after EOI; accept the marker anywhere in the tail.
+        if _JPEG_EOI not in data[-4096:]:
+            raise ImageError(source, "truncated JPEG (no end-of-image marker)")
+    elif data.startswith(_PNG_SIG):
+        if _PNG_IEND not in data[-64:]:
+            raise ImageError(source, "truncated PNG (no IEND chunk)")
+
+
+def to_rgb(image: np.ndarray, source: str = "<array>") -> np.ndarray:
+    """Return ``image`` as an H x W x 3 ``uint8`` RGB array (grey becomes 3 equal channels)."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise ImageError(source, f"expected uint8 pixels, got {img.dtype}")
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.ndim == 3 and img.shape[2] == 1:
+        img = np.repeat(img, 3, axis=2)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 2 or img.shape[1] < 2:
+        raise ImageError(source, f"unsupported image shape {image.shape}")
+    return np.ascontiguousarray(img)
+
+
+def decode_image(data: bytes | bytearray | memoryview, source: str = "<bytes>") -> np.ndarray:
+    """Decode encoded image bytes (JPEG, PNG, WebP, BMP, TIFF) to H x W x 3 RGB ``uint8``.
+
+    Grey and 16-bit images are converted to 8-bit 3-channel; EXIF orientation is applied.
+
+    Raises:
+        ImageError: empty, truncated or undecodable data (the message names ``source``).
+    """
+    buf = bytes(data)
+    if len(buf) == 0:
+        raise ImageError(source, "file is empty")
+    _check_complete(buf, source)
+    arr = np.frombuffer(buf, dtype=np.uint8)
+    try:
+        bgr = cv2.imdecode(arr, cv2.IMREAD_COLOR)
+    except cv2.error as exc:  # e.g. pixel limits inside OpenCV
+        raise ImageError(source, f"decoder failed ({exc.err.strip() if exc.err else exc})") from None
+    if bgr is None:
+        raise ImageError(source, "not a decodable image (JPEG, PNG, WebP, BMP or TIFF)")
+    return to_rgb(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), source)
+
+
+def load_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read and decode the image file at ``path`` to H x W x 3 RGB ``uint8``.
+
+    Raises:
+        ImageError: the file is missing, unreadable, empty or not a valid image.
+    """
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ImageError(str(p), "no such file") from None
+    except IsADirectoryError:
+        raise ImageError(str(p), "is a directory") from None
+    except OSError as exc:
+        raise ImageError(str(p), exc.strerror or str(exc)) from None
+    return decode_image(data, str(p))

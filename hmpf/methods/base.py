@@ -1,0 +1,141 @@
+"""Method interface: the base class checks input, subclasses compute.
+
+A method turns an RGB image into a *feature* and compares a query's feature with reference
+features, giving one raw score per reference. Two kinds exist (ARCHITECTURE.md):
+
+* ``global``: one fixed-length vector per image; compared by a distance over stacked matrices,
+  so it can rank the whole database (tier 1, later through FAISS).
+* ``local``: a variable-size set per image (keypoints, regions); compared pairwise, so it is
+  used on candidate lists.
+
+``higher_is_better`` says which direction of the raw score is better; fusion normalises every
+score to ``best = 1`` (METHODS.md §5.1).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from hmpf.imageio import to_rgb
+
+__all__ = ["GlobalMethod", "LocalMethod", "Method", "MethodConfig"]
+
+
+class MethodConfig(BaseModel):
+    """Base of every method's typed configuration: frozen, unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Method(ABC):
+    """One image-matching technique.
+
+    Subclasses set the class attributes and implement :meth:`_extract` plus the comparison of
+    their kind. ``version`` is part of the cache key: bump it whenever the feature a method
+    produces changes, so that stale cached descriptors are never reused.
+    """
+
+    name: ClassVar[str]
+    kind: ClassVar[Literal["global", "local"]]
+    higher_is_better: ClassVar[bool] = False
+    version: ClassVar[str] = "1"
+    Config: ClassVar[type[MethodConfig]] = MethodConfig
+
+    def __init__(self, config: MethodConfig | None = None) -> None:
+        self.config = config if config is not None else self.Config()
+
+    # -- extraction -------------------------------------------------------------------------
+    def extract(self, image: np.ndarray) -> Any:
+        """Compute this method's feature for one H x W x 3 RGB ``uint8`` image."""
+        return self._extract(to_rgb(image))
+
+    @abstractmethod
+    def _extract(self, image: np.ndarray) -> Any: ...
+
+    # -- comparison -------------------------------------------------------------------------
+    @abstractmethod
+    def scores(self, query: Any, references: Any, subset: np.ndarray | None = None) -> np.ndarray:
+        """Raw scores of one query feature against ``references`` (a stored feature set).
+
+        Args:
+            query: the query's feature as returned by :meth:`extract`.
+            references: the stored set as returned by :meth:`stack`.
+            subset: optional reference indices (candidates); ``None`` means all.
+
+        Returns:
+            float64 array, one raw score per reference (or per entry of ``subset``, in order).
+        """
+
+    @abstractmethod
+    def stack(self, features: Sequence[Any]) -> Any:
+        """Combine per-image features into the stored set used by :meth:`scores`."""
+
+    # -- persistence ------------------------------------------------------------------------
+    def to_arrays(self, feature: Any) -> dict[str, np.ndarray]:
+        """Feature -> named numpy arrays (for the descriptor cache and the index)."""
+        return {"x": np.asarray(feature)}
+
+    def from_arrays(self, arrays: dict[str, np.ndarray]) -> Any:
+        """Inverse of :meth:`to_arrays`."""
+        return arrays["x"]
+
+    def cache_key(self) -> str:
+        """Stable id of this method's exact output: name, code version and config."""
+        payload = json.dumps(
+            {"name": self.name, "version": self.version, "config": self.config.model_dump()},
+            sort_keys=True,
+        )
+        return f"{self.name}-{hashlib.sha256(payload.encode()).hexdigest()[:16]}"
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.config!r})"
+
+
+class GlobalMethod(Method):
+    """A method with one vector per image; the stored set is an N x D matrix."""
+
+    kind: ClassVar[Literal["global", "local"]] = "global"
+    dim: ClassVar[int]
+
+    def stack(self, features: Sequence[np.ndarray]) -> np.ndarray:
+        if len(features) == 0:
+            return np.zeros((0, self.dim), dtype=np.float32)
+        return np.stack([np.asarray(f) for f in features])
+
+    def scores(
+        self, query: np.ndarray, references: np.ndarray, subset: np.ndarray | None = None
+    ) -> np.ndarray:
+        refs = references if subset is None else references[np.asarray(subset, dtype=np.int64)]
+        return self.pairwise(np.asarray(query)[None, :], refs)[0]
+
+    @abstractmethod
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        """(nq, D) x (n, D) -> (nq, n) float64 raw scores."""
+
+
+class LocalMethod(Method):
+    """A method with a variable-size feature set per image; the stored set is a list."""
+
+    kind: ClassVar[Literal["global", "local"]] = "local"
+
+    def stack(self, features: Sequence[Any]) -> list[Any]:
+        return list(features)
+
+
+def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+    """Euclidean distances (nq, D) x (n, D) -> (nq, n) float64, exact to rounding.
+
+    Uses the ``|q|^2 + |r|^2 - 2 q.r`` expansion in float64 (clipped at 0): fast for the
+    full-database matrices and accurate enough for descriptors of moderate norm.
+    """
+    q = np.asarray(queries, dtype=np.float64)
+    r = np.asarray(references, dtype=np.float64)
+    d2 = (q * q).sum(1)[:, None] + (r * r).sum(1)[None, :] - 2.0 * (q @ r.T)
+    return np.sqrt(np.maximum(d2, 0.0))

@@ -1,0 +1,78 @@
+"""SAD (method id 2): SeqSLAM-style patch-normalised thumbnails, 64x32, 2048-D ``uint8``.
+
+METHODS.md §2.7: crop, ``imresize`` RGB to 32 rows x 64 columns (lanczos3), ``rgb2gray``,
+patch-normalise every 8x8 patch to ``round(255 (p - min) / (max - min))`` (a flat patch gives 0),
+flatten column-major. Distance: mean absolute difference over the 2048 values, lower is better.
+
+``faithful=True`` reproduces the original's uint8 arithmetic, where ``db - q`` saturates at 0,
+so only the one-sided sum ``sum(max(db - q, 0)) / 2048`` is computed. The default is the true
+absolute difference (a deliberate fix, see METHODS.md §8.17).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from hmpf.imops import imresize, initcrop, rgb2gray, round_half_away
+from hmpf.methods.base import GlobalMethod, MethodConfig
+from hmpf.methods.registry import register
+
+
+class SadConfig(MethodConfig):
+    width: int = Field(64, ge=8)
+    height: int = Field(32, ge=8)
+    patch: int = Field(8, ge=2)
+    faithful: bool = Field(False, description="one-sided uint8 difference, as the original")
+
+
+def patch_normalise(grey: np.ndarray, patch: int) -> np.ndarray:
+    """Min-max stretch every ``patch`` x ``patch`` tile to 0..255 (``uint8``); flat tiles -> 0."""
+    h, w = grey.shape
+    t = grey.astype(np.float64).reshape(h // patch, patch, w // patch, patch)
+    lo = t.min(axis=(1, 3), keepdims=True)
+    hi = t.max(axis=(1, 3), keepdims=True)
+    rng = hi - lo
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(rng > 0, round_half_away(255.0 * (t - lo) / np.where(rng > 0, rng, 1)), 0)
+    return out.reshape(h, w).astype(np.uint8)
+
+
+@register
+class Sad(GlobalMethod):
+    name = "sad"
+    higher_is_better = False
+    Config: ClassVar[type[MethodConfig]] = SadConfig
+    dim = 2048
+
+    def __init__(self, config: SadConfig | None = None) -> None:
+        super().__init__(config)
+        c: SadConfig = self.config  # type: ignore[assignment]
+        if c.width % c.patch or c.height % c.patch:
+            from hmpf.errors import ConfigError
+
+            raise ConfigError("method 'sad': width and height must be multiples of patch")
+        self.dim = c.width * c.height
+
+    def _extract(self, image: np.ndarray) -> np.ndarray:
+        c: SadConfig = self.config  # type: ignore[assignment]
+        grey = rgb2gray(imresize(initcrop(image), (c.height, c.width), "lanczos3"))
+        return patch_normalise(grey, c.patch).ravel(order="F")
+
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        c: SadConfig = self.config  # type: ignore[assignment]
+        q = np.asarray(queries, dtype=np.int16)
+        r = np.asarray(references, dtype=np.int16)
+        out = np.empty((q.shape[0], r.shape[0]), dtype=np.float64)
+        # Chunk the queries so the (chunk, n, D) difference tensor stays small.
+        step = max(1, 4_000_000 // max(1, r.shape[0] * r.shape[1]))
+        for s in range(0, q.shape[0], step):
+            diff = r[None, :, :] - q[s : s + step, None, :]
+            if c.faithful:
+                np.maximum(diff, 0, out=diff)
+            else:
+                np.abs(diff, out=diff)
+            out[s : s + step] = diff.sum(axis=2, dtype=np.int64) / r.shape[1]
+        return out

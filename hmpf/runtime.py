@@ -1,0 +1,30 @@
+"""Process-wide compute settings (threads for FFT and BLAS-like work inside one image).
+
+Extraction worker processes call :func:`set_compute_threads(1)` so that parallel workers do not
+oversubscribe the cores; a single process uses every core for one image.
+"""
+
+from __future__ import annotations
+
+import os
+
+_threads: int | None = None
+
+
+def compute_threads() -> int:
+    """Threads one image's computation may use (``HMPF_THREADS`` or the CPU count)."""
+    if _threads is not None:
+        return _threads
+    env = os.environ.get("HMPF_THREADS")
+    if env:
+        return max(1, int(env))
+    return os.cpu_count() or 1
+
+
+def set_compute_threads(n: int) -> None:
+    """Limit this process's per-image threads (also OpenCV's pool)."""
+    global _threads
+    _threads = max(1, int(n))
+    import cv2
+
+    cv2.setNumThreads(_threads)
