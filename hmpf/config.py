@@ -88,9 +88,7 @@ class HierarchyConfig(BaseModel):
 
     def digest(self) -> str:
         """sha256 of the canonical JSON of this config."""
-        return hashlib.sha256(
-            json.dumps(self.model_dump(), sort_keys=True).encode()
-        ).hexdigest()
+        return hashlib.sha256(json.dumps(self.model_dump(), sort_keys=True).encode()).hexdigest()
 
 
 def build_methods(config: HierarchyConfig) -> dict[str, Method]:

@@ -18,7 +18,7 @@ import numpy as np
 from hmpf.config import HierarchyConfig, build_methods
 from hmpf.features import FeatureCache, extract_images
 from hmpf.fusion import flat_fusion, nan_argmax, zscore
-from hmpf.hierarchy import Hierarchy, HierarchyResult
+from hmpf.hierarchy import Hierarchy, HierarchyResult, feature_scorer
 from hmpf.methods import Method
 
 __all__ = [
@@ -125,10 +125,12 @@ def evaluate(
     methods = build_methods(config)
     gt = data.gt
     t0 = time.perf_counter()
-    ref = extract_images(data.reference, methods, cache=cache, workers=workers,
-                         progress=progress, desc="references")
-    qry = extract_images(data.query, methods, cache=cache, workers=workers,
-                         progress=progress, desc="queries")
+    ref = extract_images(
+        data.reference, methods, cache=cache, workers=workers, progress=progress, desc="references"
+    )
+    qry = extract_images(
+        data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
+    )
     extraction_s = time.perf_counter() - t0
     db = {m: methods[m].stack(ref.features[m]) for m in methods}
     q_sets = {m: methods[m].stack(qry.features[m]) for m in methods}
@@ -139,17 +141,7 @@ def evaluate(
     results: list[HierarchyResult] = []
     t0 = time.perf_counter()
     for qi in range(n_q):
-        memo: dict[str, np.ndarray] = {}
-
-        def score_fn(mid: str, subset: np.ndarray | None, qi: int = qi) -> np.ndarray:
-            if mid in memo:  # a method met again in a later tier reuses its full scores
-                return memo[mid] if subset is None else memo[mid][subset]
-            m = methods[mid]
-            raw = m.scores(q_sets[mid][qi], db[mid], subset)
-            if subset is None:
-                memo[mid] = raw
-            return raw
-
+        score_fn = feature_scorer(methods, {m: q_sets[m][qi] for m in methods}, db)
         results.append(hier.run(score_fn, n_db))
     hierarchy_s = time.perf_counter() - t0
 
@@ -169,7 +161,8 @@ def evaluate(
             full[mid] = _full_scores(m, q_sets[mid], db[mid])
             entry["match_ms_per_query_full_db"] = (time.perf_counter() - ts) * 1e3 / max(1, n_q)
             entry["recall_at"] = {
-                str(k): v for k, v in recall_at_n(full[mid], gt, RECALL_NS, m.higher_is_better).items()
+                str(k): v
+                for k, v in recall_at_n(full[mid], gt, RECALL_NS, m.higher_is_better).items()
             }
         method_report[mid] = entry
     curves_s = time.perf_counter() - t0
@@ -180,9 +173,11 @@ def evaluate(
     flat_quality = np.zeros(n_q)
     if flat_ids:
         for qi in range(n_q):
-            fused = flat_fusion([full[m][qi] for m in flat_ids],
-                                [methods[m].higher_is_better for m in flat_ids],
-                                faithful=config.faithful)
+            fused = flat_fusion(
+                [full[m][qi] for m in flat_ids],
+                [methods[m].higher_is_better for m in flat_ids],
+                faithful=config.faithful,
+            )
             flat_match[qi] = nan_argmax(fused)
             z = zscore(fused)
             flat_quality[qi] = z[flat_match[qi]]
@@ -196,18 +191,26 @@ def evaluate(
     for t, tier in enumerate(config.tiers):
         cand_hit = [bool(gt[qi, r.tiers[t].candidates].any()) for qi, r in enumerate(results)]
         top1 = [bool(gt[qi, nan_argmax(r.tiers[t].mean_score())]) for qi, r in enumerate(results)]
-        tiers.append({
-            "methods": list(tier.methods),
-            "k": tier.k,
-            "recall": float(np.mean(cand_hit)),
-            "top1_recall": float(np.mean(top1)),
-            "mean_candidates_out": float(np.mean([len(r.tiers[t].candidates) for r in results])),
-            "ms_per_query": _median([r.tiers[t].time_ms for r in results]),
-        })
+        tiers.append(
+            {
+                "methods": list(tier.methods),
+                "k": tier.k,
+                "recall": float(np.mean(cand_hit)),
+                "top1_recall": float(np.mean(top1)),
+                "mean_candidates_out": float(
+                    np.mean([len(r.tiers[t].candidates) for r in results])
+                ),
+                "ms_per_query": _median([r.tiers[t].time_ms for r in results]),
+            }
+        )
     flat_correct = gt[qidx, flat_match]
     report: dict[str, Any] = {
-        "config": {"name": config.name, "mode": config.mode, "sha256": config.digest(),
-                   "resolved": config.model_dump()},
+        "config": {
+            "name": config.name,
+            "mode": config.mode,
+            "sha256": config.digest(),
+            "resolved": config.model_dump(),
+        },
         "protocol": {
             "reference": str(Path(data.reference[0]).parent),
             "query": str(Path(data.query[0]).parent),
@@ -259,25 +262,35 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append(header)
     for mid, e in report["methods"].items():
         rec = e.get("recall_at")
-        cells = "".join(f"{rec[str(n)]:8.3f}" for n in RECALL_NS) if rec else "  (no whole-database curve)"
+        cells = (
+            "".join(f"{rec[str(n)]:8.3f}" for n in RECALL_NS)
+            if rec
+            else "  (no whole-database curve)"
+        )
         lines.append(mid.ljust(12) + cells + f"  {e['extract_ms_per_image']:10.1f}")
     lines.append("")
     h = report["hierarchy"]
     lines.append("tier  methods              k   cand.recall  top1.recall  ms/query")
     for i, t in enumerate(h["tiers"], start=1):
-        lines.append(f"{i:<5} {'+'.join(t['methods']):<20} {t['k']:<4} {t['recall']:11.3f}"
-                     f"  {t['top1_recall']:11.3f}  {t['ms_per_query']:8.2f}")
+        lines.append(
+            f"{i:<5} {'+'.join(t['methods']):<20} {t['k']:<4} {t['recall']:11.3f}"
+            f"  {t['top1_recall']:11.3f}  {t['ms_per_query']:8.2f}"
+        )
     lines.append("")
     flat = h["flat_recall_at_1"]
     lines.append(f"Combined recall@1   {h['combined_recall_at_1']:.3f}")
     lines.append(f"final tier recall@1 {h['final_tier_recall_at_1']:.3f}")
     lines.append(f"flat fusion recall@1 {flat:.3f}" if flat is not None else "flat fusion: n/a")
     pr = h["pr"]
-    lines.append(f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
-                 f"recall@100%P {pr['recall_at_100_precision']:.3f}")
+    lines.append(
+        f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
+        f"recall@100%P {pr['recall_at_100_precision']:.3f}"
+    )
     w = report["wall_s"]
     tm = report["timing_ms"]
-    lines.append(f"time: extraction {w['extraction']:.1f} s, hierarchy {w['hierarchy']:.1f} s "
-                 f"({tm['hierarchy_per_query']:.1f} ms/query), single-method curves "
-                 f"{w['single_method_curves']:.1f} s")
+    lines.append(
+        f"time: extraction {w['extraction']:.1f} s, hierarchy {w['hierarchy']:.1f} s "
+        f"({tm['hierarchy_per_query']:.1f} ms/query), single-method curves "
+        f"{w['single_method_curves']:.1f} s"
+    )
     return "\n".join(lines)

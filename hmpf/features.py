@@ -9,6 +9,7 @@ nothing and a change to either the method or the image invalidates the entry. En
 from __future__ import annotations
 
 import hashlib
+import multiprocessing
 import os
 import time
 import zipfile
@@ -98,7 +99,9 @@ def _init_worker(methods: Mapping[str, Method], single_thread: bool = True) -> N
     _WORKER_METHODS.update(methods)
 
 
-def _extract_one(path: str, method_ids: Sequence[str]) -> tuple[dict[str, Any], dict[str, float], float]:
+def _extract_one(
+    path: str, method_ids: Sequence[str]
+) -> tuple[dict[str, Any], dict[str, float], float]:
     t0 = time.perf_counter()
     image = load_image(path)
     decode_ms = (time.perf_counter() - t0) * 1e3
@@ -169,8 +172,10 @@ def extract_images(
                 for i in jobs:
                     collect(i, _extract_one(str(paths[i]), todo[i]))
             else:
+                # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
+                ctx = multiprocessing.get_context("forkserver")
                 with ProcessPoolExecutor(
-                    n_workers, initializer=_init_worker, initargs=(dict(methods),)
+                    n_workers, mp_context=ctx, initializer=_init_worker, initargs=(dict(methods),)
                 ) as pool:
                     futs = {i: pool.submit(_extract_one, str(paths[i]), todo[i]) for i in jobs}
                     try:

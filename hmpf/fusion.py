@@ -93,8 +93,10 @@ def union(lists: Sequence[np.ndarray], *, faithful: bool = False) -> np.ndarray:
     Faithful: plain concatenation, duplicates kept (length = sum of lengths). Default: the
     same order with later repeats removed.
     """
-    cat = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if lists else np.zeros(
-        0, np.int64
+    cat = (
+        np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])
+        if lists
+        else np.zeros(0, np.int64)
     )
     if faithful:
         return cat

@@ -23,6 +23,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,11 +31,37 @@ from hmpf.config import HierarchyConfig
 from hmpf.fusion import combined_score, minmax_normalise, nan_argmax, top_k, union, zscore
 from hmpf.methods import Method
 
-__all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult"]
+__all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult", "feature_scorer"]
 
 #: ``score_fn(method_id, subset)`` -> raw scores for ``subset`` (reference indices, in order),
 #: or for the whole database when ``subset`` is None.
 ScoreFn = Callable[[str, np.ndarray | None], np.ndarray]
+
+
+def feature_scorer(
+    methods: Mapping[str, Method], query: Mapping[str, Any], references: Mapping[str, Any]
+) -> ScoreFn:
+    """A :data:`ScoreFn` for one query from in-memory features.
+
+    Args:
+        methods: method id -> instance.
+        query: method id -> the query's feature.
+        references: method id -> the stored reference set (``Method.stack``).
+
+    Whole-database scores are remembered, so a method met again in a later tier costs a
+    gather instead of a second comparison.
+    """
+    memo: dict[str, np.ndarray] = {}
+
+    def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        if mid in memo:
+            return memo[mid] if subset is None else memo[mid][subset]
+        raw = methods[mid].scores(query[mid], references[mid], subset)
+        if subset is None:
+            memo[mid] = raw
+        return raw
+
+    return score_fn
 
 
 @dataclass
@@ -120,8 +147,9 @@ class Hierarchy:
                 else:
                     raw_u = np.asarray(score_fn(mid, uniq), dtype=np.float64)
                     # Normalise over the listed entries (duplicates included, as the original).
-                    norm = minmax_normalise(raw_u[inverse], method.higher_is_better,
-                                            faithful=faithful)
+                    norm = minmax_normalise(
+                        raw_u[inverse], method.higher_is_better, faithful=faithful
+                    )
                     full = np.full(n_db, off)
                     full[inputs] = norm
                 scores[mid] = full
@@ -129,8 +157,11 @@ class Hierarchy:
                 cands = union([top_k(scores[m], tier.k) for m in tier.methods], faithful=faithful)
             else:
                 cands = top_k(np.mean([scores[m] for m in tier.methods], axis=0), tier.k)
-            tiers.append(TierResult(list(tier.methods), inputs, scores, cands,
-                                    (time.perf_counter() - start) * 1e3))
+            tiers.append(
+                TierResult(
+                    list(tier.methods), inputs, scores, cands, (time.perf_counter() - start) * 1e3
+                )
+            )
             inputs = cands
         start = time.perf_counter()
         final_in = tiers[-1].inputs

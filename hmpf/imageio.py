@@ -72,7 +72,9 @@ def decode_image(data: bytes | bytearray | memoryview, source: str = "<bytes>") 
     try:
         bgr = cv2.imdecode(arr, cv2.IMREAD_COLOR)
     except cv2.error as exc:  # e.g. pixel limits inside OpenCV
-        raise ImageError(source, f"decoder failed ({exc.err.strip() if exc.err else exc})") from None
+        raise ImageError(
+            source, f"decoder failed ({exc.err.strip() if exc.err else exc})"
+        ) from None
     if bgr is None:
         raise ImageError(source, "not a decodable image (JPEG, PNG, WebP, BMP or TIFF)")
     return to_rgb(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), source)

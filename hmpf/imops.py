@@ -33,9 +33,9 @@ def _triangle(x: np.ndarray) -> np.ndarray:
 def _cubic(x: np.ndarray) -> np.ndarray:
     ax = np.abs(x)
     ax2, ax3 = ax**2, ax**3
-    return (1.5 * ax3 - 2.5 * ax2 + 1) * (ax <= 1) + (
-        -0.5 * ax3 + 2.5 * ax2 - 4 * ax + 2
-    ) * ((ax > 1) & (ax <= 2))
+    return (1.5 * ax3 - 2.5 * ax2 + 1) * (ax <= 1) + (-0.5 * ax3 + 2.5 * ax2 - 4 * ax + 2) * (
+        (ax > 1) & (ax <= 2)
+    )
 
 
 _KERNELS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], float]] = {
@@ -51,6 +51,7 @@ def _weights(in_len: int, out_len: int, method: str) -> sp.csr_matrix:
     kernel, width = _KERNELS[method]
     scale = out_len / in_len
     if scale < 1:  # antialiasing: widen the kernel by 1/scale
+
         def h(x: np.ndarray) -> np.ndarray:
             return scale * kernel(scale * x)
 

@@ -39,10 +39,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
     p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
     p.add_argument("--workers", type=int, default=None, help="extraction processes (default: CPUs)")
-    p.add_argument("--limit", type=int, default=None,
-                   help="use only the first N images of each folder (quick runs)")
-    p.add_argument("--skip-curves", nargs="*", default=[], metavar="METHOD",
-                   help="methods whose whole-database curve is not computed")
+    p.add_argument(
+        "--limit",
+        type=int,
+        default=None,
+        help="use only the first N images of each folder (quick runs)",
+    )
+    p.add_argument(
+        "--skip-curves",
+        nargs="*",
+        default=[],
+        metavar="METHOD",
+        help="methods whose whole-database curve is not computed",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -59,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.gps_csv:
             if args.radius_m is None:
                 raise HmpfError("--gps-csv needs --radius-m")
-            gt = gps_ground_truth(args.gps_csv, [q.name for q in qrys], [r.name for r in refs],
-                                  args.radius_m)
+            gt = gps_ground_truth(
+                args.gps_csv, [q.name for q in qrys], [r.name for r in refs], args.radius_m
+            )
             desc = f"GPS within {args.radius_m:g} m"
         else:
             tol = 2 if args.tolerance is None else args.tolerance

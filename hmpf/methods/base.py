@@ -97,6 +97,10 @@ class Method(ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.config!r})"
 
+    def __reduce__(self) -> tuple[type[Method], tuple[MethodConfig]]:
+        # Rebuilt from the config in worker processes: OpenCV objects do not pickle.
+        return (type(self), (self.config,))
+
 
 class GlobalMethod(Method):
     """A method with one vector per image; the stored set is an N x D matrix."""

@@ -131,7 +131,7 @@ class Kaze(LocalMethod):
 
     @property
     def detector(self) -> Any:
-        if self._detector is None:  # created lazily: cv2 objects do not pickle
+        if self._detector is None:
             c: KazeConfig = self.config  # type: ignore[assignment]
             self._detector = cv2.KAZE_create(
                 extended=False,
@@ -142,13 +142,6 @@ class Kaze(LocalMethod):
                 diffusivity=cv2.KAZE_DIFF_PM_G2,
             )
         return self._detector
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {"config": self.config}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.config = state["config"]
-        self._detector = None
 
     def _extract(self, image: np.ndarray) -> KazeFeatures:
         c: KazeConfig = self.config  # type: ignore[assignment]

@@ -1,0 +1,71 @@
+"""Shared fixtures. Real datasets come from ``$HMPF_DATASETS`` (default ``../shared/datasets``).
+
+With ``HMPF_REQUIRE_DATASETS=1`` (set by ``.ci/run``) a missing dataset folder is an error
+instead of skipped tests, so CI cannot pass without running the real-data tests.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hmpf.datasets import dataset_root
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    if os.environ.get("HMPF_REQUIRE_DATASETS") == "1":
+        gp = dataset_root() / "gardens_point"
+        if not gp.is_dir():
+            raise pytest.UsageError(f"HMPF_REQUIRE_DATASETS=1 but {gp} does not exist")
+
+
+@pytest.fixture(scope="session")
+def gardens_point() -> Path:
+    root = dataset_root() / "gardens_point"
+    if not (root / "day_right").is_dir():
+        pytest.skip(f"Gardens Point not found under {root}")
+    return root
+
+
+@pytest.fixture(scope="session")
+def nordland() -> Path:
+    root = dataset_root() / "nordland_64x32"
+    if not (root / "summer").is_dir():
+        pytest.skip(f"Nordland thumbnails not found under {root}")
+    return root
+
+
+def synthetic_image(seed: int, size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """A textured RGB uint8 image (blobs and edges) that KAZE and HOG respond to."""
+    rng = np.random.default_rng(seed)
+    h, w = size
+    img = np.zeros((h, w, 3), np.uint8)
+    for _ in range(25):
+        c = tuple(int(v) for v in rng.integers(0, 255, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        if rng.random() < 0.5:
+            cv2.circle(img, (x, y), int(rng.integers(4, 25)), c, -1)
+        else:
+            cv2.rectangle(
+                img, (x, y), (x + int(rng.integers(5, 40)), y + int(rng.integers(5, 40))), c, -1
+            )
+    return img
+
+
+@pytest.fixture
+def image_folder(tmp_path: Path):
+    """Factory: write ``n`` synthetic PNGs (seeds offset by ``seed``) into a new folder."""
+
+    def make(name: str, n: int, seed: int = 0) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        for i in range(n):
+            img = synthetic_image(seed + i)
+            cv2.imwrite(str(folder / f"img{i:03d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        return folder
+
+    return make

@@ -1,0 +1,96 @@
+from pathlib import Path
+
+import pytest
+
+from hmpf.config import build_methods, load_config, parse_config
+from hmpf.errors import ConfigError, UnknownMethodError
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_presets_validate(path: Path):
+    cfg = load_config(path)
+    methods = build_methods(cfg)
+    assert set(methods) == set(cfg.method_ids)
+    assert len(cfg.tier_weights) == len(cfg.tiers)
+
+
+def test_handcrafted_is_three_tiers_of_the_four_methods():
+    cfg = load_config(CONFIGS / "handcrafted.yaml")
+    assert len(cfg.tiers) == 3
+    assert set(cfg.method_ids) == {"hog", "gist", "sad", "kaze"}
+    assert cfg.tier_weights == (0.5, 0.75, 1.0)
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_unknown_top_level_key_is_named(tmp_path: Path):
+    p = _write(tmp_path, "tiers: [{methods: [hog], k: 1}]\ntiers_typo: 3\n")
+    with pytest.raises(ConfigError, match="unknown key 'tiers_typo'"):
+        load_config(p)
+
+
+def test_unknown_tier_key_is_named(tmp_path: Path):
+    p = _write(tmp_path, "tiers: [{methods: [hog], k: 1, kk: 2}]\n")
+    with pytest.raises(ConfigError, match="tiers.0.kk"):
+        load_config(p)
+
+
+def test_unknown_method_parameter_is_named(tmp_path: Path):
+    p = _write(tmp_path, "methods: {kaze: {max_keypoint: 5}}\ntiers: [{methods: [kaze], k: 1}]\n")
+    with pytest.raises(ConfigError, match="max_keypoint"):
+        load_config(p)
+
+
+def test_unknown_method_lists_valid_names():
+    with pytest.raises(UnknownMethodError, match="available methods: .*gist.*hog"):
+        parse_config({"tiers": [{"methods": ["hogg"], "k": 1}]})
+
+
+def test_invalid_values():
+    with pytest.raises(ConfigError, match="k"):
+        parse_config({"tiers": [{"methods": ["hog"], "k": 0}]})
+    with pytest.raises(ConfigError, match="weights"):
+        parse_config({"tiers": [{"methods": ["hog"], "k": 1}], "weights": [1, 2]})
+    with pytest.raises(ConfigError, match="explicit weights"):
+        parse_config({"tiers": [{"methods": ["hog"], "k": 5}] * 4})
+    with pytest.raises(ConfigError, match="twice"):
+        parse_config({"tiers": [{"methods": ["hog", "hog"], "k": 1}]})
+    with pytest.raises(ConfigError, match="mode"):
+        parse_config({"mode": "exact", "tiers": [{"methods": ["hog"], "k": 1}]})
+    with pytest.raises(ConfigError, match="used by no tier"):
+        parse_config({"methods": {"gist": {}}, "tiers": [{"methods": ["hog"], "k": 1}]})
+
+
+def test_bad_yaml_and_missing_file(tmp_path: Path):
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_config(_write(tmp_path, "tiers: [\n"))
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(_write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_method_alias_with_type_allows_two_settings_of_one_method():
+    cfg = parse_config(
+        {
+            "methods": {"kaze_fast": {"type": "kaze", "max_keypoints": 100}},
+            "tiers": [{"methods": ["kaze_fast"], "k": 5}, {"methods": ["kaze"], "k": 1}],
+        }
+    )
+    m = build_methods(cfg)
+    assert m["kaze_fast"].config.max_keypoints == 100
+    assert m["kaze"].config.max_keypoints == 500
+    assert m["kaze_fast"].cache_key() != m["kaze"].cache_key()
+
+
+def test_digest_is_stable_and_sensitive():
+    a = parse_config({"tiers": [{"methods": ["hog"], "k": 1}]})
+    b = parse_config({"tiers": [{"methods": ["hog"], "k": 1}]})
+    c = parse_config({"tiers": [{"methods": ["hog"], "k": 2}]})
+    assert a.digest() == b.digest() != c.digest()
