@@ -119,13 +119,18 @@ def imresize(img: np.ndarray, size: tuple[int, int], method: str = "lanczos3") -
 
 
 def rgb2gray(img: np.ndarray) -> np.ndarray:
-    """MATLAB ``rgb2gray``; a 2-D input is returned unchanged. uint8 in -> uint8 out (rounded)."""
+    """MATLAB ``rgb2gray``; a 2-D input is returned unchanged. uint8 in -> uint8 out (rounded).
+
+    For uint8 the weighted sum is computed exactly in integers (``2989 R + 5870 G + 1140 B``
+    over 10000) and rounded half away from zero, as MATLAB's ``round`` does.
+    """
     if img.ndim == 2:
         return img
-    f = img[..., :3].astype(np.float64) @ np.array([0.2989, 0.5870, 0.1140])
     if img.dtype == np.uint8:
-        return np.clip(np.floor(f + 0.5), 0, 255).astype(np.uint8)
-    return f
+        c = img[..., :3].astype(np.int32)
+        v = 2989 * c[..., 0] + 5870 * c[..., 1] + 1140 * c[..., 2]
+        return np.minimum((v + 5000) // 10000, 255).astype(np.uint8)
+    return img[..., :3].astype(np.float64) @ np.array([0.2989, 0.5870, 0.1140])
 
 
 def initcrop(img: np.ndarray) -> np.ndarray:

@@ -45,7 +45,7 @@ class Method(ABC):
     name: ClassVar[str]
     kind: ClassVar[Literal["global", "local"]]
     higher_is_better: ClassVar[bool] = False
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     Config: ClassVar[type[MethodConfig]] = MethodConfig
 
     def __init__(self, config: MethodConfig | None = None) -> None:

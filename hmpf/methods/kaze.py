@@ -123,7 +123,6 @@ class Kaze(LocalMethod):
     name = "kaze"
     higher_is_better = False
     Config: ClassVar[type[MethodConfig]] = KazeConfig
-    version = "1"
 
     def __init__(self, config: KazeConfig | None = None) -> None:
         super().__init__(config)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import cv2
 import numpy as np
 from pydantic import Field
 
@@ -63,16 +64,15 @@ class Sad(GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         c: SadConfig = self.config  # type: ignore[assignment]
-        q = np.asarray(queries, dtype=np.int16)
-        r = np.asarray(references, dtype=np.int16)
+        r = np.ascontiguousarray(references, dtype=np.uint8)
+        q = np.ascontiguousarray(queries, dtype=np.uint8)
         out = np.empty((q.shape[0], r.shape[0]), dtype=np.float64)
-        # Chunk the queries so the (chunk, n, D) difference tensor stays small.
-        step = max(1, 4_000_000 // max(1, r.shape[0] * r.shape[1]))
-        for s in range(0, q.shape[0], step):
-            diff = r[None, :, :] - q[s : s + step, None, :]
-            if c.faithful:
-                np.maximum(diff, 0, out=diff)
-            else:
-                np.abs(diff, out=diff)
-            out[s : s + step] = diff.sum(axis=2, dtype=np.int64) / r.shape[1]
-        return out
+        if r.shape[0] == 0:
+            return out
+        # uint8 SIMD in OpenCV: absdiff for |db - q|; subtract saturates at 0 exactly like
+        # MATLAB's uint8 ``db - q`` (the faithful one-sided difference).
+        op = cv2.subtract if c.faithful else cv2.absdiff
+        for i, row in enumerate(q):
+            diff = op(r, np.broadcast_to(row, r.shape).copy())
+            out[i] = cv2.reduce(diff, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel()
+        return out / r.shape[1]

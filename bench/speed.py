@@ -1,0 +1,99 @@
+"""Speed figures behind the issue's targets (medians, on this machine).
+
+    python bench/speed.py
+
+* KAZE matching per candidate pair on real Gardens Point features (night query vs day
+  references), with the default keypoint cap and without it, plus a bare vectorised
+  1100 x 1100 match of unit descriptors for scale;
+* extraction per image per method (single process, one image at a time);
+* the hierarchy over a whole Gardens Point protocol (200 x 200), extraction included, from
+  a cold cache, with the default number of worker processes.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from accuracy import machine  # noqa: E402
+
+from hmpf.config import load_config  # noqa: E402
+from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.evaluate import EvalData, evaluate  # noqa: E402
+from hmpf.imageio import load_image  # noqa: E402
+from hmpf.methods import create_method  # noqa: E402
+from hmpf.methods.kaze import best_two_ssd, unit_rows  # noqa: E402
+
+
+def timed(fn, repeats: int) -> float:
+    """Median wall time of ``fn()`` in ms."""
+    fn()
+    runs = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        runs.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(runs)
+
+
+def main() -> int:
+    gp = dataset_root() / "gardens_point"
+    day = list_images(gp / "day_right")
+    night = list_images(gp / "night_right")
+    print(f"Machine: {machine()}\n")
+
+    # -- KAZE matching per pair -------------------------------------------------------------
+    for cap in (500, None):
+        kaze = create_method("kaze", {"max_keypoints": cap})
+        refs = [kaze.extract(load_image(p)) for p in day[::10]]  # 20 references
+        query = kaze.extract(load_image(night[50]))
+        ms = timed(lambda k=kaze, q=query, r=refs: k.scores(q, r), 15) / len(refs)
+        n_ref = np.mean([len(r) for r in refs])
+        print(f"KAZE match, cap={cap}: {ms:.3f} ms per pair "
+              f"(query {len(query)} keypoints, references {n_ref:.0f} on average)")
+    rng = np.random.default_rng(0)
+    a = unit_rows(rng.standard_normal((1100, 64)))
+    b = unit_rows(rng.standard_normal((1100, 64)))
+    print(f"bare 1100 x 1100 best-two SSD: {timed(lambda: best_two_ssd(a, b), 15):.3f} ms\n")
+
+    # -- extraction per image ------------------------------------------------------------------
+    images = [load_image(p) for p in day[:20]]
+    for name in ("hog", "gist", "sad", "kaze"):
+        m = create_method(name)
+        per = statistics.median(timed(lambda m=m, im=im: m.extract(im), 3) for im in images)
+        print(f"extract {name:5s}: {per:6.1f} ms per 960x540 image")
+    thumbs = [load_image(p) for p in list_images(dataset_root() / "nordland_64x32" / "summer")[:20]]
+    gist = create_method("gist")
+    per = statistics.median(timed(lambda im=im: gist.extract(im), 3) for im in thumbs)
+    print(f"extract gist : {per:6.1f} ms per 64x32 Nordland thumbnail\n")
+
+    # -- whole protocol, cold cache ----------------------------------------------------------------
+    config = load_config(ROOT / "configs" / "handcrafted.yaml")
+    with tempfile.TemporaryDirectory() as tmp:
+        from hmpf.features import FeatureCache
+
+        t = time.perf_counter()
+        rep = evaluate(config, EvalData(day, night, frame_ground_truth(200, 200, 2), "+-2"),
+                       cache=FeatureCache(tmp), skip_curves=list(config.method_ids))
+        total = time.perf_counter() - t
+    w = rep["wall_s"]
+    print(f"handcrafted hierarchy, day_right -> night_right, cold cache: extraction "
+          f"{w['extraction']:.1f} s + hierarchy {w['hierarchy']:.1f} s = "
+          f"{w['extraction_plus_hierarchy']:.1f} s (whole call {total:.1f} s); "
+          f"Combined recall@1 {rep['hierarchy']['combined_recall_at_1']:.3f}")
+    print("per query (median ms): " + ", ".join(
+        f"tier {i + 1} {v:.2f}" for i, v in enumerate(rep["timing_ms"]["tiers_per_query"])))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
