@@ -64,15 +64,22 @@ def main() -> int:
         refs, qrys = list_images(ref_dir), list_images(q_dir)
         gt = frame_ground_truth(len(qrys), len(refs), args.tolerance)
         t0 = time.perf_counter()
-        rep = evaluate(config, EvalData(refs, qrys, gt, f"frames +-{args.tolerance}"),
-                       cache=cache, workers=args.workers, progress=True)
+        rep = evaluate(
+            config,
+            EvalData(refs, qrys, gt, f"frames +-{args.tolerance}"),
+            cache=cache,
+            workers=args.workers,
+            progress=True,
+        )
         rep["bench_wall_s"] = time.perf_counter() - t0
         reports[name] = rep
         print(f"\n=== {name} ===")
         print(format_report(rep), flush=True)
 
     ids = config.method_ids
-    print(f"\nMachine: {machine()}\nConfig: {args.config}, ground truth +-{args.tolerance} frames\n")
+    print(
+        f"\nMachine: {machine()}\nConfig: {args.config}, ground truth +-{args.tolerance} frames\n"
+    )
     head = ["protocol", *ids, "Combined", "final tier", "flat", "tier recalls", "ms/query"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
@@ -81,21 +88,27 @@ def main() -> int:
         single = [rep["methods"][m].get("recall_at", {}).get("1") for m in ids]
         cells = [f"{x:.3f}" if x is not None else "-" for x in single]
         tiers = " / ".join(f"{t['recall']:.2f}" for t in h["tiers"])
-        print(f"| {name} | " + " | ".join(cells)
-              + f" | **{h['combined_recall_at_1']:.3f}** | {h['final_tier_recall_at_1']:.3f}"
-              + f" | {h['flat_recall_at_1']:.3f} | {tiers}"
-              + f" | {rep['timing_ms']['hierarchy_per_query']:.1f} |")
+        print(
+            f"| {name} | "
+            + " | ".join(cells)
+            + f" | **{h['combined_recall_at_1']:.3f}** | {h['final_tier_recall_at_1']:.3f}"
+            + f" | {h['flat_recall_at_1']:.3f} | {tiers}"
+            + f" | {rep['timing_ms']['hierarchy_per_query']:.1f} |"
+        )
     print("\nTime per stage (median ms):")
     for name, rep in reports.items():
         t = rep["timing_ms"]
         ext = ", ".join(f"{m} {v:.1f}" for m, v in t["extract_per_image"].items())
         tiers = ", ".join(f"tier {i + 1} {v:.2f}" for i, v in enumerate(t["tiers_per_query"]))
-        print(f"- {name}: extraction per image: {ext}; matching per query: {tiers}, "
-              f"fusion {t['fusion_per_query']:.3f}")
+        print(
+            f"- {name}: extraction per image: {ext}; matching per query: {tiers}, "
+            f"fusion {t['fusion_per_query']:.3f}"
+        )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": machine(), "config": args.config,
-                               "reports": reports}, indent=1))
+    out.write_text(
+        json.dumps({"machine": machine(), "config": args.config, "reports": reports}, indent=1)
+    )
     print(f"\nfull reports: {out}")
     return 0
 

@@ -58,8 +58,10 @@ def main() -> int:
         query = kaze.extract(load_image(night[50]))
         ms = timed(lambda k=kaze, q=query, r=refs: k.scores(q, r), 15) / len(refs)
         n_ref = np.mean([len(r) for r in refs])
-        print(f"KAZE match, cap={cap}: {ms:.3f} ms per pair "
-              f"(query {len(query)} keypoints, references {n_ref:.0f} on average)")
+        print(
+            f"KAZE match, cap={cap}: {ms:.3f} ms per pair "
+            f"(query {len(query)} keypoints, references {n_ref:.0f} on average)"
+        )
     rng = np.random.default_rng(0)
     a = unit_rows(rng.standard_normal((1100, 64)))
     b = unit_rows(rng.standard_normal((1100, 64)))
@@ -82,16 +84,26 @@ def main() -> int:
         from hmpf.features import FeatureCache
 
         t = time.perf_counter()
-        rep = evaluate(config, EvalData(day, night, frame_ground_truth(200, 200, 2), "+-2"),
-                       cache=FeatureCache(tmp), skip_curves=list(config.method_ids))
+        rep = evaluate(
+            config,
+            EvalData(day, night, frame_ground_truth(200, 200, 2), "+-2"),
+            cache=FeatureCache(tmp),
+            skip_curves=list(config.method_ids),
+        )
         total = time.perf_counter() - t
     w = rep["wall_s"]
-    print(f"handcrafted hierarchy, day_right -> night_right, cold cache: extraction "
-          f"{w['extraction']:.1f} s + hierarchy {w['hierarchy']:.1f} s = "
-          f"{w['extraction_plus_hierarchy']:.1f} s (whole call {total:.1f} s); "
-          f"Combined recall@1 {rep['hierarchy']['combined_recall_at_1']:.3f}")
-    print("per query (median ms): " + ", ".join(
-        f"tier {i + 1} {v:.2f}" for i, v in enumerate(rep["timing_ms"]["tiers_per_query"])))
+    print(
+        f"handcrafted hierarchy, day_right -> night_right, cold cache: extraction "
+        f"{w['extraction']:.1f} s + hierarchy {w['hierarchy']:.1f} s = "
+        f"{w['extraction_plus_hierarchy']:.1f} s (whole call {total:.1f} s); "
+        f"Combined recall@1 {rep['hierarchy']['combined_recall_at_1']:.3f}"
+    )
+    print(
+        "per query (median ms): "
+        + ", ".join(
+            f"tier {i + 1} {v:.2f}" for i, v in enumerate(rep["timing_ms"]["tiers_per_query"])
+        )
+    )
     return 0
 
 

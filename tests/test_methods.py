@@ -308,6 +308,21 @@ def test_kaze_subset_and_chunking(kaze_sets: list[KazeFeatures]) -> None:
     )
 
 
+def test_kaze_set_is_ragged_and_equivalent_to_a_list(kaze_sets: list[KazeFeatures]) -> None:
+    kaze = create_method("kaze")
+    packed = kaze.stack(kaze_sets)
+    counts = [len(f) for f in kaze_sets]
+    assert len(packed) == len(kaze_sets)
+    np.testing.assert_array_equal(packed.counts, counts)
+    np.testing.assert_array_equal(packed.offsets, np.concatenate([[0], np.cumsum(counts)]))
+    for i, f in enumerate(kaze_sets):
+        np.testing.assert_array_equal(packed[i].descriptors, f.descriptors)
+    np.testing.assert_array_equal(
+        kaze.scores(kaze_sets[4], packed), kaze.scores(kaze_sets[4], list(kaze_sets))
+    )
+    assert len(kaze.stack([])) == 0
+
+
 @pytest.mark.dataset
 def test_kaze_real_images() -> None:
     kaze = create_method("kaze")

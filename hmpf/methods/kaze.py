@@ -64,6 +64,42 @@ class KazeFeatures:
         return int(self.descriptors.shape[0])
 
 
+@dataclass(frozen=True)
+class KazeSet:
+    """Reference features packed as ragged arrays: rows of every image concatenated.
+
+    ``descriptors[offsets[i]:offsets[i + 1]]`` are image ``i``'s unit descriptors (float32,
+    64 wide) and the same rows of ``keypoints`` its keypoints; the layout the index stores.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def from_features(cls, features: Sequence[KazeFeatures]) -> KazeSet:
+        counts = np.array([len(f) for f in features], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        if len(features) == 0:
+            return cls(np.zeros((0, 5), np.float32), np.zeros((0, DESC_DIM), np.float32), offsets)
+        return cls(
+            np.concatenate([f.keypoints for f in features]).astype(np.float32, copy=False),
+            np.concatenate([f.descriptors for f in features]).astype(np.float32, copy=False),
+            offsets,
+        )
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, i: int) -> KazeFeatures:
+        a, b = self.offsets[i], self.offsets[i + 1]
+        return KazeFeatures(self.keypoints[a:b], self.descriptors[a:b])
+
+
 def unit_rows(x: np.ndarray) -> np.ndarray:
     """L2-normalise each row (zero rows stay zero)."""
     x = np.asarray(x, dtype=np.float32)
@@ -179,45 +215,52 @@ class Kaze(LocalMethod):
             pad_value=c.pad_value,
         )
 
+    def stack(self, features: Sequence[KazeFeatures]) -> KazeSet:
+        return KazeSet.from_features(features)
+
     def scores(
         self,
         query: KazeFeatures,
-        references: Sequence[KazeFeatures],
+        references: KazeSet | Sequence[KazeFeatures],
         subset: np.ndarray | None = None,
     ) -> np.ndarray:
         """Distances of ``query`` to each reference (or to ``references[subset]``).
 
-        Vectorised over references: their descriptors are packed into a padded
+        Vectorised over references: their descriptors are gathered into a padded
         (chunk, n_max, 65) block, one matrix product gives every similarity (SSD = 2 - 2 sim
         for unit vectors), and an argmax / mask / max pass gives each query row's best two
         per reference; padding rows never win.
         """
-        idx = np.arange(len(references)) if subset is None else np.asarray(subset, np.int64)
-        out = np.empty(len(idx), dtype=np.float64)
+        refs = references if isinstance(references, KazeSet) else self.stack(references)
+        idx = np.arange(len(refs)) if subset is None else np.asarray(subset, np.int64)
         nq = query.descriptors.shape[0]
-        if len(idx) == 0:
-            return out
-        counts = np.array([len(references[i]) for i in idx])
-        n_max = int(counts.max())
-        if nq == 0 or n_max == 0:
-            for j, i in enumerate(idx):
-                out[j] = self.pair_distance(query, references[i])
-            return out
+        counts = refs.counts[idx]
+        c: KazeConfig = self.config  # type: ignore[assignment]
+        if len(idx) == 0 or nq == 0 or counts.max() == 0:
+            # No descriptor on one side: no match, every pair scores n_best * pad_value.
+            return np.full(len(idx), c.n_best * c.pad_value)
+        out = np.empty(len(idx), dtype=np.float64)
         # An extra coordinate makes padding rows score -1e9 against every query row, so they
         # are never among the best two and need no separate mask.
         q = np.empty((nq, DESC_DIM + 1), dtype=np.float32)
         q[:, :DESC_DIM] = query.descriptors
         q[:, DESC_DIM] = 1.0
         # Chunk so that the (nq, chunk, n_max) similarity block stays near 32 MB.
-        chunk = max(1, 8_000_000 // (nq * n_max))
+        chunk = max(1, 8_000_000 // (nq * int(counts.max())))
         rows = np.arange(nq)[:, None]
         for s in range(0, len(idx), chunk):
-            sel = idx[s : s + chunk]
+            sel, cnt = idx[s : s + chunk], counts[s : s + chunk]
+            n_max = int(cnt.max())
+            if n_max == 0:
+                out[s : s + chunk] = c.n_best * c.pad_value
+                continue
+            slots = np.arange(n_max)[None, :]
+            filled = slots < cnt[:, None]  # (chunk, n_max)
             block = np.zeros((len(sel), n_max, DESC_DIM + 1), dtype=np.float32)
-            for j, i in enumerate(sel):
-                n = counts[s + j]
-                block[j, :n, :DESC_DIM] = references[i].descriptors
-                block[j, n:, DESC_DIM] = -1e9
+            block[..., DESC_DIM] = -1e9
+            src = (refs.offsets[sel][:, None] + slots)[filled]
+            block[filled, :DESC_DIM] = refs.descriptors[src]
+            block[filled, DESC_DIM] = 0.0
             sim = (q @ block.reshape(-1, DESC_DIM + 1).T).reshape(nq, len(sel), n_max)
             # Best two similarities per (query row, reference) = best two SSDs (2 - 2 sim).
             arg = sim.argmax(axis=2)
@@ -228,10 +271,8 @@ class Kaze(LocalMethod):
                 top2 = sim.max(axis=2)
             else:
                 top2 = np.full_like(top1, -1e9)
-            ssd1 = _sim_to_ssd(top1)
-            ssd2 = _sim_to_ssd(top2)
             # (nq, chunk) -> one distance per reference; query rows go on the last axis.
-            out[s : s + chunk] = self._distance(ssd1.T, ssd2.T)
+            out[s : s + chunk] = self._distance(_sim_to_ssd(top1).T, _sim_to_ssd(top2).T)
         return out
 
 
