@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray
 from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
 from hmpf.methods.registry import register
@@ -44,8 +45,6 @@ class Hog(GlobalMethod):
         super().__init__(config)
         c: HogConfig = self.config  # type: ignore[assignment]
         if c.image_size % c.cell_size:
-            from hmpf.errors import ConfigError
-
             raise ConfigError("method 'hog': image_size must be a multiple of cell_size")
         block = c.cell_size * c.block_cells
         self._hog = cv2.HOGDescriptor(

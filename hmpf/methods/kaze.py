@@ -226,54 +226,64 @@ class Kaze(LocalMethod):
     ) -> np.ndarray:
         """Distances of ``query`` to each reference (or to ``references[subset]``).
 
-        Vectorised over references: their descriptors are gathered into a padded
-        (chunk, n_max, 65) block, one matrix product gives every similarity (SSD = 2 - 2 sim
-        for unit vectors), and an argmax / mask / max pass gives each query row's best two
-        per reference; padding rows never win.
+        Vectorised over references: sorted by descriptor count, they are gathered in chunks
+        into padded (m, n_max, 65) blocks; one matrix product gives every similarity
+        (SSD = 2 - 2 sim for unit vectors) and an argmax / mask / max pass each query row's
+        best two per reference; padding rows never win. No Python loop over references.
         """
         refs = references if isinstance(references, KazeSet) else self.stack(references)
         idx = np.arange(len(refs)) if subset is None else np.asarray(subset, np.int64)
         nq = query.descriptors.shape[0]
-        counts = refs.counts[idx]
         c: KazeConfig = self.config  # type: ignore[assignment]
-        if len(idx) == 0 or nq == 0 or counts.max() == 0:
-            # No descriptor on one side: no match, every pair scores n_best * pad_value.
-            return np.full(len(idx), c.n_best * c.pad_value)
-        out = np.empty(len(idx), dtype=np.float64)
+        out = np.full(len(idx), c.n_best * c.pad_value)  # no descriptor: no match
+        counts = refs.counts[idx]
+        if nq == 0:
+            return out
         # An extra coordinate makes padding rows score -1e9 against every query row, so they
         # are never among the best two and need no separate mask.
         q = np.empty((nq, DESC_DIM + 1), dtype=np.float32)
         q[:, :DESC_DIM] = query.descriptors
         q[:, DESC_DIM] = 1.0
-        # Chunk so that the (nq, chunk, n_max) similarity block stays near 32 MB.
-        chunk = max(1, 8_000_000 // (nq * int(counts.max())))
-        rows = np.arange(nq)[:, None]
-        for s in range(0, len(idx), chunk):
-            sel, cnt = idx[s : s + chunk], counts[s : s + chunk]
-            n_max = int(cnt.max())
-            if n_max == 0:
-                out[s : s + chunk] = c.n_best * c.pad_value
-                continue
-            slots = np.arange(n_max)[None, :]
-            filled = slots < cnt[:, None]  # (chunk, n_max)
-            block = np.zeros((len(sel), n_max, DESC_DIM + 1), dtype=np.float32)
-            block[..., DESC_DIM] = -1e9
-            src = (refs.offsets[sel][:, None] + slots)[filled]
-            block[filled, :DESC_DIM] = refs.descriptors[src]
-            block[filled, DESC_DIM] = 0.0
-            sim = (q @ block.reshape(-1, DESC_DIM + 1).T).reshape(nq, len(sel), n_max)
-            # Best two similarities per (query row, reference) = best two SSDs (2 - 2 sim).
-            arg = sim.argmax(axis=2)
-            cols = np.arange(len(sel))[None, :]
-            top1 = sim[rows, cols, arg]
-            if n_max >= 2:
-                sim[rows, cols, arg] = -np.inf
-                top2 = sim.max(axis=2)
-            else:
-                top2 = np.full_like(top1, -1e9)
-            # (nq, chunk) -> one distance per reference; query rows go on the last axis.
-            out[s : s + chunk] = self._distance(_sim_to_ssd(top1).T, _sim_to_ssd(top2).T)
+        # References in order of descriptor count, so each chunk pads to a similar length;
+        # chunks keep the similarity block (nq x rows) and the packed block near 32 MB.
+        order = np.argsort(counts, kind="stable")
+        order = order[counts[order] > 0]
+        s = 0
+        while s < len(order):
+            n_max = int(counts[order[min(len(order) - 1, s + 1023)]])
+            step = max(1, min(1024, 8_000_000 // (max(nq, DESC_DIM + 1) * n_max)))
+            part = order[s : s + step]
+            n_max = int(counts[part[-1]])
+            out[part] = self._score_block(q, refs, idx[part], counts[part], n_max)
+            s += step
         return out
+
+    @staticmethod
+    def _best_two(q: np.ndarray, block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(nq, 65) x (m, n_max, 65) -> best and second-best similarity, each (nq, m)."""
+        nq, (m, n_max, _) = q.shape[0], block.shape
+        sim = (q @ block.reshape(-1, DESC_DIM + 1).T).reshape(nq, m, n_max)
+        rows, cols = np.arange(nq)[:, None], np.arange(m)[None, :]
+        arg = sim.argmax(axis=2)
+        top1 = sim[rows, cols, arg]
+        if n_max < 2:
+            return top1, np.full_like(top1, -1e9)
+        sim[rows, cols, arg] = -np.inf  # remove one maximum; a tied maximum stays
+        return top1, sim.max(axis=2)
+
+    def _score_block(
+        self, q: np.ndarray, refs: KazeSet, sel: np.ndarray, counts: np.ndarray, n_max: int
+    ) -> np.ndarray:
+        """Distances of the augmented query ``q`` to the references ``sel`` (all non-empty)."""
+        slots = np.arange(n_max)[None, :]
+        filled = slots < counts[:, None]  # (m, n_max)
+        block = np.zeros((len(sel), n_max, DESC_DIM + 1), dtype=np.float32)
+        block[..., DESC_DIM] = -1e9
+        block[filled, :DESC_DIM] = refs.descriptors[(refs.offsets[sel][:, None] + slots)[filled]]
+        block[filled, DESC_DIM] = 0.0
+        top1, top2 = self._best_two(q, block)
+        # (nq, m) -> one distance per reference; query rows go on the last axis.
+        return self._distance(_sim_to_ssd(top1).T, _sim_to_ssd(top2).T)
 
 
 def _sim_to_ssd(sim: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray, round_half_away
 from hmpf.methods.base import GlobalMethod, MethodConfig
 from hmpf.methods.registry import register
@@ -52,8 +53,6 @@ class Sad(GlobalMethod):
         super().__init__(config)
         c: SadConfig = self.config  # type: ignore[assignment]
         if c.width % c.patch or c.height % c.patch:
-            from hmpf.errors import ConfigError
-
             raise ConfigError("method 'sad': width and height must be multiples of patch")
         self.dim = c.width * c.height
 
