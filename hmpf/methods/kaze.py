@@ -200,10 +200,6 @@ class Kaze(LocalMethod):
             np.asarray(arrays["descriptors"], np.float32),
         )
 
-    def pair_distance(self, query: KazeFeatures, ref: KazeFeatures) -> float:
-        """Distance of one (query, reference) pair."""
-        return float(self._distance(*best_two_ssd(query.descriptors, ref.descriptors)))
-
     def _distance(self, ssd1: np.ndarray, ssd2: np.ndarray) -> np.ndarray:
         c: KazeConfig = self.config  # type: ignore[assignment]
         return match_distance(
