@@ -12,12 +12,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import lru_cache
 
+import cv2
 import numpy as np
 import scipy.sparse as sp
 
 __all__ = ["imresize", "initcrop", "rgb2gray", "round_half_away"]
 
 _EPS = np.finfo(np.float64).eps
+# MATLAB rgb2gray weights x 10000, for exact integer arithmetic on uint8 input.
+_GREY_WEIGHTS = np.array([[2989.0, 5870.0, 1140.0]], dtype=np.float32)
 
 
 def _lanczos3(x: np.ndarray) -> np.ndarray:
@@ -127,9 +130,13 @@ def rgb2gray(img: np.ndarray) -> np.ndarray:
     if img.ndim == 2:
         return img
     if img.dtype == np.uint8:
-        c = img[..., :3].astype(np.int32)
-        v = 2989 * c[..., 0] + 5870 * c[..., 1] + 1140 * c[..., 2]
-        return np.minimum((v + 5000) // 10000, 255).astype(np.uint8)
+        # float32 holds the integer sums exactly (< 2^24) and division by 10000 is correctly
+        # rounded, so truncating (v + 5000) / 10000 gives the exact integer quotient (<= 255).
+        # cv2.transform, not a BLAS matmul: BLAS threads would fight OpenCV's for the cores.
+        v = cv2.transform(img[..., :3].astype(np.float32), _GREY_WEIGHTS)
+        v += np.float32(5000)
+        v /= np.float32(10000)
+        return v.astype(np.uint8)
     return img[..., :3].astype(np.float64) @ np.array([0.2989, 0.5870, 0.1140])
 
 

@@ -172,6 +172,24 @@ def test_gist_default_is_512_float32_on_real_image() -> None:
     assert d[1] > 0
 
 
+@pytest.mark.parametrize("blocks", [4, 3])
+def test_gist_pruned_bank_equals_full_bank(blocks: int) -> None:
+    # GaborLines skips frequency lines where a filter is below gabor_floor; the result must
+    # equal the unpruned computation (floor 0) to single precision, for the LMgist defaults
+    # and for block edges that do not divide the image (128 / 3).
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:180, 0:240]
+    grey = 100 + 60 * np.sin(x / 7.0) * np.cos(y / 11.0) + rng.normal(0, 20, (180, 240))
+    grey = np.clip(grey, 0, 255).astype(np.uint8)
+    pruned = create_method("gist", {"number_blocks": blocks})
+    full = create_method("gist", {"number_blocks": blocks, "gabor_floor": 0.0})
+    assert len(full.bank.line_index) == 32 * 192
+    assert len(pruned.bank.line_index) < 0.5 * 32 * 192  # the pruning is real
+    a, b = pruned.describe(grey), full.describe(grey)
+    assert a.shape == b.shape == (32 * blocks * blocks,)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()))
+
+
 def test_prefilt_constant_image_is_finite() -> None:
     out = prefilt(np.full((32, 40), 100.0), 4.0)
     assert out.shape == (32, 40)
@@ -515,6 +533,18 @@ def test_rgb2gray_rounding() -> None:
     assert out.dtype == np.uint8
     np.testing.assert_array_equal(out, expected)
     np.testing.assert_allclose(rgb2gray(px.astype(np.float64))[1, 1], 18.149, rtol=1e-12)
+
+
+def test_rgb2gray_exact_on_every_colour() -> None:
+    # All 2^24 RGB triples against exact integer arithmetic (round half up of v / 10000).
+    r, g, b = np.meshgrid(np.arange(256), np.arange(256), np.arange(256), indexing="ij")
+    img = np.stack([r, g, b], axis=-1).reshape(4096, 4096, 3).astype(np.uint8)
+    c = img.astype(np.int64)
+    expected = (2989 * c[..., 0] + 5870 * c[..., 1] + 1140 * c[..., 2] + 5000) // 10000
+    np.testing.assert_array_equal(rgb2gray(img), expected.astype(np.uint8))
+    # Non-contiguous views and a single pixel keep their shape.
+    assert rgb2gray(img[:7, ::3]).shape == (7, 1366)
+    np.testing.assert_array_equal(rgb2gray(img[:1, :1]), expected[:1, :1])
 
 
 # =============================================================================================

@@ -15,12 +15,15 @@ Distance: Euclidean, lower is better.
 
 Deviations (documented): a constant image, where LMgist divides 0 by 0, gives an all-zero
 prefiltered image instead of NaN. The resize is computed in float64 where MATLAB uses single.
-Only the central crop of the inverse FFT is computed (rows, then columns), which gives the same
-values with a third less work.
+The filter bank is applied as two passes of 1-D inverse FFTs: the first runs only along the
+frequency lines where a filter exceeds ``gabor_floor`` (1e-8 of its peak; about 47 % of the
+lines), the second only over the central crop (:class:`GaborLines`). The result equals the
+full ``ifft2`` to single precision (tested); ``gabor_floor: 0`` computes every line.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cached_property
 from typing import ClassVar
 
@@ -40,6 +43,8 @@ class GistConfig(MethodConfig):
     number_blocks: int = Field(4, ge=1)
     fc_prefilt: float = Field(4.0, gt=0)
     boundary_extension: int = Field(32, ge=0)
+    #: Gabor values below this (relative to the peak of 1) are treated as zero; see GaborLines.
+    gabor_floor: float = Field(1e-8, ge=0, le=1e-4)
 
 
 def imresizecrop(img: np.ndarray, size: int) -> np.ndarray:
@@ -98,6 +103,84 @@ def block_edges(length: int, blocks: int) -> np.ndarray:
     return np.trunc(np.linspace(0, length, blocks + 1)).astype(np.int64)
 
 
+@dataclass(frozen=True)
+class GaborLines:
+    """A Gabor bank stored as the frequency lines where each filter is not negligible.
+
+    ``|ifft2(F . G_n)|`` is computed as two passes of 1-D inverse FFTs. A Gabor transfer
+    function is concentrated in one wedge of the spectrum, so for each filter most frequency
+    columns (or rows) are zero to within ``floor`` (relative to the filter's peak of 1). The
+    first pass runs only along those lines, oriented along whichever axis has fewer of them
+    (about 47 % of the full work for the LMgist bank at ``floor = 1e-8``); the second pass
+    runs over the central crop only. Values below ``floor`` are ~1e-8 of the filter's peak,
+    beneath single precision (the original computes in single), so the result equals the
+    full computation to float32 rounding (tested).
+
+    Attributes:
+        transposed: (F,) bool, True where a filter's lines are spectrum rows instead of columns.
+        line_index: (L,) indices into the stacked ``[spec.T; spec]`` (2n, n) line table.
+        slot: (L,) indices into the (F * n) second-pass buffer lines.
+        values: (L, n) complex64 filter values along each kept line.
+    """
+
+    n: int
+    transposed: np.ndarray
+    line_index: np.ndarray
+    slot: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def from_filters(cls, filters: np.ndarray, floor: float) -> GaborLines:
+        n_f, n, _ = filters.shape
+        transposed, index, slot, values = [], [], [], []
+        for f, g in enumerate(filters):
+            mask = np.abs(g) > floor
+            cols, rows = np.flatnonzero(mask.any(axis=0)), np.flatnonzero(mask.any(axis=1))
+            t = len(rows) < len(cols)
+            lines = rows if t else cols
+            transposed.append(t)
+            # Column lines are rows of spec.T (table offset 0); row lines are rows of spec (n).
+            index.append(lines + (n if t else 0))
+            slot.append(f * n + lines)
+            values.append(g[lines] if t else g[:, lines].T)
+        return cls(
+            n=n,
+            transposed=np.array(transposed),
+            line_index=np.concatenate(index),
+            slot=np.concatenate(slot),
+            values=np.concatenate(values).astype(np.complex64),
+        )
+
+    def block_means(
+        self, spec: np.ndarray, be: int, size: int, blocks: int, workers: int = 1
+    ) -> np.ndarray:
+        """(F, blocks, blocks) block means of ``|ifft2(spec . G_f)|`` over the central crop.
+
+        The crop is ``[be:be+size]`` on both axes; blocks follow ``fix(linspace(0, size,
+        blocks + 1))``; the result is indexed ``[filter, block_row, block_col]``.
+        """
+        n, n_f = self.n, len(self.transposed)
+        table = np.concatenate([spec.T, spec]).astype(np.complex64, copy=False)
+        lines = table[self.line_index] * self.values  # (L, n): spectrum along each kept line
+        first = scipy.fft.ifft(lines, axis=1, workers=workers, overwrite_x=True)
+        buf = np.zeros((n_f * n, size), dtype=np.complex64)
+        buf[self.slot] = first[:, be : be + size]
+        second = scipy.fft.ifft(
+            buf.reshape(n_f, n, size), axis=1, workers=workers, overwrite_x=True
+        )
+        mag = np.abs(second[:, be : be + size])  # (F, a, b): a second-pass, b first-pass axis
+        if size % blocks == 0:
+            w = size // blocks
+            means = mag.reshape(n_f, blocks, w, blocks, w).mean(axis=(2, 4), dtype=np.float64)
+        else:
+            edges = block_edges(size, blocks)
+            sums = np.add.reduceat(np.add.reduceat(mag, edges[:-1], axis=1), edges[:-1], axis=2)
+            means = sums / (np.diff(edges)[:, None] * np.diff(edges)[None, :])[None]
+        # Column-line filters ran along y first, so their blocks come out as (x, y).
+        means[~self.transposed] = means[~self.transposed].transpose(0, 2, 1)
+        return means
+
+
 @register
 class Gist(GlobalMethod):
     name = "gist"
@@ -114,8 +197,11 @@ class Gist(GlobalMethod):
     def filters(self) -> np.ndarray:
         c: GistConfig = self.config  # type: ignore[assignment]
         n = c.image_size + 2 * c.boundary_extension
-        # complex64 so the per-image product needs no cast (MATLAB computes in single too).
-        return create_gabor(c.orientations_per_scale, n).astype(np.complex64)
+        return create_gabor(c.orientations_per_scale, n)
+
+    @cached_property
+    def bank(self) -> GaborLines:
+        return GaborLines.from_filters(self.filters, self.config.gabor_floor)  # type: ignore[attr-defined]
 
     def describe(self, grey: np.ndarray) -> np.ndarray:
         """LMgist on a 2-D grey image (any dtype): the ``dim``-vector, float32."""
@@ -127,16 +213,8 @@ class Gist(GlobalMethod):
         out = prefilt(img, c.fc_prefilt)
         be, size = c.boundary_extension, c.image_size
         spec = scipy.fft.fft2(np.pad(out, be, mode="symmetric").astype(np.float32))
-        prod = self.filters * spec[None]  # (F, n, n) complex64
-        # Inverse FFT of the central crop only: along rows, crop, then along columns, crop.
-        workers = compute_threads()
-        part = scipy.fft.ifft(prod, axis=1, workers=workers, overwrite_x=True)[:, be : be + size]
-        ig = np.abs(scipy.fft.ifft(part, axis=2, workers=workers)[:, :, be : be + size])
-        edges = block_edges(size, c.number_blocks)
-        sums = np.add.reduceat(np.add.reduceat(ig, edges[:-1], axis=1), edges[:-1], axis=2)
-        counts = np.diff(edges)[:, None] * np.diff(edges)[None, :]
-        means = sums / counts[None]  # (F, block_row, block_col)
-        # Column-major block order: the block-row index varies fastest.
+        means = self.bank.block_means(spec, be, size, c.number_blocks, compute_threads())
+        # means[f, block_row, block_col]; column-major block order: block-row index fastest.
         return means.transpose(0, 2, 1).reshape(-1).astype(np.float32)
 
     def _extract(self, image: np.ndarray) -> np.ndarray:
