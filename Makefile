@@ -15,7 +15,7 @@ PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
-	$(PIP_INSTALL) -e '.[dev]'
+	$(PIP_INSTALL) -e '.[dev,cnn,index]'
 	touch $@
 
 install: $(VENV)/.installed

@@ -8,6 +8,7 @@ the indexer, the HTTP service) can map them to a clean message or status code in
     ├── ConfigError           a hierarchy/method configuration is invalid (names the key)
     │   └── UnknownMethodError    a method name that is not registered (lists the valid ones)
     ├── DatasetError          an image folder or ground-truth file is unusable
+    ├── WeightsError          a CNN weight file is missing or not in the expected layout
     └── MissingDependencyError    an optional extra is not installed (says what to install)
 """
 
@@ -37,17 +38,22 @@ class ConfigError(HmpfError):
 class UnknownMethodError(ConfigError):
     """A method name that is not in the registry."""
 
-    def __init__(self, name: str, available: list[str]) -> None:
+    def __init__(self, name: str, available: list[str], kind: str = "method") -> None:
         self.name = name
         self.available = available
-        super().__init__(f"unknown method {name!r}; available methods: {', '.join(available)}")
+        self.kind = kind
+        super().__init__(f"unknown {kind} {name!r}; available {kind}s: {', '.join(available)}")
 
-    def __reduce__(self) -> tuple[type, tuple[str, list[str]]]:
-        return (type(self), (self.name, self.available))
+    def __reduce__(self) -> tuple[type, tuple[str, list[str], str]]:
+        return (type(self), (self.name, self.available, self.kind))
 
 
 class DatasetError(HmpfError):
     """An image folder, a ground-truth or metadata file cannot be used."""
+
+
+class WeightsError(HmpfError):
+    """A weight file is missing, unreadable or not in the layout its loader expects."""
 
 
 class MissingDependencyError(HmpfError):

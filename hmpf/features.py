@@ -13,7 +13,7 @@ import multiprocessing
 import os
 import time
 import zipfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +26,14 @@ from hmpf.imageio import load_image
 from hmpf.methods import Method
 from hmpf.runtime import set_compute_threads
 
-__all__ = ["ExtractionResult", "FeatureCache", "default_cache_dir", "extract_images", "file_digest"]
+__all__ = [
+    "ExtractionResult",
+    "FeatureCache",
+    "default_cache_dir",
+    "extract_images",
+    "file_digest",
+    "fit_methods",
+]
 
 
 def default_cache_dir() -> Path:
@@ -114,6 +121,63 @@ def _extract_one(
     return feats, times, decode_ms
 
 
+def _is_cnn(method: Method) -> bool:
+    from hmpf.methods.cnn import CnnMethod
+
+    return isinstance(method, CnnMethod)
+
+
+def _extract_cnn_images(
+    paths: Sequence[str | os.PathLike[str]],
+    todo: Sequence[int],
+    methods: Mapping[str, Method],
+    store: Callable[[int, str, Any, float], None],
+    progress: bool,
+) -> None:
+    """CNN methods in this process, batched (torch uses every core for one batch)."""
+    from hmpf.methods.cnn import extract_cnn
+
+    chunk = max(m.cnn.batch_size for m in methods.values())  # type: ignore[attr-defined]
+    bar = tqdm(total=len(todo), desc="cnn", unit="img", disable=None if progress else True)
+    try:
+        for start in range(0, len(todo), chunk):
+            idx = list(todo[start : start + chunk])
+            images = [load_image(paths[i]) for i in idx]
+            times: dict[str, list[float]] = {}
+            feats = extract_cnn(methods, images, times)  # type: ignore[arg-type]
+            for mid, fs in feats.items():
+                for j, i in enumerate(idx):
+                    store(i, mid, fs[j], times[mid][j])
+            bar.update(len(idx))
+    finally:
+        bar.close()
+
+
+def fit_methods(
+    methods: Mapping[str, Method],
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    max_images: int = 500,
+) -> list[str]:
+    """Fit (in place) the methods whose ``requires_fit()`` is True on reference images.
+
+    Uses up to ``max_images`` references, evenly spaced along the list (deterministic).
+
+    Returns:
+        The ids of the methods fitted.
+    """
+    todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
+    if not todo or not paths:
+        return []
+    from hmpf.methods.cnn import fit_cnn
+
+    n = len(paths)
+    pick = np.unique(np.linspace(0, n - 1, min(n, max_images)).round().astype(np.int64))
+    images = [load_image(paths[i]) for i in pick]
+    fit_cnn(todo, images)  # type: ignore[arg-type]
+    return list(todo)
+
+
 def extract_images(
     paths: Sequence[str | os.PathLike[str]],
     methods: Mapping[str, Method],
@@ -151,7 +215,20 @@ def extract_images(
                 features[mid][i], ms[mid][i] = hit
                 cached[mid] += 1
     decode: list[float] = []
-    jobs = sorted(todo)
+    cnn_ids = [m for m in ids if _is_cnn(methods[m])]
+    cnn_todo = sorted(i for i, mids in todo.items() if set(mids) & set(cnn_ids))
+    cpu_todo = {i: [m for m in mids if m not in cnn_ids] for i, mids in todo.items()}
+    cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
+
+    def store(i: int, mid: str, f: Any, t_ms: float) -> None:
+        features[mid][i] = f
+        ms[mid][i] = t_ms
+        if cache is not None:
+            cache.put(methods[mid], digests[i], f, t_ms)
+
+    if cnn_todo:
+        _extract_cnn_images(paths, cnn_todo, {m: methods[m] for m in cnn_ids}, store, progress)
+    jobs = sorted(cpu_todo)
     if jobs:
         n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
         bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
@@ -160,24 +237,22 @@ def extract_images(
             feats, times, dms = res
             decode.append(dms)
             for mid, f in feats.items():
-                features[mid][i] = f
-                ms[mid][i] = times[mid]
-                if cache is not None:
-                    cache.put(methods[mid], digests[i], f, times[mid])
+                store(i, mid, f, times[mid])
             bar.update(1)
 
         try:
             if n_workers == 1:
                 _init_worker(methods, single_thread=False)
                 for i in jobs:
-                    collect(i, _extract_one(str(paths[i]), todo[i]))
+                    collect(i, _extract_one(str(paths[i]), cpu_todo[i]))
             else:
                 # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
                 ctx = multiprocessing.get_context("forkserver")
+                cpu_methods = {m: methods[m] for m in ids if m not in cnn_ids}
                 with ProcessPoolExecutor(
-                    n_workers, mp_context=ctx, initializer=_init_worker, initargs=(dict(methods),)
+                    n_workers, mp_context=ctx, initializer=_init_worker, initargs=(cpu_methods,)
                 ) as pool:
-                    futs = {i: pool.submit(_extract_one, str(paths[i]), todo[i]) for i in jobs}
+                    futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
                     try:
                         for i in jobs:
                             collect(i, futs[i].result())

@@ -4,7 +4,7 @@
 >>> hog = create_method("hog")
 """
 
-from hmpf.methods import gist, hog, kaze, sad  # noqa: F401  (registration side effects)
+from hmpf.methods import gem, gist, hog, hybridnet, kaze, netvlad, olo, sad  # noqa: F401  (registration side effects)
 from hmpf.methods.base import GlobalMethod, LocalMethod, Method, MethodConfig
 from hmpf.methods.registry import available_methods, create_method, get_method_class, register
 

@@ -86,10 +86,46 @@ class Method(ABC):
         """Inverse of :meth:`to_arrays`."""
         return arrays["x"]
 
+    # -- parameters fitted on the reference set --------------------------------------------
+    def requires_fit(self) -> bool:
+        """True when :meth:`fit_state` must be set (from the references) before extraction.
+
+        Fitted parameters (VLAD centroids, PCA, a visual vocabulary) belong to the reference
+        set: they are fitted once on it, stored with it (the index), and never refitted for a
+        query.
+        """
+        return False
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The fitted parameters as named arrays (empty for methods without any)."""
+        return {}
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """Set the fitted parameters from :meth:`state_arrays` output."""
+        if arrays:
+            raise ValueError(f"method {self.name!r} has no fitted parameters")
+
+    def state_digest(self) -> str:
+        """sha256 of the fitted parameters ('' when there are none)."""
+        arrays = self.state_arrays()
+        if not arrays:
+            return ""
+        h = hashlib.sha256()
+        for k in sorted(arrays):
+            a = np.ascontiguousarray(arrays[k])
+            h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
+            h.update(a.tobytes())
+        return h.hexdigest()
+
     def cache_key(self) -> str:
-        """Stable id of this method's exact output: name, code version and config."""
+        """Stable id of this method's exact output: name, code version, config, fitted state."""
         payload = json.dumps(
-            {"name": self.name, "version": self.version, "config": self.config.model_dump()},
+            {
+                "name": self.name,
+                "version": self.version,
+                "config": self.config.model_dump(),
+                "state": self.state_digest(),
+            },
             sort_keys=True,
         )
         return f"{self.name}-{hashlib.sha256(payload.encode()).hexdigest()[:16]}"
@@ -97,9 +133,17 @@ class Method(ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.config!r})"
 
-    def __reduce__(self) -> tuple[type[Method], tuple[MethodConfig]]:
-        # Rebuilt from the config in worker processes: OpenCV objects do not pickle.
-        return (type(self), (self.config,))
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Rebuilt from the config (and fitted state) in worker processes: OpenCV objects and
+        # torch modules do not pickle.
+        return (_rebuild, (type(self), self.config, self.state_arrays()))
+
+
+def _rebuild(cls: type[Method], config: MethodConfig, state: dict[str, np.ndarray]) -> Method:
+    method = cls(config)
+    if state:
+        method.load_state(state)
+    return method
 
 
 class GlobalMethod(Method):

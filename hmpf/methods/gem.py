@@ -1,0 +1,64 @@
+"""GeM: a generalised-mean pooled global descriptor on a CNN backbone (not in the paper).
+
+``g_c = (mean_{x,y} max(A_c, eps)^p)^(1/p)`` over one feature map, then L2-normalised
+(Radenovic et al., TPAMI 2018). Cheap and strong for tier 1: one vector per image, Euclidean
+distance (lower is better), FAISS-friendly.
+
+Default layer per backbone: EfficientNet-Lite0 ``head`` (1280-d), VGG16 ``conv5_3`` (512-d,
+through a ReLU), CaffeNet ``relu5`` (256-d), VGG-M ``relu5`` (512-d).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.cnn import CnnConfig, CnnMethod
+from hmpf.methods.registry import register
+
+DEFAULT_LAYER = {
+    "efficientnet_lite0": "head",
+    "vgg16": "conv5_3",
+    "caffenet": "relu5",
+    "vgg_m_1024": "relu5",
+}
+
+
+class GemConfig(CnnConfig):
+    layer: str | None = Field(None, description="backbone map; None = the backbone's default")
+    p: float = Field(3.0, ge=1.0, le=32.0)
+    eps: float = Field(1e-6, gt=0)
+
+
+@register
+class Gem(CnnMethod, GlobalMethod):
+    name = "gem"
+    higher_is_better = False
+    version = "1"
+    Config: ClassVar[type[MethodConfig]] = GemConfig
+    dim = 0  # set from the backbone
+
+    @property
+    def gem(self) -> GemConfig:
+        return self.config  # type: ignore[return-value]
+
+    def layers(self) -> list[str]:
+        return [self.gem.layer or DEFAULT_LAYER[self.gem.backbone]]
+
+    def default_input_size(self) -> tuple[int, int]:
+        if self.gem.backbone == "efficientnet_lite0":
+            return (288, 512)  # keeps the 16:9 aspect of vehicle cameras; 9 x 16 cells
+        return super().default_input_size()
+
+    def from_maps(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:
+        a = maps[self.layers()[0]].astype(np.float32)  # (C, h, w)
+        p = self.gem.p
+        g = np.power(np.maximum(a, self.gem.eps), p).mean(axis=(1, 2)) ** (1.0 / p)
+        return (g / max(float(np.linalg.norm(g)), 1e-12)).astype(np.float32)
+
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        return euclidean(queries, references)
