@@ -125,7 +125,8 @@ def evaluate(
     methods = build_methods(config)
     gt = data.gt
     t0 = time.perf_counter()
-    fitted = fit_methods(methods, data.reference)  # fitted on references only, never queries
+    # Fitted parameters come from the references only, never from the queries.
+    fitted = fit_methods(methods, data.reference, cache=cache)
     fit_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     ref = extract_images(

@@ -73,6 +73,27 @@ class FeatureCache:
         ms = float(arrays.pop("__ms__", np.nan))
         return method.from_arrays(arrays), ms
 
+    def _state_path(self, method_key: str, fit_key: str) -> Path:
+        return self.root / "fitted" / method_key / f"{fit_key}.npz"
+
+    def get_state(self, method_key: str, fit_key: str) -> dict[str, np.ndarray] | None:
+        """Fitted parameters of the unfitted method ``method_key`` (its ``cache_key()``) for
+        the fitting image set ``fit_key``, or None."""
+        p = self._state_path(method_key, fit_key)
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+            return None
+
+    def put_state(self, method_key: str, fit_key: str, state: dict[str, np.ndarray]) -> None:
+        p = self._state_path(method_key, fit_key)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **state)
+        os.replace(tmp, p)
+
     def put(self, method: Method, digest: str, feature: Any, ms: float) -> None:
         p = self._path(method, digest)
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -157,14 +178,16 @@ def fit_methods(
     methods: Mapping[str, Method],
     paths: Sequence[str | os.PathLike[str]],
     *,
+    cache: FeatureCache | None = None,
     max_images: int = 500,
 ) -> list[str]:
     """Fit (in place) the methods whose ``requires_fit()`` is True on reference images.
 
-    Uses up to ``max_images`` references, evenly spaced along the list (deterministic).
+    Uses up to ``max_images`` references, evenly spaced along the list (deterministic). With a
+    cache, parameters fitted before on the same images (by content) are loaded instead.
 
     Returns:
-        The ids of the methods fitted.
+        The ids of the methods that needed fitting.
     """
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
     if not todo or not paths:
@@ -173,8 +196,25 @@ def fit_methods(
 
     n = len(paths)
     pick = np.unique(np.linspace(0, n - 1, min(n, max_images)).round().astype(np.int64))
-    images = [load_image(paths[i]) for i in pick]
-    fit_cnn(todo, images)  # type: ignore[arg-type]
+    fit_key = ""
+    if cache is not None:
+        fit_key = hashlib.sha256(
+            "".join(file_digest(paths[i]) for i in pick).encode()
+        ).hexdigest()[:32]
+    pending: dict[str, Method] = {}
+    for mid, m in todo.items():
+        state = cache.get_state(m.cache_key(), fit_key) if cache is not None else None
+        if state is not None:
+            m.load_state(state)
+        else:
+            pending[mid] = m
+    if pending:
+        keys = {mid: m.cache_key() for mid, m in pending.items()}  # before fitting
+        images = [load_image(paths[i]) for i in pick]
+        fit_cnn(pending, images)  # type: ignore[arg-type]
+        if cache is not None:
+            for mid, m in pending.items():
+                cache.put_state(keys[mid], fit_key, m.state_arrays())
     return list(todo)
 
 
