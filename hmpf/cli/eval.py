@@ -4,6 +4,10 @@
         --reference ../shared/datasets/gardens_point/day_right \\
         --query ../shared/datasets/gardens_point/night_right --tolerance 2 --json out.json
 
+With ``--index DIR`` the references come from a built index (``hmpf-index build``) and the
+queries run through the same code as the service (``--config`` and ``--reference`` are then
+optional; a given ``--config`` must match the index's).
+
 Ground truth: frame alignment (``--tolerance T``, the default form), ``--gt-csv FILE``
 (query,reference[,tolerance] rows) or ``--gps-csv FILE --radius-m R`` (role,name,lat,lon).
 """
@@ -27,8 +31,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hmpf-eval",
         description="Evaluate an HMPF hierarchy (and every method alone) on real images.",
     )
-    p.add_argument("--config", required=True, help="hierarchy YAML (e.g. configs/handcrafted.yaml)")
-    p.add_argument("--reference", required=True, help="folder of reference (database) images")
+    p.add_argument("--config", help="hierarchy YAML (e.g. configs/handcrafted.yaml)")
+    p.add_argument("--reference", help="folder of reference (database) images")
+    p.add_argument("--index", help="evaluate against this built index instead of --reference")
     p.add_argument("--query", required=True, help="folder of query images")
     gt = p.add_mutually_exclusive_group()
     gt.add_argument("--tolerance", type=int, help="frame-aligned ground truth: |q - r| <= T")
@@ -56,8 +61,50 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _ground_truth(args: argparse.Namespace, qrys: list[Path], ref_names: list[str]):
+    """(gt matrix, description) from the ground-truth flags."""
+    if args.gt_csv:
+        gt = pairs_ground_truth(args.gt_csv, [q.name for q in qrys], ref_names)
+        return gt, f"pairs from {args.gt_csv}"
+    if args.gps_csv:
+        if args.radius_m is None:
+            raise HmpfError("--gps-csv needs --radius-m")
+        gt = gps_ground_truth(args.gps_csv, [q.name for q in qrys], ref_names, args.radius_m)
+        return gt, f"GPS within {args.radius_m:g} m"
+    tol = 2 if args.tolerance is None else args.tolerance
+    return frame_ground_truth(len(qrys), len(ref_names), tol), f"frames +-{tol}"
+
+
+def _main_index(args: argparse.Namespace) -> int:
+    from hmpf.index.evaluate import evaluate_index, format_index_report
+    from hmpf.index.reader import IndexReader
+
+    expected = load_config(args.config) if args.config else None
+    with IndexReader(args.index, expected_config=expected) as reader:
+        qrys = list_images(args.query)[: args.limit]
+        gt, desc = _ground_truth(args, qrys, reader.refs.names)
+        cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
+        report = evaluate_index(
+            reader, qrys, gt, desc, cache=cache, workers=args.workers, progress=not args.quiet
+        )
+    print(format_index_report(report))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.index is None and (args.config is None or args.reference is None):
+        parser.error("--config and --reference are required (or --index DIR)")
+    if args.index is not None:
+        try:
+            return _main_index(args)
+        except HmpfError as exc:
+            print(f"hmpf-eval: error: {exc}", file=sys.stderr)
+            return 2
     try:
         config = load_config(args.config)
         refs = list_images(args.reference)[: args.limit]

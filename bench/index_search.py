@@ -1,0 +1,107 @@
+"""Tier-1 search latency against map size: exact FAISS Flat vs IVF, synthetic descriptors.
+
+    .venv/bin/python bench/index_search.py --sizes 10000 100000 1000000
+
+Descriptors: 512-d float32, clustered (2000 Gaussian clusters around random centres, like
+real place descriptors: many near-duplicates along a route), queries are held-out noisy
+copies of references. Prints per size: build time, p50 / p95 single-query latency (k=100),
+recall@100 of IVF against exact search, the nprobe chosen (smallest reaching the target),
+and the cost of the reader's exact re-scoring of the approximate candidates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import faiss
+import numpy as np
+
+from hmpf.methods.base import euclidean
+
+
+def clustered(n: int, d: int, rng: np.random.Generator, centres: np.ndarray) -> np.ndarray:
+    out = np.empty((n, d), np.float32)
+    for s in range(0, n, 100_000):
+        m = min(100_000, n - s)
+        c = centres[rng.integers(0, len(centres), m)]
+        out[s : s + m] = c + 0.35 * rng.standard_normal((m, d), dtype=np.float32)
+    return out
+
+
+def latencies(index: faiss.Index, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    ids = np.empty((len(q), k), np.int64)
+    ts = np.empty(len(q))
+    for i in range(len(q)):
+        t = time.perf_counter()
+        _, ids[i] = index.search(q[i : i + 1], k)
+        ts[i] = (time.perf_counter() - t) * 1e3
+    return ts, ids
+
+
+def recall(approx: np.ndarray, exact: np.ndarray) -> float:
+    return float(
+        np.mean([len(set(a) & set(e)) / len(e) for a, e in zip(approx, exact, strict=True)])
+    )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
+    p.add_argument("--dim", type=int, default=512)
+    p.add_argument("--queries", type=int, default=200)
+    p.add_argument("--k", type=int, default=100)
+    p.add_argument("--target", type=float, default=0.95)
+    a = p.parse_args()
+    rng = np.random.default_rng(0)
+    centres = rng.standard_normal((2000, a.dim), dtype=np.float32)
+    print(
+        f"faiss {faiss.__version__}, threads {faiss.omp_get_max_threads()}, d={a.dim}, "
+        f"k={a.k}, {a.queries} single queries"
+    )
+    for n in a.sizes:
+        x = clustered(n, a.dim, rng, centres)
+        q = x[rng.integers(0, n, a.queries)] + 0.1 * rng.standard_normal(
+            (a.queries, a.dim), dtype=np.float32
+        )
+        t = time.perf_counter()
+        flat = faiss.IndexFlatL2(a.dim)
+        flat.add(x)
+        flat_build = time.perf_counter() - t
+        ts, exact = latencies(flat, q, a.k)
+        print(
+            f"N={n:>8}  Flat      build {flat_build:6.1f} s  p50 {np.percentile(ts, 50):7.2f} ms"
+            f"  p95 {np.percentile(ts, 95):7.2f} ms  recall@{a.k} 1.000  "
+            f"mem {flat.ntotal * a.dim * 4 / n:.0f} B/ref"
+        )
+        nlist = int(4 * np.sqrt(n))
+        t = time.perf_counter()
+        ivf = faiss.index_factory(a.dim, f"IVF{nlist},Flat")
+        train = x[rng.choice(n, min(n, 64 * nlist), replace=False)]
+        ivf.train(train)
+        ivf.add(x)
+        ivf_build = time.perf_counter() - t
+        for nprobe in (4, 8, 16, 32, 64, 128):
+            ivf.nprobe = nprobe
+            ts, ids = latencies(ivf, q, a.k)
+            r = recall(ids, exact)
+            if r >= a.target or nprobe == 128:
+                break
+        print(
+            f"N={n:>8}  IVF{nlist},Flat nprobe={nprobe}  build {ivf_build:6.1f} s  "
+            f"p50 {np.percentile(ts, 50):7.2f} ms  p95 {np.percentile(ts, 95):7.2f} ms  "
+            f"recall@{a.k} {r:.3f}"
+        )
+        rows = x[: 256 + 1024]
+        t = time.perf_counter()
+        for i in range(20):
+            euclidean(q[i : i + 1], rows)
+        print(
+            f"N={n:>8}  reader re-scoring of 256 candidates + 1024 sample: "
+            f"{(time.perf_counter() - t) / 20 * 1e3:.2f} ms/query"
+        )
+        del flat, ivf, x
+
+
+if __name__ == "__main__":
+    main()

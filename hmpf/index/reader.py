@@ -1,0 +1,374 @@
+"""Read-only access to one index version, and hierarchy scoring over it.
+
+The service and ``hmpf-eval --index`` both go through :class:`IndexReader`::
+
+    reader = IndexReader("maps/campus")            # the version CURRENT names
+    hier = reader.hierarchy()
+    query = reader.extract_query(image)            # method id -> feature
+    result = hier.run(reader.scorer(query), reader.n)
+    reader.refs.names[result.match]
+
+Tier 1 (``subset is None``) of a global method:
+
+* exact FAISS type (``Flat``, the default): the method scores the stored (memory-mapped)
+  matrix directly, so results are bit-identical to in-memory evaluation (``hmpf-eval``
+  without ``--index``); the FAISS file serves :meth:`IndexReader.search`.
+* approximate type (IVF / HNSW / PQ): FAISS returns the top ``approx_k`` candidates
+  (default ``max(256, 4 k)`` for the tier's k); they and a fixed, evenly spaced sample of up
+  to 1024 references are scored exactly by the method; every other reference gets the worst
+  of those exact scores. Min-max normalisation over the database then uses the exact best (if
+  FAISS found it) and a worst value estimated from the sample, and references outside the
+  candidates normalise to 0, which is what they would score in the later fusion anyway
+  unless they were among the top k.
+
+Later tiers read only the candidates' rows: global rows from the matrix, local features
+(KAZE ragged rows, OLO blocks) from ``local.h5`` by offsets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hmpf.config import HierarchyConfig, build_methods, parse_config
+from hmpf.errors import ConfigError
+from hmpf.hierarchy import Hierarchy, ScoreFn
+from hmpf.index import layout as L
+from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
+from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
+from hmpf.index.storage import (
+    open_h5,
+    read_global,
+    read_local_columns,
+    read_local_items,
+    read_local_offsets,
+    read_ref_table,
+    read_state,
+)
+from hmpf.index.tables import Columns
+from hmpf.methods import Method
+
+__all__ = ["IndexReader", "resolve_version"]
+
+SAMPLE_SIZE = 1024
+
+
+def resolve_version(root: Path, version: str | None = None) -> Path:
+    """Folder of ``version`` (default: the one ``CURRENT`` names)."""
+    if not root.is_dir():
+        raise IndexNotFoundError(f"index folder {str(root)!r} does not exist")
+    name = version or L.current_version(root)
+    if name is None:
+        raise IndexNotFoundError(
+            f"{root}: no published index version; build one with `hmpf-index build`"
+        )
+    path = root / name
+    if not path.is_dir():
+        raise IndexNotFoundError(
+            f"{root}: no version {name!r} (have: {', '.join(L.list_versions(root)) or 'none'})"
+        )
+    return path
+
+
+class IndexReader:
+    """One index version, opened read-only.
+
+    Args:
+        root: the index folder.
+        version: version name (default: ``CURRENT``).
+        expected_config: when given, the index must have been built for exactly this
+            hierarchy config (same digest), else :class:`IndexVersionError`.
+        mmap: memory-map global matrices stored in their own dtype (else read into RAM).
+        approx_k: FAISS candidates per approximate tier-1 search (default ``max(256, 4 k)``).
+
+    Raises:
+        IndexNotFoundError, IndexVersionError, IndexCorruptError: with what to do.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        version: str | None = None,
+        *,
+        expected_config: HierarchyConfig | None = None,
+        mmap: bool = True,
+        approx_k: int | None = None,
+    ) -> None:
+        self.root = Path(root)
+        self.path = resolve_version(self.root, version)
+        self.version = self.path.name
+        self.manifest = L.read_manifest(self.path)
+        self.config = self._check_config(expected_config)
+        self.methods: dict[str, Method] = self._load_methods()
+        self._files: list[Any] = []
+        self._ref_h5 = self._open(L.REFERENCES_H5)
+        has_local = any(m.kind == "local" for m in self.methods.values())
+        self._local_h5 = self._open(L.LOCAL_H5) if has_local else None
+        try:
+            self.refs = read_ref_table(self._ref_h5)
+            self.n = len(self.refs)
+            self._globals = {
+                mid: read_global(self._ref_h5, mid, mmap)
+                for mid, m in self.methods.items()
+                if m.kind == "global"
+            }
+            self._offsets = {
+                mid: read_local_offsets(self._local_h5, mid)
+                for mid, m in self.methods.items()
+                if m.kind == "local"
+            }
+        except (KeyError, ValueError, OSError) as exc:
+            raise IndexCorruptError(
+                f"{self.path}: missing or damaged dataset ({exc}); run `hmpf-index verify`"
+            ) from None
+        self._check_shapes()
+        self._faiss: dict[str, Any] = {}
+        k1 = self.config.tiers[0].k
+        self.approx_k = approx_k or max(256, 4 * k1)
+        self._sample = np.unique(
+            np.linspace(0, max(self.n - 1, 0), min(self.n, SAMPLE_SIZE)).round().astype(np.int64)
+        )
+
+    # -- opening and checks -------------------------------------------------------------------
+    def _open(self, name: str) -> Any:
+        f = open_h5(self.path / name)
+        self._files.append(f)
+        return f
+
+    def _check_config(self, expected: HierarchyConfig | None) -> HierarchyConfig:
+        entry = self.manifest.get("config", {})
+        try:
+            config = parse_config(entry.get("resolved"), f"{self.path / L.MANIFEST}:config")
+        except ConfigError as exc:
+            raise IndexVersionError(
+                f"{self.path}: this hmpf cannot honour the index's config ({exc}); rebuild it"
+            ) from None
+        if config.digest() != entry.get("sha256"):
+            raise IndexCorruptError(
+                f"{self.path / L.MANIFEST}: config hash does not match the stored config"
+            )
+        if expected is not None and expected.digest() != config.digest():
+            raise IndexVersionError(
+                f"{self.path}: built for config {config.name!r} ({config.digest()[:12]}), "
+                f"expected {expected.name!r} ({expected.digest()[:12]}); rebuild the index "
+                "with this config or point at the matching index"
+            )
+        return config
+
+    def _load_methods(self) -> dict[str, Method]:
+        methods = build_methods(self.config)
+        info = self.manifest.get("methods", {})
+        state_file = self.path / L.STATE_H5
+        states = read_state(state_file) if state_file.exists() else {}
+        for mid, m in methods.items():
+            entry = info.get(mid)
+            if entry is None:
+                raise IndexCorruptError(f"{self.path / L.MANIFEST}: no entry for method {mid!r}")
+            if str(entry.get("version")) != str(type(m).version):
+                raise IndexVersionError(
+                    f"{self.path}: method {mid!r} was built with code version "
+                    f"{entry.get('version')}, this hmpf has {type(m).version}; rebuild the index"
+                )
+            if mid in states:
+                m.load_state(states[mid])
+            elif m.requires_fit():
+                raise IndexCorruptError(f"{state_file}: no fitted parameters for {mid!r}")
+            if m.cache_key() != entry.get("cache_key"):
+                raise IndexCorruptError(
+                    f"{self.path}: method {mid!r} does not match the manifest (parameters or "
+                    "fitted state changed); run `hmpf-index verify`"
+                )
+        return methods
+
+    def _check_shapes(self) -> None:
+        n = self.n
+        expect = self.manifest.get("images", {}).get("count")
+        if expect != n or len(self.refs.sha256) != n:
+            raise IndexCorruptError(
+                f"{self.path / L.REFERENCES_H5}: {n} names, manifest says {expect}"
+            )
+        for col, v in self.refs.meta.items():
+            if len(v) != n:
+                raise IndexCorruptError(f"{self.path / L.REFERENCES_H5}: meta/{col} has {len(v)}")
+        for mid, mat in self._globals.items():
+            dim = self.manifest["methods"][mid].get("dim")
+            if mat.ndim != 2 or mat.shape[0] != n or (dim is not None and mat.shape[1] != dim):
+                raise IndexCorruptError(
+                    f"{self.path / L.REFERENCES_H5}: global/{mid} has shape {mat.shape}, "
+                    f"expected ({n}, {dim})"
+                )
+        for mid, offs in self._offsets.items():
+            for key, o in offs.items():
+                rows = self._local_rows(mid, key, o)
+                if o is not None and (
+                    len(o) != n + 1 or o[0] != 0 or (np.diff(o) < 0).any() or o[-1] != rows
+                ):
+                    raise IndexCorruptError(
+                        f"{self.path / L.LOCAL_H5}: local/{mid}/{key} offsets are inconsistent"
+                    )
+                if o is None and rows != n:
+                    raise IndexCorruptError(
+                        f"{self.path / L.LOCAL_H5}: local/{mid}/{key} has {rows} blocks for {n}"
+                    )
+
+    def _local_rows(self, mid: str, key: str, offsets: np.ndarray | None) -> int:
+        g = self._local_h5["local"][mid][key]  # type: ignore[index]
+        return int(g["blocks" if offsets is None else "data"].shape[0])
+
+    def close(self) -> None:
+        """Close the HDF5 files (memory-mapped matrices stay valid while referenced)."""
+        for f in self._files:
+            f.close()
+        self._files.clear()
+
+    def __enter__(self) -> IndexReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __len__(self) -> int:
+        return self.n
+
+    # -- data access -------------------------------------------------------------------------
+    def hierarchy(self) -> Hierarchy:
+        """The :class:`~hmpf.hierarchy.Hierarchy` the index was built for."""
+        return Hierarchy(self.config, self.methods)
+
+    def extract_query(self, image: np.ndarray) -> dict[str, Any]:
+        """Every method's feature of one RGB ``uint8`` query image."""
+        return {mid: m.extract(image) for mid, m in self.methods.items()}
+
+    def global_matrix(self, mid: str) -> np.ndarray:
+        """(N, D) stored vectors of a global method, in the dtype the method produced."""
+        return self._globals[mid]
+
+    def local_features(self, mid: str, idx: np.ndarray) -> list[Any]:
+        """Features of images ``idx`` of a local method, read without loading the others."""
+        idx = np.asarray(idx, dtype=np.int64)
+        method = self.methods[mid]
+        per_key = {
+            key: read_local_items(self._local_h5, mid, key, idx, o)
+            for key, o in self._offsets[mid].items()
+        }
+        return [method.from_arrays({k: v[j] for k, v in per_key.items()}) for j in range(len(idx))]
+
+    def columns(self, mid: str) -> Columns:
+        """Every image's stored arrays of one method (for add / remove)."""
+        if self.methods[mid].kind == "global":
+            return np.asarray(self._globals[mid])
+        return read_local_columns(self._local_h5, mid)
+
+    def faiss_info(self, mid: str) -> dict[str, Any] | None:
+        return self.manifest["methods"][mid].get("faiss")
+
+    def faiss_index(self, mid: str) -> Any:
+        """The FAISS index of a tier-1 global method (loaded on first use), or None."""
+        info = self.faiss_info(mid)
+        if info is None:
+            return None
+        if mid not in self._faiss:
+            if info["file"] is None:
+                index = self._flat(mid, MetricSpec(**info["metric"]))
+            else:
+                index = read_faiss(self.path / info["file"], info.get("params", ""))
+            if index.ntotal != self.n or index.d != self._globals[mid].shape[1]:
+                raise IndexCorruptError(
+                    f"{self.path / (info['file'] or L.REFERENCES_H5)}: {index.ntotal} x "
+                    f"{index.d} vectors, "
+                    f"expected {self.n} x {self._globals[mid].shape[1]}"
+                )
+            self._faiss[mid] = index
+        return self._faiss[mid]
+
+    def _flat(self, mid: str, metric: MetricSpec) -> Any:
+        """An exact FAISS Flat index over the stored matrix (built in memory)."""
+        faiss = faiss_module()
+        x = np.ascontiguousarray(self._globals[mid], dtype=np.float32)
+        kinds = {"l2": faiss.METRIC_L2, "l1": faiss.METRIC_L1, "ip": faiss.METRIC_INNER_PRODUCT}
+        index = faiss.IndexFlat(x.shape[1], kinds[metric.kind])
+        index.add(x)
+        return index
+
+    def is_exact(self, mid: str) -> bool:
+        """Tier 1 of ``mid`` scores every reference exactly (no approximate FAISS type)."""
+        info = self.faiss_info(mid)
+        return info is None or bool(info["exact"])
+
+    def search(self, mid: str, query: Any, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top ``k`` references of a global method through FAISS.
+
+        Returns:
+            ``(ids, raw)``: (k,) int64 reference indices best first and their raw scores in
+            the method's units (re-scored exactly when the FAISS metric is only a proxy).
+        """
+        index = self.faiss_index(mid)
+        if index is None:
+            raise IndexCorruptError(f"{self.path}: method {mid!r} has no FAISS index")
+        metric = MetricSpec(**self.faiss_info(mid)["metric"])  # type: ignore[index]
+        q = np.ascontiguousarray(np.asarray(query, dtype=np.float32).reshape(1, -1))
+        values, ids = index.search(q, min(k, self.n))
+        keep = ids[0] >= 0
+        ids, raw = ids[0][keep].astype(np.int64), to_raw(values[0][keep], metric)
+        if metric.proxy:
+            method = self.methods[mid]
+            raw = method.scores(query, self._globals[mid], ids)
+            order = np.argsort(-raw if method.higher_is_better else raw, kind="stable")
+            ids, raw = ids[order], raw[order]
+        return ids, raw
+
+    # -- scoring -------------------------------------------------------------------------------
+    def scorer(self, query: Mapping[str, Any]) -> ScoreFn:
+        """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against this index.
+
+        Mirrors :func:`hmpf.hierarchy.feature_scorer` (whole-database scores remembered and
+        gathered for later tiers), so exact indexes give identical results.
+        """
+        memo: dict[str, np.ndarray] = {}
+
+        def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+            if subset is None:
+                if mid not in memo:
+                    memo[mid] = self._full_scores(mid, query[mid])
+                return memo[mid]
+            if mid in memo and self.is_exact(mid):
+                return memo[mid][subset]
+            return self._subset_scores(mid, query[mid], np.asarray(subset, dtype=np.int64))
+
+        return score_fn
+
+    def _full_scores(self, mid: str, q: Any) -> np.ndarray:
+        method = self.methods[mid]
+        if method.kind == "local":
+            refs = method.stack(self.local_features(mid, np.arange(self.n)))
+            return method.scores(q, refs, None)
+        if self.is_exact(mid):
+            return method.scores(q, self._globals[mid], None)
+        return self._approx_scores(mid, q)
+
+    def _approx_scores(self, mid: str, q: Any) -> np.ndarray:
+        method = self.methods[mid]
+        ids, _ = self.search(mid, q, self.approx_k)
+        cand = np.union1d(ids, self._sample)
+        exact = method.scores(q, self._globals[mid], cand)
+        worst = float(np.min(exact) if method.higher_is_better else np.max(exact))
+        out = np.full(self.n, worst)
+        out[cand] = exact
+        return out
+
+    def _subset_scores(self, mid: str, q: Any, subset: np.ndarray) -> np.ndarray:
+        method = self.methods[mid]
+        if method.kind == "global":
+            return method.scores(q, self._globals[mid], subset)
+        return method.scores(q, method.stack(self.local_features(mid, subset)), None)
+
+
+def faiss_available() -> bool:
+    try:
+        faiss_module()
+    except Exception:
+        return False
+    return True

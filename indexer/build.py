@@ -1,0 +1,722 @@
+"""``build``, ``add`` and ``remove``: each writes a new immutable version and publishes it.
+
+Every operation runs under the index's writer lock and works in ``INDEX/.build/``:
+
+* ``job.json``   what the operation is (config hash, images and their sha256, options), so
+  that ``--resume`` continues only the same job;
+* ``features/``  one file per image and method, written as soon as the image is done
+  (:class:`hmpf.features.FeatureCache`): a resumed job extracts only the missing images;
+* ``state.h5``   fitted parameters, saved before extraction (a resumed job reuses them);
+* ``out/``       the version being written; fsynced, renamed to ``vNNNN``, then ``CURRENT``
+  is switched atomically and ``.build`` deleted.
+
+An interruption at any point (Ctrl-C, kill -9, full disk) leaves ``CURRENT`` and every
+published version untouched.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import platform
+import shutil
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+import hmpf.features as hfeatures
+from hmpf.config import HierarchyConfig, build_methods, load_config
+from hmpf.errors import ImageError
+from hmpf.features import FeatureCache, extract_images, file_digest
+from hmpf.index import layout as L
+from hmpf.index.ann import (
+    MetricSpec,
+    build_faiss,
+    detect_metric,
+    faiss_module,
+    is_exact_factory,
+    read_faiss,
+    set_search_params,
+)
+from hmpf.index.layout import IndexBuildError
+from hmpf.index.reader import IndexReader
+from hmpf.index.storage import (
+    Precision,
+    read_state,
+    write_local,
+    write_references,
+    write_state,
+)
+from hmpf.index.tables import (
+    Columns,
+    RefTable,
+    columns_from_features,
+    concat_columns,
+    select_columns,
+)
+from hmpf.methods import Method
+from indexer.inputs import read_metadata, scan_images
+
+__all__ = ["BuildOptions", "Summary", "add", "build", "remove"]
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """How versions are written.
+
+    Attributes:
+        faiss: tier-1 method id -> FAISS factory string; key ``"*"`` applies to every
+            tier-1 global method not named (default ``Flat``: exact).
+        faiss_params: method id (or ``"*"``) -> FAISS search parameters, e.g. ``nprobe=16``.
+        precision: ``exact`` or ``compact`` (see :mod:`hmpf.index.storage`).
+        strict: fail on an unreadable image instead of skipping it.
+        workers: extraction processes (default: CPU count).
+        progress: progress bars on stderr.
+    """
+
+    faiss: Mapping[str, str] = field(default_factory=dict)
+    faiss_params: Mapping[str, str] = field(default_factory=dict)
+    precision: Precision = "exact"
+    strict: bool = False
+    workers: int | None = None
+    progress: bool = True
+
+    def factory(self, mid: str) -> str:
+        return self.faiss.get(mid, self.faiss.get("*", "Flat"))
+
+    def params(self, mid: str) -> str:
+        return self.faiss_params.get(mid, self.faiss_params.get("*", ""))
+
+    def identity(self) -> dict[str, Any]:
+        """The options that change the output (part of a resumable job's identity)."""
+        return {
+            "faiss": dict(self.faiss),
+            "faiss_params": dict(self.faiss_params),
+            "precision": self.precision,
+            "strict": self.strict,
+        }
+
+
+@dataclass
+class Summary:
+    """What an operation did (printed by the CLI, also in the manifest)."""
+
+    version: str
+    operation: str
+    images: int
+    extracted: int
+    reused: int
+    skipped: list[dict[str, str]]
+    resumed: int
+    seconds: float
+    images_per_s: float
+    bytes_total: int
+    bytes_per_method: dict[str, int]
+
+    def lines(self) -> list[str]:
+        n = max(self.images, 1)
+        out = [
+            f"{self.operation}: published {self.version} with {self.images} references "
+            f"({self.extracted} extracted of which {self.resumed} resumed, {self.reused} reused, "
+            f"{len(self.skipped)} skipped) "
+            f"in {self.seconds:.1f} s ({self.images_per_s:.1f} images/s)",
+            f"on disk: {self.bytes_total / 1e6:.2f} MB, {self.bytes_total / n / 1024:.1f} KiB "
+            "per reference; per method: "
+            + ", ".join(f"{m} {b / n / 1024:.1f} KiB" for m, b in self.bytes_per_method.items()),
+        ]
+        out += [f"skipped {s['name']}: {s['reason']}" for s in self.skipped]
+        return out
+
+
+# -- inputs ----------------------------------------------------------------------------------
+def _load_config(config: str | Path | HierarchyConfig) -> HierarchyConfig:
+    return config if isinstance(config, HierarchyConfig) else load_config(config)
+
+
+def _check_options(config: HierarchyConfig, methods: Mapping[str, Method], opt: BuildOptions):
+    tier1 = [m for m in config.tiers[0].methods if methods[m].kind == "global"]
+    for what, mapping in (("faiss", opt.faiss), ("faiss-params", opt.faiss_params)):
+        bad = [k for k in mapping if k != "*" and k not in tier1]
+        if bad:
+            raise IndexBuildError(
+                f"--{what} names {', '.join(bad)}: not a tier-1 global method of "
+                f"{config.name!r} (those are: {', '.join(tier1) or 'none'})"
+            )
+
+
+def _read_inputs(images: str | Path, metadata: str | Path | None) -> tuple[list[Path], RefTable]:
+    paths = scan_images(images)
+    names = [p.name for p in paths]
+    meta = read_metadata(metadata, names) if metadata is not None else {}
+    folder = str(Path(images).resolve())
+    return paths, RefTable(names, [""] * len(names), meta, [folder] * len(names))
+
+
+def _digests(paths: Sequence[Path]) -> list[str]:
+    out = []
+    for p in paths:
+        try:
+            out.append(file_digest(p))
+        except OSError as exc:
+            out.append(f"unreadable:{exc.strerror}")
+    return out
+
+
+# -- the work folder -------------------------------------------------------------------------
+class WorkDir:
+    """``INDEX/.build``: a resumable job's persisted progress."""
+
+    def __init__(self, root: Path) -> None:
+        self.path = root / L.BUILD_DIR
+
+    def start(self, job: dict[str, Any], resume: bool) -> bool:
+        """Create or reuse the folder; True when a previous run of ``job`` is resumed."""
+        job_file = self.path / "job.json"
+        if self.path.exists():
+            old = _read_json(job_file)
+            if resume and old == job:
+                return True
+            if resume and old is not None:
+                raise IndexBuildError(
+                    f"{self.path}: the interrupted job differs (operation "
+                    f"{old.get('operation')!r}, other images, config or options); rerun "
+                    "without --resume to discard it"
+                )
+            shutil.rmtree(self.path)
+        self.path.mkdir(parents=True)
+        L.write_json_atomic(job_file, job)
+        return False
+
+    @property
+    def cache(self) -> FeatureCache:
+        return FeatureCache(self.path / "features")
+
+    @property
+    def state(self) -> Path:
+        return self.path / L.STATE_H5
+
+    @property
+    def out(self) -> Path:
+        return self.path / "out"
+
+    def discard(self) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _job(operation: str, config: HierarchyConfig, refs: RefTable, **extra: Any) -> dict[str, Any]:
+    h = hashlib.sha256()
+    for n, s in zip(refs.names, refs.sha256, strict=True):
+        h.update(f"{n}\t{s}\n".encode())
+    for k in sorted(refs.meta):
+        h.update(k.encode() + np.asarray(refs.meta[k]).astype(str).tobytes())
+    return {"operation": operation, "config": config.digest(), "images": h.hexdigest(), **extra}
+
+
+# -- fitting and extraction ------------------------------------------------------------------
+def _skipping(
+    fn: Callable[[list[Path]], T], paths: list[Path], strict: bool, skipped: list[dict[str, str]]
+) -> tuple[T, list[Path]]:
+    """Run ``fn(paths)``, dropping each image that raises :class:`ImageError` and retrying."""
+    paths = list(paths)
+    while True:
+        try:
+            return fn(paths), paths
+        except ImageError as exc:
+            if strict:
+                raise IndexBuildError(f"{exc} (rerun without --strict to skip it)") from None
+            bad = [p for p in paths if str(p) == exc.source or p.name == Path(exc.source).name]
+            if not bad:
+                raise
+            skipped.append({"name": bad[0].name, "reason": exc.reason})
+            paths.remove(bad[0])
+
+
+def _fit(
+    methods: Mapping[str, Method],
+    paths: list[Path],
+    work: WorkDir,
+    strict: bool,
+    skipped: list[dict[str, str]],
+) -> list[Path]:
+    """Fit the methods that need it (or reload the state a previous run saved)."""
+    todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
+    if not todo:
+        return paths
+    if work.state.exists():
+        states = read_state(work.state)
+        for mid, m in todo.items():
+            m.load_state(states[mid])
+        return paths
+    fit = getattr(hfeatures, "fit_methods", None)
+    if fit is None:
+        raise IndexBuildError(
+            f"methods {', '.join(todo)} need fitting, but this hmpf has no fit_methods"
+        )
+    _, paths = _skipping(lambda ps: fit(todo, ps), paths, strict, skipped)
+    write_state(work.state, todo)
+    return paths
+
+
+def _extract(
+    paths: list[Path],
+    methods: Mapping[str, Method],
+    work: WorkDir,
+    opt: BuildOptions,
+    skipped: list[dict[str, str]],
+) -> tuple[dict[str, list[Any]], list[Path], int]:
+    """Features of every readable image (finished images persist in ``work``).
+
+    Returns:
+        features per method id, the images kept, and how many were already done.
+    """
+    if not methods:
+        return {}, paths, 0
+    done = [0]
+
+    def run(ps: list[Path]) -> dict[str, list[Any]]:
+        res = extract_images(
+            ps,
+            methods,
+            cache=work.cache,
+            workers=opt.workers,
+            progress=opt.progress,
+            desc="extract",
+        )
+        done[0] = max(done[0], min(res.cached.values()))
+        return res.features
+
+    feats, kept = _skipping(run, paths, opt.strict, skipped)
+    return feats, kept, done[0]
+
+
+# -- writing -----------------------------------------------------------------------------------
+def _packages() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for dist in ("hmpf", "numpy", "h5py", "faiss-cpu", "opencv-python-headless", "torch"):
+        try:
+            out[dist] = importlib_metadata.version(dist)
+        except importlib_metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def _write_faiss(
+    out: Path,
+    config: HierarchyConfig,
+    methods: Mapping[str, Method],
+    cols: Mapping[str, Columns],
+    opt: BuildOptions,
+    parent: IndexReader | None,
+    retrain: bool,
+) -> dict[str, dict[str, Any] | None]:
+    """One FAISS file per tier-1 global method with a detectable metric."""
+    info: dict[str, dict[str, Any] | None] = {}
+    for mid in config.tiers[0].methods:
+        m = methods[mid]
+        if m.kind != "global":
+            continue
+        factory, params = opt.factory(mid), opt.params(mid)
+        matrix = cols[mid]
+        assert isinstance(matrix, np.ndarray)
+        metric = detect_metric(m, matrix)
+        if metric is None:
+            if not is_exact_factory(factory):
+                raise IndexBuildError(
+                    f"method {mid!r}: its scores match no FAISS metric, so it cannot use "
+                    f"{factory!r}; use Flat (tier 1 then scans the stored matrix)"
+                )
+            info[mid] = None
+            continue
+        entry = {
+            "file": None,
+            "factory": factory,
+            "params": params,
+            "exact": is_exact_factory(factory),
+            "metric": metric.to_json(),
+            "ntotal": int(matrix.shape[0]),
+        }
+        if not entry["exact"]:
+            # An exact Flat index is the stored matrix itself: the reader builds it in memory
+            # instead of keeping a second copy on disk.
+            index, metric = _faiss_for(mid, matrix, metric, factory, params, parent, retrain)
+            (out / L.FAISS_DIR).mkdir(exist_ok=True)
+            entry["file"] = f"{L.FAISS_DIR}/{mid}.faiss"
+            entry["metric"] = metric.to_json()
+            faiss_module().write_index(index, str(out / entry["file"]))
+        info[mid] = entry
+    return info
+
+
+def _faiss_for(
+    mid: str,
+    matrix: np.ndarray,
+    metric: MetricSpec,
+    factory: str,
+    params: str,
+    parent: IndexReader | None,
+    retrain: bool,
+) -> tuple[Any, MetricSpec]:
+    """Reuse the parent's trained FAISS index (emptied, refilled) or build a new one."""
+    old = parent.faiss_info(mid) if parent is not None and mid in parent.methods else None
+    if (
+        old is not None
+        and not retrain
+        and old["factory"] == factory
+        and old["metric"]["kind"]
+        in (
+            metric.kind,
+            "l2",
+        )
+    ):
+        index = read_faiss(parent.path / old["file"])  # type: ignore[union-attr]
+        if index.d == matrix.shape[1]:
+            index.reset()
+            index.add(np.ascontiguousarray(matrix, dtype=np.float32))
+            if params:
+                set_search_params(index, params)
+            return index, MetricSpec(**old["metric"])
+    return build_faiss(matrix, metric, factory, params)
+
+
+def _write_version(
+    root: Path,
+    work: WorkDir,
+    *,
+    operation: str,
+    config: HierarchyConfig,
+    methods: Mapping[str, Method],
+    refs: RefTable,
+    cols: Mapping[str, Columns],
+    opt: BuildOptions,
+    parent: IndexReader | None,
+    retrain: bool,
+    skipped: list[dict[str, str]],
+    extracted: int,
+    resumed: int,
+    t0: float,
+) -> Summary:
+    """Write ``work.out``, fsync it, rename it to the next version and switch CURRENT."""
+    if len(refs) == 0:
+        raise IndexBuildError("no readable reference image left; nothing to index")
+    out = work.out
+    if out.exists():
+        shutil.rmtree(out)  # a partial write of an interrupted run: features are cached
+    out.mkdir()
+    name = L.next_version_name(root)
+    try:
+        glob = {m: c for m, c in cols.items() if isinstance(c, np.ndarray)}
+        loc = {m: c for m, c in cols.items() if isinstance(c, dict)}
+        sizes = write_references(out / L.REFERENCES_H5, refs, glob, methods, opt.precision)
+        if loc:
+            sizes.update(write_local(out / L.LOCAL_H5, loc, methods, opt.precision))
+        if any(m.state_arrays() for m in methods.values()):
+            write_state(out / L.STATE_H5, methods)
+        faiss_info = _write_faiss(out, config, methods, cols, opt, parent, retrain)
+        for mid, fi in faiss_info.items():
+            if fi is not None and fi["file"]:
+                sizes[mid] += (out / fi["file"]).stat().st_size
+        seconds = time.perf_counter() - t0
+        summary = Summary(
+            version=name,
+            operation=operation,
+            images=len(refs),
+            extracted=extracted,
+            reused=len(refs) - extracted,
+            skipped=skipped,
+            resumed=resumed,
+            seconds=seconds,
+            images_per_s=(extracted or len(refs)) / max(seconds, 1e-9),
+            bytes_total=0,
+            bytes_per_method=sizes,
+        )
+        manifest = _manifest(name, operation, config, methods, refs, cols, opt, parent, faiss_info)
+        manifest["summary"] = asdict(summary)
+        manifest["files"] = {
+            str(p.relative_to(out)): {"sha256": L.sha256_file(p), "bytes": p.stat().st_size}
+            for p in sorted(out.rglob("*"))
+            if p.is_file()
+        }
+        summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
+        manifest["summary"]["bytes_total"] = summary.bytes_total
+        (out / L.MANIFEST).write_text(json.dumps(manifest, indent=1))
+        L.fsync_tree(out)
+        out.rename(root / name)
+        L.fsync_dir(root)
+        L.set_current(root, name)
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise IndexBuildError(
+                f"disk full while writing {out}; free space, then rerun with --resume "
+                "(finished images are kept; the current version is untouched)"
+            ) from None
+        raise
+    work.discard()
+    return summary
+
+
+def _manifest(
+    name: str,
+    operation: str,
+    config: HierarchyConfig,
+    methods: Mapping[str, Method],
+    refs: RefTable,
+    cols: Mapping[str, Columns],
+    opt: BuildOptions,
+    parent: IndexReader | None,
+    faiss_info: Mapping[str, dict[str, Any] | None],
+) -> dict[str, Any]:
+    h = hashlib.sha256()
+    for n, s in zip(refs.names, refs.sha256, strict=True):
+        h.update(f"{n}\t{s}\n".encode())
+    method_info = {}
+    for mid, m in methods.items():
+        c = cols[mid]
+        entry: dict[str, Any] = {
+            "type": type(m).name,
+            "kind": m.kind,
+            "version": type(m).version,
+            "params": m.config.model_dump(mode="json"),
+            "cache_key": m.cache_key(),
+            "higher_is_better": m.higher_is_better,
+            "state_sha256": m.state_digest(),
+            "faiss": faiss_info.get(mid),
+        }
+        if isinstance(c, np.ndarray):
+            entry["dim"] = int(c.shape[1])
+            entry["dtype"] = c.dtype.str
+        else:
+            entry["arrays"] = {
+                k: {"dtype": r.data.dtype.str, "item_shape": list(r.data.shape[1:])}
+                for k, r in c.items()
+            }
+        method_info[mid] = entry
+    sources = sorted(set(refs.sources))
+    return {
+        "format_version": L.FORMAT_VERSION,
+        "version": name,
+        "parent": parent.version if parent is not None else None,
+        "operation": operation,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "config": {"name": config.name, "sha256": config.digest(), "resolved": config.model_dump()},
+        "methods": method_info,
+        "packages": _packages(),
+        "platform": {"machine": platform.machine(), "system": platform.system(), "argv": sys.argv},
+        "options": opt.identity(),
+        "images": {
+            "count": len(refs),
+            "list_sha256": h.hexdigest(),
+            "table": f"{L.REFERENCES_H5}:/names,/sha256",
+            "sources": [{"folder": s, "count": refs.sources.count(s)} for s in sources],
+            "metadata_columns": sorted(refs.meta),
+        },
+    }
+
+
+# -- operations --------------------------------------------------------------------------------
+def build(
+    config: str | Path | HierarchyConfig,
+    images: str | Path,
+    index: str | Path,
+    *,
+    metadata: str | Path | None = None,
+    options: BuildOptions | None = None,
+    resume: bool = False,
+) -> Summary:
+    """Extract every method for every image of ``images`` and publish a new version.
+
+    Raises:
+        ConfigError, DatasetError, IndexBuildError: bad input, before any extraction.
+    """
+    t0 = time.perf_counter()
+    opt = options or BuildOptions()
+    cfg = _load_config(config)
+    methods = build_methods(cfg)
+    _check_options(cfg, methods, opt)
+    paths, refs = _read_inputs(images, metadata)
+    root = Path(index)
+    with L.writer_lock(root):
+        refs.sha256 = _digests(paths)
+        work = WorkDir(root)
+        work.start(_job("build", cfg, refs, options=opt.identity()), resume)
+        skipped: list[dict[str, str]] = []
+        paths = _fit(methods, paths, work, opt.strict, skipped)
+        feats, paths, resumed = _extract(paths, methods, work, opt, skipped)
+        keep = _kept(refs, paths)
+        refs = refs.select(keep)
+        cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
+        return _write_version(
+            root,
+            work,
+            operation="build",
+            config=cfg,
+            methods=methods,
+            refs=refs,
+            cols=cols,
+            opt=opt,
+            parent=None,
+            retrain=True,
+            skipped=skipped,
+            extracted=len(refs),
+            resumed=resumed,
+            t0=t0,
+        )
+
+
+def _kept(refs: RefTable, paths: Sequence[Path]) -> np.ndarray:
+    pos = {n: i for i, n in enumerate(refs.names)}
+    return np.array([pos[p.name] for p in paths], dtype=np.int64)
+
+
+def add(
+    index: str | Path,
+    images: str | Path,
+    *,
+    metadata: str | Path | None = None,
+    options: BuildOptions | None = None,
+    refit: bool = False,
+    resume: bool = False,
+) -> Summary:
+    """Publish a version with the images of ``images`` appended to the current version.
+
+    Stored features of the current references are reused. With ``refit``, methods with
+    fitted parameters are refitted on old + new images, which then must still be readable
+    where they were indexed from (unchanged), and those methods are re-extracted for all.
+    """
+    t0 = time.perf_counter()
+    opt = options or BuildOptions()
+    root = Path(index)
+    paths, new = _read_inputs(images, metadata)
+    with L.writer_lock(root), IndexReader(root) as parent:
+        _check_options(parent.config, parent.methods, opt)
+        clash = sorted(set(new.names) & set(parent.refs.names))
+        if clash:
+            raise IndexBuildError(
+                f"{len(clash)} image(s) already in the index: {', '.join(clash[:5])}; "
+                "remove them first (hmpf-index remove) or rename them"
+            )
+        new.sha256 = _digests(paths)
+        work = WorkDir(root)
+        job = _job(
+            "add", parent.config, new, parent=parent.version, refit=refit, options=opt.identity()
+        )
+        work.start(job, resume)
+        skipped: list[dict[str, str]] = []
+        methods = parent.methods
+        refit_ids: list[str] = []
+        if refit:
+            methods, refit_ids = _refit(parent, paths, work, opt.strict, skipped)
+        reuse = {mid: m for mid, m in methods.items() if mid not in refit_ids}
+        feats, paths, resumed = _extract(paths, reuse, work, opt, skipped)
+        new = new.select(_kept(new, paths))
+        cols = {
+            mid: concat_columns(parent.columns(mid), columns_from_features(m, feats[mid]))
+            for mid, m in reuse.items()
+        }
+        refs = parent.refs.concat(new)
+        if refit_ids:
+            all_paths = [Path(s) / n for s, n in zip(refs.sources, refs.names, strict=True)]
+            fresh = {mid: methods[mid] for mid in refit_ids}
+            feats_all, _, _ = _extract(all_paths, fresh, work, opt, [])
+            cols.update({mid: columns_from_features(fresh[mid], feats_all[mid]) for mid in fresh})
+        return _write_version(
+            root,
+            work,
+            operation="add",
+            config=parent.config,
+            methods=methods,
+            refs=refs,
+            cols=cols,
+            opt=opt,
+            parent=parent,
+            retrain=refit,
+            skipped=skipped,
+            extracted=len(new),
+            resumed=resumed,
+            t0=t0,
+        )
+
+
+def _refit(
+    parent: IndexReader,
+    new_paths: list[Path],
+    work: WorkDir,
+    strict: bool,
+    skipped: list[dict[str, str]],
+) -> tuple[dict[str, Method], list[str]]:
+    """Refit fitted methods on the old (from their folders, unchanged) and new images."""
+    methods = build_methods(parent.config)
+    if not any(m.requires_fit() for m in methods.values()):
+        return parent.methods, []
+    old_paths = [Path(s) / n for s, n in zip(parent.refs.sources, parent.refs.names, strict=True)]
+    for p, sha in zip(old_paths, parent.refs.sha256, strict=True):
+        if not p.exists() or file_digest(p) != sha:
+            raise IndexBuildError(
+                f"--refit re-extracts every reference, but {p} is missing or changed since "
+                "it was indexed; restore it, or add without --refit"
+            )
+    _fit(methods, old_paths + new_paths, work, strict, skipped)
+    ids = [
+        mid for mid, m in methods.items() if m.state_digest() != parent.methods[mid].state_digest()
+    ]
+    for mid, m in parent.methods.items():
+        if mid not in ids:
+            methods[mid] = m
+    return methods, ids
+
+
+def remove(
+    index: str | Path, names: Sequence[str], *, options: BuildOptions | None = None
+) -> Summary:
+    """Publish a version of the current one without the references ``names``."""
+    t0 = time.perf_counter()
+    opt = options or BuildOptions()
+    root = Path(index)
+    with L.writer_lock(root), IndexReader(root) as parent:
+        present = set(parent.refs.names)
+        missing = [n for n in names if n not in present]
+        if missing:
+            raise IndexBuildError(
+                f"not in {parent.version}: {', '.join(missing[:5])}"
+                + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+                + "; see `hmpf-index info --names`"
+            )
+        drop = set(names)
+        keep = np.array([i for i, n in enumerate(parent.refs.names) if n not in drop], np.int64)
+        if len(keep) == 0:
+            raise IndexBuildError("removing every reference would leave an empty index")
+        cols = {mid: select_columns(parent.columns(mid), keep) for mid in parent.methods}
+        work = WorkDir(root)
+        work.start({"operation": "remove", "parent": parent.version, "names": sorted(drop)}, False)
+        return _write_version(
+            root,
+            work,
+            operation="remove",
+            config=parent.config,
+            methods=parent.methods,
+            refs=parent.refs.select(keep),
+            cols=cols,
+            opt=opt,
+            parent=parent,
+            retrain=False,
+            skipped=[],
+            extracted=0,
+            resumed=0,
+            t0=t0,
+        )

@@ -1,0 +1,210 @@
+"""``hmpf-index``: build, extend and maintain versioned reference indexes.
+
+    hmpf-index build --config configs/handcrafted.yaml --images refs/ --index maps/campus
+    hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
+    hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
+    hmpf-index verify --index maps/campus
+    hmpf-index info|list|gc --index maps/campus
+
+Exit status: 0 success, 1 ``verify`` found a problem, 2 bad input or a failed operation,
+130 interrupted (the current version is untouched; ``--resume`` continues).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+
+from hmpf.errors import HmpfError
+from indexer import build as B
+from indexer import maintenance as M
+
+
+def _pairs(values: Sequence[str] | None, flag: str) -> dict[str, str]:
+    """``["IVF1024,Flat", "gist=HNSW32"]`` -> ``{"*": "IVF1024,Flat", "gist": "HNSW32"}``."""
+    out = {}
+    for v in values or []:
+        key, sep, val = v.partition("=")
+        if sep and "," not in key and key.isidentifier():
+            out[key] = val
+        else:
+            out["*"] = v
+    return out
+
+
+def _add_write_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--faiss",
+        action="append",
+        metavar="[METHOD=]FACTORY",
+        help="FAISS factory string for tier-1 methods (default Flat = exact); e.g. "
+        "'IVF1024,Flat' for all or 'gist=HNSW32' for one; repeatable",
+    )
+    p.add_argument(
+        "--faiss-params",
+        action="append",
+        metavar="[METHOD=]PARAMS",
+        help="FAISS search parameters stored with the index, e.g. 'nprobe=16'",
+    )
+    p.add_argument(
+        "--precision",
+        choices=["exact", "compact"],
+        default="exact",
+        help="exact: float16 only where lossless (default); compact: float16 for all floats",
+    )
+    p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
+    p.add_argument("--workers", type=int, default=None, help="extraction processes")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hmpf-index", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    b = sub.add_parser("build", help="extract every image and publish a new version")
+    b.add_argument("--config", required=True, help="hierarchy YAML")
+    b.add_argument("--images", required=True, help="folder of reference images")
+    b.add_argument("--metadata", help="CSV: name[,lat,lon,heading,timestamp,sequence]")
+    b.add_argument("--index", required=True, help="index folder (created if missing)")
+    b.add_argument("--resume", action="store_true", help="continue an interrupted build")
+    _add_write_options(b)
+
+    a = sub.add_parser("add", help="publish a version with more images")
+    a.add_argument("--index", required=True)
+    a.add_argument("--images", required=True)
+    a.add_argument("--metadata")
+    a.add_argument("--refit", action="store_true", help="refit fitted parameters on all images")
+    a.add_argument("--resume", action="store_true", help="continue an interrupted add")
+    _add_write_options(a)
+
+    r = sub.add_parser("remove", help="publish a version without some images")
+    r.add_argument("--index", required=True)
+    r.add_argument("names", nargs="+", help="image file names to drop")
+
+    for name, helptext in (
+        ("verify", "recompute checksums and shapes"),
+        ("info", "show a version's manifest"),
+    ):
+        s = sub.add_parser(name, help=helptext)
+        s.add_argument("--index", required=True)
+        s.add_argument("--version", help="version name (default: current)")
+        if name == "info":
+            s.add_argument("--json", action="store_true", help="print JSON")
+            s.add_argument("--names", action="store_true", help="also list reference names")
+
+    ls = sub.add_parser("list", help="list versions")
+    ls.add_argument("--index", required=True)
+
+    g = sub.add_parser("gc", help="delete old versions (never the current one)")
+    g.add_argument("--index", required=True)
+    g.add_argument("--keep", type=int, default=0, help="also keep the N newest old versions")
+    g.add_argument("--dry-run", action="store_true")
+    return p
+
+
+def _options(args: argparse.Namespace) -> B.BuildOptions:
+    return B.BuildOptions(
+        faiss=_pairs(args.faiss, "--faiss"),
+        faiss_params=_pairs(args.faiss_params, "--faiss-params"),
+        precision=args.precision,
+        strict=args.strict,
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+
+
+def _print_info(args: argparse.Namespace) -> int:
+    data = M.info(args.index, args.version)
+    if args.names:
+        from hmpf.index.reader import IndexReader
+
+        with IndexReader(args.index, args.version) as reader:
+            data["names"] = reader.refs.names
+    if args.json:
+        print(json.dumps(data, indent=1))
+        return 0
+    s = data.get("summary", {})
+    print(
+        f"version {data['version']} ({data['operation']}, parent {data['parent']}) "
+        f"{data['created']}"
+    )
+    print(f"config {data['config']['name']} sha256 {data['config']['sha256'][:16]}")
+    print(f"references {data['images']['count']}, metadata: {data['images']['metadata_columns']}")
+    print(f"bytes {s.get('bytes_total')}  built in {s.get('seconds', 0):.1f} s")
+    for mid, m in data["methods"].items():
+        fa = m.get("faiss") or {}
+        print(f"  {mid:<10} {m['kind']:<6} v{m['version']}  faiss {fa.get('factory', '-')}")
+    for sk in s.get("skipped", []):
+        print(f"  skipped {sk['name']}: {sk['reason']}")
+    for n in data.get("names", []):
+        print(n)
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    cmd = args.command
+    if cmd == "build":
+        summary = B.build(
+            args.config,
+            args.images,
+            args.index,
+            metadata=args.metadata,
+            options=_options(args),
+            resume=args.resume,
+        )
+    elif cmd == "add":
+        summary = B.add(
+            args.index,
+            args.images,
+            metadata=args.metadata,
+            options=_options(args),
+            refit=args.refit,
+            resume=args.resume,
+        )
+    elif cmd == "remove":
+        summary = B.remove(args.index, args.names)
+    elif cmd == "verify":
+        problems = M.verify(args.index, args.version)
+        for line in problems:
+            print(f"CORRUPT {line}")
+        print("ok" if not problems else f"{len(problems)} problem(s)")
+        return 1 if problems else 0
+    elif cmd == "info":
+        return _print_info(args)
+    elif cmd == "list":
+        for v in M.list_versions(args.index):
+            mark = "*" if v["current"] else " "
+            print(
+                f"{mark} {v['version']}  {v.get('operation', '?'):<7} {v.get('images')} refs  "
+                f"{v.get('created')}  {v.get('error', '')}"
+            )
+        return 0
+    else:  # gc
+        for p in M.gc(args.index, args.keep, args.dry_run):
+            print(("would delete " if args.dry_run else "deleted ") + p)
+        return 0
+    for line in summary.lines():
+        print(line)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except HmpfError as exc:
+        print(f"hmpf-index: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(
+            "hmpf-index: interrupted; the current version is untouched "
+            "(rerun with --resume to continue)",
+            file=sys.stderr,
+        )
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

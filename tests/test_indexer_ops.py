@@ -1,0 +1,277 @@
+"""hmpf-index operations on synthetic images: build, add, remove, verify, info, list, gc,
+bad input (each rejected before any work), skipped images, fitted state, approximate FAISS."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import ClassVar
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from conftest import synthetic_image
+
+import hmpf.features
+from hmpf.config import parse_config
+from hmpf.errors import DatasetError
+from hmpf.index import IndexBuildError, IndexReader
+from hmpf.methods import GlobalMethod, MethodConfig, register
+from hmpf.methods.base import euclidean
+from indexer.build import BuildOptions, add, build, remove
+from indexer.cli import main
+
+CONFIG = """
+name: ops-test
+methods:
+  kaze: {max_keypoints: 40}
+tiers:
+  - {methods: [hog, gist], k: 4}
+  - {methods: [sad, kaze], k: 1}
+"""
+OPTS = BuildOptions(workers=1, progress=False)
+
+
+@pytest.fixture
+def config_file(tmp_path: Path) -> Path:
+    p = tmp_path / "config.yaml"
+    p.write_text(CONFIG)
+    return p
+
+
+def _write(folder: Path, n: int, seed: int = 0, prefix: str = "img") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        img = cv2.cvtColor(synthetic_image(seed + i), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(folder / f"{prefix}{i:03d}.png"), img)
+    return folder
+
+
+def _datasets(version: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for name in ("references.h5", "local.h5"):
+        with h5py.File(version / name) as f:
+            f.visititems(
+                lambda k, o, name=name: (
+                    out.__setitem__(f"{name}:{k}", o[()]) if isinstance(o, h5py.Dataset) else None
+                )
+            )
+    return out
+
+
+def _cli(*args: object) -> int:
+    return main([str(a) for a in args])
+
+
+def test_build_add_remove_list_gc(tmp_path, config_file, capsys):
+    a = _write(tmp_path / "a", 6)
+    b = _write(tmp_path / "b", 3, seed=50, prefix="new")
+    index = tmp_path / "index"
+    assert (
+        _cli(
+            "build",
+            "--config",
+            config_file,
+            "--images",
+            a,
+            "--index",
+            index,
+            "--workers",
+            1,
+            "--quiet",
+        )
+        == 0
+    )
+    assert "published v0001 with 6 references" in capsys.readouterr().out
+    s = add(index, b, options=OPTS)
+    assert (s.version, s.images, s.extracted, s.reused) == ("v0002", 9, 3, 6)
+    # add == a clean build of the union
+    union = _write(tmp_path / "union", 6)
+    _write(union, 3, seed=50, prefix="new")
+    clean = tmp_path / "clean"
+    build(config_file, union, clean, options=OPTS)
+    got, want = _datasets(index / "v0002"), _datasets(clean / "v0001")
+    assert set(got) == set(want)
+    for k in want:
+        if not k.endswith("sources") and not k.endswith("source_id"):
+            assert np.array_equal(got[k], want[k]), k
+    s = remove(index, ["img001.png", "new002.png"])
+    with IndexReader(index) as r:
+        assert r.version == "v0003" and r.n == 7
+        assert "img001.png" not in r.refs.names
+        res = r.hierarchy().run(r.scorer(r.extract_query(synthetic_image(3))), r.n)
+        assert r.refs.names[res.match] == "img003.png"
+    capsys.readouterr()
+    assert _cli("list", "--index", index) == 0
+    listing = capsys.readouterr().out
+    assert "* v0003" in listing and "v0001" in listing
+    assert _cli("info", "--index", index, "--json") == 0
+    assert json.loads(capsys.readouterr().out)["images"]["count"] == 7
+    assert _cli("gc", "--index", index, "--keep", 1) == 0
+    assert sorted(p.name for p in index.glob("v*")) == ["v0002", "v0003"]
+    assert (index / "CURRENT").read_text().strip() == "v0003"
+
+
+def test_verify_names_the_corrupt_file(tmp_path, config_file, capsys):
+    index = tmp_path / "index"
+    build(config_file, _write(tmp_path / "a", 4), index, options=OPTS)
+    assert _cli("verify", "--index", index) == 0
+    f = index / "v0001" / "local.h5"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert _cli("verify", "--index", index) == 1
+    out = capsys.readouterr().out
+    assert "local.h5: sha256 differs" in out and "references.h5" not in out
+
+
+def test_metadata_is_stored(tmp_path, config_file):
+    a = _write(tmp_path / "a", 3)
+    csv = tmp_path / "meta.csv"
+    csv.write_text(
+        "name,lat,lon,timestamp,sequence\n"
+        "img000.png,-27.47,153.02,2020-01-01T00:00:00+00:00,run1\n"
+        "img002.png,-27.48,153.03,1577836900,run1\n"
+    )
+    build(config_file, a, tmp_path / "index", metadata=csv, options=OPTS)
+    with IndexReader(tmp_path / "index") as r:
+        assert r.refs.meta["lat"][0] == -27.47 and np.isnan(r.refs.meta["lat"][1])
+        assert r.refs.meta["timestamp"][0] == 1577836800.0
+        assert list(r.refs.meta["sequence"]) == ["run1", "", "run1"]
+
+
+@pytest.mark.parametrize(
+    ("csv_text", "match"),
+    [
+        ("file,lat\nimg000.png,1\n", "'name' column"),
+        ("name,latitude\nimg000.png,1\n", "unknown column"),
+        ("name,lat\nimg000.png,1\nghost.png,2\n", "name no image.*ghost.png"),
+        ("name,lat\nimg000.png,north\n", "not a number"),
+        ("name,lat\nimg000.png,1\nimg000.png,2\n", "duplicate row"),
+    ],
+)
+def test_bad_metadata_rejected_before_work(tmp_path, config_file, csv_text, match):
+    a = _write(tmp_path / "a", 2)
+    csv = tmp_path / "meta.csv"
+    csv.write_text(csv_text)
+    with pytest.raises(DatasetError, match=match):
+        build(config_file, a, tmp_path / "index", metadata=csv, options=OPTS)
+    assert not (tmp_path / "index").exists()
+
+
+def test_bad_folder_and_config_rejected_before_work(tmp_path, config_file, capsys):
+    (tmp_path / "empty").mkdir()
+    index = tmp_path / "index"
+    with pytest.raises(DatasetError, match="holds no image"):
+        build(config_file, tmp_path / "empty", index, options=OPTS)
+    dup = _write(tmp_path / "dup", 1)
+    (dup / "IMG000.PNG").write_bytes((dup / "img000.png").read_bytes())
+    with pytest.raises(DatasetError, match="duplicate image names"):
+        build(config_file, dup, index, options=OPTS)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tiers:\n  - {methods: [hog, nosuch], k: 1}\n")
+    assert _cli("build", "--config", bad, "--images", dup, "--index", index) == 2
+    assert "unknown method 'nosuch'" in capsys.readouterr().err
+    with pytest.raises(IndexBuildError, match="not a tier-1 global method"):
+        build(config_file, dup, index, options=BuildOptions(faiss={"kaze": "HNSW32"}))
+    assert not index.exists()
+
+
+def test_unreadable_image_skipped_or_strict(tmp_path, config_file):
+    a = _write(tmp_path / "a", 3)
+    (a / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    s = build(config_file, a, tmp_path / "index", options=OPTS)
+    assert s.images == 3 and [x["name"] for x in s.skipped] == ["broken.jpg"]
+    manifest = json.loads((tmp_path / "index" / "v0001" / "manifest.json").read_text())
+    assert manifest["summary"]["skipped"][0]["name"] == "broken.jpg"
+    with pytest.raises(IndexBuildError, match="broken.jpg.*--strict"):
+        build(config_file, a, tmp_path / "i2", options=BuildOptions(workers=1, strict=True))
+    assert not (tmp_path / "i2" / "CURRENT").exists()
+
+
+def test_add_rejects_known_names(tmp_path, config_file):
+    a = _write(tmp_path / "a", 2)
+    build(config_file, a, tmp_path / "index", options=OPTS)
+    with pytest.raises(IndexBuildError, match="already in the index"):
+        add(tmp_path / "index", a, options=OPTS)
+
+
+class ToyConfig(MethodConfig):
+    dim: int = 4
+
+
+@register
+class ToyFit(GlobalMethod):
+    """A global method with a fitted mean (stands in for VLAD centroids / PCA)."""
+
+    name = "toyfit_index_test"
+    Config: ClassVar[type[MethodConfig]] = ToyConfig
+    dim = 4
+
+    def __init__(self, config: MethodConfig | None = None) -> None:
+        super().__init__(config)
+        self.mean: np.ndarray | None = None
+
+    def requires_fit(self) -> bool:
+        return True
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        return {} if self.mean is None else {"mean": self.mean}
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        self.mean = np.asarray(arrays["mean"], np.float32)
+
+    def _extract(self, image: np.ndarray) -> np.ndarray:
+        v = image.reshape(-1, 3).mean(0).astype(np.float32)
+        return np.append(v, 1.0).astype(np.float32) - self.mean
+
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        return euclidean(queries, references)
+
+
+def test_fitted_state_persists(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_fit(methods, paths, **_):
+        calls.append(len(paths))
+        for m in methods.values():
+            m.mean = np.full(4, float(len(paths)), np.float32)
+        return list(methods)
+
+    monkeypatch.setattr(hmpf.features, "fit_methods", fake_fit)
+    cfg = parse_config({"tiers": [{"methods": ["toyfit_index_test", "gist"], "k": 1}]})
+    a = _write(tmp_path / "a", 3)
+    build(cfg, a, tmp_path / "index", options=OPTS)
+    with IndexReader(tmp_path / "index") as r:
+        assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 3.0))
+        assert r.manifest["methods"]["toyfit_index_test"]["state_sha256"]
+    add(tmp_path / "index", _write(tmp_path / "b", 2, seed=9, prefix="b"), options=OPTS)
+    with IndexReader(tmp_path / "index") as r:  # kept as they are without --refit
+        assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 3.0))
+    assert calls == [3]
+    add(
+        tmp_path / "index", _write(tmp_path / "c", 1, seed=20, prefix="c"), options=OPTS, refit=True
+    )
+    with IndexReader(tmp_path / "index") as r:
+        assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 6.0))
+        feat = r.methods["toyfit_index_test"].extract(synthetic_image(0))
+        assert np.allclose(r.global_matrix("toyfit_index_test")[0], feat)
+
+
+def test_approximate_faiss_small_map_equals_exact(tmp_path, config_file):
+    a = _write(tmp_path / "a", 12)
+    build(config_file, a, tmp_path / "exact", options=OPTS)
+    opts = BuildOptions(
+        workers=1, progress=False, faiss={"*": "IVF2,Flat"}, faiss_params={"*": "nprobe=1"}
+    )
+    build(config_file, a, tmp_path / "approx", options=opts)
+    with IndexReader(tmp_path / "exact") as e, IndexReader(tmp_path / "approx") as x:
+        assert not x.is_exact("gist") and e.is_exact("gist")
+        q = e.extract_query(synthetic_image(5))
+        # every reference is in the exact sample of a small map: same answer as exact
+        re_, rx = e.hierarchy().run(e.scorer(q), e.n), x.hierarchy().run(x.scorer(q), x.n)
+        assert re_.match == rx.match == 5
+        ids, _ = x.search("gist", q["gist"], 3)
+        assert ids[0] == 5

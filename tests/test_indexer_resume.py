@@ -1,0 +1,97 @@
+"""Atomic publish and resume: a build killed with SIGKILL leaves CURRENT untouched and
+``build --resume`` finishes it without redoing finished images, equal to a clean build."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+from conftest import synthetic_image
+
+from hmpf.index import IndexReader
+from indexer.build import BuildOptions, build
+from indexer.maintenance import verify
+
+CONFIG = """
+name: resume-test
+tiers:
+  - {methods: [hog, gist], k: 4}
+  - {methods: [kaze], k: 1}
+"""
+
+
+def _folder(path: Path, n: int) -> Path:
+    path.mkdir()
+    for i in range(n):
+        img = cv2.cvtColor(synthetic_image(i, (240, 320)), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(path / f"img{i:03d}.png"), img)
+    return path
+
+
+def _contents(version: Path) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for name in ("references.h5", "local.h5"):
+        with h5py.File(version / name) as f:
+            f.visititems(
+                lambda k, o, name=name: (
+                    out.__setitem__(f"{name}:{k}", o[()]) if isinstance(o, h5py.Dataset) else None
+                )
+            )
+    return out
+
+
+def test_kill_then_resume_equals_clean_build(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text(CONFIG)
+    images = _folder(tmp_path / "imgs", 30)
+    first = _folder(tmp_path / "first", 2)
+    index = tmp_path / "index"
+    opts = BuildOptions(workers=1, progress=False)
+    build(config, first, index, options=opts)  # v0001: must survive the kill
+    cmd = [
+        sys.executable,
+        "-m",
+        "indexer.cli",
+        "build",
+        "--config",
+        str(config),
+        "--images",
+        str(images),
+        "--index",
+        str(index),
+        "--workers",
+        "1",
+        "--quiet",
+    ]
+    proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parent.parent)
+    features = index / ".build" / "features"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        done = len(list(features.rglob("*.npz"))) if features.exists() else 0
+        if done >= 3 * 8 or proc.poll() is not None:  # 3 methods x 8 images
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "build finished before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (index / "CURRENT").read_text().strip() == "v0001"
+    assert verify(index) == []
+    with IndexReader(index) as r:
+        assert r.n == 2
+    summary = build(config, images, index, options=opts, resume=True)
+    assert summary.version == "v0002" and summary.images == 30
+    assert summary.resumed >= 8
+    assert not (index / ".build").exists()
+    clean = tmp_path / "clean"
+    build(config, images, clean, options=opts)
+    got, want = _contents(index / "v0002"), _contents(clean / "v0001")
+    assert set(got) == set(want)
+    for k in want:
+        assert np.array_equal(got[k], want[k]), k
