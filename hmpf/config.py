@@ -11,6 +11,9 @@ Example (``configs/handcrafted.yaml``)::
       - {methods: [sad], k: 10}
       - {methods: [kaze], k: 1}
     weights: [0.5, 0.75, 1.0]   # optional, tier 1 first
+    index:                      # optional, for hmpf-index (flags override)
+      faiss: {"*": Flat, gem: "IVF4096,Flat"}
+      faiss_params: {gem: nprobe=32}
 
 A method id may name a registered method directly, or be declared under ``methods`` with
 ``type: <registered name>`` plus parameters, so one method can appear with two settings.
@@ -31,7 +34,7 @@ from hmpf.fusion import default_weights
 from hmpf.methods import Method, create_method, get_method_class
 from hmpf.methods.registry import format_validation_error
 
-__all__ = ["HierarchyConfig", "TierConfig", "build_methods", "load_config"]
+__all__ = ["HierarchyConfig", "IndexSettings", "TierConfig", "build_methods", "load_config"]
 
 
 class TierConfig(BaseModel):
@@ -39,6 +42,21 @@ class TierConfig(BaseModel):
 
     methods: list[str] = Field(min_length=1)
     k: int = Field(ge=1, description="candidates each method passes on (final tier: list size)")
+
+
+class IndexSettings(BaseModel):
+    """How ``hmpf-index`` stores tier-1 methods (command-line flags override these).
+
+    Attributes:
+        faiss: method id (or ``"*"`` for every tier-1 global method) -> FAISS factory string,
+            e.g. ``Flat`` (exact, the default), ``IVF4096,Flat``, ``HNSW32``, ``IVF4096,PQ64``.
+        faiss_params: method id (or ``"*"``) -> search parameters, e.g. ``nprobe=32``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    faiss: dict[str, str] = Field(default_factory=dict)
+    faiss_params: dict[str, str] = Field(default_factory=dict)
 
 
 class HierarchyConfig(BaseModel):
@@ -52,6 +70,7 @@ class HierarchyConfig(BaseModel):
     methods: dict[str, dict[str, Any]] = Field(default_factory=dict)
     tiers: list[TierConfig] = Field(min_length=1)
     weights: list[float] | None = None
+    index: IndexSettings = Field(default_factory=IndexSettings)
 
     @model_validator(mode="after")
     def _check(self) -> HierarchyConfig:

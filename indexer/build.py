@@ -24,7 +24,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -90,6 +90,14 @@ class BuildOptions:
     strict: bool = False
     workers: int | None = None
     progress: bool = True
+
+    def with_config(self, config: HierarchyConfig) -> BuildOptions:
+        """These options over the config's ``index`` defaults (options win per method id)."""
+        return replace(
+            self,
+            faiss={**config.index.faiss, **self.faiss},
+            faiss_params={**config.index.faiss_params, **self.faiss_params},
+        )
 
     def factory(self, mid: str) -> str:
         return self.faiss.get(mid, self.faiss.get("*", "Flat"))
@@ -545,8 +553,8 @@ def build(
         ConfigError, DatasetError, IndexBuildError: bad input, before any extraction.
     """
     t0 = time.perf_counter()
-    opt = options or BuildOptions()
     cfg = _load_config(config)
+    opt = (options or BuildOptions()).with_config(cfg)
     methods = build_methods(cfg)
     _check_options(cfg, methods, opt)
     paths, refs = _read_inputs(images, metadata)
@@ -604,6 +612,7 @@ def add(
     root = Path(index)
     paths, new = _read_inputs(images, metadata)
     with L.writer_lock(root), IndexReader(root) as parent:
+        opt = opt.with_config(parent.config)
         _check_options(parent.config, parent.methods, opt)
         clash = sorted(set(new.names) & set(parent.refs.names))
         if clash:

@@ -275,3 +275,20 @@ def test_approximate_faiss_small_map_equals_exact(tmp_path, config_file):
         assert re_.match == rx.match == 5
         ids, _ = x.search("gist", q["gist"], 3)
         assert ids[0] == 5
+
+
+def test_faiss_factory_from_config_and_flag_override(tmp_path, config_file):
+    a = _write(tmp_path / "a", 8)
+    cfg = tmp_path / "ivf.yaml"
+    cfg.write_text(
+        config_file.read_text() + '\nindex:\n  faiss: {"*": "IVF2,Flat"}\n'
+        "  faiss_params: {'*': nprobe=2}\n"
+    )
+    build(cfg, a, tmp_path / "from_config", options=OPTS)
+    with IndexReader(tmp_path / "from_config") as r:
+        assert not r.is_exact("gist")
+        assert r.manifest["methods"]["gist"]["faiss"]["factory"] == "IVF2,Flat"
+    flag = BuildOptions(workers=1, progress=False, faiss={"gist": "Flat"})
+    build(cfg, a, tmp_path / "overridden", options=flag)
+    with IndexReader(tmp_path / "overridden") as r:
+        assert r.is_exact("gist")

@@ -4,8 +4,9 @@
 (Radenovic et al., TPAMI 2018). Cheap and strong for tier 1: one vector per image, Euclidean
 distance (lower is better), FAISS-friendly.
 
-Default layer per backbone: EfficientNet-Lite0 ``head`` (1280-d), VGG16 ``conv5_3`` (512-d,
-through a ReLU), CaffeNet ``relu5`` (256-d), VGG-M ``relu5`` (512-d).
+Values are kept at float16 precision (what the index stores). Default layer per backbone:
+EfficientNet-Lite0 ``head`` (1280-d), VGG16 ``conv5_3`` (512-d, through a ReLU), CaffeNet
+``relu5`` (256-d), VGG-M ``relu5`` (512-d).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pydantic import Field
 
 from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod
+from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
 
 DEFAULT_LAYER = {
@@ -38,7 +40,7 @@ class GemConfig(CnnConfig):
 class Gem(CnnMethod, GlobalMethod):
     name = "gem"
     higher_is_better = False
-    version = "1"
+    version = "2"  # 2: float16-precision descriptors
     Config: ClassVar[type[MethodConfig]] = GemConfig
     dim = 0  # set from the backbone
 
@@ -58,7 +60,7 @@ class Gem(CnnMethod, GlobalMethod):
         a = maps[self.layers()[0]].astype(np.float32)  # (C, h, w)
         p = self.gem.p
         g = np.power(np.maximum(a, self.gem.eps), p).mean(axis=(1, 2)) ** (1.0 / p)
-        return (g / max(float(np.linalg.norm(g)), 1e-12)).astype(np.float32)
+        return half(g / max(float(np.linalg.norm(g)), 1e-12))
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)

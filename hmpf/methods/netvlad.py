@@ -29,6 +29,7 @@ from pydantic import Field
 
 from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, l2_rows
+from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
 
 DEFAULTS = {
@@ -80,7 +81,7 @@ class NetVladConfig(CnnConfig):
 class NetVlad(CnnMethod, GlobalMethod):
     name = "netvlad"
     higher_is_better = False
-    version = "1"
+    version = "2"  # 2: float16-precision descriptors
     Config: ClassVar[type[MethodConfig]] = NetVladConfig
     dim = 0
 
@@ -170,14 +171,14 @@ class NetVlad(CnnMethod, GlobalMethod):
         return vlad(self._local(maps), c, assign, bias)
 
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The descriptor, at float16 precision (what the index stores)."""
         v = self._raw_vlad(maps)
         if self.published:
             p = self.backbone().netvlad_params()  # type: ignore[attr-defined]
-            return l2_rows((v @ p["wpca_w"] + p["wpca_b"])[None])[0]
-        if "pca_proj" in self._state:
-            v = (v - self._state["pca_mean"]) @ self._state["pca_proj"]
-            return l2_rows(v[None])[0]
-        return v
+            v = l2_rows((v @ p["wpca_w"] + p["wpca_b"])[None])[0]
+        elif "pca_proj" in self._state:
+            v = l2_rows(((v - self._state["pca_mean"]) @ self._state["pca_proj"])[None])[0]
+        return half(v)
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)

@@ -44,6 +44,7 @@ from pydantic import Field
 from hmpf.errors import WeightsError
 from hmpf.methods.base import LocalMethod, MethodConfig
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, nearest
+from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
 
 DEFAULTS = {
@@ -186,7 +187,7 @@ class OloConfig(CnnConfig):
 class Olo(CnnMethod, LocalMethod):
     name = "olo"
     higher_is_better = True
-    version = "1"
+    version = "2"  # 2: float16-precision descriptors
     Config: ClassVar[type[MethodConfig]] = OloConfig
 
     def __init__(self, config: OloConfig | None = None) -> None:
@@ -289,7 +290,7 @@ class Olo(CnnMethod, LocalMethod):
 
     # -- features and scores --------------------------------------------------------------------
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> OloFeatures:
-        r = self._regions(maps)
+        r = half(self._regions(maps))  # float16 precision: what the index stores
         words = nearest(r, self._vocab()["vocabulary"]).astype(np.int32)
         return OloFeatures(r, words)
 
