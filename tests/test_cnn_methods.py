@@ -200,9 +200,9 @@ def _images(n: int, seed: int = 0) -> list[np.ndarray]:
 
 SMALL = {
     "gem": {"input_size": [96, 160]},
-    "hybridnet": {},
+    "hybridnet": {"layer": "s5", "input_size": [208, 208]},
     "netvlad": {"input_size": [96, 160], "clusters": 8, "pca_dim": 4},
-    "olo": {"vocabulary_size": 16, "regions": 50},
+    "olo": {"vocabulary_size": 16, "regions": 50, "input_size": [160, 160]},
 }
 
 
@@ -225,7 +225,7 @@ def test_methods_shapes_and_determinism(fitted: dict[str, object]) -> None:
     assert a["hybridnet"][0].sum() <= 112  # at most one vote per s5 channel
     assert a["netvlad"][0].shape == (4,)
     assert isinstance(a["olo"][0], OloFeatures)
-    assert a["olo"][0].regions.shape[1] == 80 and 0 < len(a["olo"][0]) <= 60
+    assert a["olo"][0].regions.shape[1] == 192 and 0 < len(a["olo"][0]) <= 60
     for name in SMALL:
         for fa, fb in zip(a[name], b[name], strict=True):
             if name == "olo":
@@ -235,7 +235,7 @@ def test_methods_shapes_and_determinism(fitted: dict[str, object]) -> None:
                 np.testing.assert_array_equal(fa, fb)
                 assert np.linalg.norm(fa) > 0
     for name in ("gem", "netvlad"):
-        assert float(np.linalg.norm(a[name][0])) == pytest.approx(1.0, abs=1e-5)
+        assert float(np.linalg.norm(a[name][0])) == pytest.approx(1.0, abs=1e-3)  # float16
     # Batched extraction equals one image at a time.
     single = fitted["netvlad"].extract(imgs[1])  # type: ignore[attr-defined]
     np.testing.assert_allclose(single, a["netvlad"][1], rtol=1e-4, atol=1e-6)
@@ -267,8 +267,8 @@ def test_fitted_state_round_trip_pickle_and_cache_key(fitted: dict[str, object])
 
 
 def test_shared_forward_pass_per_group() -> None:
-    gem = create_method("gem", {"input_size": [208, 208]})
-    hyb = create_method("hybridnet")  # s5 at 208 x 208: same group as gem above
+    gem = create_method("gem", {"input_size": [416, 416]})
+    hyb = create_method("hybridnet")  # s6 at 416 x 416: same group as gem above
     other = create_method("gem", {"input_size": [96, 96]})
     net = gem.backbone()
     calls: list[tuple[int, tuple[str, ...]]] = []
@@ -283,7 +283,7 @@ def test_shared_forward_pass_per_group() -> None:
         out = extract_cnn({"g": gem, "h": hyb, "o": other}, _images(3))
     finally:
         del net.forward_maps
-    assert sorted(calls) == [(3, ("head",)), (3, ("head", "s5"))]
+    assert sorted(calls) == [(3, ("head",)), (3, ("head", "s6"))]
     assert len(out["g"]) == len(out["h"]) == len(out["o"]) == 3
 
 

@@ -52,8 +52,7 @@ class Gem(CnnMethod, GlobalMethod):
         return [self.gem.layer or DEFAULT_LAYER[self.gem.backbone]]
 
     def default_input_size(self) -> tuple[int, int]:
-        if self.gem.backbone == "efficientnet_lite0":
-            return (288, 512)  # keeps the 16:9 aspect of vehicle cameras; 9 x 16 cells
+        # 224 x 224 beat 288 x 512 on Gardens Point (recall@1 0.61 vs 0.57 day->night).
         return super().default_input_size()
 
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:

@@ -11,10 +11,11 @@ Backbones:
 
 * ``caffenet`` with ``HybridNet.caffemodel``: the exact pipeline (relu5 of a 227 x 227 input,
   ``mean_mode`` none by default, as HMPF).
-* ``efficientnet_lite0`` (default): the same rule on stage 5 (``s5``, 112 channels, stride 16)
-  of a 208 x 208 input, which is a 13 x 13 map. Stage 5 ends in a linear projection, so its
-  activations are signed; the rule takes the maximum as it is (a channel is skipped only
-  when its maximum is 0, as in the original).
+* ``efficientnet_lite0`` (default): the same rule on stage 6 (``s6``, 192 channels, stride 32)
+  of a 416 x 416 input, which is a 13 x 13 map (stage 5 at 208 x 208 and the head at 416 were
+  weaker on Gardens Point). Stage 6 ends in a linear projection, so its activations are
+  signed; the rule takes the maximum as it is (a channel is skipped only when its maximum is
+  0, as in the original).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from hmpf.methods.registry import register
 GRID = 13
 DEFAULTS = {
     "caffenet": ("relu5", (227, 227)),
-    "efficientnet_lite0": ("s5", (208, 208)),
+    "efficientnet_lite0": ("s6", (416, 416)),
 }
 
 

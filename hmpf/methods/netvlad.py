@@ -7,8 +7,9 @@ METHODS.md §2.5. Two ways to get its parameters:
   preL2 per local descriptor, soft-assignment (1x1 conv without bias, softmax over K = 64),
   residual aggregation ``V[k, d] = sum_i a_ik (x_id - c_kd)``, intra-normalisation, flattening
   with k fastest, L2, WPCA to 4096 and a final L2. The parameters come from the weight file.
-* ``efficientnet_lite0`` (default, an unsupervised VLAD): the same layer on stage 5 (``s5``,
-  112-d local features at stride 16 of a 288 x 512 input, 18 x 32 = 576 descriptors). Its K
+* ``efficientnet_lite0`` (default, an unsupervised VLAD): the same layer on stage 6 (``s6``,
+  192-d local features at stride 32 of a 288 x 512 input, 9 x 16 = 144 descriptors; it beat
+  stage 5 on Gardens Point day_left -> night_right, 0.49 vs 0.39 recall@1). Its K
   centroids are fitted by k-means on the reference images' (preL2) local features; the
   assignment is ``softmax_k(-alpha |x - c_k|^2)`` with ``alpha = -ln(0.01) / mean(d2 - d1)``
   over the fitting features (d1, d2: squared distances to the two nearest centroids), the
@@ -34,7 +35,7 @@ from hmpf.methods.registry import register
 
 DEFAULTS = {
     "vgg16": ("conv5_3", (224, 224)),
-    "efficientnet_lite0": ("s5", (288, 512)),
+    "efficientnet_lite0": ("s6", (288, 512)),
 }
 
 
