@@ -198,9 +198,8 @@ def fit_methods(
     pick = np.unique(np.linspace(0, n - 1, min(n, max_images)).round().astype(np.int64))
     fit_key = ""
     if cache is not None:
-        fit_key = hashlib.sha256(
-            "".join(file_digest(paths[i]) for i in pick).encode()
-        ).hexdigest()[:32]
+        joined = "".join(file_digest(paths[i]) for i in pick)
+        fit_key = hashlib.sha256(joined.encode()).hexdigest()[:32]
     pending: dict[str, Method] = {}
     for mid, m in todo.items():
         state = cache.get_state(m.cache_key(), fit_key) if cache is not None else None
