@@ -55,48 +55,59 @@ DEFAULTS = {
 }
 
 
+def _components(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-connected components of ``M_m > min(M_m)`` for every channel, in bwlabel order.
+
+    All channels are labelled in one call: their transposes are stacked with a zero row
+    between them (so no component crosses channels), and the row-major scan of a transposed
+    channel is MATLAB's column-major scan of the channel.
+
+    Returns:
+        channel (n,), mean activation (n,), inclusive boxes (n, 4: r0, r1, c0, c1).
+    """
+    c, h, w = mask.shape
+    bw = mask > mask.reshape(c, -1).min(axis=1)[:, None, None]
+    tiles = np.zeros((c, w + 1, h), dtype=np.uint8)  # (channel, col, row) + a gap row
+    tiles[:, :w] = bw.transpose(0, 2, 1)
+    values = np.zeros((c, w + 1, h), dtype=np.float64)
+    values[:, :w] = mask.transpose(0, 2, 1)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        tiles.reshape(c * (w + 1), h), connectivity=8
+    )
+    sums = np.bincount(labels.ravel(), weights=values.ravel(), minlength=n)[1:]
+    left, top, width, height, area = (stats[1:, i] for i in range(5))
+    channel = top // (w + 1)
+    # In a transposed tile, x is the original row and y - tile offset the original column.
+    c0 = top - channel * (w + 1)
+    boxes = np.stack([left, left + width - 1, c0, c0 + height - 1], axis=1)
+    return channel, sums / area, boxes
+
+
 def encode_regions(feat: np.ndarray, mask: np.ndarray, n_regions: int = 200) -> np.ndarray:
     """OLO ``encode_feat``: (Cf, H, W) features and (Cm, H, W) masks -> (R, Cf) float32 rows.
 
     Rows are unit vectors (or zero); R is ``n_regions`` normally, more on ties at the
     threshold, fewer when there are fewer components.
     """
-    _, h, w = mask.shape
-    means: list[float] = []
-    boxes: list[tuple[int, int, int, int, int]] = []
-    for m in range(mask.shape[0]):
-        chan = mask[m]
-        bw = (chan > chan.min()).astype(np.uint8)
-        if not bw.any():
-            continue
-        # cv2 labels in row-major scan order; labelling the transpose gives bwlabel's
-        # column-major order. stats are in transposed coordinates: x = row, y = col.
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(
-            np.ascontiguousarray(bw.T), connectivity=8
-        )
-        sums = np.bincount(labels.ravel(), weights=chan.T.ravel(), minlength=n)
-        for lab in range(1, n):
-            r0, c0, bh, bw_ = (int(v) for v in stats[lab, :4])
-            means.append(sums[lab] / stats[lab, cv2.CC_STAT_AREA])
-            boxes.append((m, r0, r0 + bh - 1, c0, c0 + bw_ - 1))
-    if not boxes:
+    channel, means, boxes = _components(mask)
+    if len(means) == 0:
         return np.zeros((0, feat.shape[0]), dtype=np.float32)
-    mean_arr = np.asarray(means)
-    if len(mean_arr) > n_regions:
-        thr = np.sort(mean_arr)[::-1][n_regions - 1]
-        keep = np.flatnonzero(mean_arr >= thr)
+    if len(means) > n_regions:
+        thr = np.sort(means)[::-1][n_regions - 1]
+        keep = np.flatnonzero(means >= thr)
     else:
-        keep = np.arange(len(mean_arr))
-    out = np.zeros((len(keep), feat.shape[0]), dtype=np.float32)
-    for k, idx in enumerate(keep):
-        m, r0, r1, c0, c1 = boxes[idx]
-        p = mask[m, r0 : r1 + 1, c0 : c1 + 1].T.reshape(-1)  # column-major
-        p = p / max(float(np.linalg.norm(p)), 1e-30)
-        fr = feat[:, r0 : r1 + 1, c0 : c1 + 1].transpose(0, 2, 1).reshape(feat.shape[0], -1)
-        v = fr @ p
-        nv = float(np.linalg.norm(v))
-        out[k] = v / nv if nv > 0 else v
-    return out
+        keep = np.arange(len(means))
+    # Bounding-box pooling for all kept regions at once: a (R, H, W) weight map holds each
+    # region's mask values inside its box (zero outside), L2-normalised; v = W . F.
+    _, h, w = mask.shape
+    r0, r1, c0, c1 = (boxes[keep, i][:, None, None] for i in range(4))
+    rows, cols = np.arange(h)[None, :, None], np.arange(w)[None, None, :]
+    inside = (rows >= r0) & (rows <= r1) & (cols >= c0) & (cols <= c1)
+    weights = np.where(inside, mask[channel[keep]], 0.0).reshape(len(keep), -1)
+    weights /= np.maximum(np.linalg.norm(weights, axis=1, keepdims=True), 1e-30)
+    v = weights @ feat.reshape(feat.shape[0], -1).T.astype(np.float64)  # (R, Cf)
+    norms = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.where(norms > 0, v / np.where(norms > 0, norms, 1.0), v).astype(np.float32)
 
 
 def olo_similarity(
@@ -189,7 +200,7 @@ class OloConfig(CnnConfig):
 class Olo(CnnMethod, LocalMethod):
     name = "olo"
     higher_is_better = True
-    version = "2"  # 2: float16-precision descriptors
+    version = "3"  # 2: float16-precision descriptors; 3: vectorised region pooling
     Config: ClassVar[type[MethodConfig]] = OloConfig
 
     def __init__(self, config: OloConfig | None = None) -> None:
