@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 DATASETS ?= $(abspath ../shared/datasets)
 export HMPF_DATASETS ?= $(DATASETS)
-CONFIG ?= configs/handcrafted.yaml
+CONFIG ?= configs/default.yaml
 REFERENCE ?= $(HMPF_DATASETS)/gardens_point/day_right
 QUERY ?= $(HMPF_DATASETS)/gardens_point/night_right
 TOLERANCE ?= 2
@@ -20,7 +20,7 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
-## run: evaluate the handcrafted hierarchy on Gardens Point day_right -> night_right
+## run: evaluate the default hierarchy on Gardens Point day_right -> night_right
 run: install
 	$(VENV)/bin/hmpf-eval --config $(CONFIG) --reference $(REFERENCE) --query $(QUERY) \
 		--tolerance $(TOLERANCE) --json results/eval.json

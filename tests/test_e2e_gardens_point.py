@@ -100,3 +100,36 @@ def test_cli_reports_empty_folder(tmp_path: Path):
     )
     assert proc.returncode == 2
     assert "holds no image" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.dataset
+def test_default_hierarchy_beats_best_single_and_flat(gardens_point: Path, tmp_path: Path):
+    """configs/default.yaml on the two night protocols (issue: must beat its best single
+    method and flat fusion of the same methods on both)."""
+    cache = tmp_path / "cache"
+    for ref in ("day_right", "day_left"):
+        out = tmp_path / f"{ref}.json"
+        proc = _eval(
+            [
+                "--config",
+                "configs/default.yaml",
+                "--reference",
+                str(gardens_point / ref),
+                "--query",
+                str(gardens_point / "night_right"),
+                "--tolerance",
+                "2",
+                "--json",
+                str(out),
+            ],
+            cache,
+        )
+        assert proc.returncode == 0, proc.stderr
+        rep = json.loads(out.read_text())
+        m, h = rep["methods"], rep["hierarchy"]
+        best = max(m[n]["recall_at"]["1"] for n in m)
+        assert h["combined_recall_at_1"] > best, (ref, h["combined_recall_at_1"], best)
+        assert h["combined_recall_at_1"] > h["flat_recall_at_1"], ref
+        floor = {"day_right": 0.78, "day_left": 0.58}[ref]
+        assert h["combined_recall_at_1"] >= floor, (ref, h["combined_recall_at_1"])
+        assert sorted(rep["fitted_methods"]) == ["netvlad", "olo"]

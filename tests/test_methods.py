@@ -354,7 +354,9 @@ def test_kaze_real_images() -> None:
         assert f.descriptors.dtype == np.float32
         assert f.descriptors.shape == (n, 64)
         assert f.keypoints.shape == (n, 5)
-        np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+        # Unit norm, to float16 precision (descriptors are stored as float16 values).
+        np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=2e-3)
+        np.testing.assert_array_equal(f.descriptors.astype(np.float16), f.descriptors)
     d = kaze.scores(feats[0], kaze.stack(feats))
     assert d[0] < d[1]
     assert d[0] < 1.0  # every descriptor matches itself at SSD ~ 0

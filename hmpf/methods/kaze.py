@@ -23,7 +23,8 @@ Deviations (documented):
   NaN comparison would reject it as well) [U].
 * MATLAB's KAZE implementation may differ numerically from OpenCV's (METHODS.md §8.15).
 * Keypoints and unit descriptors are rounded to float16 precision (what the index stores);
-  descriptor norms are then 1 to within 1e-3, which moves an SSD by at most ~2e-3.
+  descriptor norms are then 1 to within 1e-3, and SSDs are computed exactly on those stored
+  values (``|q|^2 + |d|^2 - 2 q.d``), not as ``2 - 2 q.d``.
 """
 
 from __future__ import annotations
@@ -124,7 +125,9 @@ def best_two_ssd(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.nd
     if refs.shape[0] == 0:
         inf = np.full(nq, np.inf)
         return inf, inf.copy()
-    ssd = np.maximum(2.0 - 2.0 * (query @ refs.T).astype(np.float64), 0.0)
+    qn = (query.astype(np.float64) ** 2).sum(axis=1)[:, None]
+    rn = (refs.astype(np.float64) ** 2).sum(axis=1)[None, :]
+    ssd = np.maximum(qn + rn - 2.0 * (query @ refs.T).astype(np.float64), 0.0)
     if refs.shape[0] == 1:
         return ssd[:, 0], np.full(nq, np.inf)
     two = np.partition(ssd, 1, axis=1)[:, :2]
@@ -233,9 +236,11 @@ class Kaze(LocalMethod):
         """Distances of ``query`` to each reference (or to ``references[subset]``).
 
         Vectorised over references: sorted by descriptor count, they are gathered in chunks
-        into padded (m, n_max, 65) blocks; one matrix product gives every similarity
-        (SSD = 2 - 2 sim for unit vectors) and an argmax / mask / max pass each query row's
-        best two per reference; padding rows never win. No Python loop over references.
+        into padded (m, n_max, 65) blocks whose extra coordinate is ``-|d|^2 / 2``; with the
+        query row's extra coordinate 1, one matrix product gives ``s = q.d - |d|^2 / 2``, so
+        ``SSD = |q|^2 - 2 s`` (exact for the stored, nearly unit, float16-precision values),
+        and an argmax / mask / max pass each query row's best two per reference; padding rows
+        (extra coordinate -1e9) never win. No Python loop over references.
         """
         refs = references if isinstance(references, KazeSet) else self.stack(references)
         idx = np.arange(len(refs)) if subset is None else np.asarray(subset, np.int64)
@@ -245,11 +250,12 @@ class Kaze(LocalMethod):
         counts = refs.counts[idx]
         if nq == 0:
             return out
-        # An extra coordinate makes padding rows score -1e9 against every query row, so they
-        # are never among the best two and need no separate mask.
+        # An extra coordinate carries -|d|^2 / 2 for real rows and -1e9 for padding rows, so
+        # padding is never among the best two and needs no separate mask.
         q = np.empty((nq, DESC_DIM + 1), dtype=np.float32)
         q[:, :DESC_DIM] = query.descriptors
         q[:, DESC_DIM] = 1.0
+        qn = (query.descriptors.astype(np.float64) ** 2).sum(axis=1)
         # References in order of descriptor count, so each chunk pads to a similar length;
         # chunks keep the similarity block (nq x rows) and the packed block near 32 MB.
         order = np.argsort(counts, kind="stable")
@@ -260,7 +266,7 @@ class Kaze(LocalMethod):
             step = max(1, min(1024, 8_000_000 // (max(nq, DESC_DIM + 1) * n_max)))
             part = order[s : s + step]
             n_max = int(counts[part[-1]])
-            out[part] = self._score_block(q, refs, idx[part], counts[part], n_max)
+            out[part] = self._score_block(q, qn, refs, idx[part], counts[part], n_max)
             s += step
         return out
 
@@ -278,21 +284,29 @@ class Kaze(LocalMethod):
         return top1, sim.max(axis=2)
 
     def _score_block(
-        self, q: np.ndarray, refs: KazeSet, sel: np.ndarray, counts: np.ndarray, n_max: int
+        self,
+        q: np.ndarray,
+        qn: np.ndarray,
+        refs: KazeSet,
+        sel: np.ndarray,
+        counts: np.ndarray,
+        n_max: int,
     ) -> np.ndarray:
         """Distances of the augmented query ``q`` to the references ``sel`` (all non-empty)."""
         slots = np.arange(n_max)[None, :]
         filled = slots < counts[:, None]  # (m, n_max)
         block = np.zeros((len(sel), n_max, DESC_DIM + 1), dtype=np.float32)
         block[..., DESC_DIM] = -1e9
-        block[filled, :DESC_DIM] = refs.descriptors[(refs.offsets[sel][:, None] + slots)[filled]]
-        block[filled, DESC_DIM] = 0.0
+        rows = refs.descriptors[(refs.offsets[sel][:, None] + slots)[filled]]
+        block[filled, :DESC_DIM] = rows
+        block[filled, DESC_DIM] = -0.5 * (rows.astype(np.float64) ** 2).sum(axis=1)
         top1, top2 = self._best_two(q, block)
         # (nq, m) -> one distance per reference; query rows go on the last axis.
-        return self._distance(_sim_to_ssd(top1).T, _sim_to_ssd(top2).T)
+        return self._distance(_sim_to_ssd(top1, qn).T, _sim_to_ssd(top2, qn).T)
 
 
-def _sim_to_ssd(sim: np.ndarray) -> np.ndarray:
-    """Unit-vector similarity -> SSD; padding (similarity <= -1e8) -> inf."""
+def _sim_to_ssd(sim: np.ndarray, qn: np.ndarray) -> np.ndarray:
+    """(nq, m) augmented similarity ``q.d - |d|^2 / 2`` -> SSD ``|q|^2 - 2 s``; padding
+    (similarity <= -1e8) -> inf. ``qn``: (nq,) squared query norms."""
     sim = sim.astype(np.float64)
-    return np.where(sim <= -1e8, np.inf, np.maximum(2.0 - 2.0 * sim, 0.0))
+    return np.where(sim <= -1e8, np.inf, np.maximum(qn[:, None] - 2.0 * sim, 0.0))
