@@ -2,11 +2,14 @@
 
     .venv/bin/python bench/index_search.py --sizes 10000 100000 1000000
 
-Descriptors: 512-d float32, clustered (2000 Gaussian clusters around random centres, like
-real place descriptors: many near-duplicates along a route), queries are held-out noisy
-copies of references. Prints per size: build time, p50 / p95 single-query latency (k=100),
-recall@100 of IVF against exact search, the nprobe chosen (smallest reaching the target),
-and the cost of the reader's exact re-scoring of the approximate candidates.
+Descriptors model a fleet's map: unit 512-d float32 vectors along routes. Each route is a
+smooth random walk in a 64-d latent space (consecutive frames look alike, distant places do
+not), projected to 512-d with per-frame noise, so a query's true neighbours are the frames
+around its place, as with real place descriptors. Queries are another traverse: the latent
+point of a random reference frame, re-noised. Prints per size: build time, p50 / p95
+single-query latency (k=100), recall@100 of IVF against exact search, the nprobe chosen (the
+smallest reaching the target), and the cost of the reader's exact re-scoring of the
+approximate candidates.
 """
 
 from __future__ import annotations
@@ -19,13 +22,28 @@ import numpy as np
 
 from hmpf.methods.base import euclidean
 
+ROUTE_FRAMES = 2000  # frames per route: 10k references are 5 routes, 1M are 500
 
-def clustered(n: int, d: int, rng: np.random.Generator, centres: np.ndarray) -> np.ndarray:
-    out = np.empty((n, d), np.float32)
-    for s in range(0, n, 100_000):
-        m = min(100_000, n - s)
-        c = centres[rng.integers(0, len(centres), m)]
-        out[s : s + m] = c + 0.35 * rng.standard_normal((m, d), dtype=np.float32)
+
+def routes(
+    n: int, d: int, rng: np.random.Generator, proj: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n, d) unit reference descriptors along routes, and their (n, latent) positions."""
+    latent = np.empty((n, proj.shape[0]), np.float32)
+    for s in range(0, n, ROUTE_FRAMES):
+        m = min(ROUTE_FRAMES, n - s)
+        start = 3.0 * rng.standard_normal(proj.shape[0])
+        steps = 0.15 * rng.standard_normal((m, proj.shape[0]))
+        latent[s : s + m] = start + np.cumsum(steps, axis=0)
+    return describe(latent, rng, proj), latent
+
+
+def describe(latent: np.ndarray, rng: np.random.Generator, proj: np.ndarray) -> np.ndarray:
+    out = np.empty((len(latent), proj.shape[1]), np.float32)
+    for s in range(0, len(latent), 100_000):
+        x = latent[s : s + 100_000] @ proj
+        x += 0.5 * rng.standard_normal(x.shape, dtype=np.float32)
+        out[s : s + 100_000] = x / np.linalg.norm(x, axis=1, keepdims=True)
     return out
 
 
@@ -54,16 +72,14 @@ def main() -> None:
     p.add_argument("--target", type=float, default=0.95)
     a = p.parse_args()
     rng = np.random.default_rng(0)
-    centres = rng.standard_normal((2000, a.dim), dtype=np.float32)
+    proj = (rng.standard_normal((64, a.dim)) / 8.0).astype(np.float32)
     print(
         f"faiss {faiss.__version__}, threads {faiss.omp_get_max_threads()}, d={a.dim}, "
         f"k={a.k}, {a.queries} single queries"
     )
     for n in a.sizes:
-        x = clustered(n, a.dim, rng, centres)
-        q = x[rng.integers(0, n, a.queries)] + 0.1 * rng.standard_normal(
-            (a.queries, a.dim), dtype=np.float32
-        )
+        x, latent = routes(n, a.dim, rng, proj)
+        q = describe(latent[rng.integers(0, n, a.queries)], rng, proj)
         t = time.perf_counter()
         flat = faiss.IndexFlatL2(a.dim)
         flat.add(x)
