@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any, ClassVar, Literal
@@ -177,13 +178,45 @@ class LocalMethod(Method):
         return list(features)
 
 
+_REF_CACHE: dict[int, tuple[Any, np.ndarray, np.ndarray]] = {}
+_REF_CACHE_SIZE = 8
+
+
+def _as_f64_with_norms(references: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``references`` in float64 and their squared row norms, remembered per array.
+
+    A hierarchy scores one query at a time against the same reference matrix; converting
+    it to float64 and summing its squares again for every query dominated the per-query
+    cost on large maps. The entry lives as long as the array does (weak reference).
+    """
+    key = id(references)
+    hit = _REF_CACHE.get(key)
+    if hit is not None and hit[0]() is references:
+        return hit[1], hit[2]
+    r = np.asarray(references, dtype=np.float64)
+    norms = (r * r).sum(1)
+    try:
+        ref = weakref.ref(references)
+    except TypeError:  # not weak-referenceable (e.g. a list): do not remember it
+        return r, norms
+    if len(_REF_CACHE) >= _REF_CACHE_SIZE:
+        _REF_CACHE.pop(next(iter(_REF_CACHE)))
+    _REF_CACHE[key] = (ref, r, norms)
+    return r, norms
+
+
 def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
     """Euclidean distances (nq, D) x (n, D) -> (nq, n) float64, exact to rounding.
 
     Uses the ``|q|^2 + |r|^2 - 2 q.r`` expansion in float64 (clipped at 0): fast for the
-    full-database matrices and accurate enough for descriptors of moderate norm.
+    full-database matrices and accurate enough for descriptors of moderate norm. The
+    float64 copy of a large reference matrix and its norms are computed once per matrix.
     """
     q = np.asarray(queries, dtype=np.float64)
-    r = np.asarray(references, dtype=np.float64)
-    d2 = (q * q).sum(1)[:, None] + (r * r).sum(1)[None, :] - 2.0 * (q @ r.T)
+    if isinstance(references, np.ndarray) and references.size >= 1 << 16:
+        r, rn = _as_f64_with_norms(references)
+    else:
+        r = np.asarray(references, dtype=np.float64)
+        rn = (r * r).sum(1)
+    d2 = (q * q).sum(1)[:, None] + rn[None, :] - 2.0 * (q @ r.T)
     return np.sqrt(np.maximum(d2, 0.0))
