@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, ClassVar
 
 import cv2
@@ -94,6 +95,11 @@ class KazeSet:
     @property
     def counts(self) -> np.ndarray:
         return np.diff(self.offsets)
+
+    @cached_property
+    def sq_norms(self) -> np.ndarray:
+        """(rows,) float64 squared norm of every descriptor (computed once per set)."""
+        return (self.descriptors.astype(np.float64) ** 2).sum(axis=1)
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -297,9 +303,9 @@ class Kaze(LocalMethod):
         filled = slots < counts[:, None]  # (m, n_max)
         block = np.zeros((len(sel), n_max, DESC_DIM + 1), dtype=np.float32)
         block[..., DESC_DIM] = -1e9
-        rows = refs.descriptors[(refs.offsets[sel][:, None] + slots)[filled]]
-        block[filled, :DESC_DIM] = rows
-        block[filled, DESC_DIM] = -0.5 * (rows.astype(np.float64) ** 2).sum(axis=1)
+        rows = (refs.offsets[sel][:, None] + slots)[filled]
+        block[filled, :DESC_DIM] = refs.descriptors[rows]
+        block[filled, DESC_DIM] = -0.5 * refs.sq_norms[rows]
         top1, top2 = self._best_two(q, block)
         # (nq, m) -> one distance per reference; query rows go on the last axis.
         return self._distance(_sim_to_ssd(top1, qn).T, _sim_to_ssd(top2, qn).T)
