@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import hashlib
 import json
 import os
 import re
@@ -32,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from hmpf.errors import HmpfError
+from hmpf.features import file_digest
 
 __all__ = [
     "FORMAT_VERSION",
@@ -90,13 +90,7 @@ class IndexLockedError(HmpfIndexError):
     """Another writer holds the index lock."""
 
 
-def sha256_file(path: str | os.PathLike[str]) -> str:
-    """sha256 hex digest of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+sha256_file = file_digest  # sha256 hex digest of a file's bytes
 
 
 def fsync_dir(path: str | os.PathLike[str]) -> None:
