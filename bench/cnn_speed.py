@@ -26,22 +26,13 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import torch  # noqa: E402
 from accuracy import machine  # noqa: E402
+from speed import timed as median_ms  # noqa: E402
 
 from hmpf.backbones import load_backbone  # noqa: E402
 from hmpf.datasets import dataset_root, list_images  # noqa: E402
 from hmpf.imageio import load_image  # noqa: E402
 from hmpf.methods import create_method  # noqa: E402
 from hmpf.methods.cnn import extract_cnn, fit_cnn  # noqa: E402
-
-
-def median_ms(fn, repeats: int) -> float:
-    fn()
-    runs = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        runs.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(runs)
 
 
 def main() -> int:
