@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from hmpf.errors import MissingDependencyError, UnknownMethodError, WeightsError
+from hmpf.errors import ConfigError, MissingDependencyError, UnknownMethodError, WeightsError
 
 if TYPE_CHECKING:
     import torch
@@ -85,6 +85,15 @@ class Backbone(ABC):
     @abstractmethod
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
         """(B, 3, rows, cols) -> {layer: (B, C, h, w)} for every requested layer."""
+
+    @classmethod
+    def required_file(cls, path: Path | None, options: Mapping[str, Any]) -> Path:
+        """The weight file of a backbone that takes no options and has no bundled weights."""
+        if options:
+            raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
+        if path is None:
+            raise WeightsError(f"backbone {cls.name!r} needs a weight file. {cls.weights_hint}")
+        return weights_file(path, cls.name, cls.weights_hint)
 
     def check_layers(self, layers: Collection[str]) -> None:
         unknown = sorted(set(layers) - set(self.layers))

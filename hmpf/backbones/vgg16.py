@@ -39,9 +39,9 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from hmpf.backbones.base import Backbone, register_backbone, weights_file
+from hmpf.backbones.base import Backbone, register_backbone
 from hmpf.backbones.vgg_m import SimpleNN, load_mat, parse_chain, rgb3, simplenn
-from hmpf.errors import ConfigError, WeightsError
+from hmpf.errors import WeightsError
 from hmpf.imops import imresize, initcrop
 
 __all__ = ["VGG16_LAYERS", "Vgg16NetVLAD"]
@@ -173,11 +173,7 @@ class Vgg16NetVLAD(Backbone):
     @classmethod
     def from_weights(cls, path: Path | None, device: str = "cpu", **options: Any) -> Vgg16NetVLAD:
         """Read the struct .mat, build VGG-16 to conv5_3, then load the weights. No options."""
-        if options:
-            raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
-        if path is None:
-            raise WeightsError(f"backbone {cls.name!r} needs a weight file. {cls.weights_hint}")
-        path = weights_file(path, cls.name, cls.weights_hint)
+        path = cls.required_file(path, options)
         layers, norm = simplenn(load_mat(path), path)
         head = read_netvlad_head(path, layers)
         specs = parse_chain(path, layers, VGG16_LAYERS)

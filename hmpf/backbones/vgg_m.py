@@ -52,8 +52,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from hmpf.backbones.base import Backbone, register_backbone, weights_file
-from hmpf.errors import ConfigError, WeightsError
+from hmpf.backbones.base import Backbone, register_backbone
+from hmpf.errors import WeightsError
 from hmpf.imops import imresize, initcrop
 
 __all__ = [
@@ -430,11 +430,7 @@ class VggM1024(Backbone):
     @classmethod
     def from_weights(cls, path: Path | None, device: str = "cpu", **options: Any) -> VggM1024:
         """Read the SimpleNN file, build conv1-relu5, then load the weights. No options."""
-        if options:
-            raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
-        if path is None:
-            raise WeightsError(f"backbone {cls.name!r} needs a weight file. {cls.weights_hint}")
-        path = weights_file(path, cls.name, cls.weights_hint)
+        path = cls.required_file(path, options)
         layers, norm = simplenn(load_mat(path), path)
         specs = parse_chain(path, layers, VGGM_LAYERS)
         average_image = _average_image(norm, path)
