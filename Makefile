@@ -8,20 +8,37 @@ CONFIG ?= configs/default.yaml
 REFERENCE ?= $(HMPF_DATASETS)/gardens_point/day_right
 QUERY ?= $(HMPF_DATASETS)/gardens_point/night_right
 TOLERANCE ?= 2
+INDEX ?= index/default
+HOST ?= 127.0.0.1
+PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 
-.PHONY: install run test bench lint format clean
+.PHONY: install run index clean-index eval test bench lint format clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
-	$(PIP_INSTALL) -e '.[dev,cnn,index]'
+	$(PIP_INSTALL) -e '.[dev,cnn,index,service]'
 	touch $@
 
 install: $(VENV)/.installed
 
-## run: evaluate the default hierarchy on Gardens Point day_right -> night_right
-run: install
+## run: build the default index over $(REFERENCE) unless $(INDEX) has one, then serve it on
+## $(HOST):$(PORT). Authentication is off here, explicitly (a warning is logged); serve with
+## keys: make run HMPF_AUTH=true HMPF_KEYS_FILE=keys.yaml (see hmpf-serve keys add).
+run: index
+	HMPF_AUTH=$${HMPF_AUTH:-false} $(VENV)/bin/hmpf-serve --index $(INDEX) --host $(HOST) --port $(PORT)
+
+## index: build $(INDEX) from $(REFERENCE) with $(CONFIG) if it has no current version
+index: install
+	@if [ -f $(INDEX)/CURRENT ]; then echo "index $(INDEX) exists (version $$(cat $(INDEX)/CURRENT)); make clean-index to rebuild"; \
+	else $(VENV)/bin/hmpf-index build --config $(CONFIG) --images $(REFERENCE) --index $(INDEX); fi
+
+clean-index:
+	rm -rf $(INDEX)
+
+## eval: evaluate $(CONFIG) on Gardens Point day_right -> night_right, write results/eval.json
+eval: install
 	$(VENV)/bin/hmpf-eval --config $(CONFIG) --reference $(REFERENCE) --query $(QUERY) \
 		--tolerance $(TOLERANCE) --json results/eval.json
 

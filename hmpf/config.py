@@ -34,7 +34,14 @@ from hmpf.fusion import default_weights
 from hmpf.methods import Method, create_method, get_method_class
 from hmpf.methods.registry import format_validation_error
 
-__all__ = ["HierarchyConfig", "IndexSettings", "TierConfig", "build_methods", "load_config"]
+__all__ = [
+    "AcceptanceSettings",
+    "HierarchyConfig",
+    "IndexSettings",
+    "TierConfig",
+    "build_methods",
+    "load_config",
+]
 
 
 class TierConfig(BaseModel):
@@ -59,6 +66,20 @@ class IndexSettings(BaseModel):
     faiss_params: dict[str, str] = Field(default_factory=dict)
 
 
+class AcceptanceSettings(BaseModel):
+    """When an answer is trusted: its Combined quality (z-score) must reach ``threshold``.
+
+    Written by ``hmpf-calibrate`` (the threshold that gave ``precision`` on its training
+    split); not part of the index's identity (:meth:`HierarchyConfig.digest` ignores it).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    threshold: float
+    precision: float | None = Field(None, gt=0, le=1)
+    note: str = ""
+
+
 class HierarchyConfig(BaseModel):
     """A hierarchy: ordered tiers of methods, candidate counts, weights and fusion mode."""
 
@@ -71,6 +92,7 @@ class HierarchyConfig(BaseModel):
     tiers: list[TierConfig] = Field(min_length=1)
     weights: list[float] | None = None
     index: IndexSettings = Field(default_factory=IndexSettings)
+    acceptance: AcceptanceSettings | None = None
 
     @model_validator(mode="after")
     def _check(self) -> HierarchyConfig:
@@ -106,8 +128,10 @@ class HierarchyConfig(BaseModel):
         return str(spec.pop("type", method_id)), spec
 
     def digest(self) -> str:
-        """sha256 of the canonical JSON of this config."""
-        return hashlib.sha256(json.dumps(self.model_dump(), sort_keys=True).encode()).hexdigest()
+        """sha256 of the canonical JSON of this config (the acceptance threshold excluded: it
+        changes no stored data, and indexes built before it existed keep their identity)."""
+        data = self.model_dump(exclude={"acceptance"})
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
 def build_methods(config: HierarchyConfig) -> dict[str, Method]:

@@ -31,6 +31,7 @@ __all__ = [
     "FeatureCache",
     "default_cache_dir",
     "extract_images",
+    "extract_query",
     "file_digest",
     "fit_methods",
 ]
@@ -146,6 +147,34 @@ def _is_cnn(method: Method) -> bool:
     from hmpf.methods.cnn import CnnMethod
 
     return isinstance(method, CnnMethod)
+
+
+def extract_query(
+    methods: Mapping[str, Method], image: np.ndarray, ms: dict[str, float] | None = None
+) -> dict[str, Any]:
+    """Every method's feature of one decoded image, in this process and thread.
+
+    CNN methods sharing a backbone and input size share one forward pass. When ``ms`` is
+    given, each method's time (ms) is stored in it; a shared forward pass is counted once,
+    in the first method of its group, so the values add up to the wall time.
+    """
+    from hmpf.methods.cnn import extract_cnn_timed
+
+    cnn = {mid: m for mid, m in methods.items() if _is_cnn(m)}
+    out: dict[str, Any] = {}
+    if cnn:
+        feats, times = extract_cnn_timed(cnn, image)  # type: ignore[arg-type]
+        out.update(feats)
+        if ms is not None:
+            ms.update(times)
+    for mid, m in methods.items():
+        if mid in cnn:
+            continue
+        t = time.perf_counter()
+        out[mid] = m.extract(image)
+        if ms is not None:
+            ms[mid] = (time.perf_counter() - t) * 1e3
+    return {mid: out[mid] for mid in methods}
 
 
 def _extract_cnn_images(

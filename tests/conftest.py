@@ -69,3 +69,48 @@ def image_folder(tmp_path: Path):
         return folder
 
     return make
+
+
+# -- service fixtures ---------------------------------------------------------------------------
+#: A cheap weight-free hierarchy for service tests (the service code does not depend on it).
+SERVICE_CONFIG = {
+    "name": "service-test",
+    "tiers": [{"methods": ["hog", "gist"], "k": 5}, {"methods": ["gist", "sad"], "k": 1}],
+}
+#: Synthetic positions: reference i lies ~11 m north of reference i - 1.
+BASE_LAT, BASE_LON, STEP_LAT = -27.4770, 153.0280, 1e-4
+
+
+def copy_gp(gardens_point: Path, traverse: str, dest: Path, n: int) -> Path:
+    """The first ``n`` images of a Gardens Point traverse, copied into ``dest``."""
+    import shutil
+
+    dest.mkdir(parents=True)
+    for p in sorted((gardens_point / traverse).iterdir())[:n]:
+        shutil.copy(p, dest / p.name)
+    return dest
+
+
+@pytest.fixture(scope="session")
+def service_index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A built index over the first 20 Gardens Point day_right images, with positions."""
+    from hmpf.config import parse_config
+    from indexer.build import BuildOptions, build
+
+    base = tmp_path_factory.mktemp("service")
+    refs = copy_gp(gardens_point, "day_right", base / "refs", 20)
+    csv = base / "meta.csv"
+    rows = ["name,lat,lon"] + [
+        f"{p.name},{BASE_LAT + i * STEP_LAT:.7f},{BASE_LON:.7f}"
+        for i, p in enumerate(sorted(refs.iterdir()))
+    ]
+    csv.write_text("\n".join(rows) + "\n")
+    index = base / "index"
+    build(
+        parse_config(SERVICE_CONFIG),
+        refs,
+        index,
+        metadata=csv,
+        options=BuildOptions(workers=1, progress=False),
+    )
+    return index

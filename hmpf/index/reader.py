@@ -238,9 +238,18 @@ class IndexReader:
         """The :class:`~hmpf.hierarchy.Hierarchy` the index was built for."""
         return Hierarchy(self.config, self.methods)
 
-    def extract_query(self, image: np.ndarray) -> dict[str, Any]:
-        """Every method's feature of one RGB ``uint8`` query image."""
-        return {mid: m.extract(image) for mid, m in self.methods.items()}
+    def extract_query(
+        self, image: np.ndarray, ms: dict[str, float] | None = None
+    ) -> dict[str, Any]:
+        """Every method's feature of one RGB ``uint8`` query image.
+
+        CNN methods on the same backbone and input size share one forward pass. When ``ms``
+        is given, each method's time (ms; a shared forward pass is counted once, in the
+        first method of its group) is stored in it.
+        """
+        from hmpf.features import extract_query
+
+        return extract_query(self.methods, image, ms)
 
     def global_matrix(self, mid: str) -> np.ndarray:
         """(N, D) stored vectors of a global method, in the dtype the method produced."""

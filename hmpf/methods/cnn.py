@@ -25,7 +25,15 @@ from hmpf.imageio import to_rgb
 from hmpf.methods.base import Method, MethodConfig
 from hmpf.runtime import compute_threads
 
-__all__ = ["CnnConfig", "CnnMethod", "extract_cnn", "fit_cnn", "kmeans", "l2_rows"]
+__all__ = [
+    "CnnConfig",
+    "CnnMethod",
+    "extract_cnn",
+    "extract_cnn_timed",
+    "fit_cnn",
+    "kmeans",
+    "l2_rows",
+]
 
 
 class CnnConfig(MethodConfig):
@@ -156,6 +164,26 @@ def extract_cnn(
                     own = (time.perf_counter() - t0) * 1e3
                     ms.setdefault(mid, []).append(forward_ms[i] + own)
     return out
+
+
+def extract_cnn_timed(
+    methods: Mapping[str, CnnMethod], image: np.ndarray
+) -> tuple[dict[str, Any], dict[str, float]]:
+    """One image's features and per-method times (ms), one forward pass per group.
+
+    A group's forward time is charged to its first method only, so the times add up.
+    """
+    feats: dict[str, Any] = {}
+    times: dict[str, float] = {}
+    for ids in _groups(methods).values():
+        group = [methods[mid] for mid in ids]
+        forward_ms: list[float] = []
+        maps = next(iter(forward_group(group, [image], forward_ms)))
+        for j, (mid, m) in enumerate(zip(ids, group, strict=True)):
+            t0 = time.perf_counter()
+            feats[mid] = m.from_maps(maps)
+            times[mid] = (time.perf_counter() - t0) * 1e3 + (forward_ms[0] if j == 0 else 0.0)
+    return feats, times
 
 
 def fit_cnn(methods: Mapping[str, CnnMethod], images: Sequence[np.ndarray]) -> None:

@@ -1,0 +1,266 @@
+"""The query engine: one loaded index version, the hierarchy over it, and a bounded pool.
+
+* The index and its models load once (at start-up and on reload); a request takes a lease on
+  the version that is current when it starts and keeps it to the end, so a reload never
+  changes the data under a running query. A retired version is closed when its last lease
+  ends.
+* CPU work (decoding, extraction, scoring) runs in a thread pool of ``workers`` threads, each
+  limited to ``threads_per_worker`` compute threads (torch, OpenCV, BLAS), so concurrent
+  queries do not oversubscribe the cores. At most ``workers + queue`` queries are admitted
+  at once; beyond that :meth:`Engine.admit` refuses and the API answers 503 + Retry-After.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from hmpf.datasets import haversine_m
+from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
+from hmpf.index.reader import IndexReader
+
+__all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"]
+
+log = logging.getLogger("hmpf.service")
+T = TypeVar("T")
+
+#: Combined quality (z-score over the final candidates) an answer needs when neither the
+#: settings nor the index's config give a threshold (hmpf-calibrate chooses one per route).
+DEFAULT_ACCEPT_THRESHOLD = 2.5
+
+
+def confidence(quality: float, n: int) -> float:
+    """The match's Combined z-score over ``n`` candidates as a fraction of the largest
+    possible one, ``(n - 1) / sqrt(n)`` (one candidate far above all others equal): 1 when
+    the match stands alone, 0 when it is no better than the mean (or ``n < 2``)."""
+    if n < 2 or not math.isfinite(quality):
+        return 0.0
+    return float(min(1.0, max(0.0, quality / ((n - 1) / math.sqrt(n)))))
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A GPS prior: only references within ``radius_m`` of (lat, lon) are candidates."""
+
+    lat: float
+    lon: float
+    radius_m: float
+
+
+@dataclass
+class Loaded:
+    """One opened index version and what the queries need from it."""
+
+    reader: IndexReader
+    hierarchy: Hierarchy
+    threshold: float
+    loaded_at: float
+    leases: int = 0
+    retired: bool = False
+    lat: np.ndarray | None = field(default=None, repr=False)
+    lon: np.ndarray | None = field(default=None, repr=False)
+
+    @classmethod
+    def open(cls, root: Path, threshold: float | None) -> Loaded:
+        reader = IndexReader(root)
+        cfg_threshold = reader.config.acceptance.threshold if reader.config.acceptance else None
+        chosen = threshold if threshold is not None else cfg_threshold
+        meta = reader.refs.meta
+        lat, lon = meta.get("lat"), meta.get("lon")
+        has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
+        return cls(
+            reader,
+            reader.hierarchy(),
+            DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen),
+            time.time(),
+            lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
+            lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
+        )
+
+    @property
+    def version(self) -> str:
+        return self.reader.version
+
+    @property
+    def has_positions(self) -> bool:
+        return self.lat is not None
+
+    def within(self, prior: Prior) -> np.ndarray:
+        """Indices of the references within the prior's radius (positions unknown: none)."""
+        assert self.lat is not None and self.lon is not None
+        d = haversine_m(prior.lat, prior.lon, self.lat, self.lon)
+        return np.flatnonzero(np.isfinite(d) & (d <= prior.radius_m)).astype(np.int64)
+
+
+def restricted(score_fn: ScoreFn, allowed: np.ndarray) -> ScoreFn:
+    """A score function over the sub-database ``allowed`` (local index -> reference id)."""
+
+    def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        return score_fn(mid, allowed if subset is None else allowed[subset])
+
+    return fn
+
+
+class Engine:
+    """Holds the current index version and runs queries on a bounded thread pool."""
+
+    def __init__(
+        self,
+        root: Path,
+        *,
+        workers: int,
+        queue: int,
+        threads_per_worker: int,
+        accept_threshold: float | None = None,
+    ) -> None:
+        self.root = Path(root)
+        self.workers = workers
+        self.capacity = workers + queue
+        self.threads = threads_per_worker
+        self.accept_threshold = accept_threshold
+        self.admitted = 0  # running + waiting queries (event-loop thread only)
+        self.running = 0
+        self._lock = threading.Lock()
+        self._reload_lock = asyncio.Lock()
+        self._current: Loaded | None = None
+        self._pool = ThreadPoolExecutor(
+            max_workers=workers, thread_name_prefix="hmpf-query", initializer=self._init_thread
+        )
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    def _init_thread(self) -> None:
+        from hmpf.runtime import set_compute_threads
+
+        set_compute_threads(self.threads)
+
+    def load(self) -> Loaded:
+        """Open the index's current version (blocking) and make it current."""
+        loaded = Loaded.open(self.root, self.accept_threshold)
+        self._warm_up(loaded)
+        with self._lock:
+            old, self._current = self._current, loaded
+            if old is not None:
+                old.retired = True
+                if old.leases == 0:
+                    old.reader.close()
+        log.info(
+            "index %s version %s loaded (%d references)", self.root, loaded.version, loaded.reader.n
+        )
+        return loaded
+
+    def _warm_up(self, loaded: Loaded) -> None:
+        """Load weights and build lazy structures now rather than in the first request."""
+        rng = np.random.default_rng(0)
+        image = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+        feats = loaded.reader.extract_query(image)
+        loaded.hierarchy.run(loaded.reader.scorer(feats), loaded.reader.n)
+
+    async def reload(self) -> tuple[str, str]:
+        """Switch to the index's current version; returns (old version, new version)."""
+        async with self._reload_lock:
+            old = self.current.version if self._current else ""
+            loop = asyncio.get_running_loop()
+            loaded = await loop.run_in_executor(None, self.load)
+            return old, loaded.version
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            if self._current is not None:
+                self._current.reader.close()
+                self._current = None
+
+    @property
+    def ready(self) -> bool:
+        return self._current is not None
+
+    @property
+    def current(self) -> Loaded:
+        if self._current is None:
+            raise RuntimeError("no index loaded")
+        return self._current
+
+    # -- leases and admission -----------------------------------------------------------------
+    def lease(self) -> Loaded:
+        with self._lock:
+            loaded = self.current
+            loaded.leases += 1
+            return loaded
+
+    def release(self, loaded: Loaded) -> None:
+        with self._lock:
+            loaded.leases -= 1
+            if loaded.retired and loaded.leases == 0:
+                loaded.reader.close()
+
+    def admit(self, n: int = 1) -> bool:
+        """Reserve ``n`` query slots (event-loop thread), False when the pool is full."""
+        if self.admitted + n > self.capacity:
+            return False
+        self.admitted += n
+        return True
+
+    def done(self, n: int = 1) -> None:
+        self.admitted -= n
+
+    @property
+    def queued(self) -> int:
+        return max(0, self.admitted - self.running)
+
+    async def run(self, fn: Callable[[], T]) -> T:
+        """Run ``fn`` on the pool (the caller has been admitted)."""
+        loop = asyncio.get_running_loop()
+
+        def wrapped() -> T:
+            with self._lock:
+                self.running += 1
+            try:
+                return fn()
+            finally:
+                with self._lock:
+                    self.running -= 1
+
+        return await loop.run_in_executor(self._pool, wrapped)
+
+
+def run_query(
+    loaded: Loaded,
+    image: np.ndarray,
+    prior: Prior | None,
+    timing: dict[str, Any],
+) -> tuple[HierarchyResult | None, np.ndarray | None]:
+    """Extract, restrict to the prior and run the hierarchy for one decoded image.
+
+    Returns:
+        (the result, or None when the prior leaves no reference; the allowed reference ids,
+        or None without a prior). With a prior the result's indices are positions in the
+        allowed ids (the hierarchy ran over that sub-database).
+    """
+    reader = loaded.reader
+    t = time.perf_counter()
+    per_method: dict[str, float] = {}
+    feats = reader.extract_query(image, per_method)
+    timing["extract"] = (time.perf_counter() - t) * 1e3
+    timing["extract_per_method"] = per_method
+    score_fn = reader.scorer(feats)
+    n = reader.n
+    allowed: np.ndarray | None = None
+    if prior is not None and loaded.has_positions:
+        allowed = loaded.within(prior)
+        if len(allowed) == 0:
+            return None, allowed
+        score_fn, n = restricted(score_fn, allowed), len(allowed)
+    t = time.perf_counter()
+    result = loaded.hierarchy.run(score_fn, n)
+    timing["hierarchy"] = (time.perf_counter() - t) * 1e3
+    return result, allowed

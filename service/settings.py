@@ -1,0 +1,166 @@
+"""Service settings: environment variables with the prefix ``HMPF_`` and an optional YAML file.
+
+Precedence: keyword arguments (the ``hmpf-serve`` flags) > environment > settings file >
+defaults. The file is named by ``HMPF_SETTINGS_FILE`` (or ``hmpf-serve --settings``) and holds
+the same keys without the prefix::
+
+    index: /srv/hmpf/index
+    port: 8000
+    keys_file: /etc/hmpf/keys.yaml
+    workers: 2
+
+Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
+must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) are allowed.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+from collections.abc import Mapping
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import Field, ValidationError, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from hmpf.errors import ConfigError
+from hmpf.methods.registry import format_validation_error
+
+__all__ = ["CORE_ENV", "Settings", "load_settings"]
+
+PREFIX = "HMPF_"
+#: ``HMPF_*`` variables that belong to the core (hmpf), not to the service.
+CORE_ENV = frozenset({"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE"})
+
+
+class Settings(BaseSettings):
+    """Everything the service reads at start-up."""
+
+    model_config = SettingsConfigDict(
+        env_prefix=PREFIX, extra="forbid", frozen=True, case_sensitive=False
+    )
+
+    index: Path = Field(Path("index"), description="index folder (hmpf-index build --index)")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    # -- security ----------------------------------------------------------------------------
+    auth: bool = Field(True, description="require X-API-Key; false only on purpose (warned)")
+    keys_file: Path | None = Field(None, description="API keys (hashed), see hmpf-serve keys")
+    # -- limits ------------------------------------------------------------------------------
+    max_upload_bytes: int = Field(10 * 2**20, ge=1024, description="per image")
+    max_pixels: int = Field(40_000_000, ge=64, description="width x height, from the header")
+    max_batch: int = Field(16, ge=1, description="images per /v1/localize/batch request")
+    max_top_k: int = Field(50, ge=1)
+    workers: int = Field(0, ge=0, description="queries computed at once (0: one per core)")
+    queue: int = Field(16, ge=0, description="queries waiting beyond the workers, then 503")
+    threads_per_worker: int = Field(0, ge=0, description="torch/OpenCV threads (0: auto)")
+    retry_after_s: int = Field(1, ge=1)
+    # -- answers -----------------------------------------------------------------------------
+    accept_threshold: float | None = Field(
+        None,
+        description="Combined quality (z-score) an answer needs to be accepted; None: the "
+        "index config's acceptance.threshold",
+    )
+    log_level: str = "info"
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        if self.auth and self.keys_file is None:
+            raise ValueError(
+                "auth is on but no keys_file is set: set HMPF_KEYS_FILE (create keys with "
+                "`hmpf-serve keys add`), or HMPF_AUTH=false to run without authentication"
+            )
+        return self
+
+    @property
+    def worker_count(self) -> int:
+        return self.workers or (os.cpu_count() or 1)
+
+    @property
+    def thread_count(self) -> int:
+        """Compute threads per worker so that workers x threads <= cores."""
+        if self.threads_per_worker:
+            return self.threads_per_worker
+        return max(1, (os.cpu_count() or 1) // self.worker_count)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings, env_settings, _FileSource(settings_cls))
+
+
+_file_data: ContextVar[dict[str, Any] | None] = ContextVar("hmpf_settings_file", default=None)
+
+
+class _FileSource(PydanticBaseSettingsSource):
+    """The YAML file named by ``HMPF_SETTINGS_FILE`` (read by :func:`load_settings`)."""
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return (_file_data.get() or {}).get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return dict(_file_data.get() or {})
+
+
+def _read_file(path: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read settings file {str(path)!r}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of settings")
+    names = set(Settings.model_fields)
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"{path}: unknown setting {key!r}{_hint(str(key), names)}")
+    return data
+
+
+def _hint(key: str, names: set[str]) -> str:
+    close = difflib.get_close_matches(key, sorted(names), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _check_env(env: Mapping[str, str]) -> None:
+    names = {n.upper() for n in Settings.model_fields}
+    for var in env:
+        up = var.upper()
+        if not up.startswith(PREFIX):
+            continue
+        key = up[len(PREFIX) :]
+        if key not in names and key not in CORE_ENV:
+            hint = _hint(key.lower(), set(Settings.model_fields))
+            raise ConfigError(f"unknown setting in the environment: {var}{hint}")
+
+
+def load_settings(file: str | Path | None = None, **overrides: Any) -> Settings:
+    """Settings from ``overrides`` > the environment > ``file`` (or ``HMPF_SETTINGS_FILE``).
+
+    ``None`` overrides are ignored (unset command-line flags).
+
+    Raises:
+        ConfigError: an unknown key or variable, or an invalid value (naming it).
+    """
+    _check_env(os.environ)
+    file = file or os.environ.get(PREFIX + "SETTINGS_FILE")
+    token = _file_data.set(_read_file(Path(file)) if file else {})
+    try:
+        return Settings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, "settings")) from None
+    finally:
+        _file_data.reset(token)

@@ -1,0 +1,468 @@
+"""The HTTP API through FastAPI's TestClient: every endpoint, every error, auth, the GPS prior.
+
+The index is real (built from 20 Gardens Point images with positions); so are the images.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import BASE_LAT, BASE_LON, STEP_LAT
+from fastapi.testclient import TestClient
+
+from hmpf.datasets import haversine_m
+from service.app import create_app
+from service.auth import add_key
+from service.settings import load_settings
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    path = tmp_path_factory.mktemp("keys") / "keys.yaml"
+    return {
+        "file": path,
+        "vehicle": add_key(path, "car-1", "vehicle"),
+        "admin": add_key(path, "ops", "admin"),
+    }
+
+
+def _client(index: Path, keys_file: Path, **overrides: object) -> TestClient:
+    settings = load_settings(
+        None,
+        index=index,
+        keys_file=keys_file,
+        max_upload_bytes=2 * 2**20,
+        max_pixels=2_000_000,
+        max_batch=4,
+        workers=1,
+        queue=2,
+        **overrides,
+    )
+    return TestClient(create_app(settings))
+
+
+@pytest.fixture(scope="module")
+def client(service_index: Path, keys: dict[str, object]):
+    with _client(service_index, keys["file"]) as c:  # type: ignore[arg-type]
+        yield c
+
+
+@pytest.fixture(scope="module")
+def car(keys: dict[str, object]) -> dict[str, str]:
+    return {"X-API-Key": str(keys["vehicle"])}
+
+
+@pytest.fixture(scope="module")
+def admin(keys: dict[str, object]) -> dict[str, str]:
+    return {"X-API-Key": str(keys["admin"])}
+
+
+def _ref(gardens_point: Path, i: int) -> Path:
+    return sorted((gardens_point / "day_right").iterdir())[i]
+
+
+def _error(r, status: int, code: str) -> dict[str, str]:
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert set(body) == {"error"} and body["error"]["code"] == code, body
+    assert body["error"]["message"]
+    return body["error"]
+
+
+def _png(width: int, height: int) -> bytes:
+    ok, buf = cv2.imencode(".png", np.zeros((height, width, 3), np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+# -- health, docs, index info ------------------------------------------------------------------
+def test_health_ready_docs(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz")
+    assert ready.status_code == 200 and ready.json()["index_version"] == "v0001"
+    assert "swagger" in client.get("/docs").text.lower()
+    paths = client.get("/openapi.json").json()["paths"]
+    for p in ("/v1/localize", "/v1/localize/batch", "/v1/index", "/v1/index/reload"):
+        assert p in paths
+    body = paths["/v1/localize"]["post"]["requestBody"]["content"]
+    assert {"multipart/form-data", "image/jpeg", "image/png", "image/webp"} <= set(body)
+
+
+def test_index_info(client: TestClient, car: dict[str, str]) -> None:
+    info = client.get("/v1/index", headers=car).json()
+    assert info["version"] == "v0001" and info["versions"] == ["v0001"]
+    assert info["references"] == 20
+    assert set(info["methods"]) == {"hog", "gist", "sad"}
+    assert info["config"]["name"] == "service-test"
+    assert info["built"]["created"] and info["built"]["images_per_s"] > 0
+    assert info["has_positions"] is True
+
+
+# -- localisation ------------------------------------------------------------------------------
+def test_localize_reference_image_finds_itself(client, car, gardens_point) -> None:
+    path = _ref(gardens_point, 7)
+    r = client.post(
+        "/v1/localize",
+        files={"image": (path.name, path.read_bytes(), "image/jpeg")},
+        data={"top_k": "3", "vehicle_id": "car-1"},
+        headers=car,
+    )
+    assert r.status_code == 200, r.text
+    body = r.json()
+    m = body["match"]
+    assert m["name"] == path.name and m["reference_id"] == 7
+    assert m["lat"] == pytest.approx(BASE_LAT + 7 * STEP_LAT, abs=1e-6)
+    assert m["lon"] == pytest.approx(BASE_LON, abs=1e-6)
+    assert 0.0 <= m["confidence"] <= 1.0
+    assert m["accepted"] == (m["score"] >= body["threshold"])
+    assert body["index_version"] == "v0001" and body["vehicle_id"] == "car-1"
+    assert [c["name"] for c in body["candidates"]][0] == path.name
+    assert len(body["candidates"]) == 3
+    scores = [c["score"] for c in body["candidates"]]
+    assert scores == sorted(scores, reverse=True)
+    tiers = body["tiers"]
+    assert [t["methods"] for t in tiers] == [["hog", "gist"], ["gist", "sad"]]
+    assert tiers[0]["inputs"] == 20 and tiers[1]["inputs"] == len(tiers[0]["candidates"])
+    for t in tiers:
+        for c in t["candidates"]:
+            assert set(c["scores"]) == set(t["methods"])
+            assert all(0.0 <= v <= 1.0 for v in c["scores"].values())
+    timing = body["timing_ms"]
+    for stage in ("queue", "decode", "extract", "hierarchy", "total"):
+        assert timing[stage] >= 0.0
+    assert set(timing["extract_per_method"]) == {"hog", "gist", "sad"}
+    assert timing["total"] >= timing["extract"]
+
+
+def test_localize_raw_body_and_every_format(client, car, gardens_point) -> None:
+    path = _ref(gardens_point, 12)
+    image = cv2.imread(str(path))
+    answers = []
+    raw = client.post(
+        "/v1/localize?top_k=2",
+        content=path.read_bytes(),
+        headers={**car, "Content-Type": "image/jpeg"},
+    )
+    answers.append(raw)
+    for ext, ctype in ((".png", "image/png"), (".webp", "image/webp")):
+        ok, buf = cv2.imencode(
+            ext, image, [cv2.IMWRITE_WEBP_QUALITY, 101] if ext == ".webp" else []
+        )
+        assert ok
+        answers.append(
+            client.post(
+                "/v1/localize", files={"image": ("f" + ext, buf.tobytes(), ctype)}, headers=car
+            )
+        )
+    for r in answers:
+        assert r.status_code == 200, r.text
+        assert r.json()["match"]["name"] == path.name
+    assert len(answers[0].json()["candidates"]) == 2
+
+
+def test_gps_prior_limits_candidates(client, car, gardens_point) -> None:
+    path = _ref(gardens_point, 10)
+    lat = BASE_LAT + 10 * STEP_LAT
+    r = client.post(
+        "/v1/localize",
+        files={"image": (path.name, path.read_bytes(), "image/jpeg")},
+        data={"lat": str(lat), "lon": str(BASE_LON), "radius_m": "25", "top_k": "50"},
+        headers=car,
+    )
+    assert r.status_code == 200, r.text
+    body = r.json()
+    lats = BASE_LAT + np.arange(20) * STEP_LAT
+    inside = set(np.flatnonzero(haversine_m(lat, BASE_LON, lats, np.full(20, BASE_LON)) <= 25))
+    assert 3 <= len(inside) < 20
+    assert body["prior"]["applied"] is True and body["prior"]["references"] == len(inside)
+    assert body["match"]["reference_id"] == 10
+    assert {c["reference_id"] for c in body["candidates"]} <= inside
+    assert body["tiers"][0]["inputs"] == len(inside)
+    for t in body["tiers"]:
+        assert {c["reference_id"] for c in t["candidates"]} <= inside
+
+    # A prior far from every reference: no candidate, no match, still a 200.
+    far = client.post(
+        "/v1/localize",
+        files={"image": (path.name, path.read_bytes(), "image/jpeg")},
+        params={"lat": "48.0", "lon": "11.0", "radius_m": "500"},
+        headers=car,
+    )
+    assert far.status_code == 200, far.text
+    assert far.json()["match"] is None and far.json()["prior"]["references"] == 0
+
+
+def test_batch_answers_in_order_with_per_item_errors(client, car, gardens_point) -> None:
+    a, b = _ref(gardens_point, 3), _ref(gardens_point, 15)
+    files = [
+        ("images", (a.name, a.read_bytes(), "image/jpeg")),
+        ("images", ("junk.jpg", b"\xff\xd8\xff\xe0 not really a jpeg", "image/jpeg")),
+        ("images", (b.name, b.read_bytes(), "image/jpeg")),
+    ]
+    r = client.post("/v1/localize/batch", files=files, data={"top_k": "1"}, headers=car)
+    assert r.status_code == 200, r.text
+    results = r.json()["results"]
+    assert [x["index"] for x in results] == [0, 1, 2]
+    assert results[0]["result"]["match"]["name"] == a.name
+    assert (
+        results[1]["error"]["code"] == "invalid_image"
+        and "images[1]" in results[1]["error"]["message"]
+    )
+    assert results[2]["result"]["match"]["name"] == b.name
+    assert r.json()["index_version"] == "v0001"
+
+
+def test_batch_errors(client, car, gardens_point) -> None:
+    a = _ref(gardens_point, 3).read_bytes()
+    five = [("images", (f"{i}.jpg", a, "image/jpeg")) for i in range(5)]
+    _error(client.post("/v1/localize/batch", files=five, headers=car), 422, "invalid_request")
+    _error(
+        client.post(
+            "/v1/localize/batch", data={"top_k": "2"}, files=[("other", ("x", a))], headers=car
+        ),
+        422,
+        "invalid_request",
+    )
+    _error(
+        client.post("/v1/localize/batch", content=a, headers={**car, "Content-Type": "image/jpeg"}),
+        415,
+        "unsupported_media_type",
+    )
+
+
+# -- auth --------------------------------------------------------------------------------------
+def test_auth(client, car, admin, gardens_point) -> None:
+    image = {"image": ("a.jpg", _ref(gardens_point, 1).read_bytes(), "image/jpeg")}
+    r = client.post("/v1/localize", files=image)
+    _error(r, 401, "unauthorized")
+    assert r.headers["www-authenticate"] == "ApiKey"
+    _error(
+        client.post("/v1/localize", files=image, headers={"X-API-Key": "nope"}), 401, "unauthorized"
+    )
+    _error(client.get("/v1/index"), 401, "unauthorized")
+    _error(client.post("/v1/index/reload", headers=car), 403, "forbidden")
+    assert client.post("/v1/localize", files=image, headers=admin).status_code == 200
+    assert client.get("/v1/index", headers=admin).status_code == 200
+    r = client.post("/v1/index/reload", headers=admin)
+    assert r.status_code == 200 and r.json() == {
+        "previous": "v0001",
+        "version": "v0001",
+        "changed": False,
+    }
+    for open_route in ("/healthz", "/readyz", "/metrics"):
+        assert client.get(open_route).status_code == 200
+
+
+# -- bad input ---------------------------------------------------------------------------------
+def test_upload_size_limits(client, car, gardens_point) -> None:
+    big = b"\xff\xd8\xff" + bytes(3 * 2**20)
+    # Declared Content-Length over the limit: refused before reading.
+    _error(
+        client.post("/v1/localize", content=big, headers={**car, "Content-Type": "image/jpeg"}),
+        413,
+        "payload_too_large",
+    )
+
+    # No Content-Length (chunked): refused once the limit is crossed (the end-to-end test
+    # checks that a real server answers before the body has been sent in full).
+    def chunks():
+        for _ in range(48):
+            yield bytes(128 * 1024)
+
+    r = client.post("/v1/localize", content=chunks(), headers={**car, "Content-Type": "image/jpeg"})
+    _error(r, 413, "payload_too_large")
+    # multipart, streamed
+    r = client.post(
+        "/v1/localize",
+        files={"image": ("big.jpg", io.BytesIO(big), "image/jpeg")},
+        headers=car,
+    )
+    _error(r, 413, "payload_too_large")
+
+
+def test_decompression_bomb_is_refused_from_the_header(client, car) -> None:
+    bomb = _png(2000, 1500)  # 3 M pixels, a few KB on the wire
+    assert len(bomb) < 100_000
+    err = _error(
+        client.post("/v1/localize", files={"image": ("b.png", bomb, "image/png")}, headers=car),
+        413,
+        "too_many_pixels",
+    )
+    assert "2000 x 1500" in err["message"]
+    # A header claiming 50000 x 50000 in a 60-byte file: refused without decoding.
+    ihdr = struct.pack(">IIBBBBB", 50000, 50000, 8, 2, 0, 0, 0)
+    chunk = struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    fake = b"\x89PNG\r\n\x1a\n" + chunk
+    _error(
+        client.post("/v1/localize", content=fake, headers={**car, "Content-Type": "image/png"}),
+        413,
+        "too_many_pixels",
+    )
+
+
+@pytest.mark.parametrize(
+    ("content", "ctype", "status", "code"),
+    [
+        (b"GIF89a" + bytes(64), "image/gif", 415, "unsupported_media_type"),
+        (b"GIF89a" + bytes(64), "image/jpeg", 415, "unsupported_media_type"),
+        (b"BM" + bytes(64), "application/octet-stream", 415, "unsupported_media_type"),
+        (b"hello", "text/plain", 415, "unsupported_media_type"),
+        (b"hello", None, 415, "unsupported_media_type"),
+        (b"", "image/jpeg", 422, "invalid_image"),
+        (b"definitely not an image", "image/jpeg", 422, "invalid_image"),
+        (b"\xff\xd8\xff\xe0\x00\x10JFIF", "image/jpeg", 422, "invalid_image"),
+    ],
+)
+def test_bad_image_bodies(client, car, content, ctype, status, code) -> None:
+    headers = dict(car)
+    if ctype:
+        headers["Content-Type"] = ctype
+    _error(client.post("/v1/localize", content=content, headers=headers), status, code)
+
+
+def test_truncated_and_damaged_images(client, car, gardens_point) -> None:
+    data = _ref(gardens_point, 2).read_bytes()
+    for blob in (data[: len(data) // 2], data[:600]):
+        _error(
+            client.post(
+                "/v1/localize", files={"image": ("t.jpg", blob, "image/jpeg")}, headers=car
+            ),
+            422,
+            "invalid_image",
+        )
+    png = _png(64, 48)
+    _error(
+        client.post(
+            "/v1/localize", files={"image": ("t.png", png[:-30], "image/png")}, headers=car
+        ),
+        422,
+        "invalid_image",
+    )
+
+
+@pytest.mark.parametrize(
+    ("fields", "params", "needle"),
+    [
+        ({"top_k": "abc"}, {}, "top_k"),
+        ({"top_k": "0"}, {}, "top_k"),
+        ({"top_k": "51"}, {}, "top_k"),
+        ({}, {"top_k": "-3"}, "top_k"),
+        ({"lat": "10"}, {}, "lat, lon and radius_m"),
+        ({"lat": "95", "lon": "0", "radius_m": "10"}, {}, "lat"),
+        ({"lat": "1", "lon": "1", "radius_m": "-5"}, {}, "radius_m"),
+        ({"vehicle_id": "a b"}, {}, "vehicle_id"),
+        ({"color": "red"}, {}, "color"),
+        ({"top_k": "2"}, {"top_k": "3"}, "given twice"),
+    ],
+)
+def test_malformed_fields(client, car, gardens_point, fields, params, needle) -> None:
+    image = {"image": ("a.jpg", _ref(gardens_point, 1).read_bytes(), "image/jpeg")}
+    r = client.post("/v1/localize", files=image, data=fields, params=params, headers=car)
+    assert needle in _error(r, 422, "invalid_request")["message"]
+
+
+def test_malformed_requests(client, car, gardens_point) -> None:
+    data = _ref(gardens_point, 1).read_bytes()
+    # no image field, two image fields, a broken multipart body
+    _error(
+        client.post("/v1/localize", data={"top_k": "2"}, files={"other": ("a", data)}, headers=car),
+        422,
+        "invalid_request",
+    )
+    two = [("image", ("a.jpg", data, "image/jpeg")), ("image", ("b.jpg", data, "image/jpeg"))]
+    _error(client.post("/v1/localize", files=two, headers=car), 422, "invalid_request")
+    r = client.post(
+        "/v1/localize",
+        content=b'--xyz\r\nContent-Disposition: form-data; name="image"\r\n\r\nabc',
+        headers={**car, "Content-Type": "multipart/form-data; boundary=xyz"},
+    )
+    assert r.status_code == 422 and "error" in r.json()
+    _error(client.get("/v1/localize", headers=car), 405, "method_not_allowed")
+    _error(client.get("/v1/nothing-here", headers=car), 404, "not_found")
+
+
+def test_overload_answers_503_with_retry_after(client, car, gardens_point) -> None:
+    engine = client.app.state.engine
+    assert engine.admit(engine.capacity)  # every slot taken, as by long-running queries
+    try:
+        image = {"image": ("a.jpg", _ref(gardens_point, 1).read_bytes(), "image/jpeg")}
+        r = client.post("/v1/localize", files=image, headers=car)
+        _error(r, 503, "overloaded")
+        assert r.headers["retry-after"] == "1"
+    finally:
+        engine.done(engine.capacity)
+    assert client.post("/v1/localize", files=image, headers=car).status_code == 200
+
+
+def test_metrics(client, car, gardens_point) -> None:
+    client.post(
+        "/v1/localize", files={"image": ("a.jpg", _ref(gardens_point, 4).read_bytes())}, headers=car
+    )
+    client.get("/v1/index")  # 401
+    text = client.get("/metrics").text
+    assert 'hmpf_requests_total{method="POST",route="/v1/localize",status="200"}' in text
+    assert 'hmpf_requests_total{method="GET",route="/v1/index",status="401"}' in text
+    for stage in ("queue", "decode", "extract", "hierarchy", "total"):
+        assert f'hmpf_stage_seconds_count{{stage="{stage}"}}' in text
+    assert 'hmpf_index_info{version="v0001"} 1.0' in text
+    assert "hmpf_queue_depth" in text and "hmpf_request_seconds_bucket" in text
+
+
+# -- reload ------------------------------------------------------------------------------------
+def test_reload_switches_versions_and_keeps_a_good_one(
+    service_index, keys, admin, car, gardens_point, tmp_path
+) -> None:
+    from indexer.build import BuildOptions, remove
+
+    index = tmp_path / "index"
+    shutil.copytree(service_index, index)
+    with _client(index, keys["file"]) as c:  # type: ignore[arg-type]
+        remove(index, ["Image000.jpg"], options=BuildOptions(workers=1, progress=False))
+        r = c.post("/v1/index/reload", headers=admin)
+        assert r.json() == {"previous": "v0001", "version": "v0002", "changed": True}
+        info = c.get("/v1/index", headers=car).json()
+        assert info["version"] == "v0002" and info["references"] == 19
+        path = _ref(gardens_point, 9)
+        body = c.post(
+            "/v1/localize", files={"image": (path.name, path.read_bytes())}, headers=car
+        ).json()
+        assert body["index_version"] == "v0002" and body["match"]["name"] == path.name
+
+        # A current version that cannot be opened: 409, the loaded one stays in service.
+        (index / "v0002" / "manifest.json").write_text("{ broken")
+        _error(c.post("/v1/index/reload", headers=admin), 409, "index_unusable")
+        body = c.post(
+            "/v1/localize", files={"image": (path.name, path.read_bytes())}, headers=car
+        ).json()
+        assert body["index_version"] == "v0002"
+        assert c.get("/readyz").json()["index_version"] == "v0002"
+
+
+def test_auth_off_needs_an_explicit_setting(service_index, gardens_point, caplog) -> None:
+    with pytest.raises(Exception, match="HMPF_AUTH=false"):
+        load_settings(None, index=service_index)
+    settings = load_settings(None, index=service_index, auth=False, workers=1)
+    with caplog.at_level("WARNING"), TestClient(create_app(settings)) as c:
+        path = _ref(gardens_point, 5)
+        assert (
+            c.post("/v1/localize", files={"image": (path.name, path.read_bytes())}).status_code
+            == 200
+        )
+    assert any("authentication is OFF" in r.getMessage() for r in caplog.records)
+
+
+def test_response_is_json_serialisable_without_nan(client, car, gardens_point) -> None:
+    r = client.post(
+        "/v1/localize", files={"image": ("a.jpg", _ref(gardens_point, 0).read_bytes())}, headers=car
+    )
+    json.loads(r.text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))

@@ -1,0 +1,243 @@
+"""End to end: a real ``hmpf-serve`` (uvicorn) process on a free loopback port, a real index
+built from Gardens Point, real night images posted with httpx.
+
+* night_right queries match their day_right places;
+* an over-limit upload streamed without Content-Length is refused before it has been sent;
+* ``/v1/index/reload`` to a new version while clients keep querying: zero failures;
+* more concurrent requests than workers + queue: 503 + Retry-After, no crash.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import pytest
+from conftest import copy_gp
+
+from hmpf.config import parse_config
+from indexer.build import BuildOptions, build, remove
+from service.auth import add_key
+
+ROOT = Path(__file__).resolve().parent.parent
+#: GeM (a CNN on the bundled backbone) + Gist narrow, Gist + HOG + SAD decide.
+CONFIG = {
+    "name": "e2e",
+    "tiers": [{"methods": ["gem", "gist"], "k": 5}, {"methods": ["gem", "gist", "hog"], "k": 1}],
+}
+N_REFS = 40
+OPTS = BuildOptions(workers=1, progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Server:
+    """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
+
+    def __init__(self, index: Path, log: Path, **env: str) -> None:
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = log
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+        for k in ("HMPF_DATASETS", "HMPF_CACHE_DIR"):
+            if k in os.environ:
+                full_env[k] = os.environ[k]
+        full_env.update({f"HMPF_{k.upper()}": v for k, v in env.items()})
+        self._out = log.open("wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "--index", str(index), "--port", str(self.port)],
+            cwd=ROOT,
+            env=full_env,
+            stdout=self._out,
+            stderr=subprocess.STDOUT,
+        )
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"hmpf-serve exited {self.proc.returncode}: {self.output()}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.25)
+        self.stop()
+        raise AssertionError(f"hmpf-serve not ready after 180 s: {self.output()}")
+
+    def output(self) -> str:
+        if not self._out.closed:
+            self._out.flush()
+        return self.log.read_text(errors="replace")[-4000:]
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._out.close()
+
+
+@pytest.fixture(scope="module")
+def index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    base = tmp_path_factory.mktemp("e2e")
+    refs = copy_gp(gardens_point, "day_right", base / "refs", N_REFS)
+    out = base / "index"
+    build(parse_config(CONFIG), refs, out, options=OPTS)
+    return out
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    path = tmp_path_factory.mktemp("e2e-keys") / "keys.yaml"
+    return {
+        "file": str(path),
+        "vehicle": add_key(path, "car", "vehicle"),
+        "admin": add_key(path, "ops", "admin"),
+    }
+
+
+@pytest.fixture(scope="module")
+def server(index: Path, keys: dict[str, str], tmp_path_factory) -> Iterator[Server]:
+    log = tmp_path_factory.mktemp("e2e-log") / "serve.log"
+    srv = Server(
+        index, log, keys_file=keys["file"], workers="2", queue="32", max_upload_bytes="1048576"
+    )
+    yield srv
+    srv.stop()
+    assert "Traceback" not in srv.output()
+
+
+def _night(gardens_point: Path, i: int) -> Path:
+    return sorted((gardens_point / "night_right").iterdir())[i]
+
+
+def _post(client: httpx.Client, path: Path, key: str) -> httpx.Response:
+    return client.post(
+        "/v1/localize",
+        files={"image": (path.name, path.read_bytes(), "image/jpeg")},
+        headers={"X-API-Key": key},
+        timeout=60,
+    )
+
+
+def test_night_images_match_their_places(server, keys, gardens_point) -> None:
+    picks = list(range(2, N_REFS - 2, 3))  # 12 queries inside the reference stretch
+    hits = 0
+    with httpx.Client(base_url=server.url) as client:
+        for i in picks:
+            r = _post(client, _night(gardens_point, i), keys["vehicle"])
+            assert r.status_code == 200, r.text
+            body = r.json()
+            assert body["index_version"] == "v0001"
+            assert [t["methods"] for t in body["tiers"]] == [
+                ["gem", "gist"],
+                ["gem", "gist", "hog"],
+            ]
+            hits += abs(body["match"]["reference_id"] - i) <= 2
+    # Measured: all 12 of these night queries land within +-2 frames; allow for 3 misses.
+    assert hits >= 9, f"{hits}/{len(picks)} night queries matched"
+
+
+def test_streamed_upload_is_refused_before_it_is_complete(server, keys) -> None:
+    """1 MiB limit; send 2 MiB of chunks without Content-Length and never finish the body:
+    the 413 must arrive anyway (the server stopped reading at the limit)."""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as s:
+        s.sendall(
+            b"POST /v1/localize HTTP/1.1\r\nHost: x\r\nContent-Type: image/jpeg\r\n"
+            + f"X-API-Key: {keys['vehicle']}\r\n".encode()
+            + b"Transfer-Encoding: chunked\r\n\r\n"
+        )
+        chunk = b"%x\r\n" % 65536 + bytes(65536) + b"\r\n"
+        try:
+            for _ in range(32):  # 2 MiB, no terminating chunk
+                s.sendall(chunk)
+        except OSError:
+            pass  # the server may close the connection while we still write
+        reply = b""
+        while b"\r\n\r\n" not in reply:
+            part = s.recv(65536)
+            if not part:
+                break
+            reply += part
+    assert reply.startswith(b"HTTP/1.1 413"), reply[:200]
+
+
+def test_reload_while_clients_query_has_zero_failures(server, index, keys, gardens_point) -> None:
+    stop = threading.Event()
+    statuses: Counter[int] = Counter()
+    versions: Counter[str] = Counter()
+    lock = threading.Lock()
+
+    def client_loop(seed: int) -> None:
+        with httpx.Client(base_url=server.url) as client:
+            k = seed
+            while not stop.is_set():
+                r = _post(client, _night(gardens_point, 3 + k % 30), keys["vehicle"])
+                with lock:
+                    statuses[r.status_code] += 1
+                    if r.status_code == 200:
+                        versions[r.json()["index_version"]] += 1
+                k += 4
+
+    with ThreadPoolExecutor(4) as pool:
+        futures = [pool.submit(client_loop, s) for s in range(4)]
+        time.sleep(1.0)
+        remove(index, ["Image000.jpg"], options=OPTS)  # publishes v0002 while queries run
+        with httpx.Client(base_url=server.url) as admin:
+            r = admin.post("/v1/index/reload", headers={"X-API-Key": keys["admin"]}, timeout=120)
+        assert r.status_code == 200, r.text
+        assert r.json()["changed"] is True and r.json()["version"] == "v0002"
+        time.sleep(2.0)
+        stop.set()
+        for f in futures:
+            f.result()
+    assert set(statuses) == {200}, statuses
+    assert versions["v0001"] > 0 and versions["v0002"] > 0, versions
+    ready = httpx.get(server.url + "/readyz").json()
+    assert ready["index_version"] == "v0002"
+
+
+def test_overload_gets_503_not_a_crash(index, tmp_path, gardens_point) -> None:
+    srv = Server(index, tmp_path / "serve.log", auth="false", workers="1", queue="1")
+    try:
+        data = _night(gardens_point, 10).read_bytes()
+
+        def one(_: int) -> httpx.Response:
+            return httpx.post(
+                srv.url + "/v1/localize",
+                content=data,
+                headers={"Content-Type": "image/jpeg"},
+                timeout=60,
+            )
+
+        with ThreadPoolExecutor(12) as pool:
+            replies = list(pool.map(one, range(12)))
+        codes = Counter(r.status_code for r in replies)
+        assert set(codes) <= {200, 503} and codes[503] > 0 and codes[200] > 0, codes
+        for r in replies:
+            if r.status_code == 503:
+                assert r.headers["retry-after"] == "1"
+                assert r.json()["error"]["code"] == "overloaded"
+        # still serving afterwards
+        assert httpx.get(srv.url + "/healthz").status_code == 200
+        assert one(0).status_code == 200
+    finally:
+        srv.stop()
+    assert "Traceback" not in srv.output()
+    assert "authentication is OFF" in srv.output()
