@@ -1,0 +1,127 @@
+"""Service settings (environment, file, flags; unknown names are errors) and API key files."""
+
+from __future__ import annotations
+
+import stat
+from pathlib import Path
+
+import pytest
+
+from hmpf.errors import ConfigError
+from service.auth import KeyStore, add_key, hash_key
+from service.cli import main as serve_main
+from service.settings import load_settings
+
+
+def test_precedence_flags_env_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    f = tmp_path / "hmpf.yaml"
+    f.write_text("index: /srv/idx\nport: 9001\nworkers: 3\nauth: false\nqueue: 4\n")
+    s = load_settings(f)
+    assert (s.index, s.port, s.workers, s.queue, s.auth) == (Path("/srv/idx"), 9001, 3, 4, False)
+    monkeypatch.setenv("HMPF_PORT", "9002")
+    monkeypatch.setenv("HMPF_SETTINGS_FILE", str(f))
+    assert load_settings().port == 9002  # env over file (file named by the environment)
+    assert load_settings(port=9003).port == 9003  # flags over env
+    assert load_settings(port=None).port == 9002  # unset flags do not count
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("prot: 80\n", "unknown setting 'prot' (did you mean 'port'?)"),
+        ("port: high\n", "port"),
+        ("- a\n- b\n", "mapping"),
+        ("port: [\n", "invalid YAML"),
+    ],
+)
+def test_bad_settings_file(tmp_path: Path, text: str, needle: str) -> None:
+    f = tmp_path / "s.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError, match=None) as err:
+        load_settings(f, auth=False)
+    assert needle in str(err.value)
+
+
+def test_unknown_environment_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HMPF_WORKRES", "2")
+    with pytest.raises(ConfigError, match="HMPF_WORKRES.*did you mean 'workers'"):
+        load_settings(auth=False)
+    monkeypatch.delenv("HMPF_WORKRES")
+    monkeypatch.setenv("HMPF_CACHE_DIR", "/tmp/x")  # the core's own variables are fine
+    assert load_settings(auth=False).port == 8000
+
+
+def test_auth_needs_keys_file_or_explicit_off(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="HMPF_AUTH=false"):
+        load_settings()
+    s = load_settings(keys_file=tmp_path / "k.yaml")
+    assert s.auth is True
+    with pytest.raises(ConfigError, match="max_upload_bytes"):
+        load_settings(auth=False, max_upload_bytes=10)
+
+
+def test_threads_do_not_oversubscribe(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("os.cpu_count", lambda: 8)
+    assert load_settings(auth=False).worker_count == 8
+    s = load_settings(auth=False, workers=2)
+    assert (s.worker_count, s.thread_count) == (2, 4)
+    assert load_settings(auth=False, workers=16).thread_count == 1
+    assert load_settings(auth=False, workers=2, threads_per_worker=3).thread_count == 3
+
+
+def test_keys_file_roundtrip_and_checks(tmp_path: Path) -> None:
+    path = tmp_path / "keys.yaml"
+    car = add_key(path, "car-17", "vehicle")
+    ops = add_key(path, "ops", "admin")
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    text = path.read_text()
+    assert car not in text and ops not in text and hash_key(car) in text
+    store = KeyStore.load(path)
+    assert store.check(car).name == "car-17" and store.check(ops).role == "admin"
+    assert store.check(None) is None and store.check("") is None
+    assert store.check(car[:-1]) is None and store.check(car + "x") is None
+    assert store.check(car).allows("vehicle") and not store.check(car).allows("admin")
+    assert store.check(ops).allows("vehicle") and store.check(ops).allows("admin")
+    with pytest.raises(ConfigError, match="exists already"):
+        add_key(path, "car-17", "vehicle")
+    with pytest.raises(ConfigError, match="role"):
+        add_key(path, "x", "root")
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("keys: [{name: a, role: vehicle}]\n", "name, role and sha256"),
+        ("keys: [{name: a, role: boss, sha256: " + "0" * 64 + "}]\n", "role 'boss'"),
+        ("keys: [{name: a, role: admin, sha256: abc}]\n", "64 lower-case hex"),
+        ("users: []\n", "one key, 'keys'"),
+    ],
+)
+def test_bad_keys_file(tmp_path: Path, text: str, needle: str) -> None:
+    path = tmp_path / "keys.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        KeyStore.load(path)
+    assert needle in str(err.value)
+
+
+def test_keys_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "keys.yaml"
+    assert serve_main(["keys", "add", "--file", str(path), "--name", "bus-3"]) == 0
+    key = capsys.readouterr().out.strip()
+    assert len(key) >= 40 and KeyStore.load(path).check(key).name == "bus-3"
+    assert serve_main(["keys", "add", "--file", str(path), "--name", "ops", "--role", "admin"]) == 0
+    capsys.readouterr()
+    assert serve_main(["keys", "list", "--file", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines() == ["bus-3\tvehicle", "ops\tadmin"]
+    assert serve_main(["keys", "add", "--file", str(path), "--name", "bus-3"]) == 2
+    assert "exists already" in capsys.readouterr().err
+
+
+def test_serve_cli_fails_cleanly(tmp_path: Path, capsys, monkeypatch) -> None:
+    assert serve_main(["--index", str(tmp_path)]) == 2  # auth on, no keys file
+    assert "HMPF_AUTH=false" in capsys.readouterr().err
+    monkeypatch.setenv("HMPF_AUTH", "false")
+    rc = serve_main(["--index", str(tmp_path / "none")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "hmpf-serve: error:" in err and "none" in err and "Traceback" not in err
