@@ -1,0 +1,255 @@
+"""Load test of ``hmpf-serve`` over loopback: throughput, latency percentiles, errors, 503s.
+
+    .venv/bin/python bench/service_load.py [--config configs/default.yaml] [--clients 1 8]
+        [--duration 30] [--overload 48] [--index DIR] [--workers N] [--queue Q]
+
+Builds (once, under ``results/service-index/<config name>``) an index of Gardens Point
+``day_right``, starts a real ``hmpf-serve`` process on a free loopback port (authentication
+off, as under ``make run``), and for each client count runs that many closed-loop clients
+posting ``night_right`` frames as raw JPEG bodies for ``--duration`` seconds. A client sends
+its next request when the previous answer arrives; after a 503 it waits the server's
+``Retry-After`` (capped at 0.2 s, so the overload phase keeps pressing).
+
+Per phase it prints: answers per second (200s), latency p50/p95/p99/max of the 200s (client
+side, end to end over HTTP), the server's own median stage times, 503s, other errors
+(non-200/503 codes, timeouts, transport errors) and the share of answers within +-2 frames.
+The ``--overload`` phase uses more clients than workers + queue: the service must answer the
+excess with 503 promptly, not time out. Client and server share the machine's cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from accuracy import machine  # noqa: E402
+
+from hmpf.datasets import dataset_root, list_images  # noqa: E402
+
+TIMEOUT_S = 30.0
+
+
+@dataclass
+class Phase:
+    clients: int
+    seconds: float = 0.0
+    latencies: list[float] = field(default_factory=list)
+    stages: dict[str, list[float]] = field(default_factory=dict)
+    busy_ms: list[float] = field(default_factory=list)
+    codes: dict[str, int] = field(default_factory=dict)
+    correct: int = 0
+
+    def count(self, code: str) -> None:
+        self.codes[code] = self.codes.get(code, 0) + 1
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _ensure_index(config: Path, index: Path | None) -> Path:
+    if index is None:
+        index = ROOT / "results" / "service-index" / config.stem
+    if (index / "CURRENT").exists():
+        print(f"index: {index} (exists)")
+        return index
+    refs = dataset_root() / "gardens_point" / "day_right"
+    print(f"index: building {index} from {refs} with {config} ...", flush=True)
+    cmd = [str(ROOT / ".venv" / "bin" / "hmpf-index"), "build", "--config", str(config)]
+    cmd += ["--images", str(refs), "--index", str(index), "--quiet"]
+    subprocess.run(cmd, check=True)
+    return index
+
+
+def _start(index: Path, port: int, args: argparse.Namespace, log: Path) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+    env.update(HMPF_AUTH="false", HMPF_LOG_LEVEL="warning")
+    if args.workers:
+        env["HMPF_WORKERS"] = str(args.workers)
+    if args.queue is not None:
+        env["HMPF_QUEUE"] = str(args.queue)
+    cmd = [str(ROOT / ".venv" / "bin" / "hmpf-serve"), "--index", str(index)]
+    cmd += ["--port", str(port)]
+    proc = subprocess.Popen(cmd, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"hmpf-serve exited {proc.returncode}:\n{log.read_text()[-3000:]}")
+        try:
+            status, _ = _request(port, "GET", "/readyz", b"", 2.0)
+            if status == 200:
+                return proc
+        except OSError:
+            pass
+        time.sleep(0.3)
+    proc.kill()
+    raise SystemExit("hmpf-serve did not become ready in 300 s")
+
+
+def _request(port: int, method: str, path: str, body: bytes, timeout: float) -> tuple[int, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+    try:
+        headers = {"Content-Type": "image/jpeg"} if body else {}
+        conn.request(method, path, body=body or None, headers=headers)
+        r = conn.getresponse()
+        return r.status, r.read()
+    finally:
+        conn.close()
+
+
+def _run_phase(port: int, clients: int, seconds: float, frames: list[bytes]) -> Phase:
+    phase = Phase(clients)
+    lock = threading.Lock()
+    stop_at = time.monotonic() + seconds
+
+    def client(seed: int) -> None:
+        conn: http.client.HTTPConnection | None = None
+        k = seed * 37
+        while time.monotonic() < stop_at:
+            qi = k % len(frames)
+            k += 1
+            t0 = time.perf_counter()
+            try:
+                if conn is None:
+                    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=TIMEOUT_S)
+                conn.request(
+                    "POST", "/v1/localize", body=frames[qi], headers={"Content-Type": "image/jpeg"}
+                )
+                r = conn.getresponse()
+                data = r.read()
+                status, retry = r.status, r.getheader("Retry-After")
+            except TimeoutError:
+                with lock:
+                    phase.count("timeout")
+                conn = None
+                continue
+            except (OSError, http.client.HTTPException) as exc:
+                with lock:
+                    phase.count(type(exc).__name__)
+                conn = None
+                continue
+            ms = (time.perf_counter() - t0) * 1e3
+            with lock:
+                phase.count(str(status))
+                if status == 200:
+                    body = json.loads(data)
+                    phase.latencies.append(ms)
+                    for stage in ("queue", "decode", "extract", "hierarchy", "total"):
+                        phase.stages.setdefault(stage, []).append(body["timing_ms"][stage])
+                    m = body["match"]
+                    phase.correct += m is not None and abs(m["reference_id"] - qi) <= 2
+                elif status == 503:
+                    phase.busy_ms.append(ms)
+            if status == 503:
+                time.sleep(min(0.2, float(retry or 1)))
+
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    phase.seconds = time.perf_counter() - t0
+    return phase
+
+
+def _pct(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    s = sorted(values)
+    return s[min(len(s) - 1, int(round(q / 100 * (len(s) - 1))))]
+
+
+def _report(p: Phase) -> dict[str, object]:
+    ok = len(p.latencies)
+    errors = {c: n for c, n in p.codes.items() if c not in ("200", "503")}
+    row = {
+        "clients": p.clients,
+        "seconds": round(p.seconds, 1),
+        "answers": ok,
+        "answers_per_s": ok / p.seconds,
+        "p50_ms": _pct(p.latencies, 50),
+        "p95_ms": _pct(p.latencies, 95),
+        "p99_ms": _pct(p.latencies, 99),
+        "max_ms": max(p.latencies, default=float("nan")),
+        "server_median_ms": {k: statistics.median(v) for k, v in p.stages.items()},
+        "503": p.codes.get("503", 0),
+        "503_p99_ms": _pct(p.busy_ms, 99),
+        "errors": errors,
+        "within_2_frames": p.correct / ok if ok else float("nan"),
+    }
+    st = row["server_median_ms"]
+    print(
+        f"{p.clients:>3} clients: {row['answers_per_s']:6.1f} answers/s  "
+        f"p50 {row['p50_ms']:6.1f}  p95 {row['p95_ms']:6.1f}  p99 {row['p99_ms']:6.1f}  "
+        f"max {row['max_ms']:6.1f} ms  | 503s {row['503']:>4} (p99 {row['503_p99_ms']:.1f} ms)  "
+        f"errors {sum(errors.values())} {errors or ''}  | correct {row['within_2_frames']:.3f}"
+    )
+    if st:
+        print(
+            "             server medians (ms): " + "  ".join(f"{k} {v:.1f}" for k, v in st.items())  # type: ignore[union-attr]
+        )
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "default.yaml")
+    ap.add_argument("--index", type=Path, default=None)
+    ap.add_argument("--clients", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--overload", type=int, default=48, help="clients of the overload phase")
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--queue", type=int, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    index = _ensure_index(args.config.resolve(), args.index)
+    queries = list_images(dataset_root() / "gardens_point" / "night_right")
+    frames = [p.read_bytes() for p in queries]
+    print(f"machine: {machine()}")
+    print(f"config {args.config.name}, {len(frames)} night_right query frames, raw JPEG bodies")
+    with tempfile.TemporaryDirectory() as tmp:
+        port = _free_port()
+        proc = _start(index, port, args, Path(tmp) / "serve.log")
+        try:
+            _, info = _request(port, "GET", "/v1/index", b"", 10)
+            meta = json.loads(info)
+            print(
+                f"index {meta['version']}: {meta['references']} references, methods "
+                f"{', '.join(meta['methods'])}"
+            )
+            _run_phase(port, 2, 3.0, frames)  # warm-up
+            rows = []
+            for n in [*args.clients, *([args.overload] if args.overload else [])]:
+                rows.append(_report(_run_phase(port, n, args.duration, frames)))
+            alive = _request(port, "GET", "/healthz", b"", 5)[0] == 200
+            print(f"server alive after the run: {alive}")
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"config": str(args.config), "phases": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
