@@ -14,8 +14,9 @@ import os
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -150,31 +151,48 @@ def _is_cnn(method: Method) -> bool:
 
 
 def extract_query(
-    methods: Mapping[str, Method], image: np.ndarray, ms: dict[str, float] | None = None
+    methods: Mapping[str, Method],
+    image: np.ndarray,
+    ms: dict[str, float] | None = None,
+    executor: Executor | None = None,
 ) -> dict[str, Any]:
-    """Every method's feature of one decoded image, in this process and thread.
+    """Every method's feature of one decoded image.
 
-    CNN methods sharing a backbone and input size share one forward pass. When ``ms`` is
-    given, each method's time (ms) is stored in it; a shared forward pass is counted once,
-    in the first method of its group, so the values add up to the wall time.
+    CNN methods sharing a backbone and input size share one forward pass. Without
+    ``executor`` everything runs in the calling thread; with one, each forward-pass group and
+    each other method is a task on it, so one query can use several cores while the
+    executor's size bounds the whole process's compute. When ``ms`` is given, each method's
+    time (ms) is stored in it; a shared forward pass is counted once, in the first method of
+    its group.
     """
-    from hmpf.methods.cnn import extract_cnn_timed
+    from hmpf.methods.cnn import cnn_groups, extract_cnn_timed
 
     cnn = {mid: m for mid, m in methods.items() if _is_cnn(m)}
+    tasks: list[Callable[[], tuple[dict[str, Any], dict[str, float]]]] = [
+        partial(extract_cnn_timed, group, image)  # type: ignore[arg-type]
+        for group in cnn_groups(cnn)  # type: ignore[arg-type]
+    ]
+    tasks += [
+        partial(_timed_extract, mid, m, image) for mid, m in methods.items() if mid not in cnn
+    ]
+    if executor is None or len(tasks) < 2:
+        results = [task() for task in tasks]
+    else:
+        results = [f.result() for f in [executor.submit(task) for task in tasks]]
     out: dict[str, Any] = {}
-    if cnn:
-        feats, times = extract_cnn_timed(cnn, image)  # type: ignore[arg-type]
+    for feats, times in results:
         out.update(feats)
         if ms is not None:
             ms.update(times)
-    for mid, m in methods.items():
-        if mid in cnn:
-            continue
-        t = time.perf_counter()
-        out[mid] = m.extract(image)
-        if ms is not None:
-            ms[mid] = (time.perf_counter() - t) * 1e3
     return {mid: out[mid] for mid in methods}
+
+
+def _timed_extract(
+    mid: str, method: Method, image: np.ndarray
+) -> tuple[dict[str, Any], dict[str, float]]:
+    t = time.perf_counter()
+    feat = method.extract(image)
+    return {mid: feat}, {mid: (time.perf_counter() - t) * 1e3}
 
 
 def _extract_cnn_images(

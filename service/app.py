@@ -18,6 +18,7 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator, Callable
+from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -265,7 +266,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
                 )
                 timing["decode"] = (time.perf_counter() - t) * 1e3
                 try:
-                    body = _localize(loaded, image, params, timing)
+                    body = _localize(loaded, image, params, timing, eng.compute)
                 except HmpfError as exc:
                     raise ApiError(422, "invalid_image", f"{source}: {exc}") from None
                 timing["total"] = (time.perf_counter() - t_start) * 1e3
@@ -458,7 +459,11 @@ def _check_top_k(params: LocalizeParams, settings: Settings) -> None:
 
 
 def _localize(
-    loaded: Loaded, image: np.ndarray, params: LocalizeParams, timing: dict[str, Any]
+    loaded: Loaded,
+    image: np.ndarray,
+    params: LocalizeParams,
+    timing: dict[str, Any],
+    executor: Executor,
 ) -> dict[str, Any]:
     prior = None
     prior_json: dict[str, Any] | None = None
@@ -472,7 +477,7 @@ def _localize(
             "applied": loaded.has_positions,
             "reason": None if loaded.has_positions else "the index has no reference positions",
         }
-    result, allowed = run_query(loaded, image, prior, timing)
+    result, allowed = run_query(loaded, image, prior, timing, executor)
     if prior_json is not None and allowed is not None:
         prior_json["references"] = int(len(allowed))
     body: dict[str, Any] = {

@@ -4,10 +4,13 @@
   the version that is current when it starts and keeps it to the end, so a reload never
   changes the data under a running query. A retired version is closed when its last lease
   ends.
-* CPU work (decoding, extraction, scoring) runs in a thread pool of ``workers`` threads, each
-  limited to ``threads_per_worker`` compute threads (torch, OpenCV, BLAS), so concurrent
-  queries do not oversubscribe the cores. At most ``workers + queue`` queries are admitted
-  at once; beyond that :meth:`Engine.admit` refuses and the API answers 503 + Retry-After.
+* A query runs on one of ``workers`` query threads (decoding, the hierarchy); its
+  extraction is split into tasks (one per CNN forward-pass group, one per other method) on a
+  compute pool of ``workers`` threads, each limited to ``threads_per_worker`` torch / OpenCV
+  / BLAS threads. A lone query thus uses several cores, and under load the compute pool
+  bounds the process so that concurrent queries do not oversubscribe the cores. At most
+  ``workers + queue`` queries are admitted at once; beyond that :meth:`Engine.admit`
+  refuses and the API answers 503 + Retry-After.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -136,6 +139,9 @@ class Engine:
         self._pool = ThreadPoolExecutor(
             max_workers=workers, thread_name_prefix="hmpf-query", initializer=self._init_thread
         )
+        self.compute = ThreadPoolExecutor(
+            max_workers=workers, thread_name_prefix="hmpf-compute", initializer=self._init_thread
+        )
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _init_thread(self) -> None:
@@ -175,6 +181,7 @@ class Engine:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self.compute.shutdown(wait=True, cancel_futures=True)
         with self._lock:
             if self._current is not None:
                 self._current.reader.close()
@@ -238,6 +245,7 @@ def run_query(
     image: np.ndarray,
     prior: Prior | None,
     timing: dict[str, Any],
+    executor: Executor | None = None,
 ) -> tuple[HierarchyResult | None, np.ndarray | None]:
     """Extract, restrict to the prior and run the hierarchy for one decoded image.
 
@@ -249,7 +257,7 @@ def run_query(
     reader = loaded.reader
     t = time.perf_counter()
     per_method: dict[str, float] = {}
-    feats = reader.extract_query(image, per_method)
+    feats = reader.extract_query(image, per_method, executor)
     timing["extract"] = (time.perf_counter() - t) * 1e3
     timing["extract_per_method"] = per_method
     score_fn = reader.scorer(feats)

@@ -55,7 +55,9 @@ class Settings(BaseSettings):
     max_pixels: int = Field(40_000_000, ge=64, description="width x height, from the header")
     max_batch: int = Field(16, ge=1, description="images per /v1/localize/batch request")
     max_top_k: int = Field(50, ge=1)
-    workers: int = Field(0, ge=0, description="queries computed at once (0: one per core)")
+    workers: int = Field(
+        0, ge=0, description="query threads and extraction threads (0: one per core)"
+    )
     queue: int = Field(16, ge=0, description="queries waiting beyond the workers, then 503")
     threads_per_worker: int = Field(0, ge=0, description="torch/OpenCV threads (0: auto)")
     retry_after_s: int = Field(1, ge=1)

@@ -321,3 +321,26 @@ def test_fit_methods_uses_cache(tmp_path: Path) -> None:
         third["netvlad"].state_arrays()["centroids"],
         state["centroids"],
     )
+
+
+def test_extract_query_parallel_tasks_equal_serial(fitted: dict[str, object]) -> None:
+    """The service splits a query into tasks (a forward-pass group each, a task per other
+    method) on a thread pool; features and the per-method times' keys match a serial run."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from hmpf.features import extract_query
+
+    methods = {**fitted, "gist": create_method("gist"), "hog": create_method("hog")}
+    img = _images(1, seed=21)[0]
+    ms_serial: dict[str, float] = {}
+    ms_parallel: dict[str, float] = {}
+    serial = extract_query(methods, img, ms_serial)  # type: ignore[arg-type]
+    with ThreadPoolExecutor(3) as pool:
+        parallel = extract_query(methods, img, ms_parallel, pool)  # type: ignore[arg-type]
+    assert list(parallel) == list(methods) == list(serial)
+    assert set(ms_parallel) == set(ms_serial) == set(methods)
+    for name in methods:
+        a, b = serial[name], parallel[name]
+        if name == "olo":
+            a, b = a.regions, b.regions
+        np.testing.assert_array_equal(a, b)

@@ -28,6 +28,7 @@ Later tiers read only the candidates' rows: global rows from the matrix, local f
 from __future__ import annotations
 
 from collections.abc import Mapping
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
@@ -239,17 +240,21 @@ class IndexReader:
         return Hierarchy(self.config, self.methods)
 
     def extract_query(
-        self, image: np.ndarray, ms: dict[str, float] | None = None
+        self,
+        image: np.ndarray,
+        ms: dict[str, float] | None = None,
+        executor: Executor | None = None,
     ) -> dict[str, Any]:
         """Every method's feature of one RGB ``uint8`` query image.
 
-        CNN methods on the same backbone and input size share one forward pass. When ``ms``
-        is given, each method's time (ms; a shared forward pass is counted once, in the
-        first method of its group) is stored in it.
+        CNN methods on the same backbone and input size share one forward pass; with an
+        ``executor`` the forward-pass groups and other methods run as parallel tasks on it
+        (:func:`hmpf.features.extract_query`). When ``ms`` is given, each method's time (ms;
+        a shared forward pass is counted once, in the first method of its group) is stored.
         """
         from hmpf.features import extract_query
 
-        return extract_query(self.methods, image, ms)
+        return extract_query(self.methods, image, ms, executor)
 
     def global_matrix(self, mid: str) -> np.ndarray:
         """(N, D) stored vectors of a global method, in the dtype the method produced."""

@@ -28,6 +28,7 @@ from hmpf.runtime import compute_threads
 __all__ = [
     "CnnConfig",
     "CnnMethod",
+    "cnn_groups",
     "extract_cnn",
     "extract_cnn_timed",
     "fit_cnn",
@@ -164,6 +165,11 @@ def extract_cnn(
                     own = (time.perf_counter() - t0) * 1e3
                     ms.setdefault(mid, []).append(forward_ms[i] + own)
     return out
+
+
+def cnn_groups(methods: Mapping[str, CnnMethod]) -> list[dict[str, CnnMethod]]:
+    """The methods split into groups that share one forward pass per image."""
+    return [{mid: methods[mid] for mid in ids} for ids in _groups(methods).values()]
 
 
 def extract_cnn_timed(
