@@ -200,7 +200,8 @@ def _report(p: Phase) -> dict[str, object]:
         f"{p.clients:>3} clients: {row['answers_per_s']:6.1f} answers/s  "
         f"p50 {row['p50_ms']:6.1f}  p95 {row['p95_ms']:6.1f}  p99 {row['p99_ms']:6.1f}  "
         f"max {row['max_ms']:6.1f} ms  | 503s {row['503']:>4} (p99 {row['503_p99_ms']:.1f} ms)  "
-        f"errors {sum(errors.values())} {errors or ''}  | correct {row['within_2_frames']:.3f}"
+        f"errors {sum(errors.values())} {errors or ''}  "
+        f"| within +-2 frames {row['within_2_frames']:.3f}"
     )
     if st:
         print(

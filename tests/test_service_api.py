@@ -23,8 +23,6 @@ from service.app import create_app
 from service.auth import add_key
 from service.settings import load_settings
 
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-
 
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
