@@ -49,6 +49,7 @@ def _serve(argv: list[str]) -> int:
             level=settings.log_level.upper(),
             format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         )
+        logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # CPU-feature probing
         app = create_app(settings)
         app.state.engine.load()  # fail here, with exit code 2, rather than inside uvicorn
     except HmpfError as exc:

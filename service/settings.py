@@ -58,7 +58,7 @@ class Settings(BaseSettings):
     workers: int = Field(
         0, ge=0, description="query threads and extraction threads (0: one per core)"
     )
-    queue: int = Field(16, ge=0, description="queries waiting beyond the workers, then 503")
+    queue: int = Field(8, ge=0, description="queries waiting beyond the workers, then 503")
     threads_per_worker: int = Field(0, ge=0, description="torch/OpenCV threads (0: auto)")
     retry_after_s: int = Field(1, ge=1)
     # -- answers -----------------------------------------------------------------------------
