@@ -94,3 +94,15 @@ def test_digest_is_stable_and_sensitive():
     b = parse_config({"tiers": [{"methods": ["hog"], "k": 1}]})
     c = parse_config({"tiers": [{"methods": ["hog"], "k": 2}]})
     assert a.digest() == b.digest() != c.digest()
+
+
+def test_acceptance_is_validated_and_left_out_of_the_digest():
+    base = {"tiers": [{"methods": ["hog"], "k": 1}]}
+    plain = parse_config(base)
+    with_acc = parse_config({**base, "acceptance": {"threshold": 2.2, "precision": 0.99}})
+    assert plain.acceptance is None and with_acc.acceptance.threshold == 2.2
+    assert plain.digest() == with_acc.digest()
+    with pytest.raises(ConfigError, match="precision"):
+        parse_config({**base, "acceptance": {"threshold": 2.2, "precision": 1.5}})
+    with pytest.raises(ConfigError, match="thresh"):
+        parse_config({**base, "acceptance": {"thresh": 2.2}})

@@ -464,3 +464,37 @@ def test_response_is_json_serialisable_without_nan(client, car, gardens_point) -
         "/v1/localize", files={"image": ("a.jpg", _ref(gardens_point, 0).read_bytes())}, headers=car
     )
     json.loads(r.text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+
+
+def test_acceptance_threshold_sources(service_index, keys, car, gardens_point, tmp_path) -> None:
+    """settings > the index config's acceptance.threshold > the built-in default."""
+    from conftest import SERVICE_CONFIG
+
+    from hmpf.config import parse_config
+    from indexer.build import BuildOptions, build
+    from service.engine import DEFAULT_ACCEPT_THRESHOLD
+
+    path = _ref(gardens_point, 6)
+    files = {"image": (path.name, path.read_bytes(), "image/jpeg")}
+
+    def answer(index: Path, **overrides: object) -> dict:
+        with _client(index, keys["file"], **overrides) as c:  # type: ignore[arg-type]
+            r = c.post("/v1/localize", files=files, headers=car)
+            assert r.status_code == 200, r.text
+            return r.json()
+
+    body = answer(service_index)
+    assert body["threshold"] == DEFAULT_ACCEPT_THRESHOLD
+    assert body["match"]["accepted"] == (body["match"]["score"] >= DEFAULT_ACCEPT_THRESHOLD)
+    low = answer(service_index, accept_threshold=-100.0)
+    assert low["threshold"] == -100.0 and low["match"]["accepted"] is True
+
+    refs = tmp_path / "refs"
+    refs.mkdir()
+    for p in sorted((gardens_point / "day_right").iterdir())[:8]:
+        shutil.copy(p, refs / p.name)
+    cfg = parse_config({**SERVICE_CONFIG, "acceptance": {"threshold": 99.0, "precision": 0.99}})
+    build(cfg, refs, tmp_path / "index", options=BuildOptions(workers=1, progress=False))
+    strict = answer(tmp_path / "index")
+    assert strict["threshold"] == 99.0 and strict["match"]["accepted"] is False
+    assert answer(tmp_path / "index", accept_threshold=0.5)["threshold"] == 0.5
