@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import time
@@ -176,6 +175,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
             try:
                 upload = _single_file(form, "image")
                 params = _params(request, form)
+                _check_size(upload, settings.max_upload_bytes, "image")
                 data = await upload.read()
                 file_type = upload.content_type
             finally:
@@ -197,10 +197,11 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
             raise _upload_too_large(settings.max_upload_bytes)
         if not eng.admit(1):
             raise _busy(settings)
-        try:
-            return await _answer(data, file_type, params, "image")
-        finally:
-            eng.done(1)
+        ((ok, value),) = await eng.run([_job(data, file_type, params, "image")])
+        if not ok:
+            raise value
+        metrics.observe_stages(value["timing_ms"])
+        return value  # type: ignore[no-any-return]
 
     @app.post(
         "/v1/localize/batch",
@@ -226,6 +227,8 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
             if extra:
                 raise ApiError(422, "invalid_request", f"unexpected file field {extra[0]!r}")
             params = _params(request, form, exclude=("images",))  # one prior for all images
+            for i, f in enumerate(files):
+                _check_size(f, settings.max_upload_bytes, f"images[{i}]")  # type: ignore[arg-type]
             blobs = [(await f.read(), f.content_type) for f in files]  # type: ignore[union-attr]
         finally:
             await form.close()
@@ -233,53 +236,51 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         for i, (data, _) in enumerate(blobs):
             if len(data) > settings.max_upload_bytes:
                 raise _upload_too_large(settings.max_upload_bytes, f"images[{i}]")
-        n = len(blobs)
-        if not eng.admit(n):
+        # A batch runs its images in up to `workers` lanes, one slot each, so that any batch
+        # size fits the admission limit and a batch cannot take the queue's slots.
+        lanes = min(len(blobs), eng.workers)
+        if not eng.admit(lanes):
             raise _busy(settings)
-
-        async def one(i: int, data: bytes, ctype: str | None) -> dict[str, Any]:
-            try:
-                return {"index": i, "result": await _answer(data, ctype, params, f"images[{i}]")}
-            except ApiError as exc:
-                return {"index": i, "error": {"code": exc.code, "message": exc.message}}
-
-        try:
-            # The images run concurrently on the pool (their n slots were admitted above).
-            results = await asyncio.gather(*(one(i, d, c) for i, (d, c) in enumerate(blobs)))
-            versions = [r["result"]["index_version"] for r in results if "result" in r]
-            return {
-                "results": results,
-                "index_version": versions[0] if versions else eng.current.version,
-            }
-        finally:
-            eng.done(n)
-
-    async def _answer(
-        data: bytes, ctype: str | None, params: LocalizeParams, source: str
-    ) -> dict[str, Any]:
-        t_start = time.perf_counter()
-        loaded = eng.lease()
-        try:
-
-            def work() -> dict[str, Any]:
-                timing: dict[str, Any] = {"queue": (time.perf_counter() - t_start) * 1e3}
-                t = time.perf_counter()
-                image = decode_upload(
-                    data, max_pixels=settings.max_pixels, content_type=ctype, source=source
+        jobs = [_job(d, c, params, f"images[{i}]") for i, (d, c) in enumerate(blobs)]
+        version = eng.current.version
+        results: list[dict[str, Any]] = []
+        for i, (ok, value) in enumerate(await eng.run(jobs, lanes)):
+            if ok:
+                metrics.observe_stages(value["timing_ms"])
+                version = value["index_version"]
+                results.append({"index": i, "result": value})
+            elif isinstance(value, ApiError):
+                results.append(
+                    {"index": i, "error": {"code": value.code, "message": value.message}}
                 )
-                timing["decode"] = (time.perf_counter() - t) * 1e3
-                try:
-                    body = _localize(loaded, image, params, timing, eng.compute)
-                except HmpfError as exc:
-                    raise ApiError(422, "invalid_image", f"{source}: {exc}") from None
-                timing["total"] = (time.perf_counter() - t_start) * 1e3
-                return body
+            else:
+                log.error("batch item %d failed", i, exc_info=value)
+                results.append(
+                    {"index": i, "error": {"code": "internal", "message": "internal error"}}
+                )
+        return {"results": results, "index_version": version}
 
-            body = await eng.run(work)
-        finally:
-            eng.release(loaded)
-        metrics.observe_stages(body["timing_ms"])
-        return body
+    def _job(
+        data: bytes, ctype: str | None, params: LocalizeParams, source: str
+    ) -> Callable[[Loaded], dict[str, Any]]:
+        """One image's work on a query thread, with the request's lease on a version."""
+        t_start = time.perf_counter()
+
+        def work(loaded: Loaded) -> dict[str, Any]:
+            timing: dict[str, Any] = {"queue": (time.perf_counter() - t_start) * 1e3}
+            t = time.perf_counter()
+            image = decode_upload(
+                data, max_pixels=settings.max_pixels, content_type=ctype, source=source
+            )
+            timing["decode"] = (time.perf_counter() - t) * 1e3
+            try:
+                body = _localize(loaded, image, params, timing, eng.compute)
+            except HmpfError as exc:
+                raise ApiError(422, "invalid_image", f"{source}: {exc}") from None
+            timing["total"] = (time.perf_counter() - t_start) * 1e3
+            return body
+
+        return work
 
     # -- index --------------------------------------------------------------------------------
     @app.get("/v1/index", response_model=IndexInfo, responses=_ERRORS, tags=["index"])
@@ -322,6 +323,14 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         except HmpfError as exc:
             raise ApiError(
                 409, "index_unusable", f"kept version {eng.current.version}: {exc}"
+            ) from None
+        except Exception:
+            log.exception("reload of %s failed", eng.root)
+            raise ApiError(
+                409,
+                "index_unusable",
+                f"kept version {eng.current.version}: the current version could not be "
+                "loaded (see the service log)",
             ) from None
         metrics.set_index(new)
         return {"previous": old, "version": new, "changed": old != new}
@@ -394,6 +403,12 @@ async def _too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
 
 def _upload_too_large(limit: int, what: str = "image") -> ApiError:
     return ApiError(413, "payload_too_large", f"{what} exceeds the upload limit of {limit} bytes")
+
+
+def _check_size(upload: UploadFile, limit: int, what: str) -> None:
+    """Refuse an uploaded file from its parsed size, before reading it into memory."""
+    if upload.size is not None and upload.size > limit:
+        raise _upload_too_large(limit, what)
 
 
 def _busy(settings: Settings) -> ApiError:

@@ -7,10 +7,13 @@
 * A query runs on one of ``workers`` query threads (decoding, the hierarchy); its
   extraction is split into tasks (one per CNN forward-pass group, one per other method) on a
   compute pool of ``workers`` threads, each limited to ``threads_per_worker`` torch / OpenCV
-  / BLAS threads. A lone query thus uses several cores, and under load the compute pool
-  bounds the process so that concurrent queries do not oversubscribe the cores. At most
-  ``workers + queue`` queries are admitted at once; beyond that :meth:`Engine.admit`
-  refuses and the API answers 503 + Retry-After.
+  / BLAS threads. A lone query thus runs its extraction tasks in parallel (up to one core
+  per task), and under load the compute pool bounds the process so that concurrent queries
+  do not oversubscribe the cores. At most ``workers + queue`` slots are admitted at once
+  (a query takes one, a batch at most ``workers``, running its images in that many lanes);
+  beyond that :meth:`Engine.admit` refuses and the API answers 503 + Retry-After. Slots and
+  leases are released by the pool threads when their work ends, so a client that
+  disconnects never frees capacity that is still in use.
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import Executor, ThreadPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -36,6 +39,8 @@ __all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"
 
 log = logging.getLogger("hmpf.service")
 T = TypeVar("T")
+#: A job's outcome: (True, its value) or (False, the exception it raised).
+Outcome = tuple[bool, Any]
 
 #: Combined quality (z-score over the final candidates) an answer needs when neither the
 #: settings nor the index's config give a threshold. Measured with configs/default.yaml on the
@@ -134,7 +139,7 @@ class Engine:
         self.capacity = workers + queue
         self.threads = threads_per_worker
         self.accept_threshold = accept_threshold
-        self.admitted = 0  # running + waiting queries (event-loop thread only)
+        self.admitted = 0  # slots held by running + waiting lanes (under _lock)
         self.running = 0
         self._lock = threading.Lock()
         self._reload_lock = asyncio.Lock()
@@ -155,7 +160,11 @@ class Engine:
     def load(self) -> Loaded:
         """Open the index's current version (blocking) and make it current."""
         loaded = Loaded.open(self.root, self.accept_threshold)
-        self._warm_up(loaded)
+        try:
+            self._warm_up(loaded)
+        except BaseException:
+            loaded.reader.close()
+            raise
         with self._lock:
             old, self._current = self._current, loaded
             if old is not None:
@@ -214,33 +223,88 @@ class Engine:
                 loaded.reader.close()
 
     def admit(self, n: int = 1) -> bool:
-        """Reserve ``n`` query slots (event-loop thread), False when the pool is full."""
-        if self.admitted + n > self.capacity:
-            return False
-        self.admitted += n
-        return True
+        """Reserve ``n`` query slots, False (nothing reserved) when the pool is full."""
+        with self._lock:
+            if self.admitted + n > self.capacity:
+                return False
+            self.admitted += n
+            return True
 
     def done(self, n: int = 1) -> None:
-        self.admitted -= n
+        with self._lock:
+            self.admitted -= n
 
     @property
     def queued(self) -> int:
         return max(0, self.admitted - self.running)
 
-    async def run(self, fn: Callable[[], T]) -> T:
-        """Run ``fn`` on the pool (the caller has been admitted)."""
-        loop = asyncio.get_running_loop()
+    def start(
+        self, jobs: Sequence[Callable[[Loaded], T]], lanes: int = 1
+    ) -> tuple[list[Future[None]], list[Outcome]]:
+        """Start ``jobs`` on ``lanes`` query threads; the caller has admitted ``lanes`` slots.
 
-        def wrapped() -> T:
+        Every job gets the same lease on the current version (one request, one version).
+        Each lane runs jobs one after the other until none is left; a lane's slot, and after
+        the last lane the lease, are released by the pool when the lane ends or is cancelled
+        before it starts, never by the request: a client that disconnects mid-query cannot
+        free a slot, or close a version, that a thread still uses.
+
+        Returns:
+            (one future per lane, the outcomes: per job (True, value) or (False, exception),
+            filled in when the lanes are done).
+        """
+        try:
+            loaded = self.lease()
+        except BaseException:
+            self.done(lanes)
+            raise
+        outcomes: list[Outcome] = [(False, RuntimeError("not run"))] * len(jobs)
+        order = iter(range(len(jobs)))
+        left = [lanes]
+        take = threading.Lock()
+
+        def lane() -> None:
             with self._lock:
                 self.running += 1
             try:
-                return fn()
+                while True:
+                    with take:
+                        i = next(order, None)
+                    if i is None:
+                        return
+                    try:
+                        outcomes[i] = (True, jobs[i](loaded))
+                    except Exception as exc:  # handed to the request, which answers it
+                        outcomes[i] = (False, exc)
             finally:
                 with self._lock:
                     self.running -= 1
 
-        return await loop.run_in_executor(self._pool, wrapped)
+        def finished(_: object = None) -> None:
+            with self._lock:
+                self.admitted -= 1
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                self.release(loaded)
+
+        futures: list[Future[None]] = []
+        for k in range(lanes):
+            try:
+                fut = self._pool.submit(lane)
+            except BaseException:  # the pool is shut down: give back the lanes not started
+                for _ in range(lanes - k):
+                    finished()
+                raise
+            fut.add_done_callback(finished)
+            futures.append(fut)
+        return futures, outcomes
+
+    async def run(self, jobs: Sequence[Callable[[Loaded], T]], lanes: int = 1) -> list[Outcome]:
+        """:meth:`start` and wait for every job (the caller has admitted ``lanes`` slots)."""
+        futures, outcomes = self.start(jobs, lanes)
+        await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
+        return outcomes
 
 
 def run_query(

@@ -28,6 +28,9 @@ __all__ = ["Metrics"]
 
 _BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0)
 _STAGES = ("queue", "decode", "extract", "hierarchy", "total")
+#: HTTP methods kept as label values; any other is counted as "other" (a client must not be
+#: able to create label values, and so time series, at will).
+_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
 class Metrics:
@@ -69,7 +72,8 @@ class Metrics:
         finally:
             route = request.scope.get("route")
             name = getattr(route, "path", None) or "unmatched"
-            self.requests.labels(name, request.method, str(status)).inc()
+            method = request.method if request.method in _METHODS else "other"
+            self.requests.labels(name, method, str(status)).inc()
             self.latency.labels(name).observe(time.perf_counter() - start)
 
     def observe_stages(self, timing_ms: Mapping[str, Any]) -> None:

@@ -5,10 +5,13 @@ The index is real (built from 20 Gardens Point images with positions); so are th
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 import shutil
 import struct
+import threading
+import time
 import zlib
 from pathlib import Path
 
@@ -238,6 +241,101 @@ def test_batch_errors(client, car, gardens_point) -> None:
     )
 
 
+def test_batch_larger_than_the_admission_limit_runs_in_lanes(client, car, gardens_point) -> None:
+    engine = client.app.state.engine  # workers=1, queue=2: 3 slots; max_batch=4
+    paths = [_ref(gardens_point, i) for i in (2, 6, 11, 17)]
+    files = [("images", (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
+    assert engine.admit(engine.capacity - 1)  # other queries hold all slots but one
+    try:
+        r = client.post("/v1/localize/batch", files=files, data={"top_k": "1"}, headers=car)
+        assert r.status_code == 200, r.text
+        assert [x["result"]["match"]["name"] for x in r.json()["results"]] == [
+            p.name for p in paths
+        ]
+        assert engine.admit(1)  # the last slot is taken too: the batch is refused
+        try:
+            _error(client.post("/v1/localize/batch", files=files, headers=car), 503, "overloaded")
+        finally:
+            engine.done(1)
+    finally:
+        engine.done(engine.capacity - 1)
+    assert engine.admitted == 0 and engine.running == 0
+
+
+def test_batch_item_failing_unexpectedly_gets_its_own_error(
+    client, car, gardens_point, monkeypatch
+) -> None:
+    import service.app as app_module
+
+    real = app_module.decode_upload
+
+    def flaky(data: bytes, **kw: object) -> np.ndarray:
+        if data.startswith(b"BOOM"):
+            raise RuntimeError("a bug, not the client's fault")
+        return real(data, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(app_module, "decode_upload", flaky)
+    a = _ref(gardens_point, 5)
+    files = [
+        ("images", ("boom.jpg", b"BOOM", "image/jpeg")),
+        ("images", (a.name, a.read_bytes(), "image/jpeg")),
+    ]
+    r = client.post("/v1/localize/batch", files=files, data={"top_k": "1"}, headers=car)
+    assert r.status_code == 200, r.text
+    first, second = r.json()["results"]
+    assert first["error"] == {"code": "internal", "message": "internal error"}
+    assert second["result"]["match"]["name"] == a.name
+    # The same failure in a single query is a generic JSON 500, the traceback only in the log.
+    plain = TestClient(client.app, raise_server_exceptions=False)  # as a real client sees it
+    one = plain.post("/v1/localize", files={"image": ("b.jpg", b"BOOM", "image/jpeg")}, headers=car)
+    assert one.status_code == 500 and "a bug" not in one.text
+    assert one.json()["error"]["code"] == "internal"
+    engine = client.app.state.engine
+    assert engine.admitted == 0 and engine.current.leases == 0
+
+
+def _wait_for(cond, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_a_cancelled_request_frees_its_slot_and_lease_only_when_the_work_ends(client) -> None:
+    engine = client.app.state.engine  # one query thread
+    gate, started, ran = threading.Event(), threading.Event(), []
+
+    def blocking(loaded) -> str:
+        started.set()
+        gate.wait(10)
+        return str(loaded.version)
+
+    def queued(loaded) -> str:
+        ran.append(1)
+        return str(loaded.version)
+
+    async def cancel_both() -> None:
+        assert engine.admit(2)
+        first = asyncio.ensure_future(engine.run([blocking]))
+        second = asyncio.ensure_future(engine.run([queued]))  # waits for the only thread
+        assert await asyncio.to_thread(started.wait, 10)
+        first.cancel()
+        second.cancel()
+        for task in (first, second):
+            with pytest.raises(asyncio.CancelledError):
+                await task
+
+    asyncio.run(cancel_both())
+    # The waiting query never ran and gave its slot back; the running one still holds its
+    # slot and its lease on the version although its request is gone.
+    assert engine.admitted == 1 and engine.current.leases == 1 and engine.running == 1
+    gate.set()
+    assert _wait_for(lambda: engine.admitted == 0 and engine.current.leases == 0)
+    assert ran == [] and engine.running == 0
+
+
 # -- auth --------------------------------------------------------------------------------------
 def test_auth(client, car, admin, gardens_point) -> None:
     image = {"image": ("a.jpg", _ref(gardens_point, 1).read_bytes(), "image/jpeg")}
@@ -414,6 +512,10 @@ def test_metrics(client, car, gardens_point) -> None:
         assert f'hmpf_stage_seconds_count{{stage="{stage}"}}' in text
     assert 'hmpf_index_info{version="v0001"} 1.0' in text
     assert "hmpf_queue_depth" in text and "hmpf_request_seconds_bucket" in text
+    # A made-up HTTP method does not become a label value of its own.
+    assert client.request("BREW", "/healthz").status_code == 405
+    text = client.get("/metrics").text
+    assert 'method="other",route="/healthz",status="405"' in text and "BREW" not in text
 
 
 # -- reload ------------------------------------------------------------------------------------
