@@ -317,7 +317,15 @@ def _extract(
 # -- writing -----------------------------------------------------------------------------------
 def _packages() -> dict[str, str]:
     out = {"python": platform.python_version()}
-    for dist in ("hmpf", "numpy", "h5py", "faiss-cpu", "opencv-python-headless", "torch"):
+    for dist in (
+        "hmpf",
+        "numpy",
+        "h5py",
+        "faiss-cpu",
+        "opencv-python-headless",
+        "opencv-contrib-python-headless",
+        "torch",
+    ):
         try:
             out[dist] = importlib_metadata.version(dist)
         except importlib_metadata.PackageNotFoundError:

@@ -175,6 +175,32 @@ def test_reader_rejects_other_format_major_and_config(built, tmp_path):
         IndexReader(idx)
 
 
+def test_reader_checks_the_build_package_versions(built, tmp_path, caplog):
+    import json
+    import logging
+
+    import cv2
+
+    idx = _copy(built, tmp_path)
+    m = idx / "v0001" / "manifest.json"
+    data = json.loads(m.read_text())
+    packages = data["packages"]
+    assert packages["opencv-python-headless"].split(".")[0] == cv2.__version__.split(".")[0]
+    major, minor, *_ = packages["opencv-python-headless"].split(".")
+    # Another minor version of OpenCV (or another numpy): opened, with a warning.
+    packages["opencv-python-headless"] = f"{major}.{int(minor) + 1}.0"
+    packages["numpy"] = "1.0.0"
+    m.write_text(json.dumps(data))
+    with caplog.at_level(logging.WARNING, logger="hmpf.index"):
+        IndexReader(idx).close()
+    assert "opencv-python-headless" in caplog.text and "numpy 1.0.0" in caplog.text
+    # Another major version of OpenCV: the stored HOG/Gist/KAZE are not comparable.
+    packages["opencv-python-headless"] = f"{int(major) + 1}.0.0"
+    m.write_text(json.dumps(data))
+    with pytest.raises(IndexVersionError, match=r"opencv-python-headless==\d"):
+        IndexReader(idx)
+
+
 def test_reader_rejects_wrong_shapes(built, tmp_path):
     import h5py
 

@@ -27,8 +27,10 @@ Later tiers read only the candidates' rows: global rows from the matrix, local f
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from concurrent.futures import Executor
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -52,9 +54,16 @@ from hmpf.index.storage import (
 from hmpf.index.tables import Columns
 from hmpf.methods import Method
 
-__all__ = ["IndexReader", "resolve_version"]
+__all__ = ["IndexReader", "check_packages", "resolve_version"]
 
 SAMPLE_SIZE = 1024
+log = logging.getLogger("hmpf.index")
+
+#: Packages whose major version changes what the methods compute (OpenCV: HOG, KAZE, image
+#: ops; torch: the CNN methods) or how the index files are read (FAISS): a different major
+#: version than the build's is an error. Other differences (minor versions, numpy, h5py) are
+#: logged as warnings.
+STRICT_PACKAGES = ("opencv-python-headless", "opencv-contrib-python-headless", "torch", "faiss-cpu")
 
 
 def resolve_version(root: Path, version: str | None = None) -> Path:
@@ -72,6 +81,48 @@ def resolve_version(root: Path, version: str | None = None) -> Path:
             f"{root}: no version {name!r} (have: {', '.join(L.list_versions(root)) or 'none'})"
         )
     return path
+
+
+def _installed(dist: str) -> str | None:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _major(version: str) -> str:
+    return version.split(".")[0]
+
+
+def check_packages(built_with: Mapping[str, str], where: Path) -> list[str]:
+    """Compare the build's package versions (manifest ``packages``) with the installed ones.
+
+    Returns:
+        the differences that were only logged as warnings.
+
+    Raises:
+        IndexVersionError: a package of :data:`STRICT_PACKAGES` has another major version
+            here than at build time (descriptors of new queries would not be comparable with
+            the stored ones, or the FAISS files may not load).
+    """
+    notes: list[str] = []
+    for dist, built in sorted(built_with.items()):
+        if dist in ("python", "hmpf") or not isinstance(built, str):
+            continue
+        here = _installed(dist)
+        if here is None and dist.startswith("opencv"):  # the other OpenCV wheel is fine
+            here = next(filter(None, map(_installed, STRICT_PACKAGES[:2])), None)
+        if here == built:
+            continue
+        if here is not None and dist in STRICT_PACKAGES and _major(here) != _major(built):
+            raise IndexVersionError(
+                f"{where}: built with {dist} {built}, this environment has {here}; install "
+                f"{dist}=={built} or rebuild the index with `hmpf-index build`"
+            )
+        notes.append(f"{dist} {built} at build time, {here or 'not installed'} here")
+    if notes:
+        log.warning("%s: package versions differ from the build: %s", where, "; ".join(notes))
+    return notes
 
 
 class IndexReader:
@@ -102,6 +153,7 @@ class IndexReader:
         self.path = resolve_version(self.root, version)
         self.version = self.path.name
         self.manifest = L.read_manifest(self.path)
+        check_packages(self.manifest.get("packages", {}), self.path)
         self.config = self._check_config(expected_config)
         self.methods: dict[str, Method] = self._load_methods()
         self._files: list[Any] = []
