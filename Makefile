@@ -52,6 +52,7 @@ bench: install
 lint: install
 	$(VENV)/bin/ruff check hmpf indexer service tests bench
 	$(VENV)/bin/ruff format --check hmpf indexer service tests bench
+	$(VENV)/bin/mypy hmpf indexer service
 	$(VENV)/bin/hadolint docker/Dockerfile
 
 format: install

@@ -123,7 +123,10 @@ def pairs_ground_truth(
 
 
 def haversine_m(
-    lat1: np.ndarray, lon1: np.ndarray, lat2: np.ndarray, lon2: np.ndarray
+    lat1: float | np.ndarray,
+    lon1: float | np.ndarray,
+    lat2: float | np.ndarray,
+    lon2: float | np.ndarray,
 ) -> np.ndarray:
     """Great-circle distance in metres (broadcasting)."""
     p1, p2 = np.radians(lat1), np.radians(lat2)

@@ -18,7 +18,7 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 from tqdm import tqdm
@@ -26,6 +26,9 @@ from tqdm import tqdm
 from hmpf.imageio import load_image
 from hmpf.methods import Method
 from hmpf.runtime import set_compute_threads
+
+if TYPE_CHECKING:
+    from hmpf.methods.cnn import CnnMethod
 
 __all__ = [
     "ExtractionResult",
@@ -93,7 +96,8 @@ class FeatureCache:
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as fh:
-            np.savez(fh, **state)
+            # mypy matches **dict[str, ndarray] against savez's allow_pickle: bool keyword.
+            np.savez(fh, **state)  # type: ignore[arg-type]
         os.replace(tmp, p)
 
     def put(self, method: Method, digest: str, feature: Any, ms: float) -> None:
@@ -101,7 +105,7 @@ class FeatureCache:
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as fh:
-            np.savez(fh, __ms__=np.float64(ms), **method.to_arrays(feature))
+            np.savez(fh, __ms__=np.float64(ms), **method.to_arrays(feature))  # type: ignore[arg-type]
         os.replace(tmp, p)
 
 
@@ -144,7 +148,7 @@ def _extract_one(
     return feats, times, decode_ms
 
 
-def _is_cnn(method: Method) -> bool:
+def _is_cnn(method: Method) -> TypeGuard[CnnMethod]:
     from hmpf.methods.cnn import CnnMethod
 
     return isinstance(method, CnnMethod)
@@ -169,8 +173,7 @@ def extract_query(
 
     cnn = {mid: m for mid, m in methods.items() if _is_cnn(m)}
     tasks: list[Callable[[], tuple[dict[str, Any], dict[str, float]]]] = [
-        partial(extract_cnn_timed, group, image)  # type: ignore[arg-type]
-        for group in cnn_groups(cnn)  # type: ignore[arg-type]
+        partial(extract_cnn_timed, group, image) for group in cnn_groups(cnn)
     ]
     tasks += [
         partial(_timed_extract, mid, m, image) for mid, m in methods.items() if mid not in cnn

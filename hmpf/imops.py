@@ -53,14 +53,14 @@ def _weights(in_len: int, out_len: int, method: str) -> sp.csr_matrix:
     """Sparse (out_len x in_len) resampling matrix, MATLAB ``contributions`` semantics."""
     kernel, width = _KERNELS[method]
     scale = out_len / in_len
+    h: Callable[[np.ndarray], np.ndarray] = kernel
     if scale < 1:  # antialiasing: widen the kernel by 1/scale
 
-        def h(x: np.ndarray) -> np.ndarray:
+        def widened(x: np.ndarray) -> np.ndarray:
             return scale * kernel(scale * x)
 
+        h = widened
         width = width / scale
-    else:
-        h = kernel
     x = np.arange(1, out_len + 1, dtype=np.float64)
     u = x / scale + 0.5 * (1 - 1 / scale)
     left = np.floor(u - width / 2)
@@ -133,7 +133,7 @@ def rgb2gray(img: np.ndarray) -> np.ndarray:
         # float32 holds the integer sums exactly (< 2^24) and division by 10000 is correctly
         # rounded, so truncating (v + 5000) / 10000 gives the exact integer quotient (<= 255).
         # cv2.transform, not a BLAS matmul: BLAS threads would fight OpenCV's for the cores.
-        v = cv2.transform(img[..., :3].astype(np.float32), _GREY_WEIGHTS)
+        v: np.ndarray = cv2.transform(img[..., :3].astype(np.float32), _GREY_WEIGHTS)
         v += np.float32(5000)
         v /= np.float32(10000)
         return v.astype(np.uint8)

@@ -360,7 +360,7 @@ def _write_faiss(
                 )
             info[mid] = None
             continue
-        entry = {
+        entry: dict[str, Any] = {
             "file": None,
             "factory": factory,
             "params": params,

@@ -201,7 +201,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         if not ok:
             raise value
         metrics.observe_stages(value["timing_ms"])
-        return value  # type: ignore[no-any-return]
+        return value
 
     @app.post(
         "/v1/localize/batch",
@@ -448,12 +448,12 @@ def _params(
             raise ApiError(422, "invalid_request", f"{k}: given twice")
         raw[k] = v
     if form is not None:
-        for k, v in form.multi_items():
-            if k in exclude or isinstance(v, UploadFile):
+        for k, value in form.multi_items():
+            if k in exclude or isinstance(value, UploadFile):
                 continue
             if k in raw:
                 raise ApiError(422, "invalid_request", f"{k}: given twice")
-            raw[k] = v
+            raw[k] = value
     unknown = sorted(set(raw) - _PARAM_FIELDS)
     if unknown:
         raise ApiError(

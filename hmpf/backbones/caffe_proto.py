@@ -236,7 +236,7 @@ def _parse_layer(buf: memoryview, legacy: bool) -> CaffeLayer:
             else:
                 ltype = bytes(_as_bytes(val)).decode("utf-8", errors="replace")
         elif num == f_blobs and wire == _LEN:
-            blobs.append(parse_blob(val))
+            blobs.append(parse_blob(_as_bytes(val)))
     return CaffeLayer(name, ltype, blobs)
 
 

@@ -60,10 +60,12 @@ def bundled_weights() -> Path:
     return Path(EfficientnetLite0ModelFile.get_model_file_path())
 
 
-def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.Module) -> None:
+def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.BatchNorm2d) -> None:
     """Fold an eval-mode BatchNorm into the preceding convolution (adds a bias)."""
     import torch
 
+    # The model's BatchNorm layers track running statistics, so both buffers are set.
+    assert bn.running_mean is not None and bn.running_var is not None
     scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
     with torch.no_grad():
         conv.weight.mul_(scale.reshape(-1, 1, 1, 1))
@@ -73,11 +75,14 @@ def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.Module) -> None:
         conv.bias = torch.nn.Parameter(bias)
 
 
-def _fold_for_inference(model: torch.nn.Module) -> None:
+def _fold_for_inference(model: Any) -> None:
     """Inference-only rewrites that keep the function: BN folded into convolutions, and
     stride-1 "same" convolutions (symmetric padding for odd kernels) made plain ``Conv2d``
     with that padding instead of an explicit pad per call. Together with channels-last memory
-    this about halves the CPU forward time (measured in bench/cnn_speed.py)."""
+    this about halves the CPU forward time (measured in bench/cnn_speed.py).
+
+    ``model`` is an ``efficientnet_lite_pytorch.EfficientNet`` (an untyped package): its
+    submodules (``_conv_stem``, ``_blocks``, ...) are dynamic attributes, hence ``Any``."""
     import torch
 
     pairs = [(model._conv_stem, model, "_bn0"), (model._conv_head, model, "_bn1")]
@@ -154,7 +159,9 @@ class EfficientNetLite0(Backbone):
         import torch
 
         self.check_layers(layers)
-        m = self.module
+        # An efficientnet_lite_pytorch.EfficientNet (untyped); torch types its submodules,
+        # dynamic attributes, as ``Tensor | Module``.
+        m: Any = self.module
         wanted = set(layers)
         out: dict[str, torch.Tensor] = {}
         x = m._swish(m._bn0(m._conv_stem(batch.contiguous(memory_format=torch.channels_last))))

@@ -338,6 +338,7 @@ class SimpleNN(nn.Module):
             for mod, s in zip(self.chain, specs, strict=True):
                 if isinstance(mod, _Conv):
                     assert s.weight is not None and s.bias is not None
+                    assert mod.conv.bias is not None  # _Conv builds its Conv2d with a bias
                     w = np.ascontiguousarray(s.weight.transpose(3, 2, 0, 1))
                     mod.conv.weight.copy_(torch.from_numpy(w))
                     mod.conv.bias.copy_(torch.from_numpy(np.ascontiguousarray(s.bias)))

@@ -151,7 +151,8 @@ class GlobalMethod(Method):
     """A method with one vector per image; the stored set is an N x D matrix."""
 
     kind: ClassVar[Literal["global", "local"]] = "global"
-    dim: ClassVar[int]
+    # Descriptor length: a class default, set per instance where the config decides it.
+    dim: int
 
     def stack(self, features: Sequence[np.ndarray]) -> np.ndarray:
         if len(features) == 0:
@@ -174,7 +175,8 @@ class LocalMethod(Method):
 
     kind: ClassVar[Literal["global", "local"]] = "local"
 
-    def stack(self, features: Sequence[Any]) -> list[Any]:
+    def stack(self, features: Sequence[Any]) -> Any:
+        """A list by default; subclasses may return their own indexed set type."""
         return list(features)
 
 

@@ -17,7 +17,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.base import GlobalMethod, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
@@ -41,7 +41,7 @@ class Gem(CnnMethod, GlobalMethod):
     name = "gem"
     higher_is_better = False
     version = "2"  # 2: float16-precision descriptors
-    Config: ClassVar[type[MethodConfig]] = GemConfig
+    Config: ClassVar[type[CnnConfig]] = GemConfig
     dim = 0  # set from the backbone
 
     @property

@@ -67,7 +67,7 @@ class Hog(GlobalMethod):
     def _extract(self, image: np.ndarray) -> np.ndarray:
         c: HogConfig = self.config  # type: ignore[assignment]
         grey = rgb2gray(imresize(initcrop(image), (c.image_size, c.image_size), "lanczos3"))
-        return self._hog.compute(grey).reshape(-1).astype(np.float32)
+        return np.asarray(self._hog.compute(grey)).reshape(-1).astype(np.float32)
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)

@@ -26,7 +26,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.base import GlobalMethod, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod
 from hmpf.methods.registry import register
 
@@ -64,7 +64,7 @@ class HybridNet(CnnMethod, GlobalMethod):
     name = "hybridnet"
     higher_is_better = False
     version = "1"
-    Config: ClassVar[type[MethodConfig]] = HybridNetConfig
+    Config: ClassVar[type[CnnConfig]] = HybridNetConfig
     dim = GRID * GRID
 
     def _default(self) -> tuple[str, tuple[int, int]]:

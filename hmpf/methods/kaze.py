@@ -185,7 +185,7 @@ class Kaze(LocalMethod):
     def detector(self) -> Any:
         if self._detector is None:
             c: KazeConfig = self.config  # type: ignore[assignment]
-            self._detector = cv2.KAZE_create(
+            self._detector = cv2.KAZE.create(
                 extended=False,
                 upright=False,
                 threshold=c.threshold,

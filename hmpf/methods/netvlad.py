@@ -28,7 +28,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.base import GlobalMethod, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, l2_rows
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
@@ -83,7 +83,7 @@ class NetVlad(CnnMethod, GlobalMethod):
     name = "netvlad"
     higher_is_better = False
     version = "2"  # 2: float16-precision descriptors
-    Config: ClassVar[type[MethodConfig]] = NetVladConfig
+    Config: ClassVar[type[CnnConfig]] = NetVladConfig
     dim = 0
 
     def __init__(self, config: NetVladConfig | None = None) -> None:
@@ -144,7 +144,10 @@ class NetVlad(CnnMethod, GlobalMethod):
         )
         gap = float(np.mean(d2[:, 1] - d2[:, 0])) if c.shape[0] > 1 else 1.0
         alpha = -np.log(0.01) / max(gap, 1e-12)
-        self._state = {"centroids": c.astype(np.float32), "alpha": np.float32(alpha)}
+        self._state = {
+            "centroids": c.astype(np.float32),
+            "alpha": np.array(alpha, dtype=np.float32),
+        }
         if cfg.pca_dim is not None:
             v = np.stack([self._raw_vlad(maps) for maps in samples]).astype(np.float64)
             mean = v.mean(axis=0)

@@ -44,7 +44,7 @@ import numpy as np
 from pydantic import Field
 
 from hmpf.errors import WeightsError
-from hmpf.methods.base import LocalMethod, MethodConfig
+from hmpf.methods.base import LocalMethod
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, nearest
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
@@ -201,7 +201,7 @@ class Olo(CnnMethod, LocalMethod):
     name = "olo"
     higher_is_better = True
     version = "3"  # 2: float16-precision descriptors; 3: vectorised region pooling
-    Config: ClassVar[type[MethodConfig]] = OloConfig
+    Config: ClassVar[type[CnnConfig]] = OloConfig
 
     def __init__(self, config: OloConfig | None = None) -> None:
         super().__init__(config)
@@ -238,8 +238,8 @@ class Olo(CnnMethod, LocalMethod):
 
         c = self.olo
         try:
-            words = scipy.io.loadmat(c.vocabulary, variable_names=["C"])["C"]  # type: ignore[arg-type]
-            rev = scipy.io.loadmat(c.reverse, variable_names=["wordcnt", "totalimg"])  # type: ignore[arg-type]
+            words = scipy.io.loadmat(c.vocabulary, variable_names=["C"])["C"]
+            rev = scipy.io.loadmat(c.reverse, variable_names=["wordcnt", "totalimg"])
         except (OSError, ValueError, KeyError, NotImplementedError) as exc:
             raise WeightsError(
                 f"cannot read the OLO vocabulary ({c.vocabulary}, {c.reverse}): {exc}. They are "
@@ -298,7 +298,7 @@ class Olo(CnnMethod, LocalMethod):
         self._state = {
             "vocabulary": vocab,
             "wordcnt": df,
-            "totalimg": np.float64(len(samples)),
+            "totalimg": np.array(len(samples), dtype=np.float64),
         }
 
     # -- features and scores --------------------------------------------------------------------
@@ -317,7 +317,9 @@ class Olo(CnnMethod, LocalMethod):
         dim = next((f.regions.shape[1] for f in features), 0)
         return OloSet.from_features(features, dim)
 
-    def scores(self, query: OloFeatures, references: Any, subset: np.ndarray | None = None):  # type: ignore[override]
+    def scores(
+        self, query: OloFeatures, references: Any, subset: np.ndarray | None = None
+    ) -> np.ndarray:
         refs: OloSet = references
         idx = np.arange(len(refs)) if subset is None else np.asarray(subset, dtype=np.int64)
         out = np.zeros(len(idx))
