@@ -42,7 +42,7 @@ class Gem(CnnMethod, GlobalMethod):
     higher_is_better = False
     version = "2"  # 2: float16-precision descriptors
     Config: ClassVar[type[CnnConfig]] = GemConfig
-    dim = 0  # set from the backbone
+    dim = 0  # unknown until the first descriptor (the backbone layer's channels)
 
     @property
     def gem(self) -> GemConfig:
