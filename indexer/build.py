@@ -26,7 +26,6 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -315,24 +314,6 @@ def _extract(
 
 
 # -- writing -----------------------------------------------------------------------------------
-def _packages() -> dict[str, str]:
-    out = {"python": platform.python_version()}
-    for dist in (
-        "hmpf",
-        "numpy",
-        "h5py",
-        "faiss-cpu",
-        "opencv-python-headless",
-        "opencv-contrib-python-headless",
-        "torch",
-    ):
-        try:
-            out[dist] = importlib_metadata.version(dist)
-        except importlib_metadata.PackageNotFoundError:
-            continue
-    return out
-
-
 def _write_faiss(
     out: Path,
     config: HierarchyConfig,
@@ -532,7 +513,7 @@ def _manifest(
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "config": {"name": config.name, "sha256": config.digest(), "resolved": config.model_dump()},
         "methods": method_info,
-        "packages": _packages(),
+        "packages": L.package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system(), "argv": sys.argv},
         "options": opt.identity(),
         "images": {

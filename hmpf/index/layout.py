@@ -25,8 +25,10 @@ import errno
 import fcntl
 import json
 import os
+import platform
 import re
 from collections.abc import Iterator
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -41,11 +43,15 @@ __all__ = [
     "IndexLockedError",
     "IndexNotFoundError",
     "IndexVersionError",
+    "OPENCV_DISTS",
+    "RECORDED_PACKAGES",
     "current_version",
     "fsync_dir",
     "fsync_tree",
+    "installed_version",
     "list_versions",
     "next_version_name",
+    "package_versions",
     "read_manifest",
     "set_current",
     "sha256_file",
@@ -64,6 +70,28 @@ LOCAL_H5 = "local.h5"
 STATE_H5 = "state.h5"
 FAISS_DIR = "faiss"
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
+#: The two OpenCV wheels hmpf runs on (same cv2 module; either satisfies an index).
+OPENCV_DISTS = ("opencv-python-headless", "opencv-contrib-python-headless")
+#: Distributions whose versions a build records in the manifest (``packages``).
+RECORDED_PACKAGES = ("hmpf", "numpy", "h5py", "faiss-cpu", *OPENCV_DISTS, "torch")
+
+
+def installed_version(dist: str) -> str | None:
+    """The installed version of a distribution, None when it is not installed."""
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def package_versions() -> dict[str, str]:
+    """Python's and the installed :data:`RECORDED_PACKAGES`' versions (manifest ``packages``)."""
+    out = {"python": platform.python_version()}
+    for dist in RECORDED_PACKAGES:
+        version = installed_version(dist)
+        if version is not None:
+            out[dist] = version
+    return out
 
 
 class HmpfIndexError(HmpfError):

@@ -30,7 +30,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from concurrent.futures import Executor
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +62,7 @@ log = logging.getLogger("hmpf.index")
 #: ops; torch: the CNN methods) or how the index files are read (FAISS): a different major
 #: version than the build's is an error. Other differences (minor versions, numpy, h5py) are
 #: logged as warnings.
-STRICT_PACKAGES = ("opencv-python-headless", "opencv-contrib-python-headless", "torch", "faiss-cpu")
+STRICT_PACKAGES = (*L.OPENCV_DISTS, "torch", "faiss-cpu")
 
 
 def resolve_version(root: Path, version: str | None = None) -> Path:
@@ -81,13 +80,6 @@ def resolve_version(root: Path, version: str | None = None) -> Path:
             f"{root}: no version {name!r} (have: {', '.join(L.list_versions(root)) or 'none'})"
         )
     return path
-
-
-def _installed(dist: str) -> str | None:
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return None
 
 
 def _major(version: str) -> str:
@@ -109,9 +101,9 @@ def check_packages(built_with: Mapping[str, str], where: Path) -> list[str]:
     for dist, built in sorted(built_with.items()):
         if dist in ("python", "hmpf") or not isinstance(built, str):
             continue
-        here = _installed(dist)
+        here = L.installed_version(dist)
         if here is None and dist.startswith("opencv"):  # the other OpenCV wheel is fine
-            here = next(filter(None, map(_installed, STRICT_PACKAGES[:2])), None)
+            here = next(filter(None, map(L.installed_version, L.OPENCV_DISTS)), None)
         if here == built:
             continue
         if here is not None and dist in STRICT_PACKAGES and _major(here) != _major(built):
