@@ -19,6 +19,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from hmpf.config import load_config
 from hmpf.datasets import frame_ground_truth, gps_ground_truth, list_images, pairs_ground_truth
 from hmpf.errors import HmpfError
@@ -35,11 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", help="folder of reference (database) images")
     p.add_argument("--index", help="evaluate against this built index instead of --reference")
     p.add_argument("--query", required=True, help="folder of query images")
-    gt = p.add_mutually_exclusive_group()
-    gt.add_argument("--tolerance", type=int, help="frame-aligned ground truth: |q - r| <= T")
-    gt.add_argument("--gt-csv", help="CSV of query,reference[,tolerance] pairs")
-    gt.add_argument("--gps-csv", help="CSV role,name,lat,lon; needs --radius-m")
-    p.add_argument("--radius-m", type=float, help="GPS ground-truth radius in metres")
+    add_ground_truth_args(p)
     p.add_argument("--json", help="write the full report as JSON to this file")
     p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
     p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
@@ -61,7 +59,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _ground_truth(args: argparse.Namespace, qrys: list[Path], ref_names: list[str]):
+def add_ground_truth_args(p: argparse.ArgumentParser) -> None:
+    """The ground-truth flags shared by hmpf-eval, its experiments and hmpf-calibrate."""
+    gt = p.add_mutually_exclusive_group()
+    gt.add_argument("--tolerance", type=int, help="frame-aligned ground truth: |q - r| <= T")
+    gt.add_argument("--gt-csv", help="CSV of query,reference[,tolerance] pairs")
+    gt.add_argument("--gps-csv", help="CSV role,name,lat,lon; needs --radius-m")
+    p.add_argument("--radius-m", type=float, help="GPS ground-truth radius in metres")
+
+
+def ground_truth_from_args(
+    args: argparse.Namespace, qrys: list[Path], ref_names: list[str]
+) -> tuple[np.ndarray, str]:
     """(gt matrix, description) from the ground-truth flags."""
     if args.gt_csv:
         gt = pairs_ground_truth(args.gt_csv, [q.name for q in qrys], ref_names)
@@ -82,7 +91,7 @@ def _main_index(args: argparse.Namespace) -> int:
     expected = load_config(args.config) if args.config else None
     with IndexReader(args.index, expected_config=expected) as reader:
         qrys = list_images(args.query)[: args.limit]
-        gt, desc = _ground_truth(args, qrys, reader.refs.names)
+        gt, desc = ground_truth_from_args(args, qrys, reader.refs.names)
         cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
         report = evaluate_index(
             reader, qrys, gt, desc, cache=cache, workers=args.workers, progress=not args.quiet
@@ -109,20 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config)
         refs = list_images(args.reference)[: args.limit]
         qrys = list_images(args.query)[: args.limit]
-        if args.gt_csv:
-            gt = pairs_ground_truth(args.gt_csv, [q.name for q in qrys], [r.name for r in refs])
-            desc = f"pairs from {args.gt_csv}"
-        elif args.gps_csv:
-            if args.radius_m is None:
-                raise HmpfError("--gps-csv needs --radius-m")
-            gt = gps_ground_truth(
-                args.gps_csv, [q.name for q in qrys], [r.name for r in refs], args.radius_m
-            )
-            desc = f"GPS within {args.radius_m:g} m"
-        else:
-            tol = 2 if args.tolerance is None else args.tolerance
-            gt = frame_ground_truth(len(qrys), len(refs), tol)
-            desc = f"frames +-{tol}"
+        gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
         cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
         report = evaluate(
             config,

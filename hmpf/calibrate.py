@@ -1,0 +1,472 @@
+"""Automatic choice of a hierarchy and of its acceptance threshold on a training split.
+
+The search (:func:`search`) runs on a :class:`~hmpf.study.ScoreBank`, so every candidate
+hierarchy is evaluated on precomputed scores through the real hierarchy code, and on a
+:class:`~hmpf.study.CostModel` of measured component times, so a per-query time budget can
+be enforced. It is deterministic given its seed:
+
+1. Structures: every tier is a set of 1..``max_per_tier`` pool methods; every 1-tier and
+   2-tier structure is tried, and ``samples`` 3-tier structures drawn with the seed (a method
+   may reappear in a later tier, as in the paper's "method stacked on itself"), each with the
+   middle candidate counts and the default weights.
+2. Refinement: the ``refine`` best structures are tried with every candidate count and
+   tier-weight combination of the grid.
+3. Ranking: Combined recall@1 on the training queries, then the lower modelled time, then
+   fewer methods; hierarchies over the budget are left out.
+
+The acceptance threshold (:func:`acceptance_threshold`) is the lowest Combined quality at
+which the training answers reach the target precision.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hmpf.config import HierarchyConfig
+from hmpf.study import CostModel, Outcome, ScoreBank, derive_config
+
+__all__ = [
+    "Candidate",
+    "SearchSpace",
+    "acceptance_threshold",
+    "describe",
+    "precision_recall_at",
+    "search",
+]
+
+#: Weight of a non-final tier relative to the final tier's 1.
+WEIGHT_LADDER = (0.25, 0.5, 0.75, 1.0)
+
+
+@dataclass(frozen=True)
+class SearchSpace:
+    """What :func:`search` may choose from.
+
+    Attributes:
+        methods: pool method ids.
+        max_tiers: 1 to 3.
+        max_per_tier: methods per tier (1 or 2 keeps the space searchable).
+        k1: candidate counts tier 1 may pass on.
+        k2: candidate counts tier 2 may pass on in a 3-tier hierarchy (each < every k1).
+        samples: 3-tier structures drawn at random (all are tried when there are fewer).
+        refine: structures whose candidate counts and weights are then searched in full.
+    """
+
+    methods: tuple[str, ...]
+    max_tiers: int = 3
+    max_per_tier: int = 2
+    k1: tuple[int, ...] = (5, 10, 20)
+    k2: tuple[int, ...] = (2, 3, 5)
+    samples: int = 1500
+    refine: int = 25
+
+    def tier_sets(self) -> list[tuple[str, ...]]:
+        out: list[tuple[str, ...]] = []
+        for n in range(1, self.max_per_tier + 1):
+            out.extend(itertools.combinations(self.methods, n))
+        return out
+
+
+@dataclass
+class Candidate:
+    """One evaluated hierarchy."""
+
+    tiers: tuple[tuple[str, ...], ...]
+    ks: tuple[int, ...]
+    weights: tuple[float, ...]
+    recall_at_1: float
+    model_ms: float
+    tier_top1: list[float] = field(default_factory=list)
+    tier_recall: list[float] = field(default_factory=list)
+    outcome: Outcome | None = None
+
+    @property
+    def n_methods(self) -> int:
+        return len({m for t in self.tiers for m in t})
+
+    def sort_key(self) -> tuple[Any, ...]:
+        return (-self.recall_at_1, self.model_ms, self.n_methods, len(self.tiers), self.label())
+
+    def label(self) -> str:
+        return describe(self.tiers, self.ks, self.weights)
+
+    def config(self, pool: HierarchyConfig, name: str = "calibrated") -> HierarchyConfig:
+        tiers = [(t, k) for t, k in zip(self.tiers, self.ks, strict=True)]
+        return derive_config(pool, tiers, list(self.weights), name=name, description=self.label())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "hierarchy": self.label(),
+            "tiers": [list(t) for t in self.tiers],
+            "k": list(self.ks),
+            "weights": list(self.weights),
+            "recall_at_1": self.recall_at_1,
+            "model_ms": self.model_ms,
+            "tier_top1": self.tier_top1,
+            "tier_recall": self.tier_recall,
+        }
+
+
+def describe(
+    tiers: Sequence[Sequence[str]], ks: Sequence[int], weights: Sequence[float] | None = None
+) -> str:
+    """``gem+netvlad (10) -> olo (1) [w 0.5/1]``."""
+    parts = [f"{'+'.join(t)} ({k})" for t, k in zip(tiers, ks, strict=True)]
+    text = " -> ".join(parts)
+    if weights is not None and len(tiers) > 1:
+        text += " [w " + "/".join(f"{w:g}" for w in weights) + "]"
+    return text
+
+
+def _default_weights(n: int) -> tuple[float, ...]:
+    return {1: (1.0,), 2: (0.75, 1.0), 3: (0.5, 0.75, 1.0)}[n]
+
+
+def _weight_grid(n: int) -> list[tuple[float, ...]]:
+    if n == 1:
+        return [(1.0,)]
+    if n == 2:
+        return [(w, 1.0) for w in WEIGHT_LADDER]
+    return [(a, b, 1.0) for a in WEIGHT_LADDER for b in WEIGHT_LADDER if a <= b]
+
+
+def _k_grid(space: SearchSpace, n: int) -> list[tuple[int, ...]]:
+    if n == 1:
+        return [(1,)]
+    if n == 2:
+        return [(k, 1) for k in space.k1]
+    return [(a, b, 1) for a in space.k1 for b in space.k2 if b < a]
+
+
+def _middle(values: Sequence[int]) -> int:
+    return sorted(values)[len(values) // 2]
+
+
+def search(
+    bank: ScoreBank,
+    pool: HierarchyConfig,
+    costs: CostModel,
+    space: SearchSpace,
+    *,
+    budget_ms: float | None = None,
+    seed: int = 0,
+    progress: Any = None,
+) -> list[Candidate]:
+    """Every hierarchy tried, best first (see the module docstring); over-budget ones dropped.
+
+    Args:
+        progress: optional callable ``(done, total)`` for long searches.
+    """
+    if not 1 <= space.max_tiers <= 3:
+        raise ValueError("max_tiers must be 1, 2 or 3")
+    if not space.k1 or (space.max_tiers == 3 and not space.k2):
+        raise ValueError("candidate counts k1 (and k2 for 3 tiers) must not be empty")
+    sets = space.tier_sets()
+    structures: list[tuple[tuple[str, ...], ...]] = [(s,) for s in sets]
+    if space.max_tiers >= 2:
+        structures += [(a, b) for a in sets for b in sets]
+    if space.max_tiers == 3:
+        n3 = len(sets) ** 3
+        rng = np.random.default_rng(seed)
+        if n3 <= space.samples:
+            picks = range(n3)
+        else:
+            picks = sorted(rng.choice(n3, size=space.samples, replace=False).tolist())
+        for p in picks:
+            a, rest = divmod(int(p), len(sets) ** 2)
+            b, c = divmod(rest, len(sets))
+            structures.append((sets[a], sets[b], sets[c]))
+    seen: dict[tuple[Any, ...], Candidate] = {}
+
+    def evaluate(tiers: tuple[tuple[str, ...], ...], ks: tuple[int, ...], ws: tuple[float, ...]):
+        key = (tiers, ks, ws)
+        if key in seen:
+            return seen[key]
+        cfg = derive_config(pool, [(t, k) for t, k in zip(tiers, ks, strict=True)], list(ws))
+        if budget_ms is not None and costs.query_ms(cfg) > budget_ms:
+            # Over budget even at the upper bound of later tiers' inputs? Check the real sizes.
+            if costs.query_ms(cfg, _min_inputs(cfg, costs.n_db)) > budget_ms:
+                seen[key] = Candidate(tiers, ks, ws, -1.0, float("inf"))
+                return seen[key]
+        out = bank.run(cfg)
+        cand = Candidate(
+            tiers,
+            ks,
+            ws,
+            out.recall_at_1,
+            costs.query_ms(cfg, out.mean_inputs),
+            out.tier_top1,
+            out.tier_recall,
+            out,
+        )
+        seen[key] = cand
+        return cand
+
+    total = len(structures)
+    for i, st in enumerate(structures):
+        n = len(st)
+        ks = (1,) if n == 1 else (_middle(space.k1), 1)
+        if n == 3:
+            k1 = _middle(space.k1)
+            k2 = max((k for k in space.k2 if k < k1), default=min(space.k2))
+            ks = (k1, k2, 1)
+        evaluate(st, ks, _default_weights(n))
+        if progress is not None:
+            progress(i + 1, total)
+    ranked = sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
+    best_structures: list[tuple[tuple[str, ...], ...]] = []
+    for c in ranked:
+        if c.tiers not in best_structures:
+            best_structures.append(c.tiers)
+        if len(best_structures) >= space.refine:
+            break
+    for st in best_structures:
+        for ks in _k_grid(space, len(st)):
+            for ws in _weight_grid(len(st)):
+                evaluate(st, ks, ws)
+    return sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
+
+
+def _within(cands: Any, budget_ms: float | None) -> list[Candidate]:
+    return [
+        c for c in cands if c.recall_at_1 >= 0 and (budget_ms is None or c.model_ms <= budget_ms)
+    ]
+
+
+def _min_inputs(cfg: HierarchyConfig, n_db: int) -> list[float]:
+    """Smallest possible references per tier (a later tier scores at least its k sources)."""
+    out = [float(n_db)]
+    for t in range(1, len(cfg.tiers)):
+        out.append(float(min(n_db, cfg.tiers[t - 1].k)))
+    return out
+
+
+# -- acceptance -------------------------------------------------------------------------------
+
+
+def acceptance_threshold(
+    quality: np.ndarray, correct: np.ndarray, target: float = 0.99
+) -> dict[str, Any]:
+    """The lowest quality threshold whose accepted answers reach ``target`` precision.
+
+    An answer is accepted when its quality is >= the threshold (as the service's
+    ``accepted``). Thresholds are the observed qualities; the lowest one whose accepted set
+    has precision >= ``target`` wins (the most answers at that precision). When even the
+    single best-scored answer is wrong, nothing can be accepted: the threshold is then just
+    above the highest quality seen, and ``reached`` is False.
+    """
+    q = np.nan_to_num(np.asarray(quality, np.float64), nan=-np.inf)
+    c = np.asarray(correct, bool)
+    order = np.argsort(-q, kind="stable")
+    qs, cs = q[order], c[order]
+    best: float | None = None
+    for i in range(len(qs)):
+        # Accepting everything >= qs[i] includes all ties of qs[i].
+        if i + 1 < len(qs) and qs[i + 1] == qs[i]:
+            continue
+        if not np.isfinite(qs[i]):
+            break
+        prec = cs[: i + 1].mean()
+        if prec >= target:
+            best = float(qs[i])
+    finite = q[np.isfinite(q)]
+    if best is None:
+        top = float(finite.max()) if finite.size else 0.0
+        threshold = float(np.nextafter(top, np.inf))
+        reached = False
+    else:
+        threshold = best
+        reached = True
+    stats = precision_recall_at(q, c, threshold)
+    return {"threshold": threshold, "target": target, "reached": reached, **stats}
+
+
+def precision_recall_at(
+    quality: np.ndarray, correct: np.ndarray, threshold: float
+) -> dict[str, Any]:
+    """Precision, recall (correct accepted / all queries) and accepted share at a threshold."""
+    q = np.nan_to_num(np.asarray(quality, np.float64), nan=-np.inf)
+    c = np.asarray(correct, bool)
+    acc = q >= threshold
+    n_acc = int(acc.sum())
+    tp = int((acc & c).sum())
+    return {
+        "precision": tp / n_acc if n_acc else None,
+        "recall": tp / len(c) if len(c) else 0.0,
+        "accepted": n_acc / len(c) if len(c) else 0.0,
+        "n_accepted": n_acc,
+        "n_queries": int(len(c)),
+    }
+
+
+# -- the whole procedure ----------------------------------------------------------------------
+
+
+def _machine() -> str:
+    import os
+    import platform
+    from pathlib import Path
+
+    cpu = platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:
+    """A hierarchy against its best single method and flat fusion of its methods, on a bank."""
+    out = bank.run(config)
+    singles = {m: bank.single_recall(m, [1])[1] for m in config.method_ids}
+    best = max(singles, key=lambda m: (singles[m], m))
+    flat_cfg = derive_config(pool, [(config.method_ids, 1)], None, name="flat")
+    flat = bank.run(flat_cfg)
+    return {
+        "recall_at_1": out.recall_at_1,
+        "tier_top1": out.tier_top1,
+        "tier_recall": out.tier_recall,
+        "single": singles,
+        "best_single": best,
+        "best_single_recall_at_1": singles[best],
+        "flat_recall_at_1": flat.recall_at_1,
+        "outcome": out,
+    }
+
+
+def calibrate(
+    pool: HierarchyConfig,
+    train: ScoreBank,
+    test: ScoreBank | None,
+    space: SearchSpace,
+    *,
+    budget_ms: float | None,
+    seed: int = 0,
+    target_precision: float = 0.99,
+    db_size: int | None = None,
+    name: str = "calibrated",
+    top: int = 20,
+    progress: Any = None,
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """Search, pick the threshold, check on the test part; returns (config, report)."""
+    import time
+
+    from hmpf.config import AcceptanceSettings
+    from hmpf.study import measure_costs, measure_query_ms
+
+    t0 = time.perf_counter()
+    costs = measure_costs(train, n_db=db_size)
+    ranked = search(train, pool, costs, space, budget_ms=budget_ms, seed=seed, progress=progress)
+    if not ranked:
+        from hmpf.errors import ConfigError
+
+        raise ConfigError(
+            f"no hierarchy of the pool fits the budget of {budget_ms:g} ms per query "
+            f"(cheapest extraction: {min(costs.units.values()):.1f} ms); raise --budget-ms"
+        )
+    search_s = time.perf_counter() - t0
+    win = ranked[0]
+    assert win.outcome is not None
+    acc = acceptance_threshold(win.outcome.quality, win.outcome.correct, target_precision)
+    note = (
+        f"lowest Combined quality giving {target_precision:.0%} precision on the training "
+        f"split ({acc['n_accepted']} of {acc['n_queries']} answers accepted)"
+        if acc["reached"]
+        else f"no threshold reached {target_precision:.0%} precision on the training split: "
+        "nothing is accepted"
+    )
+    config = win.config(pool, name=name).model_copy(
+        update={
+            "acceptance": AcceptanceSettings(
+                threshold=round(acc["threshold"], 6), precision=target_precision, note=note
+            )
+        }
+    )
+    report: dict[str, Any] = {
+        "machine": _machine(),
+        "seed": seed,
+        "budget_ms": budget_ms,
+        "space": {
+            "methods": list(space.methods),
+            "max_tiers": space.max_tiers,
+            "max_per_tier": space.max_per_tier,
+            "k1": list(space.k1),
+            "k2": list(space.k2),
+            "samples": space.samples,
+            "refine": space.refine,
+        },
+        "costs": costs.to_dict(),
+        "evaluated": len(ranked),
+        "search_s": search_s,
+        "train": {
+            "n_reference": train.n_db,
+            "n_query": train.n_query,
+            "winner": win.to_dict(),
+            "acceptance": acc,
+            "leaderboard": [c.to_dict() for c in ranked[:top]],
+        },
+        "config": config.model_dump(mode="json"),
+    }
+    if test is not None:
+        cmp = compare_on(test, pool, config)
+        out = cmp.pop("outcome")
+        report["test"] = {
+            "n_reference": test.n_db,
+            "n_query": test.n_query,
+            **cmp,
+            "acceptance": precision_recall_at(out.quality, out.correct, acc["threshold"]),
+            "measured_ms": measure_query_ms(config, test),
+            "model_ms": costs.query_ms(config, out.mean_inputs),
+        }
+    return config, report
+
+
+def leaderboard_markdown(report: dict[str, Any]) -> str:
+    """The report as Markdown: leaderboard, winner, threshold and the test check."""
+    tr = report["train"]
+    lines = [
+        f"# Calibration ({report['machine']})",
+        "",
+        f"Seed {report['seed']}, budget {report['budget_ms']} ms per query (modelled from "
+        f"measured parts, one compute thread), {report['evaluated']} hierarchies within the "
+        f"budget evaluated on {tr['n_query']} training queries against {tr['n_reference']} "
+        f"references in {report['search_s']:.0f} s.",
+        "",
+        "| rank | hierarchy | train recall@1 | modelled ms/query |",
+        "|---|---|---|---|",
+    ]
+    for i, c in enumerate(tr["leaderboard"], start=1):
+        lines.append(f"| {i} | {c['hierarchy']} | {c['recall_at_1']:.3f} | {c['model_ms']:.1f} |")
+    acc = tr["acceptance"]
+    lines += [
+        "",
+        f"Acceptance threshold {acc['threshold']:.3f} (target precision {acc['target']:.0%}, "
+        f"{'reached' if acc['reached'] else 'NOT reached'} on training: precision "
+        f"{_fmt(acc['precision'])}, recall {acc['recall']:.3f}).",
+    ]
+    te = report.get("test")
+    if te:
+        ta = te["acceptance"]
+        lines += [
+            "",
+            f"Test split ({te['n_query']} queries, {te['n_reference']} references): "
+            f"calibrated recall@1 {te['recall_at_1']:.3f}, best single method "
+            f"({te['best_single']}) {te['best_single_recall_at_1']:.3f}, flat fusion of its "
+            f"methods {te['flat_recall_at_1']:.3f}; at the threshold precision "
+            f"{_fmt(ta['precision'])}, recall {ta['recall']:.3f}; "
+            f"{te['measured_ms']['total_ms']:.1f} ms per query measured end to end "
+            f"(modelled {te['model_ms']:.1f}).",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"

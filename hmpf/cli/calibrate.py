@@ -1,0 +1,171 @@
+"""``hmpf-calibrate``: choose a hierarchy and its acceptance threshold on a training split.
+
+    hmpf-calibrate --reference ../shared/datasets/gardens_point/day_right \\
+        --query ../shared/datasets/gardens_point/night_right --tolerance 2 \\
+        --budget-ms 150 --seed 0 --out calibration/gp_dr_nr
+
+The route is split into a training and a test part (``--split blocks``: alternating stretches
+of ``--block`` frames; ``halves``: first and second part). The search runs on the training
+part only; the test part then checks the winner against its best single method and flat
+fusion. Writes ``calibrated.yaml`` (a hierarchy config with ``acceptance.threshold``, ready for
+``hmpf-index build --config`` and the service), ``leaderboard.md`` and ``calibration.json``.
+Descriptors come through the feature cache, so a second run extracts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import yaml
+
+from hmpf.calibrate import SearchSpace, calibrate, leaderboard_markdown
+from hmpf.cli.eval import add_ground_truth_args, ground_truth_from_args
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import list_images
+from hmpf.errors import HmpfError
+from hmpf.evaluate import EvalData
+from hmpf.features import FeatureCache, default_cache_dir
+from hmpf.study import SPLITS, ScoreBank, split_data
+
+DEFAULT_POOL = Path(__file__).resolve().parents[2] / "configs" / "calibration-pool.yaml"
+
+
+def add_split_args(p: argparse.ArgumentParser) -> None:
+    """Data, split and cache flags shared with ``hmpf-eval experiments``."""
+    p.add_argument("--reference", required=True, help="folder of reference images")
+    p.add_argument("--query", required=True, help="folder of query images")
+    add_ground_truth_args(p)
+    p.add_argument("--split", choices=SPLITS, default="blocks", help="train/test split")
+    p.add_argument("--block", type=int, default=20, help="frames per stretch (blocks split)")
+    p.add_argument("--train-fraction", type=float, default=0.5, help="halves split: train share")
+    p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
+    p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
+    p.add_argument("--workers", type=int, default=None, help="extraction processes")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def load_split(args: argparse.Namespace) -> tuple[EvalData, EvalData, FeatureCache | None]:
+    refs = list_images(args.reference)
+    qrys = list_images(args.query)
+    gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
+    train, test = split_data(
+        EvalData(refs, qrys, gt, desc), args.train_fraction, scheme=args.split, block=args.block
+    )
+    cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
+    return train, test, cache
+
+
+def write_config(config: HierarchyConfig, path: Path, header: str) -> None:
+    """A config as YAML (loadable by :func:`hmpf.config.load_config`) with a comment header."""
+    data = config.model_dump(mode="json", exclude_defaults=False)
+    if not data["index"]["faiss"] and not data["index"]["faiss_params"]:
+        data.pop("index")
+    comment = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
+    path.write_text(comment + yaml.safe_dump(data, sort_keys=False, width=100))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="hmpf-calibrate",
+        description="Search hierarchies on a training split under a time budget; write the "
+        "best as a config with its acceptance threshold.",
+    )
+    add_split_args(p)
+    p.add_argument("--pool", default=str(DEFAULT_POOL), help="config whose methods may be used")
+    p.add_argument("--methods", nargs="*", help="use only these pool methods")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--name", default="calibrated", help="name of the written config")
+    p.add_argument("--budget-ms", type=float, default=150.0, help="per-query time budget (ms)")
+    p.add_argument("--db-size", type=int, help="charge tier 1 for this many references")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--target-precision", type=float, default=0.99)
+    p.add_argument("--max-tiers", type=int, default=3, choices=(1, 2, 3))
+    p.add_argument("--max-per-tier", type=int, default=2, choices=(1, 2, 3))
+    p.add_argument("--k1", type=int, nargs="+", default=[5, 10, 20], help="tier-1 counts")
+    p.add_argument("--k2", type=int, nargs="+", default=[2, 3, 5], help="tier-2 counts")
+    p.add_argument("--samples", type=int, default=1500, help="3-tier structures drawn")
+    p.add_argument("--refine", type=int, default=25, help="structures searched in full")
+    p.add_argument("--top", type=int, default=20, help="leaderboard length")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if not 0 < args.target_precision <= 1:
+            raise HmpfError("--target-precision must be in (0, 1]")
+        if args.budget_ms <= 0:
+            raise HmpfError("--budget-ms must be positive")
+        if min(args.k1 + args.k2) < 1:
+            raise HmpfError("candidate counts must be >= 1")
+        pool = load_config(args.pool)
+        methods = tuple(args.methods) if args.methods else tuple(pool.method_ids)
+        unknown = sorted(set(methods) - set(pool.method_ids))
+        if unknown:
+            raise HmpfError(
+                f"--methods not in the pool {args.pool}: {', '.join(unknown)} "
+                f"(pool: {', '.join(pool.method_ids)})"
+            )
+        train_data, test_data, cache = load_split(args)
+        progress = not args.quiet
+        train = ScoreBank.build(
+            pool, train_data, cache=cache, workers=args.workers, progress=progress
+        )
+        test = ScoreBank.build(
+            pool, test_data, cache=cache, workers=args.workers, progress=progress
+        )
+        space = SearchSpace(
+            methods,
+            max_tiers=args.max_tiers,
+            max_per_tier=args.max_per_tier,
+            k1=tuple(args.k1),
+            k2=tuple(args.k2),
+            samples=args.samples,
+            refine=args.refine,
+        )
+        config, report = calibrate(
+            pool,
+            train,
+            test,
+            space,
+            budget_ms=args.budget_ms,
+            seed=args.seed,
+            target_precision=args.target_precision,
+            db_size=args.db_size,
+            name=args.name,
+            top=args.top,
+        )
+    except HmpfError as exc:
+        print(f"hmpf-calibrate: error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report["protocol"] = {
+        "reference": args.reference,
+        "query": args.query,
+        "ground_truth": train_data.ground_truth,
+        "split": args.split,
+        "block": args.block,
+        "pool": args.pool,
+    }
+    win = report["train"]["winner"]
+    header = (
+        f"Written by hmpf-calibrate (seed {args.seed}, budget {args.budget_ms:g} ms/query).\n"
+        f"Route: {args.reference} -> {args.query}, {args.split} split, "
+        f"{train_data.ground_truth}.\n"
+        f"Training recall@1 {win['recall_at_1']:.3f}, modelled {win['model_ms']:.1f} ms/query."
+    )
+    write_config(config, out / "calibrated.yaml", header)
+    md = leaderboard_markdown(report)
+    (out / "leaderboard.md").write_text(md)
+    (out / "calibration.json").write_text(json.dumps(report, indent=1))
+    print(md)
+    print(f"wrote {out / 'calibrated.yaml'}, {out / 'leaderboard.md'}, {out / 'calibration.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,468 @@
+"""Studies of many hierarchies on one route: train/test splits, score banks and a cost model.
+
+A :class:`ScoreBank` holds, for one split of a route, every pool method's raw score of every
+query against every reference (features come through the descriptor cache, so a second run
+extracts nothing). Any hierarchy over those methods then runs per query by gathering from the
+matrices (:meth:`ScoreBank.run`), through the same :class:`~hmpf.hierarchy.Hierarchy` code as
+evaluation and the service: thousands of hierarchies cost seconds, not re-extraction.
+
+:class:`CostModel` turns measured component times (single-image extraction per forward-pass
+group or method, per-method matching as a function of the number of references scored) into
+a per-query time for any hierarchy, so a calibration search can respect a time budget; the
+chosen hierarchy's time is then measured end to end (:func:`measure_query_ms`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hmpf.config import HierarchyConfig, TierConfig, build_methods
+from hmpf.errors import ConfigError, DatasetError
+from hmpf.evaluate import EvalData, recall_at_n
+from hmpf.features import FeatureCache, extract_images, extract_query, fit_methods
+from hmpf.fusion import nan_argmax
+from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
+from hmpf.imageio import load_image
+from hmpf.methods import Method
+from hmpf.runtime import compute_threads, set_compute_threads
+
+__all__ = [
+    "CostModel",
+    "Outcome",
+    "ScoreBank",
+    "derive_config",
+    "measure_costs",
+    "measure_query_ms",
+    "pool_methods",
+    "split_data",
+]
+
+
+# -- splits ----------------------------------------------------------------------------------
+
+
+SPLITS = ("blocks", "halves")
+
+
+def split_data(
+    data: EvalData, train_fraction: float = 0.5, *, scheme: str = "blocks", block: int = 20
+) -> tuple[EvalData, EvalData]:
+    """Split a route into a training and a test part, by stretches of the route.
+
+    ``halves``: the first ``train_fraction`` of the references and of the queries (in file
+    order, i.e. along the route) train, the rest tests, as the paper splits Nordland and
+    Berlin into earlier and later stretches. ``blocks``: the route is cut into stretches of
+    ``block`` frames that alternate between the parts (``train_fraction`` must be 0.5), so
+    both parts see every kind of place on the route while sharing none. Either way each
+    part's ground truth is the matching block of the full one, and a reference belongs to
+    exactly one part; the queries and references must be frame-aligned for ``blocks``.
+    """
+    if scheme not in SPLITS:
+        raise DatasetError(f"unknown split {scheme!r} (choose from {', '.join(SPLITS)})")
+    if not 0.0 < train_fraction < 1.0:
+        raise DatasetError("train_fraction must be between 0 and 1 (exclusive)")
+    nr, nq = len(data.reference), len(data.query)
+    if scheme == "halves":
+        cr, cq = round(nr * train_fraction), round(nq * train_fraction)
+        r_parts = (np.arange(cr), np.arange(cr, nr))
+        q_parts = (np.arange(cq), np.arange(cq, nq))
+    else:
+        if train_fraction != 0.5:
+            raise DatasetError("the blocks split alternates stretches: train_fraction must be 0.5")
+        if block < 1:
+            raise DatasetError("block must be >= 1 frame")
+        r_parts = tuple(np.flatnonzero((np.arange(nr) // block) % 2 == p) for p in (0, 1))
+        q_parts = tuple(np.flatnonzero((np.arange(nq) // block) % 2 == p) for p in (0, 1))
+    if min(len(x) for x in (*r_parts, *q_parts)) < 2:
+        raise DatasetError(f"too few images to split ({nr} references, {nq} queries)")
+    gt = np.asarray(data.gt, bool)
+    parts = [
+        EvalData(
+            [data.reference[i] for i in r],
+            [data.query[i] for i in q],
+            gt[np.ix_(q, r)],
+            data.ground_truth,
+        )
+        for r, q in zip(r_parts, q_parts, strict=True)
+    ]
+    return parts[0], parts[1]
+
+
+# -- the pool of methods and configs derived from it -----------------------------------------
+
+
+def pool_methods(pool: HierarchyConfig) -> list[str]:
+    """The method ids a pool config offers (every id its tiers use)."""
+    return pool.method_ids
+
+
+def derive_config(
+    pool: HierarchyConfig,
+    tiers: Sequence[tuple[Sequence[str], int]],
+    weights: Sequence[float] | None = None,
+    *,
+    name: str = "derived",
+    description: str = "",
+    mode: str | None = None,
+) -> HierarchyConfig:
+    """A hierarchy over the pool's methods (their parameters copied from the pool config).
+
+    Args:
+        tiers: (method ids, k) per tier, tier 1 first.
+        weights: tier weights (tier 1 first), or None for the defaults.
+    """
+    used = {m for ms, _ in tiers for m in ms}
+    unknown = used - set(pool.method_ids)
+    if unknown:
+        raise ConfigError(f"methods not in the pool: {', '.join(sorted(unknown))}")
+    return HierarchyConfig(
+        name=name,
+        description=description,
+        mode=mode or pool.mode,  # type: ignore[arg-type]
+        methods={m: dict(p) for m, p in pool.methods.items() if m in used},
+        tiers=[TierConfig(methods=list(ms), k=int(k)) for ms, k in tiers],
+        weights=list(weights) if weights is not None else None,
+    )
+
+
+# -- score banks -----------------------------------------------------------------------------
+
+
+@dataclass
+class Outcome:
+    """One hierarchy's results on a bank's queries.
+
+    Attributes:
+        matches: (nq,) the answer per query (-1: none).
+        quality: (nq,) the answer's Combined z-score.
+        correct: (nq,) the answer is within the ground truth.
+        tier_top1: per tier, recall@1 of the tier's mean score over the database (the
+            original's ``recall_top1_by_level``).
+        tier_recall: per tier, fraction of queries whose candidate list holds a correct one.
+        mean_inputs: per tier, mean number of references scored (tier 1: the database).
+    """
+
+    matches: np.ndarray
+    quality: np.ndarray
+    correct: np.ndarray
+    tier_top1: list[float]
+    tier_recall: list[float]
+    mean_inputs: list[float]
+
+    @property
+    def recall_at_1(self) -> float:
+        return float(self.correct.mean()) if self.correct.size else 0.0
+
+
+def outcome_of(results: Sequence[HierarchyResult], gt: np.ndarray, n_db: int) -> Outcome:
+    """Summarise per-query hierarchy results against the ground truth."""
+    nq = len(results)
+    match = np.array([r.match for r in results], dtype=np.int64)
+    quality = np.array([r.quality for r in results], dtype=np.float64)
+    correct = np.zeros(nq, dtype=bool)
+    ok = match >= 0
+    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
+    n_tiers = len(results[0].tiers) if results else 0
+    top1, recall, inputs = [], [], []
+    for t in range(n_tiers):
+        top1.append(
+            float(
+                np.mean([gt[q, nan_argmax(r.tiers[t].mean_score())] for q, r in enumerate(results)])
+            )
+        )
+        recall.append(
+            float(np.mean([gt[q, r.tiers[t].candidates].any() for q, r in enumerate(results)]))
+        )
+        inputs.append(
+            float(
+                np.mean(
+                    [n_db if r.tiers[t].inputs is None else len(r.tiers[t].inputs) for r in results]
+                )
+            )
+        )
+    return Outcome(match, quality, correct, top1, recall, inputs)
+
+
+@dataclass
+class ScoreBank:
+    """Every pool method's raw scores for one split (queries x references).
+
+    Attributes:
+        methods: method id -> fitted instance (fitted on this split's references).
+        scores: method id -> (nq, nd) raw scores.
+        gt: (nq, nd) ground truth.
+        data: the split.
+        features: method id -> (reference set, per-query features), for timing real runs.
+    """
+
+    methods: dict[str, Method]
+    scores: dict[str, np.ndarray]
+    gt: np.ndarray
+    data: EvalData
+    features: dict[str, tuple[Any, list[Any]]] = field(default_factory=dict)
+
+    @classmethod
+    def build(
+        cls,
+        pool: HierarchyConfig,
+        data: EvalData,
+        *,
+        cache: FeatureCache | None = None,
+        workers: int | None = None,
+        progress: bool = False,
+    ) -> ScoreBank:
+        """Extract (or load from the cache) every pool method's features and score them all."""
+        methods = build_methods(pool)
+        fit_methods(methods, data.reference, cache=cache)
+        ref = extract_images(
+            data.reference,
+            methods,
+            cache=cache,
+            workers=workers,
+            progress=progress,
+            desc="references",
+        )
+        qry = extract_images(
+            data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
+        )
+        scores: dict[str, np.ndarray] = {}
+        feats: dict[str, tuple[Any, list[Any]]] = {}
+        for mid, m in methods.items():
+            db = m.stack(ref.features[mid])
+            qs = qry.features[mid]
+            # Per query with subset None: exactly what the hierarchy's scorer computes.
+            scores[mid] = np.stack([np.asarray(m.scores(q, db), np.float64) for q in qs])
+            feats[mid] = (db, qs)
+        return cls(methods, scores, np.asarray(data.gt, bool), data, feats)
+
+    @property
+    def n_query(self) -> int:
+        return int(self.gt.shape[0])
+
+    @property
+    def n_db(self) -> int:
+        return int(self.gt.shape[1])
+
+    def scorer(self, qi: int) -> ScoreFn:
+        """A :data:`ScoreFn` for query ``qi`` gathering from the matrices."""
+        rows = {m: s[qi] for m, s in self.scores.items()}
+
+        def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+            row = rows[mid]
+            return row if subset is None else row[subset]
+
+        return score_fn
+
+    def run(self, config: HierarchyConfig) -> Outcome:
+        """Run ``config`` for every query of the bank."""
+        hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
+        results = [hier.run(self.scorer(q), self.n_db) for q in range(self.n_query)]
+        return outcome_of(results, self.gt, self.n_db)
+
+    def single_recall(self, mid: str, ns: Sequence[int]) -> dict[int, float]:
+        """recall@N of one method alone over the whole database."""
+        return recall_at_n(self.scores[mid], self.gt, ns, self.methods[mid].higher_is_better)
+
+
+# -- timing ----------------------------------------------------------------------------------
+
+
+@dataclass
+class CostModel:
+    """Per-query time of a hierarchy from measured parts (ms, one compute thread).
+
+    Attributes:
+        units: extraction unit -> ms (a CNN forward pass shared by a group, or one method).
+        method_units: method id -> the units its extraction needs.
+        match: method id -> (a, b): scoring n references costs ``a + b * n`` ms.
+        fusion_ms: normalisation, selection and fusion per tier.
+        n_db: database size the tier-1 cost is charged for.
+        threads: compute threads during the measurement.
+    """
+
+    units: dict[str, float]
+    method_units: dict[str, list[str]]
+    match: dict[str, tuple[float, float]]
+    fusion_ms: float
+    n_db: int
+    threads: int = 1
+
+    def extract_ms(self, method_ids: Sequence[str]) -> float:
+        needed = {u for m in method_ids for u in self.method_units[m]}
+        return float(sum(self.units[u] for u in needed))
+
+    def match_ms(self, mid: str, n: float) -> float:
+        a, b = self.match[mid]
+        return a + b * n
+
+    def query_ms(
+        self, config: HierarchyConfig, mean_inputs: Sequence[float] | None = None
+    ) -> float:
+        """Extraction + matching + fusion of one query.
+
+        ``mean_inputs`` gives the references each tier scores (tier 1: the database); without
+        it, later tiers are charged their upper bound (methods x k of the tier before). A
+        method already scored against the whole database is free in later tiers (the scorer
+        remembers it).
+        """
+        total = self.extract_ms(config.method_ids)
+        full: set[str] = set()
+        prev_bound = float(self.n_db)
+        for t, tier in enumerate(config.tiers):
+            if t == 0:
+                n = float(self.n_db)
+            elif mean_inputs is not None:
+                n = float(mean_inputs[t])
+            else:
+                n = prev_bound
+            for mid in tier.methods:
+                if mid in full:
+                    continue
+                total += self.match_ms(mid, n)
+                if t == 0:
+                    full.add(mid)
+            prev_bound = float(min(self.n_db, len(tier.methods) * tier.k))
+            total += self.fusion_ms
+        return total
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "units_ms": self.units,
+            "method_units": self.method_units,
+            "match_ms": {m: {"a": a, "b_per_ref": b} for m, (a, b) in self.match.items()},
+            "fusion_ms_per_tier": self.fusion_ms,
+            "n_db": self.n_db,
+            "threads": self.threads,
+        }
+
+
+def measure_costs(
+    bank: ScoreBank, *, images: int = 5, n_db: int | None = None, threads: int = 1
+) -> CostModel:
+    """Measure extraction and matching costs on the bank's own images and features.
+
+    Extraction: ``images`` query images decoded, then each CNN forward pass (shared by the
+    methods of one backbone and input size), each CNN method's own descriptor and each other
+    method timed one image at a time after a warm-up; medians. Matching: each method scoring
+    10 references and the whole database, medians over the same queries, fitted as
+    ``a + b * n``. Everything on ``threads`` compute threads.
+    """
+    from hmpf.methods.cnn import CnnMethod, cnn_groups, forward_group
+
+    previous = compute_threads()
+    set_compute_threads(threads)
+    try:
+        decoded = [load_image(p) for p in bank.data.query[: max(1, images)]]
+        units: dict[str, float] = {}
+        method_units: dict[str, list[str]] = {}
+        cnn = {m: x for m, x in bank.methods.items() if isinstance(x, CnnMethod)}
+        for g, group in enumerate(cnn_groups(cnn)):
+            members = list(group.values())
+            key = f"forward:{g}"
+            fwd: list[float] = []
+            own: dict[str, list[float]] = {m: [] for m in group}
+            for i, img in enumerate([decoded[0], *decoded]):  # the first one warms up
+                t: list[float] = []
+                maps = next(iter(forward_group(members, [img], t)))
+                for mid, m in group.items():
+                    t0 = time.perf_counter()
+                    m.from_maps(maps)
+                    if i:
+                        own[mid].append((time.perf_counter() - t0) * 1e3)
+                if i:
+                    fwd.append(t[0])
+            units[key] = float(np.median(fwd))
+            for mid in group:
+                units[f"head:{mid}"] = float(np.median(own[mid]))
+                method_units[mid] = [key, f"head:{mid}"]
+        for mid, m in bank.methods.items():
+            if mid in cnn:
+                continue
+            m.extract(decoded[0])  # warm-up
+            units[f"extract:{mid}"] = float(
+                np.median([_time_ms(lambda img=img: m.extract(img)) for img in decoded])
+            )
+            method_units[mid] = [f"extract:{mid}"]
+        match: dict[str, tuple[float, float]] = {}
+        nd = bank.n_db
+        small = np.arange(min(10, nd), dtype=np.int64)
+        for mid, m in bank.methods.items():
+            db, qs = bank.features[mid]
+            sample = qs[: max(1, images)]
+            m.scores(sample[0], db, small)  # warm-up
+            t_small = float(
+                np.median([_time_ms(lambda q=q: m.scores(q, db, small)) for q in sample])
+            )
+            t_full = float(np.median([_time_ms(lambda q=q: m.scores(q, db, None)) for q in sample]))
+            b = max(0.0, (t_full - t_small) / max(1, nd - len(small)))
+            match[mid] = (max(0.0, t_small - b * len(small)), b)
+        # Normalisation, selection and fusion: a two-tier run of the cheapest method on the
+        # gathered scores, per tier.
+        cheapest = min(match, key=lambda m: match[m][1])
+        cfg = HierarchyConfig(
+            tiers=[TierConfig(methods=[cheapest], k=10), TierConfig(methods=[cheapest], k=1)]
+        )
+        hier = Hierarchy(cfg, {cheapest: bank.methods[cheapest]})
+        nq = min(20, bank.n_query)
+        runs = [
+            _time_ms(lambda: [hier.run(bank.scorer(q), nd) for q in range(nq)]) for _ in range(3)
+        ]
+        fusion_ms = float(np.median(runs)) / nq / 2
+    finally:
+        set_compute_threads(previous)
+    return CostModel(units, method_units, match, fusion_ms, n_db or nd, threads)
+
+
+def _time_ms(fn: Any) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t0) * 1e3
+
+
+def measure_query_ms(
+    config: HierarchyConfig,
+    bank: ScoreBank,
+    *,
+    images: int = 10,
+    threads: int = 1,
+) -> dict[str, float]:
+    """End-to-end time per query of ``config``: decode + extraction + hierarchy, measured.
+
+    Runs the real methods (not the bank's matrices) on the bank's first ``images`` queries,
+    one at a time on ``threads`` compute threads, after one warm-up; medians in ms.
+    """
+    methods = {m: bank.methods[m] for m in config.method_ids}
+    refs = {m: bank.features[m][0] for m in methods}
+    hier = Hierarchy(config, methods)
+    previous = compute_threads()
+    set_compute_threads(threads)  # OpenCV here, torch at each forward pass
+    ext, match, total = [], [], []
+    try:
+        paths: list[Path] = list(bank.data.query[: max(1, images)])
+        for i, p in enumerate([paths[0], *paths]):
+            t0 = time.perf_counter()
+            img = load_image(p)
+            feats = extract_query(methods, img)
+            t1 = time.perf_counter()
+            hier.run(feature_scorer(methods, feats, refs), bank.n_db)
+            t2 = time.perf_counter()
+            if i == 0:
+                continue  # warm-up
+            ext.append((t1 - t0) * 1e3)
+            match.append((t2 - t1) * 1e3)
+            total.append((t2 - t0) * 1e3)
+    finally:
+        set_compute_threads(previous)
+    return {
+        "total_ms": float(np.median(total)),
+        "extract_ms": float(np.median(ext)),
+        "hierarchy_ms": float(np.median(match)),
+        "images": len(total),
+        "threads": threads,
+    }
