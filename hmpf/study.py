@@ -15,7 +15,7 @@ chosen hierarchy's time is then measured end to end (:func:`measure_query_ms`).
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -385,9 +385,7 @@ def measure_costs(
             if mid in cnn:
                 continue
             m.extract(decoded[0])  # warm-up
-            units[f"extract:{mid}"] = float(
-                np.median([_time_ms(lambda img=img: m.extract(img)) for img in decoded])
-            )
+            units[f"extract:{mid}"] = float(_median_ms(m.extract, [(img,) for img in decoded]))
             method_units[mid] = [f"extract:{mid}"]
         match: dict[str, tuple[float, float]] = {}
         nd = bank.n_db
@@ -396,10 +394,8 @@ def measure_costs(
             db, qs = bank.features[mid]
             sample = qs[: max(1, images)]
             m.scores(sample[0], db, small)  # warm-up
-            t_small = float(
-                np.median([_time_ms(lambda q=q: m.scores(q, db, small)) for q in sample])
-            )
-            t_full = float(np.median([_time_ms(lambda q=q: m.scores(q, db, None)) for q in sample]))
+            t_small = _median_ms(m.scores, [(q, db, small) for q in sample])
+            t_full = _median_ms(m.scores, [(q, db, None) for q in sample])
             b = max(0.0, (t_full - t_small) / max(1, nd - len(small)))
             match[mid] = (max(0.0, t_small - b * len(small)), b)
         # Normalisation, selection and fusion: a two-tier run of the cheapest method on the
@@ -417,6 +413,11 @@ def measure_costs(
     finally:
         set_compute_threads(previous)
     return CostModel(units, method_units, match, fusion_ms, n_db or nd, threads)
+
+
+def _median_ms(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> float:
+    """Median wall time (ms) of ``fn(*args)`` over ``calls``."""
+    return float(np.median([_time_ms(lambda a=a: fn(*a)) for a in calls]))
 
 
 def _time_ms(fn: Any) -> float:

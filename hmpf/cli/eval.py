@@ -4,6 +4,9 @@
         --reference ../shared/datasets/gardens_point/day_right \\
         --query ../shared/datasets/gardens_point/night_right --tolerance 2 --json out.json
 
+``hmpf-eval experiments ...`` runs the paper's studies on a train/test split instead
+(:mod:`hmpf.cli.experiments`).
+
 With ``--index DIR`` the references come from a built index (``hmpf-index build``) and the
 queries run through the same code as the service (``--config`` and ``--reference`` are then
 optional; a given ``--config`` must match the index's).
@@ -104,6 +107,11 @@ def _main_index(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["experiments"]:
+        from hmpf.cli.experiments import main as experiments_main
+
+        return experiments_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.index is None and (args.config is None or args.reference is None):
