@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.config import HierarchyConfig
-from hmpf.study import CostModel, Outcome, ScoreBank, derive_config
+from hmpf.study import CostModel, Outcome, ScoreBank, check_compatible, derive_config
 
 __all__ = [
     "Candidate",
@@ -173,8 +173,9 @@ def search(
     if space.max_tiers == 3:
         n3 = len(sets) ** 3
         rng = np.random.default_rng(seed)
+        picks: list[int]
         if n3 <= space.samples:
-            picks = range(n3)
+            picks = list(range(n3))
         else:
             picks = sorted(rng.choice(n3, size=space.samples, replace=False).tolist())
         for p in picks:
@@ -210,7 +211,7 @@ def search(
     total = len(structures)
     for i, st in enumerate(structures):
         n = len(st)
-        ks = (1,) if n == 1 else (_middle(space.k1), 1)
+        ks: tuple[int, ...] = (1,) if n == 1 else (_middle(space.k1), 1)
         if n == 3:
             k1 = _middle(space.k1)
             k2 = max((k for k in space.k2 if k < k1), default=min(space.k2))
@@ -220,15 +221,15 @@ def search(
             progress(i + 1, total)
     ranked = sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
     best_structures: list[tuple[tuple[str, ...], ...]] = []
-    for c in ranked:
-        if c.tiers not in best_structures:
-            best_structures.append(c.tiers)
+    for cand in ranked:
+        if cand.tiers not in best_structures:
+            best_structures.append(cand.tiers)
         if len(best_structures) >= space.refine:
             break
     for st in best_structures:
-        for ks in _k_grid(space, len(st)):
+        for kg in _k_grid(space, len(st)):
             for ws in _weight_grid(len(st)):
-                evaluate(st, ks, ws)
+                evaluate(st, kg, ws)
     return sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
 
 
@@ -324,7 +325,9 @@ def _machine() -> str:
 
 
 def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:
-    """A hierarchy against its best single method and flat fusion of its methods, on a bank."""
+    """A hierarchy against its best single method and flat fusion of its methods, on a bank
+    built from ``pool`` (the hierarchy's methods must have the pool's settings)."""
+    check_compatible(config, pool)
     out = bank.run(config)
     singles = {m: bank.single_recall(m, [1])[1] for m in config.method_ids}
     best = max(singles, key=lambda m: (singles[m], m))

@@ -33,7 +33,7 @@ from hmpf.config import HierarchyConfig
 from hmpf.errors import ConfigError
 from hmpf.study import CostModel, ScoreBank, derive_config, measure_query_ms
 
-__all__ = ["PAPER_SIX", "report_markdown", "run_studies", "write_figures"]
+__all__ = ["PAPER_SIX", "check_pool", "report_markdown", "run_studies", "write_figures"]
 
 #: Table I: the pairs and their order per experiment (tier 1 first).
 PAPER_PAIRS = {"A": ("netvlad", "hog"), "B": ("hybridnet", "gist"), "C": ("kaze", "olo")}
@@ -61,7 +61,9 @@ def _name(mid: str) -> str:
     return NAMES.get(mid, mid)
 
 
-def _row(bank: ScoreBank, pool: HierarchyConfig, tiers: list[tuple[Sequence[str], int]]):
+def _row(
+    bank: ScoreBank, pool: HierarchyConfig, tiers: Sequence[tuple[Sequence[str], int]]
+) -> tuple[HierarchyConfig, dict[str, Any]]:
     cfg = derive_config(pool, tiers, None, name="study")
     out = bank.run(cfg)
     return cfg, {
@@ -72,6 +74,17 @@ def _row(bank: ScoreBank, pool: HierarchyConfig, tiers: list[tuple[Sequence[str]
         "tier_recall": out.tier_recall,
         "combined": out.recall_at_1,
     }
+
+
+def check_pool(pool: HierarchyConfig, trio: Sequence[str], count_trio: Sequence[str]) -> None:
+    """The studies' methods (the trios and Table I's six) must all be in the pool."""
+    needed = set(trio) | set(count_trio) | {m for p in PAPER_PAIRS.values() for m in p}
+    missing = sorted(needed - set(pool.method_ids))
+    if missing:
+        raise ConfigError(
+            f"the studies need methods missing from the pool: {', '.join(missing)} "
+            f"(pool: {', '.join(pool.method_ids)})"
+        )
 
 
 def run_studies(
@@ -89,10 +102,7 @@ def run_studies(
     time_images: int = 10,
 ) -> dict[str, Any]:
     """Run the six studies; returns a JSON-ready dict (see the module docstring)."""
-    needed = set(trio) | set(count_trio) | {m for p in PAPER_PAIRS.values() for m in p}
-    missing = sorted(needed - set(pool.method_ids))
-    if missing:
-        raise ConfigError(f"the studies need methods missing from the pool: {', '.join(missing)}")
+    check_pool(pool, trio, count_trio)
     nd = train.n_db
     ns = list(range(1, min(nd, 50) + 1))
     res: dict[str, Any] = {"k1": k1, "k2": k2, "n_reference": nd, "n_query": train.n_query}
@@ -121,11 +131,11 @@ def run_studies(
         "combined": float(np.mean([r["combined"] for r in rows])),
     }
     res["six"] = []
-    for exp, order in PAPER_SIX.items():
+    for exp, arrangement in PAPER_SIX.items():
         tiers = [
-            (PAPER_PAIRS[order[0]], k1),
-            (PAPER_PAIRS[order[1]], k2),
-            (PAPER_PAIRS[order[2]], 1),
+            (PAPER_PAIRS[arrangement[0]], k1),
+            (PAPER_PAIRS[arrangement[1]], k2),
+            (PAPER_PAIRS[arrangement[2]], 1),
         ]
         cfg, row = _row(train, pool, tiers)
         row["experiment"] = exp
@@ -372,7 +382,8 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
     L.append("### 4. Six methods, two per tier (Table I)")
     L.append("")
     L.append(
-        "| experiment | tier 1 | tier 2 | tier 3 | R@1 tiers 1/2/3 | Combined | ms/query measured | ms/query modelled |"
+        "| experiment | tier 1 | tier 2 | tier 3 | R@1 tiers 1/2/3 | Combined "
+        "| ms/query measured | ms/query modelled |"
     )
     L.append("|---|---|---|---|---|---|---|---|")
     for r in res["six"]:
@@ -404,12 +415,14 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
     L.append("### 6. Chosen hierarchies on the test split")
     L.append("")
     L.append(
-        f"Best training Combined among studies 2-5: {res['chosen']['label']} ({_f(res['chosen']['train_combined'])})."
+        f"Best training Combined among studies 2-5: {res['chosen']['label']} "
+        f"({_f(res['chosen']['train_combined'])})."
     )
     L.append("")
     if res.get("test"):
         L.append(
-            "| choice | hierarchy | train Combined | test Combined | best single (test) | flat fusion (test) | ms/query |"
+            "| choice | hierarchy | train Combined | test Combined | best single (test) "
+            "| flat fusion (test) | ms/query |"
         )
         L.append("|---|---|---|---|---|---|---|")
         for r in res["test"]:

@@ -36,6 +36,7 @@ __all__ = [
     "CostModel",
     "Outcome",
     "ScoreBank",
+    "check_compatible",
     "derive_config",
     "measure_costs",
     "measure_query_ms",
@@ -77,8 +78,9 @@ def split_data(
             raise DatasetError("the blocks split alternates stretches: train_fraction must be 0.5")
         if block < 1:
             raise DatasetError("block must be >= 1 frame")
-        r_parts = tuple(np.flatnonzero((np.arange(nr) // block) % 2 == p) for p in (0, 1))
-        q_parts = tuple(np.flatnonzero((np.arange(nq) // block) % 2 == p) for p in (0, 1))
+        r_blk, q_blk = (np.arange(nr) // block) % 2, (np.arange(nq) // block) % 2
+        r_parts = (np.flatnonzero(r_blk == 0), np.flatnonzero(r_blk == 1))
+        q_parts = (np.flatnonzero(q_blk == 0), np.flatnonzero(q_blk == 1))
     if min(len(x) for x in (*r_parts, *q_parts)) < 2:
         raise DatasetError(f"too few images to split ({nr} references, {nq} queries)")
     gt = np.asarray(data.gt, bool)
@@ -131,6 +133,19 @@ def derive_config(
     )
 
 
+def check_compatible(config: HierarchyConfig, pool: HierarchyConfig) -> None:
+    """``config`` may run on the pool's score banks: same method ids with the same settings."""
+    for mid in config.method_ids:
+        if mid not in pool.method_ids:
+            raise ConfigError(f"method {mid!r} of {config.name!r} is not in the pool {pool.name!r}")
+        if config.method_spec(mid) != pool.method_spec(mid):
+            raise ConfigError(
+                f"method {mid!r} has other settings in {config.name!r} "
+                f"({config.method_spec(mid)}) than in the pool {pool.name!r} "
+                f"({pool.method_spec(mid)})"
+            )
+
+
 # -- score banks -----------------------------------------------------------------------------
 
 
@@ -179,14 +194,12 @@ def outcome_of(results: Sequence[HierarchyResult], gt: np.ndarray, n_db: int) ->
         recall.append(
             float(np.mean([gt[q, r.tiers[t].candidates].any() for q, r in enumerate(results)]))
         )
-        inputs.append(
-            float(
-                np.mean(
-                    [n_db if r.tiers[t].inputs is None else len(r.tiers[t].inputs) for r in results]
-                )
-            )
-        )
+        inputs.append(float(np.mean([_n_inputs(r.tiers[t].inputs, n_db) for r in results])))
     return Outcome(match, quality, correct, top1, recall, inputs)
+
+
+def _n_inputs(inputs: np.ndarray | None, n_db: int) -> int:
+    return n_db if inputs is None else len(inputs)
 
 
 @dataclass
@@ -381,21 +394,21 @@ def measure_costs(
             for mid in group:
                 units[f"head:{mid}"] = float(np.median(own[mid]))
                 method_units[mid] = [key, f"head:{mid}"]
-        for mid, m in bank.methods.items():
+        for mid, method in bank.methods.items():
             if mid in cnn:
                 continue
-            m.extract(decoded[0])  # warm-up
-            units[f"extract:{mid}"] = float(_median_ms(m.extract, [(img,) for img in decoded]))
+            method.extract(decoded[0])  # warm-up
+            units[f"extract:{mid}"] = _median_ms(method.extract, [(img,) for img in decoded])
             method_units[mid] = [f"extract:{mid}"]
         match: dict[str, tuple[float, float]] = {}
         nd = bank.n_db
         small = np.arange(min(10, nd), dtype=np.int64)
-        for mid, m in bank.methods.items():
+        for mid, method in bank.methods.items():
             db, qs = bank.features[mid]
             sample = qs[: max(1, images)]
-            m.scores(sample[0], db, small)  # warm-up
-            t_small = _median_ms(m.scores, [(q, db, small) for q in sample])
-            t_full = _median_ms(m.scores, [(q, db, None) for q in sample])
+            method.scores(sample[0], db, small)  # warm-up
+            t_small = _median_ms(method.scores, [(q, db, small) for q in sample])
+            t_full = _median_ms(method.scores, [(q, db, None) for q in sample])
             b = max(0.0, (t_full - t_small) / max(1, nd - len(small)))
             match[mid] = (max(0.0, t_small - b * len(small)), b)
         # Normalisation, selection and fusion: a two-tier run of the cheapest method on the

@@ -17,8 +17,8 @@ from pathlib import Path
 from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_split
 from hmpf.config import load_config
 from hmpf.errors import HmpfError
-from hmpf.experiments import report_markdown, run_studies, write_figures
-from hmpf.study import ScoreBank, measure_costs
+from hmpf.experiments import check_pool, report_markdown, run_studies, write_figures
+from hmpf.study import ScoreBank, check_compatible, measure_costs
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,7 +56,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.k1 < 1 or args.k2 < 1:
             raise HmpfError("--k1 and --k2 must be >= 1")
         pool = load_config(args.pool)
+        check_pool(pool, args.trio, args.count_trio)  # before any extraction
         calibrated = load_config(args.calibrated) if args.calibrated else None
+        if calibrated is not None:
+            check_compatible(calibrated, pool)
         train_data, test_data, cache = load_split(args)
         progress = not args.quiet
         train = ScoreBank.build(
@@ -65,10 +68,6 @@ def main(argv: list[str] | None = None) -> int:
         test = ScoreBank.build(
             pool, test_data, cache=cache, workers=args.workers, progress=progress
         )
-        if calibrated is not None:
-            missing = sorted(set(calibrated.method_ids) - set(pool.method_ids))
-            if missing:
-                raise HmpfError(f"--calibrated uses methods outside the pool: {', '.join(missing)}")
         res = run_studies(
             pool,
             train,

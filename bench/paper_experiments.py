@@ -1,0 +1,136 @@
+"""The paper's studies, calibration and the headline table on the Gardens Point protocols.
+
+    python bench/paper_experiments.py [--protocols gp_dr_nr ...] [--budget-ms 150] [--seed 0]
+
+Per protocol (reference -> query, +-2 frames, ``blocks`` split: alternating stretches of 20
+frames, 100 training and 100 test frames): ``hmpf-calibrate``'s search on the training part
+(written to ``configs/calibrated/<protocol>.yaml``), the six studies with their figures
+(``docs/experiments/<protocol>/``), then on the test part the calibrated hierarchy against its
+best single method, flat fusion of its methods, the paper presets and the default config,
+each with its time per query measured end to end (one compute thread, median of 10 queries).
+Writes ``docs/experiments/README.md`` (the headline table and links). Descriptors come from
+the feature cache; a cold run extracts every method for 600 images first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from hmpf.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown  # noqa: E402
+from hmpf.cli.calibrate import write_config  # noqa: E402
+from hmpf.config import load_config  # noqa: E402
+from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.evaluate import EvalData  # noqa: E402
+from hmpf.experiments import report_markdown, run_studies, write_figures  # noqa: E402
+from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from hmpf.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
+
+PROTOCOLS = {
+    "gp_dr_nr": ("gardens_point/day_right", "gardens_point/night_right"),
+    "gp_dl_nr": ("gardens_point/day_left", "gardens_point/night_right"),
+    "gp_dl_dr": ("gardens_point/day_left", "gardens_point/day_right"),
+}
+PRESETS = ("paper-nordland", "paper-berlin", "default")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--protocols", nargs="*", default=list(PROTOCOLS), choices=list(PROTOCOLS))
+    ap.add_argument("--datasets", default=str(dataset_root()))
+    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    ap.add_argument("--budget-ms", type=float, default=150.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--split", default="blocks", choices=("blocks", "halves"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "experiments"))
+    ap.add_argument("--configs-out", default=str(ROOT / "configs" / "calibrated"))
+    args = ap.parse_args()
+    cache = FeatureCache(args.cache_dir)
+    pool = load_config(ROOT / "configs" / "calibration-pool.yaml")
+    out_root, cfg_root = Path(args.out), Path(args.configs_out)
+    cfg_root.mkdir(parents=True, exist_ok=True)
+    headline = []
+    for proto in args.protocols:
+        t0 = time.perf_counter()
+        r, q = PROTOCOLS[proto]
+        refs = list_images(Path(args.datasets) / r)
+        qrys = list_images(Path(args.datasets) / q)
+        data = EvalData(refs, qrys, frame_ground_truth(len(qrys), len(refs), 2), "frames +-2")
+        train_data, test_data = split_data(data, scheme=args.split)
+        train = ScoreBank.build(pool, train_data, cache=cache)
+        test = ScoreBank.build(pool, test_data, cache=cache)
+        space = SearchSpace(tuple(pool.method_ids))
+        config, rep = calibrate(
+            pool,
+            train,
+            test,
+            space,
+            budget_ms=args.budget_ms,
+            seed=args.seed,
+            name=f"calibrated-{proto}",
+        )
+        rep["protocol"] = {
+            "reference": r,
+            "query": q,
+            "split": args.split,
+            "ground_truth": "frames +-2",
+        }
+        out = out_root / proto
+        out.mkdir(parents=True, exist_ok=True)
+        win = rep["train"]["winner"]
+        write_config(
+            config,
+            cfg_root / f"{proto}.yaml",
+            f"Calibrated by bench/paper_experiments.py (hmpf-calibrate's search; seed {args.seed}, "
+            f"budget {args.budget_ms:g} ms/query)\non Gardens Point {r} -> {q}, training part of "
+            f"the {args.split} split, frames +-2.\nTraining recall@1 {win['recall_at_1']:.3f}; "
+            f"test recall@1 {rep['test']['recall_at_1']:.3f} (docs/experiments/{proto}/).",
+        )
+        (out / "leaderboard.md").write_text(leaderboard_markdown(rep))
+        (out / "calibration.json").write_text(json.dumps(rep, indent=1))
+        title = f"Gardens Point {Path(r).name} -> {Path(q).name}"
+        res = run_studies(pool, train, test, costs=None, calibrated=config)
+        figures = write_figures(res, out, title)
+        (out / "report.md").write_text(
+            report_markdown(res, title, figures)
+            + "\nCalibration leaderboard: [leaderboard.md](leaderboard.md).\n"
+        )
+        (out / "experiments.json").write_text(json.dumps(res, indent=1))
+        te = rep["test"]
+        row = {
+            "protocol": proto,
+            "title": title,
+            "calibrated": win["hierarchy"],
+            "calibrated_test": te["recall_at_1"],
+            "calibrated_ms": te["measured_ms"]["total_ms"],
+            "best_single": te["best_single"],
+            "best_single_test": te["best_single_recall_at_1"],
+            "flat_test": te["flat_recall_at_1"],
+            "threshold": rep["train"]["acceptance"]["threshold"],
+            "train_acceptance": rep["train"]["acceptance"],
+            "test_acceptance": te["acceptance"],
+            "presets": {},
+        }
+        for name in PRESETS:
+            preset = load_config(ROOT / "configs" / f"{name}.yaml")
+            bank = ScoreBank.build(preset, test_data, cache=cache)
+            cmp = compare_on(bank, preset, preset)
+            row["presets"][name] = {
+                "test": cmp["recall_at_1"],
+                "ms": measure_query_ms(preset, bank)["total_ms"],
+            }
+        headline.append(row)
+        print(json.dumps({k: v for k, v in row.items() if "acceptance" not in k}, indent=1))
+        print(f"{proto}: {time.perf_counter() - t0:.0f} s", flush=True)
+    (out_root / "headline.json").write_text(json.dumps(headline, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

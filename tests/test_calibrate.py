@@ -1,0 +1,238 @@
+"""Train/test splits, score banks, the cost model, the search and the acceptance threshold."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmpf.calibrate import (
+    Candidate,
+    SearchSpace,
+    acceptance_threshold,
+    calibrate,
+    precision_recall_at,
+    search,
+)
+from hmpf.config import HierarchyConfig, load_config, parse_config
+from hmpf.datasets import frame_ground_truth, list_images
+from hmpf.errors import ConfigError, DatasetError
+from hmpf.evaluate import EvalData, evaluate
+from hmpf.features import FeatureCache
+from hmpf.study import CostModel, ScoreBank, derive_config, measure_costs, split_data
+
+POOL = {
+    "name": "cheap-pool",
+    "methods": {"kaze": {"max_keypoints": 150}},
+    "tiers": [{"methods": ["hog", "gist", "sad", "kaze"], "k": 1}],
+}
+N_IMAGES = 60  # per traverse: blocks of 10 -> 30 training and 30 test frames
+
+
+def _paths(n: int) -> list[Path]:
+    return [Path(f"/x/{i:03d}.png") for i in range(n)]
+
+
+# -- splits -----------------------------------------------------------------------------------
+
+
+def test_blocks_split_alternates_stretches_and_keeps_ground_truth():
+    data = EvalData(_paths(100), _paths(100), frame_ground_truth(100, 100, 2), "frames +-2")
+    train, test = split_data(data, scheme="blocks", block=20)
+    idx = lambda ps: [int(p.stem) for p in ps]  # noqa: E731
+    assert idx(train.reference) == [*range(0, 20), *range(40, 60), *range(80, 100)]
+    assert idx(test.query) == [*range(20, 40), *range(60, 80)]
+    assert not set(idx(train.reference)) & set(idx(test.reference))
+    full = frame_ground_truth(100, 100, 2)
+    tr_r, tr_q = np.array(idx(train.reference)), np.array(idx(train.query))
+    assert np.array_equal(train.gt, full[np.ix_(tr_q, tr_r)])
+    # Query 20 (first of a test stretch) keeps only its test-part neighbours 20..22.
+    assert test.gt[0].sum() == 3
+
+
+def test_halves_split_and_errors():
+    data = EvalData(_paths(10), _paths(8), frame_ground_truth(8, 10, 1), "frames +-1")
+    train, test = split_data(data, 0.5, scheme="halves")
+    assert (len(train.reference), len(train.query), len(test.reference), len(test.query)) == (
+        5,
+        4,
+        5,
+        4,
+    )
+    assert np.array_equal(test.gt, frame_ground_truth(8, 10, 1)[4:, 5:])
+    with pytest.raises(DatasetError, match="unknown split"):
+        split_data(data, scheme="random")
+    with pytest.raises(DatasetError, match="between 0 and 1"):
+        split_data(data, 1.0, scheme="halves")
+    with pytest.raises(DatasetError, match="train_fraction must be 0.5"):
+        split_data(data, 0.3, scheme="blocks")
+    with pytest.raises(DatasetError, match="too few"):
+        split_data(data, scheme="blocks", block=20)
+
+
+# -- acceptance threshold ---------------------------------------------------------------------
+
+
+def test_acceptance_threshold_hand_computed():
+    q = np.array([5.0, 4.0, 3.0, 2.0, 1.0])
+    c = np.array([True, True, False, True, False])
+    a = acceptance_threshold(q, c, 0.99)
+    assert a["threshold"] == 4.0 and a["reached"]
+    assert a["precision"] == 1.0 and a["recall"] == pytest.approx(0.4)
+    b = acceptance_threshold(q, c, 0.75)  # {5,4,3,2}: 3 of 4 correct
+    assert b["threshold"] == 2.0 and b["precision"] == 0.75 and b["n_accepted"] == 4
+
+
+def test_acceptance_threshold_ties_and_unreachable():
+    # A tie at the top between a right and a wrong answer: both or neither are accepted.
+    q = np.array([3.0, 3.0, 1.0])
+    c = np.array([True, False, True])
+    a = acceptance_threshold(q, c, 0.99)
+    assert not a["reached"] and a["n_accepted"] == 0 and a["threshold"] > 3.0
+    # NaN quality (no answer) is never accepted.
+    q2 = np.array([2.0, np.nan])
+    c2 = np.array([True, False])
+    b = acceptance_threshold(q2, c2, 0.99)
+    assert b["threshold"] == 2.0 and b["n_accepted"] == 1
+    assert precision_recall_at(q2, c2, 10.0)["precision"] is None
+
+
+# -- cost model --------------------------------------------------------------------------------
+
+
+def test_cost_model_charges_shared_passes_once_and_reuses_tier1_scores():
+    cm = CostModel(
+        units={"forward:0": 20.0, "head:a": 1.0, "head:b": 2.0, "extract:c": 5.0},
+        method_units={
+            "a": ["forward:0", "head:a"],
+            "b": ["forward:0", "head:b"],
+            "c": ["extract:c"],
+        },
+        match={"a": (0.5, 0.01), "b": (0.0, 0.02), "c": (0.0, 1.0)},
+        fusion_ms=0.1,
+        n_db=100,
+    )
+    assert cm.extract_ms(["a", "b"]) == 23.0  # one forward pass
+    cfg = HierarchyConfig.model_validate(
+        {"tiers": [{"methods": ["a"], "k": 10}, {"methods": ["a", "c"], "k": 1}]}
+    )
+    # tier 1: a on 100 refs; tier 2: a is remembered, c on 10 candidates; 2 x fusion
+    expected = (20 + 1 + 5) + (0.5 + 0.01 * 100) + (1.0 * 10) + 0.2
+    assert cm.query_ms(cfg) == pytest.approx(expected)
+    assert cm.query_ms(cfg, [100, 7.5]) == pytest.approx(expected - 2.5)
+
+
+# -- on real images ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def banks(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory):
+    cache = FeatureCache(tmp_path_factory.mktemp("cache"))
+    refs = list_images(gardens_point / "day_right")[:N_IMAGES]
+    qrys = list_images(gardens_point / "night_right")[:N_IMAGES]
+    data = EvalData(refs, qrys, frame_ground_truth(N_IMAGES, N_IMAGES, 2), "frames +-2")
+    train_data, test_data = split_data(data, scheme="blocks", block=10)
+    pool = parse_config(POOL)
+    train = ScoreBank.build(pool, train_data, cache=cache, workers=2)
+    test = ScoreBank.build(pool, test_data, cache=cache, workers=2)
+    return pool, train, test, train_data, cache
+
+
+def test_bank_runs_equal_the_real_evaluation(banks):
+    """The bank's gathered scores give exactly the answers of the per-query evaluation."""
+    pool, train, _, train_data, cache = banks
+    for tiers in (
+        [(("gist", "hog"), 5), (("kaze",), 1)],
+        [(("sad",), 8), (("hog",), 3), (("gist", "kaze"), 1)],
+    ):
+        cfg = derive_config(pool, tiers, None)
+        rep = evaluate(cfg, train_data, cache=cache, skip_curves=list(cfg.method_ids))
+        out = train.run(cfg)
+        assert out.matches.tolist() == rep["hierarchy"]["matches"]
+        assert out.recall_at_1 == rep["hierarchy"]["combined_recall_at_1"]
+        assert out.tier_top1 == [t["top1_recall"] for t in rep["hierarchy"]["tiers"]]
+
+
+def test_search_is_deterministic_respects_budget_and_ranks(banks):
+    pool, train, _, _, _ = banks
+    costs = measure_costs(train, images=2)
+    assert all(v > 0 for k, v in costs.units.items() if k.startswith("extract:"))
+    space = SearchSpace(tuple(pool.method_ids), k1=(3, 6), k2=(2,), samples=40, refine=3)
+    a = search(train, pool, costs, space, seed=1)
+    b = search(train, pool, costs, space, seed=1)
+    assert [c.label() for c in a] == [c.label() for c in b]
+    assert [c.sort_key() for c in a] == sorted(c.sort_key() for c in a)
+    three = lambda r: {c.tiers for c in r if len(c.tiers) == 3}  # noqa: E731
+    assert three(search(train, pool, costs, space, seed=2)) != three(a)
+    # The winner's recall is what a fresh run of its config gives.
+    assert train.run(a[0].config(pool)).recall_at_1 == a[0].recall_at_1
+    # A budget below the cheapest hierarchy's model leaves some out, never one over it.
+    budget = float(np.median([c.model_ms for c in a]))
+    limited = search(train, pool, costs, space, seed=1, budget_ms=budget)
+    assert limited and len(limited) < len(a)
+    assert all(c.model_ms <= budget for c in limited)
+
+
+def test_calibrate_stores_threshold_and_checks_test(banks):
+    pool, train, test, _, _ = banks
+    space = SearchSpace(tuple(pool.method_ids), k1=(3, 6), k2=(2,), samples=20, refine=2)
+    config, rep = calibrate(pool, train, test, space, budget_ms=None, seed=0, target_precision=0.9)
+    assert config.acceptance is not None and config.acceptance.precision == 0.9
+    acc = rep["train"]["acceptance"]
+    assert config.acceptance.threshold == pytest.approx(acc["threshold"], abs=1e-6)
+    if acc["reached"]:
+        assert acc["precision"] >= 0.9
+    te = rep["test"]
+    assert te["best_single"] in config.method_ids
+    assert te["measured_ms"]["total_ms"] > 0 and te["measured_ms"]["images"] >= 1
+    # The config round-trips through YAML and keeps only the methods it uses.
+    assert set(config.methods) <= set(config.method_ids)
+    with pytest.raises(ConfigError, match="budget"):
+        calibrate(pool, train, None, space, budget_ms=0.001, seed=0)
+
+
+def test_candidate_config_carries_pool_parameters(banks):
+    pool = banks[0]
+    c = Candidate((("kaze",), ("gist",)), (5, 1), (0.5, 1.0), 0.5, 1.0)
+    cfg = c.config(pool)
+    assert cfg.methods == {"kaze": {"max_keypoints": 150}}
+    assert cfg.weights == [0.5, 1.0] and cfg.tiers[0].k == 5
+    with pytest.raises(ConfigError, match="not in the pool"):
+        derive_config(pool, [(("olo",), 1)])
+
+
+def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Path, banks):
+    pool_file = tmp_path / "pool.yaml"
+    pool_file.write_text(json.dumps(POOL))
+    sub = {}
+    for trav in ("day_right", "night_right"):
+        d = tmp_path / trav
+        d.mkdir()
+        for p in list_images(gardens_point / trav)[:N_IMAGES]:
+            (d / p.name).symlink_to(p)
+        sub[trav] = d
+    out = tmp_path / "cal"
+    cmd = [
+        sys.executable, "-m", "hmpf.cli.calibrate", "--quiet",
+        "--reference", str(sub["day_right"]), "--query", str(sub["night_right"]),
+        "--block", "10", "--pool", str(pool_file), "--out", str(out),
+        "--cache-dir", str(tmp_path / "c"), "--k1", "3", "6", "--k2", "2",
+        "--samples", "20", "--refine", "2", "--seed", "3",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    cfg = load_config(out / "calibrated.yaml")
+    rep = json.loads((out / "calibration.json").read_text())
+    assert cfg.acceptance is not None
+    assert cfg.acceptance.threshold == pytest.approx(rep["train"]["acceptance"]["threshold"])
+    assert rep["train"]["winner"]["hierarchy"] == cfg.description
+    assert "| 1 |" in (out / "leaderboard.md").read_text()
+    # Bad input: a clear message, exit 2, no traceback.
+    bad = subprocess.run(
+        [*cmd[:-2], "--seed", "3", "--methods", "nope"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "not in the pool" in bad.stderr and "Traceback" not in bad.stderr

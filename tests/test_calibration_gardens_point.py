@@ -1,0 +1,53 @@
+"""``hmpf-calibrate`` on a whole Gardens Point protocol: the issue's acceptance criterion.
+
+The calibrated hierarchy, searched on the training part only (blocks split, +-2 frames,
+150 ms budget, seed 0, the calibration pool), must beat its best single method and flat
+fusion of its methods on the test part. The README's headline table comes from the same
+search (bench/paper_experiments.py).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from hmpf.config import load_config
+
+
+def test_calibrated_beats_best_single_and_flat_on_test(gardens_point: Path, tmp_path: Path):
+    out = tmp_path / "cal"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hmpf.cli.calibrate",
+            "--quiet",
+            "--reference",
+            str(gardens_point / "day_right"),
+            "--query",
+            str(gardens_point / "night_right"),
+            "--tolerance",
+            "2",
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ],  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rep = json.loads((out / "calibration.json").read_text())
+    te = rep["test"]
+    assert (rep["train"]["n_query"], te["n_query"]) == (100, 100)
+    assert te["recall_at_1"] > te["best_single_recall_at_1"]
+    assert te["recall_at_1"] > te["flat_recall_at_1"]
+    assert rep["train"]["winner"]["model_ms"] <= 150
+    # The threshold reaches 99 % precision on training and is stored for the service.
+    acc = rep["train"]["acceptance"]
+    assert acc["reached"] and acc["precision"] >= 0.99
+    cfg = load_config(out / "calibrated.yaml")
+    assert cfg.acceptance is not None and cfg.acceptance.precision == 0.99

@@ -1,0 +1,133 @@
+"""``hmpf-eval experiments`` end to end on a short stretch of Gardens Point (real CNNs)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hmpf.datasets import list_images
+
+N_IMAGES = 40  # per traverse; blocks of 10 -> 20 training and 20 test frames
+
+
+@pytest.fixture(scope="module")
+def short_route(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("route")
+    out = {}
+    for trav in ("day_right", "night_right"):
+        d = root / trav
+        d.mkdir()
+        for p in list_images(gardens_point / trav)[:N_IMAGES]:
+            (d / p.name).symlink_to(p)
+        out[trav] = d
+    return out
+
+
+def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path):
+    out = tmp_path / "exp"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hmpf.cli.eval",
+            "experiments",
+            "--quiet",
+            "--reference",
+            str(short_route["day_right"]),
+            "--query",
+            str(short_route["night_right"]),
+            "--block",
+            "10",
+            "--k1",
+            "6",
+            "--k2",
+            "3",
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+            "--title",
+            "short GP",
+        ],  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((out / "experiments.json").read_text())
+    assert set(res["single"]) == {
+        "gem",
+        "netvlad",
+        "hybridnet",
+        "olo",
+        "gist",
+        "hog",
+        "sad",
+        "kaze",
+    }
+    assert len(res["recall_ns"]) == 20 and res["recall_ns"][0] == 1
+    for rec in res["single"].values():
+        vals = [rec[str(n)] for n in res["recall_ns"]]
+        assert vals == sorted(vals) and 0 <= vals[0] <= 1  # recall@N never falls with N
+        assert vals[-1] == 1.0  # N = every reference
+    # Study 2: 3 x 3 two-tier hierarchies, a method stacked on itself included.
+    pairs = [tuple(t[0] for t in r["tiers"]) for r in res["two_tier"]]
+    assert len(pairs) == 9 and ("gist", "gist") in pairs and ("kaze", "netvlad") in pairs
+    # Study 3: the 6 orders of the trio, with the per-position means.
+    assert len({tuple(t[0] for t in r["tiers"]) for r in res["three_tier"]}) == 6
+    mean_first = sum(r["tier_top1"][0] for r in res["three_tier"]) / 6
+    assert res["three_tier_mean"]["first"] == pytest.approx(mean_first)
+    # Study 4: Table I's six arrangements of six methods, each timed.
+    assert [r["experiment"] for r in res["six"]] == [f"Exp{i}" for i in range(1, 7)]
+    assert res["six"][5]["tiers"] == [["kaze", "olo"], ["netvlad", "hog"], ["hybridnet", "gist"]]
+    assert all(r["measured_ms"]["total_ms"] > 0 for r in res["six"])
+    # Study 5: flat (every reference passes) is the first setting.
+    assert res["counts"][0]["k"][:2] == [20, 20]
+    # Study 6: the best training hierarchy on the test part, with its baselines.
+    t = res["test"][0]
+    assert t["best_single"] in {m for tier in res["six"][0]["tiers"] for m in tier} | set(
+        res["single"]
+    )
+    assert 0 <= t["recall_at_1"] <= 1 and 0 <= t["flat_recall_at_1"] <= 1
+    for i in range(1, 7):
+        png = next(out.glob(f"fig{i}_*.png"))
+        head = png.read_bytes()[:8]
+        assert head == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    report = (out / "report.md").read_text()
+    for section in ("### 1.", "### 2.", "### 3.", "### 4.", "### 5.", "### 6.", "Exp6"):
+        assert section in report
+    assert "![fig4_six_methods.png](fig4_six_methods.png)" in report
+
+
+def test_experiments_reject_unknown_trio(short_route, tmp_path: Path):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hmpf.cli.eval",
+            "experiments",
+            "--quiet",
+            "--reference",
+            str(short_route["day_right"]),
+            "--query",
+            str(short_route["night_right"]),
+            "--block",
+            "10",
+            "--trio",
+            "gist",
+            "netvlad",
+            "surf",
+            "--out",
+            str(tmp_path / "x"),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ],  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 2 and "surf" in proc.stderr and "Traceback" not in proc.stderr
