@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -26,6 +24,7 @@ from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
 from hmpf.evaluate import EvalData, evaluate, format_report  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from hmpf.runtime import machine_description as machine  # noqa: E402
 
 PROTOCOLS = {
     "gp_dr_nr": ("gardens_point/day_right", "gardens_point/night_right"),
@@ -33,18 +32,6 @@ PROTOCOLS = {
     "gp_dl_dr": ("gardens_point/day_left", "gardens_point/day_right"),
     "nordland_s_w": ("nordland_64x32/summer", "nordland_64x32/winter"),
 }
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def main() -> int:

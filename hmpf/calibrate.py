@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.config import HierarchyConfig
+from hmpf.runtime import machine_description
 from hmpf.study import CostModel, Outcome, ScoreBank, check_compatible, derive_config
 
 __all__ = [
@@ -308,22 +309,6 @@ def precision_recall_at(
 # -- the whole procedure ----------------------------------------------------------------------
 
 
-def _machine() -> str:
-    import os
-    import platform
-    from pathlib import Path
-
-    cpu = platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
-
-
 def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:
     """A hierarchy against its best single method and flat fusion of its methods, on a bank
     built from ``pool`` (the hierarchy's methods must have the pool's settings)."""
@@ -394,7 +379,7 @@ def calibrate(
         }
     )
     report: dict[str, Any] = {
-        "machine": _machine(),
+        "machine": machine_description(),
         "seed": seed,
         "budget_ms": budget_ms,
         "space": {

@@ -197,6 +197,13 @@ def _bars(ax: Any, groups: list[str], series: dict[str, list[float]], ylabel: st
     ax.legend(fontsize=8, loc="upper center", ncol=n, frameon=False)
 
 
+def _tier_series(rows: Sequence[dict[str, Any]], labels: Sequence[str]) -> dict[str, list[float]]:
+    """Bar series: each tier's recall@1 under its label, then the Combined recall@1."""
+    series = {lab: [r["tier_top1"][i] for r in rows] for i, lab in enumerate(labels)}
+    series["Combined"] = [r["combined"] for r in rows]
+    return series
+
+
 def _arrow(tiers: Sequence[Sequence[str]]) -> str:
     return " → ".join("+".join(_name(m) for m in t) for t in tiers)
 
@@ -233,48 +240,38 @@ def write_figures(res: dict[str, Any], out: str | Path, title: str = "") -> list
     ax.set_title(f"Every method alone, training split{suffix}")
     save(fig, "fig1_recall_at_n.png")
 
-    rows = res["two_tier"]
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    _bars(
-        ax,
-        [_arrow(r["tiers"]) for r in rows],
-        {
-            "first method": [r["tier_top1"][0] for r in rows],
-            "second method": [r["tier_top1"][1] for r in rows],
-            "Combined": [r["combined"] for r in rows],
-        },
-        "Recall @ 1",
-    )
-    ax.set_title(f"Two methods in two tiers (top {res['k1']} passed on){suffix}")
-    save(fig, "fig2_two_tier.png")
+    def tier_figure(
+        rows: list[dict[str, Any]], groups: list[str], labels: list[str], title: str, name: str
+    ) -> None:
+        fig, ax = plt.subplots(figsize=(9, 4.5))
+        _bars(ax, groups, _tier_series(rows, labels), "Recall @ 1")
+        ax.set_title(title + suffix)
+        save(fig, name)
 
-    rows = res["three_tier"]
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    _bars(
-        ax,
+    first = ["first method", "second method", "third method"]
+    rows = res["two_tier"]
+    tier_figure(
+        rows,
         [_arrow(r["tiers"]) for r in rows],
-        {
-            "first method": [r["tier_top1"][0] for r in rows],
-            "second method": [r["tier_top1"][1] for r in rows],
-            "third method": [r["tier_top1"][2] for r in rows],
-            "Combined": [r["combined"] for r in rows],
-        },
-        "Recall @ 1",
+        first[:2],
+        f"Two methods in two tiers (top {res['k1']} passed on)",
+        "fig2_two_tier.png",
     )
-    ax.set_title(f"Three methods in three tiers ({res['k1']} then {res['k2']}){suffix}")
-    save(fig, "fig3_three_tier.png")
+    rows = res["three_tier"]
+    tier_figure(
+        rows,
+        [_arrow(r["tiers"]) for r in rows],
+        first,
+        f"Three methods in three tiers ({res['k1']} then {res['k2']})",
+        "fig3_three_tier.png",
+    )
 
     rows = res["six"]
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5), gridspec_kw={"width_ratios": [3, 1.3]})
     _bars(
         ax,
         [r["experiment"] for r in rows],
-        {
-            "tier 1": [r["tier_top1"][0] for r in rows],
-            "tier 2": [r["tier_top1"][1] for r in rows],
-            "tier 3": [r["tier_top1"][2] for r in rows],
-            "Combined": [r["combined"] for r in rows],
-        },
+        _tier_series(rows, ["tier 1", "tier 2", "tier 3"]),
         "Recall @ 1",
     )
     ax.set_xticklabels([r["experiment"] for r in rows], rotation=0, ha="center")
@@ -286,20 +283,13 @@ def write_figures(res: dict[str, Any], out: str | Path, title: str = "") -> list
     save(fig, "fig4_six_methods.png")
 
     rows = res["counts"]
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    _bars(
-        ax,
+    tier_figure(
+        rows,
         [r["setting"] for r in rows],
-        {
-            f"{_name(rows[0]['tiers'][0][0])} (tier 1)": [r["tier_top1"][0] for r in rows],
-            f"{_name(rows[0]['tiers'][1][0])} (tier 2)": [r["tier_top1"][1] for r in rows],
-            f"{_name(rows[0]['tiers'][2][0])} (tier 3)": [r["tier_top1"][2] for r in rows],
-            "Combined": [r["combined"] for r in rows],
-        },
-        "Recall @ 1",
+        [f"{_name(t[0])} (tier {i})" for i, t in enumerate(rows[0]["tiers"], start=1)],
+        "Candidates passed between tiers",
+        "fig5_candidates.png",
     )
-    ax.set_title(f"Candidates passed between tiers{suffix}")
-    save(fig, "fig5_candidates.png")
 
     if res.get("test"):
         rows = res["test"]

@@ -21,6 +21,22 @@ def compute_threads() -> int:
     return os.cpu_count() or 1
 
 
+def machine_description() -> str:
+    """``<CPU model>, <n> cores, Python <version>``: the machine a measurement ran on."""
+    import platform
+    from pathlib import Path
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
 def set_compute_threads(n: int) -> None:
     """Limit this process's per-image threads (also OpenCV's pool)."""
     global _threads

@@ -40,7 +40,6 @@ __all__ = [
     "derive_config",
     "measure_costs",
     "measure_query_ms",
-    "pool_methods",
     "split_data",
 ]
 
@@ -97,11 +96,6 @@ def split_data(
 
 
 # -- the pool of methods and configs derived from it -----------------------------------------
-
-
-def pool_methods(pool: HierarchyConfig) -> list[str]:
-    """The method ids a pool config offers (every id its tiers use)."""
-    return pool.method_ids
 
 
 def derive_config(

@@ -31,6 +31,21 @@ def gardens_point() -> Path:
     return root
 
 
+def link_route(src: Path, dst: Path, n: int) -> dict[str, Path]:
+    """Symlink the first ``n`` images of Gardens Point's day_right and night_right under
+    ``dst`` (a short route for quick end-to-end runs); returns traverse -> folder."""
+    from hmpf.datasets import list_images
+
+    out = {}
+    for trav in ("day_right", "night_right"):
+        d = dst / trav
+        d.mkdir()
+        for p in list_images(src / trav)[:n]:
+            (d / p.name).symlink_to(p)
+        out[trav] = d
+    return out
+
+
 @pytest.fixture(scope="session")
 def nordland() -> Path:
     root = dataset_root() / "nordland_64x32"

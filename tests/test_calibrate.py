@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import link_route
 
 from hmpf.calibrate import (
     Candidate,
@@ -208,13 +209,7 @@ def test_candidate_config_carries_pool_parameters(banks):
 def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Path, banks):
     pool_file = tmp_path / "pool.yaml"
     pool_file.write_text(json.dumps(POOL))
-    sub = {}
-    for trav in ("day_right", "night_right"):
-        d = tmp_path / trav
-        d.mkdir()
-        for p in list_images(gardens_point / trav)[:N_IMAGES]:
-            (d / p.name).symlink_to(p)
-        sub[trav] = d
+    sub = link_route(gardens_point, tmp_path, N_IMAGES)
     out = tmp_path / "cal"
     cmd = [
         sys.executable, "-m", "hmpf.cli.calibrate", "--quiet",

@@ -8,28 +8,18 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from hmpf.datasets import list_images
+from conftest import link_route
 
 N_IMAGES = 40  # per traverse; blocks of 10 -> 20 training and 20 test frames
 
 
 @pytest.fixture(scope="module")
 def short_route(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("route")
-    out = {}
-    for trav in ("day_right", "night_right"):
-        d = root / trav
-        d.mkdir()
-        for p in list_images(gardens_point / trav)[:N_IMAGES]:
-            (d / p.name).symlink_to(p)
-        out[trav] = d
-    return out
+    return link_route(gardens_point, tmp_path_factory.mktemp("route"), N_IMAGES)
 
 
-def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path):
-    out = tmp_path / "exp"
-    proc = subprocess.run(
+def _experiments(route: dict[str, Path], tmp_path: Path, *extra: str):
+    return subprocess.run(
         [
             sys.executable,
             "-m",
@@ -37,25 +27,25 @@ def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path
             "experiments",
             "--quiet",
             "--reference",
-            str(short_route["day_right"]),
+            str(route["day_right"]),
             "--query",
-            str(short_route["night_right"]),
+            str(route["night_right"]),
             "--block",
             "10",
-            "--k1",
-            "6",
-            "--k2",
-            "3",
-            "--out",
-            str(out),
             "--cache-dir",
             str(tmp_path / "cache"),
-            "--title",
-            "short GP",
+            *extra,
         ],  # fmt: skip
         capture_output=True,
         text=True,
         timeout=900,
+    )
+
+
+def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path):
+    out = tmp_path / "exp"
+    proc = _experiments(
+        short_route, tmp_path, "--k1", "6", "--k2", "3", "--out", str(out), "--title", "short GP"
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((out / "experiments.json").read_text())
@@ -104,30 +94,7 @@ def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path
 
 
 def test_experiments_reject_unknown_trio(short_route, tmp_path: Path):
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "hmpf.cli.eval",
-            "experiments",
-            "--quiet",
-            "--reference",
-            str(short_route["day_right"]),
-            "--query",
-            str(short_route["night_right"]),
-            "--block",
-            "10",
-            "--trio",
-            "gist",
-            "netvlad",
-            "surf",
-            "--out",
-            str(tmp_path / "x"),
-            "--cache-dir",
-            str(tmp_path / "cache"),
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
-        timeout=600,
+    proc = _experiments(
+        short_route, tmp_path, "--trio", "gist", "netvlad", "surf", "--out", str(tmp_path / "x")
     )
     assert proc.returncode == 2 and "surf" in proc.stderr and "Traceback" not in proc.stderr

@@ -47,15 +47,20 @@ def add_split_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def load_split(args: argparse.Namespace) -> tuple[EvalData, EvalData, FeatureCache | None]:
+def load_banks(args: argparse.Namespace, pool: HierarchyConfig) -> tuple[ScoreBank, ScoreBank]:
+    """Split the route given by the flags and score the pool on both parts."""
     refs = list_images(args.reference)
     qrys = list_images(args.query)
     gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
-    train, test = split_data(
+    parts = split_data(
         EvalData(refs, qrys, gt, desc), args.train_fraction, scheme=args.split, block=args.block
     )
     cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
-    return train, test, cache
+    train, test = (
+        ScoreBank.build(pool, part, cache=cache, workers=args.workers, progress=not args.quiet)
+        for part in parts
+    )
+    return train, test
 
 
 def write_config(config: HierarchyConfig, path: Path, header: str) -> None:
@@ -109,14 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"--methods not in the pool {args.pool}: {', '.join(unknown)} "
                 f"(pool: {', '.join(pool.method_ids)})"
             )
-        train_data, test_data, cache = load_split(args)
-        progress = not args.quiet
-        train = ScoreBank.build(
-            pool, train_data, cache=cache, workers=args.workers, progress=progress
-        )
-        test = ScoreBank.build(
-            pool, test_data, cache=cache, workers=args.workers, progress=progress
-        )
+        train, test = load_banks(args, pool)
         space = SearchSpace(
             methods,
             max_tiers=args.max_tiers,
@@ -146,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     report["protocol"] = {
         "reference": args.reference,
         "query": args.query,
-        "ground_truth": train_data.ground_truth,
+        "ground_truth": train.data.ground_truth,
         "split": args.split,
         "block": args.block,
         "pool": args.pool,
@@ -155,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     header = (
         f"Written by hmpf-calibrate (seed {args.seed}, budget {args.budget_ms:g} ms/query).\n"
         f"Route: {args.reference} -> {args.query}, {args.split} split, "
-        f"{train_data.ground_truth}.\n"
+        f"{train.data.ground_truth}.\n"
         f"Training recall@1 {win['recall_at_1']:.3f}, modelled {win['model_ms']:.1f} ms/query."
     )
     write_config(config, out / "calibrated.yaml", header)

@@ -14,11 +14,11 @@ import json
 import sys
 from pathlib import Path
 
-from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_split
+from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_banks
 from hmpf.config import load_config
 from hmpf.errors import HmpfError
 from hmpf.experiments import check_pool, report_markdown, run_studies, write_figures
-from hmpf.study import ScoreBank, check_compatible, measure_costs
+from hmpf.study import check_compatible, measure_costs
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,14 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         calibrated = load_config(args.calibrated) if args.calibrated else None
         if calibrated is not None:
             check_compatible(calibrated, pool)
-        train_data, test_data, cache = load_split(args)
-        progress = not args.quiet
-        train = ScoreBank.build(
-            pool, train_data, cache=cache, workers=args.workers, progress=progress
-        )
-        test = ScoreBank.build(
-            pool, test_data, cache=cache, workers=args.workers, progress=progress
-        )
+        train, test = load_banks(args, pool)
         res = run_studies(
             pool,
             train,
