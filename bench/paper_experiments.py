@@ -112,6 +112,8 @@ def main() -> int:
             "best_single": te["best_single"],
             "best_single_test": te["best_single_recall_at_1"],
             "flat_test": te["flat_recall_at_1"],
+            "vs_best_single": te["vs_best_single"],
+            "vs_flat": te["vs_flat"],
             "threshold": rep["train"]["acceptance"]["threshold"],
             "train_acceptance": rep["train"]["acceptance"],
             "test_acceptance": te["acceptance"],

@@ -21,6 +21,7 @@ which the training answers reach the target precision.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,6 +37,7 @@ __all__ = [
     "SearchSpace",
     "acceptance_threshold",
     "describe",
+    "paired_test",
     "precision_recall_at",
     "search",
 ]
@@ -309,15 +311,37 @@ def precision_recall_at(
 # -- the whole procedure ----------------------------------------------------------------------
 
 
+def paired_test(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
+    """Exact two-sided sign (McNemar) test of two answer sets on the same queries.
+
+    Args:
+        a, b: (Q,) booleans, query answered correctly by A and by B.
+
+    Returns:
+        ``wins`` (A right, B wrong), ``losses`` (A wrong, B right) and ``p``, the probability
+        of a split at least that uneven if A and B were equally good (1.0 with no
+        discordant query).
+    """
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    if a.shape != b.shape:
+        raise ValueError("both answer sets must cover the same queries")
+    wins, losses = int(np.sum(a & ~b)), int(np.sum(~a & b))
+    n, low = wins + losses, min(wins, losses)
+    tail = sum(math.comb(n, i) for i in range(low + 1)) / 2.0**n if n else 1.0
+    return {"wins": wins, "losses": losses, "p": min(1.0, 2.0 * tail)}
+
+
 def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:
     """A hierarchy against its best single method and flat fusion of its methods, on a bank
-    built from ``pool`` (the hierarchy's methods must have the pool's settings)."""
+    built from ``pool`` (the hierarchy's methods must have the pool's settings), with a paired
+    sign test against each (:func:`paired_test`)."""
     check_compatible(config, pool)
     out = bank.run(config)
     singles = {m: bank.single_recall(m, [1])[1] for m in config.method_ids}
     best = max(singles, key=lambda m: (singles[m], m))
     flat_cfg = derive_config(pool, [(config.method_ids, 1)], None, name="flat")
     flat = bank.run(flat_cfg)
+    single_correct = bank.single_correct(best)
     return {
         "recall_at_1": out.recall_at_1,
         "tier_top1": out.tier_top1,
@@ -326,6 +350,8 @@ def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) 
         "best_single": best,
         "best_single_recall_at_1": singles[best],
         "flat_recall_at_1": flat.recall_at_1,
+        "vs_best_single": paired_test(out.correct, single_correct),
+        "vs_flat": paired_test(out.correct, flat.correct),
         "outcome": out,
     }
 
@@ -448,12 +474,17 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
             f"Test split ({te['n_query']} queries, {te['n_reference']} references): "
             f"calibrated recall@1 {te['recall_at_1']:.3f}, best single method "
             f"({te['best_single']}) {te['best_single_recall_at_1']:.3f}, flat fusion of its "
-            f"methods {te['flat_recall_at_1']:.3f}; at the threshold precision "
+            f"methods {te['flat_recall_at_1']:.3f} (queries won/lost against them "
+            f"{_wl(te['vs_best_single'])} and {_wl(te['vs_flat'])}); at the threshold precision "
             f"{_fmt(ta['precision'])}, recall {ta['recall']:.3f}; "
             f"{te['measured_ms']['total_ms']:.1f} ms per query measured end to end "
             f"(modelled {te['model_ms']:.1f}).",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _wl(t: dict[str, Any]) -> str:
+    return f"{t['wins']}/{t['losses']}, sign test p = {t['p']:.2g}"
 
 
 def _fmt(x: float | None) -> str:

@@ -105,7 +105,13 @@ def run_studies(
     check_pool(pool, trio, count_trio)
     nd = train.n_db
     ns = list(range(1, min(nd, 50) + 1))
-    res: dict[str, Any] = {"k1": k1, "k2": k2, "n_reference": nd, "n_query": train.n_query}
+    res: dict[str, Any] = {
+        "k1": k1,
+        "k2": k2,
+        "n_reference": nd,
+        "n_query": train.n_query,
+        "tier_score": pool.tier_score,
+    }
     res["single"] = {m: train.single_recall(m, ns) for m in pool.method_ids}
     res["recall_ns"] = ns
     chosen: list[tuple[float, HierarchyConfig, str]] = []
@@ -324,7 +330,8 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
     L.append(
         f"Training split: {res['n_query']} queries against {res['n_reference']} references; "
         f"candidate counts {res['k1']} (tier 1) and {res['k2']} (tier 2); recall@1 of a tier "
-        "is the best reference of that tier's mean score."
+        "is the best reference of that tier's mean score; earlier tiers enter the Combined "
+        f"score with the {res.get('tier_score', 'max')} of their methods (`tier_score`)."
     )
     L.append("")
 

@@ -8,9 +8,10 @@ Per query (METHODS.md §5.2-5.3):
 3. The final tier averages its methods; its own top-k is reported (per-tier recall) but is
    not the answer.
 4. The answer is the argmax of the z-scored Combined score over the candidates *entering* the
-   final tier: earlier tiers contribute the max over their methods, the final tier its mean,
-   each min-max normalised over those candidates and weighted (1, 0.75, 0.5 from the final
-   tier backwards). The max z is the answer's quality.
+   final tier: earlier tiers contribute the max over their methods (or, with
+   ``tier_score: mean``, their mean), the final tier its mean, each min-max normalised over
+   those candidates and weighted (1, 0.75, 0.5 from the final tier backwards). The max z is
+   the answer's quality.
 
 Unlike the original, any number of tiers (one included: the candidates entering it are the
 whole database) and of methods per tier is allowed, and a method may appear in several tiers.
@@ -166,8 +167,9 @@ class Hierarchy:
         start = time.perf_counter()
         final_in = tiers[-1].inputs
         F = np.arange(n_db, dtype=np.int64) if final_in is None else final_in
+        mean_all = cfg.tier_score == "mean"
         values = [
-            (tr.mean_score() if t == n_tiers - 1 else tr.max_score())[F]
+            (tr.mean_score() if mean_all or t == n_tiers - 1 else tr.max_score())[F]
             for t, tr in enumerate(tiers)
         ]
         if len(F) == 0:

@@ -121,6 +121,7 @@ def derive_config(
         name=name,
         description=description,
         mode=mode or pool.mode,  # type: ignore[arg-type]
+        tier_score=pool.tier_score,
         methods={m: dict(p) for m, p in pool.methods.items() if m in used},
         tiers=[TierConfig(methods=list(ms), k=int(k)) for ms, k in tiers],
         weights=list(weights) if weights is not None else None,
@@ -271,6 +272,13 @@ class ScoreBank:
         hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
         results = [hier.run(self.scorer(q), self.n_db) for q in range(self.n_query)]
         return outcome_of(results, self.gt, self.n_db)
+
+    def single_correct(self, mid: str) -> np.ndarray:
+        """(Q,) whether one method alone ranks a correct reference first (ties: lower index)."""
+        raw = self.scores[mid]
+        key = -raw if self.methods[mid].higher_is_better else raw
+        best = np.argmin(np.where(np.isnan(key), np.inf, key), axis=1)  # as recall_at_n
+        return self.gt[np.arange(self.n_query), best]
 
     def single_recall(self, mid: str, ns: Sequence[int]) -> dict[int, float]:
         """recall@N of one method alone over the whole database."""

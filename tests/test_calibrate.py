@@ -16,6 +16,7 @@ from hmpf.calibrate import (
     SearchSpace,
     acceptance_threshold,
     calibrate,
+    paired_test,
     precision_recall_at,
     search,
 )
@@ -105,6 +106,19 @@ def test_acceptance_threshold_ties_and_unreachable():
 # -- cost model --------------------------------------------------------------------------------
 
 
+def test_paired_sign_test_hand_computed():
+    a = np.array([1, 1, 1, 0, 0, 1], bool)
+    b = np.array([0, 0, 1, 1, 0, 1], bool)
+    # 2 wins, 1 loss: P(<= 1 of 3 fair coin flips) = (1 + 3)/8, two-sided -> 1.0
+    assert paired_test(a, b) == {"wins": 2, "losses": 1, "p": 1.0}
+    five = paired_test(np.ones(7, bool), np.array([0, 0, 0, 0, 0, 1, 1], bool))
+    assert (five["wins"], five["losses"]) == (5, 0)
+    assert five["p"] == pytest.approx(2 / 32)  # 2 * (1/2)^5
+    assert paired_test(a, a)["p"] == 1.0
+    with pytest.raises(ValueError, match="same queries"):
+        paired_test(a, b[:5])
+
+
 def test_cost_model_charges_shared_passes_once_and_reuses_tier1_scores():
     cm = CostModel(
         units={"forward:0": 20.0, "head:a": 1.0, "head:b": 2.0, "extract:c": 5.0},
@@ -150,12 +164,18 @@ def test_bank_runs_equal_the_real_evaluation(banks):
         [(("gist", "hog"), 5), (("kaze",), 1)],
         [(("sad",), 8), (("hog",), 3), (("gist", "kaze"), 1)],
     ):
-        cfg = derive_config(pool, tiers, None)
-        rep = evaluate(cfg, train_data, cache=cache, skip_curves=list(cfg.method_ids))
-        out = train.run(cfg)
-        assert out.matches.tolist() == rep["hierarchy"]["matches"]
-        assert out.recall_at_1 == rep["hierarchy"]["combined_recall_at_1"]
-        assert out.tier_top1 == [t["top1_recall"] for t in rep["hierarchy"]["tiers"]]
+        for tier_score in ("max", "mean"):
+            src = pool.model_copy(update={"tier_score": tier_score})
+            cfg = derive_config(src, tiers, None)
+            assert cfg.tier_score == tier_score  # inherited from the pool
+            rep = evaluate(cfg, train_data, cache=cache, skip_curves=list(cfg.method_ids))
+            out = train.run(cfg)
+            assert out.matches.tolist() == rep["hierarchy"]["matches"]
+            assert out.recall_at_1 == rep["hierarchy"]["combined_recall_at_1"]
+            assert out.tier_top1 == [t["top1_recall"] for t in rep["hierarchy"]["tiers"]]
+    # One method alone: per-query correctness agrees with its recall@1.
+    for mid in pool.method_ids:
+        assert train.single_correct(mid).mean() == train.single_recall(mid, [1])[1]
 
 
 def test_search_is_deterministic_respects_budget_and_ranks(banks):
@@ -189,6 +209,15 @@ def test_calibrate_stores_threshold_and_checks_test(banks):
         assert acc["precision"] >= 0.9
     te = rep["test"]
     assert te["best_single"] in config.method_ids
+    # The sign tests count the queries the differences in recall are made of.
+    n = te["n_query"]
+    for key, other in (
+        ("vs_flat", "flat_recall_at_1"),
+        ("vs_best_single", "best_single_recall_at_1"),
+    ):
+        t = te[key]
+        assert t["wins"] - t["losses"] == round((te["recall_at_1"] - te[other]) * n)
+        assert 0.0 < t["p"] <= 1.0
     assert te["measured_ms"]["total_ms"] > 0 and te["measured_ms"]["images"] >= 1
     # The config round-trips through YAML and keeps only the methods it uses.
     assert set(config.methods) <= set(config.method_ids)

@@ -96,6 +96,16 @@ def test_digest_is_stable_and_sensitive():
     assert a.digest() == b.digest() != c.digest()
 
 
+def test_tier_score_is_validated_and_max_keeps_the_old_digest():
+    base = {"tiers": [{"methods": ["hog"], "k": 5}, {"methods": ["gist"], "k": 1}]}
+    plain = parse_config(base)
+    assert plain.tier_score == "max"
+    assert parse_config({**base, "tier_score": "max"}).digest() == plain.digest()
+    assert parse_config({**base, "tier_score": "mean"}).digest() != plain.digest()
+    with pytest.raises(ConfigError, match="tier_score"):
+        parse_config({**base, "tier_score": "median"})
+
+
 def test_acceptance_is_validated_and_left_out_of_the_digest():
     base = {"tiers": [{"methods": ["hog"], "k": 1}]}
     plain = parse_config(base)

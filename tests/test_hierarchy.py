@@ -525,3 +525,27 @@ def test_tier_result_mean_and_max() -> None:
     _eq(tr.max_score(), [NAN, 0.2, 0.5, 0.9])
     # mean propagates NaN: [NaN, NaN, NaN, .65]
     _eq(tr.mean_score(), [NAN, NAN, NAN, 0.65])
+
+
+def test_tier_score_mean_changes_the_answer() -> None:
+    # Default mode (the faithful union would list image 1 twice).
+    # Tier 1: a, b (distances), k=2 each; tier 2: c (distance), k=1; weights (.75, 1).
+    #   S_a = (10 - x)/10 = [1, .8, 0, 0] -> top2 [0, 1]
+    #   S_b = [0, .8, 1, 0]               -> top2 [2, 1]; F = union = [0, 1, 2]
+    #   c over F: raw [1, 1, 5] -> S_c = [1, 1, 0] (x2)
+    # max:  x1 = [1, .8, 1] -> [1, 0, 1] * .75; Dsuper = [1.75, 1, .75] -> image 0
+    # mean: x1 = [.5, .8, .5] -> [0, 1, 0] * .75; Dsuper = [1, 1.75, 0] -> image 1,
+    #       mean 2.75/3, sample sd sqrt(.7708333) = .8779711 -> quality .8333333/.8779711
+    raw = {"a": [0, 2, 10, 10], "b": [10, 2, 0, 10], "c": [1, 1, 5, 0]}
+    tiers = [(["a", "b"], 2), (["c"], 1)]
+    by_max, _ = _run(tiers, raw, "default")
+    assert by_max.match == 0
+    cfg = _config(tiers, "default").model_copy(update={"tier_score": "mean"})
+    methods: dict[str, Method] = {m: _Distance() for m in "abc"}
+    by_mean = Hierarchy(cfg, methods).run(_Scores(raw), 4)
+    np.testing.assert_array_equal(by_mean.final_candidates, [0, 1, 2])
+    assert by_mean.match == 1
+    assert by_mean.quality == pytest.approx((1.75 - 2.75 / 3) / math.sqrt(0.7708333333333334))
+    # the tiers themselves (scores, candidates) do not depend on tier_score
+    for t_max, t_mean in zip(by_max.tiers, by_mean.tiers, strict=True):
+        np.testing.assert_array_equal(t_max.candidates, t_mean.candidates)

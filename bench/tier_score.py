@@ -1,0 +1,112 @@
+"""How a non-final tier enters the Combined score: the original's max against the mean.
+
+    python bench/tier_score.py [--hierarchies 600] [--seed 0] [--json out.json]
+
+Per Gardens Point protocol (the ``blocks`` split of bench/paper_experiments.py, +-2 frames),
+draws ``--hierarchies`` random 2- and 3-tier hierarchies of the calibration pool (1-2 methods
+per tier, candidate counts and weights from the calibration grid), runs each with
+``tier_score: max`` and ``tier_score: mean`` on the training and the test part, and prints the
+mean recall@1 of both and how often the mean is better or worse. Same seed, same hierarchies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from paper_experiments import PROTOCOLS  # noqa: E402  (bench/ is the script's folder)
+
+from hmpf.calibrate import WEIGHT_LADDER, SearchSpace, describe  # noqa: E402
+from hmpf.config import load_config  # noqa: E402
+from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.evaluate import EvalData  # noqa: E402
+from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from hmpf.runtime import machine_description  # noqa: E402
+from hmpf.study import ScoreBank, derive_config, split_data  # noqa: E402
+
+
+def draw(
+    space: SearchSpace, n: int, seed: int
+) -> list[tuple[list[tuple[tuple[str, ...], int]], list[float]]]:
+    """``n`` distinct random hierarchies: (tiers as (methods, k), weights)."""
+    rng = np.random.default_rng(seed)
+    sets = space.tier_sets()
+    out: dict[str, tuple[list[tuple[tuple[str, ...], int]], list[float]]] = {}
+    while len(out) < n:
+        n_tiers = int(rng.integers(2, 4))
+        tiers = [sets[int(i)] for i in rng.integers(0, len(sets), n_tiers)]
+        k1 = int(rng.choice(space.k1))
+        ks = [k1, 1] if n_tiers == 2 else [k1, int(rng.choice([k for k in space.k2 if k < k1])), 1]
+        ladder = sorted(float(w) for w in rng.choice(WEIGHT_LADDER, n_tiers - 1))
+        weights = [*ladder, 1.0]
+        out.setdefault(describe(tiers, ks, weights), (list(zip(tiers, ks, strict=True)), weights))
+    return list(out.values())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hierarchies", type=int, default=600)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--datasets", default=str(dataset_root()))
+    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    ap.add_argument("--json", help="write the figures here too")
+    args = ap.parse_args()
+    cache = FeatureCache(args.cache_dir)
+    pool = load_config(ROOT / "configs" / "calibration-pool.yaml")
+    hierarchies = draw(SearchSpace(tuple(pool.method_ids)), args.hierarchies, args.seed)
+    print(f"{machine_description()}; {len(hierarchies)} hierarchies, seed {args.seed}")
+    print(
+        "| protocol | part | mean R@1, max | mean R@1, mean | difference | mean better "
+        "| mean worse |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for proto, (r, q) in PROTOCOLS.items():
+        refs = list_images(Path(args.datasets) / r)
+        qrys = list_images(Path(args.datasets) / q)
+        data = EvalData(refs, qrys, frame_ground_truth(len(qrys), len(refs), 2), "frames +-2")
+        for part, split in zip(("train", "test"), split_data(data), strict=True):
+            bank = ScoreBank.build(pool, split, cache=cache)
+            rec = {
+                ts: np.array(
+                    [
+                        bank.run(
+                            derive_config(pool.model_copy(update={"tier_score": ts}), tiers, ws)
+                        ).recall_at_1
+                        for tiers, ws in hierarchies
+                    ]
+                )
+                for ts in ("max", "mean")
+            }
+            d = rec["mean"] - rec["max"]
+            row = {
+                "protocol": proto,
+                "part": part,
+                "max": float(rec["max"].mean()),
+                "mean": float(rec["mean"].mean()),
+                "difference": float(d.mean()),
+                "mean_better": float(np.mean(d > 0)),
+                "mean_worse": float(np.mean(d < 0)),
+            }
+            rows.append(row)
+            print(
+                f"| {proto} | {part} | {row['max']:.3f} | {row['mean']:.3f} | "
+                f"{row['difference']:+.3f} | {row['mean_better']:.0%} | {row['mean_worse']:.0%} |",
+                flush=True,
+            )
+    if args.json:
+        Path(args.json).write_text(
+            json.dumps({"machine": machine_description(), "rows": rows}, indent=1)
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
