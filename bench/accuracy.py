@@ -21,15 +21,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root  # noqa: E402
 from hmpf.evaluate import EvalData, evaluate, format_report  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description as machine  # noqa: E402
 
 PROTOCOLS = {
-    "gp_dr_nr": ("gardens_point/day_right", "gardens_point/night_right"),
-    "gp_dl_nr": ("gardens_point/day_left", "gardens_point/night_right"),
-    "gp_dl_dr": ("gardens_point/day_left", "gardens_point/day_right"),
+    **GARDENS_POINT_PROTOCOLS,
     "nordland_s_w": ("nordland_64x32/summer", "nordland_64x32/winter"),
 }
 
@@ -51,12 +49,10 @@ def main() -> int:
     reports = {}
     for name in args.protocols:
         ref_dir, q_dir = (Path(args.datasets) / p for p in PROTOCOLS[name])
-        refs, qrys = list_images(ref_dir), list_images(q_dir)
-        gt = frame_ground_truth(len(qrys), len(refs), args.tolerance)
         t0 = time.perf_counter()
         rep = evaluate(
             config,
-            EvalData(refs, qrys, gt, f"frames +-{args.tolerance}"),
+            EvalData.frames(ref_dir, q_dir, args.tolerance),
             cache=cache,
             workers=args.workers,
             progress=True,

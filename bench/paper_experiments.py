@@ -26,17 +26,13 @@ sys.path.insert(0, str(ROOT))
 from hmpf.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown  # noqa: E402
 from hmpf.cli.calibrate import write_config  # noqa: E402
 from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
+from hmpf.datasets import dataset_root  # noqa: E402
 from hmpf.evaluate import EvalData  # noqa: E402
 from hmpf.experiments import report_markdown, run_studies, write_figures  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
 
-PROTOCOLS = {
-    "gp_dr_nr": ("gardens_point/day_right", "gardens_point/night_right"),
-    "gp_dl_nr": ("gardens_point/day_left", "gardens_point/night_right"),
-    "gp_dl_dr": ("gardens_point/day_left", "gardens_point/day_right"),
-}
 PRESETS = ("paper-nordland", "paper-berlin", "default")
 
 
@@ -59,9 +55,7 @@ def main() -> int:
     for proto in args.protocols:
         t0 = time.perf_counter()
         r, q = PROTOCOLS[proto]
-        refs = list_images(Path(args.datasets) / r)
-        qrys = list_images(Path(args.datasets) / q)
-        data = EvalData(refs, qrys, frame_ground_truth(len(qrys), len(refs), 2), "frames +-2")
+        data = EvalData.frames(Path(args.datasets) / r, Path(args.datasets) / q, 2)
         train_data, test_data = split_data(data, scheme=args.split)
         train = ScoreBank.build(pool, train_data, cache=cache)
         test = ScoreBank.build(pool, test_data, cache=cache)

@@ -2,9 +2,9 @@
 
     python bench/tier_score.py [--hierarchies 600] [--seed 0] [--json out.json]
 
-Per Gardens Point protocol (the ``blocks`` split of bench/paper_experiments.py, +-2 frames),
-draws ``--hierarchies`` random 2- and 3-tier hierarchies of the calibration pool (1-2 methods
-per tier, candidate counts and weights from the calibration grid), runs each with
+Per Gardens Point protocol (``hmpf.datasets.GARDENS_POINT_PROTOCOLS``, ``blocks`` split,
++-2 frames), draws ``--hierarchies`` random 2- and 3-tier hierarchies of the calibration pool
+(1-2 methods per tier, candidate counts and weights from the calibration grid), runs each with
 ``tier_score: max`` and ``tier_score: mean`` on the training and the test part, and prints the
 mean recall@1 of both and how often the mean is better or worse. Same seed, same hierarchies.
 """
@@ -21,11 +21,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from paper_experiments import PROTOCOLS  # noqa: E402  (bench/ is the script's folder)
 
 from hmpf.calibrate import WEIGHT_LADDER, SearchSpace, describe  # noqa: E402
 from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
+from hmpf.datasets import dataset_root  # noqa: E402
 from hmpf.evaluate import EvalData  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
@@ -69,9 +69,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|")
     rows = []
     for proto, (r, q) in PROTOCOLS.items():
-        refs = list_images(Path(args.datasets) / r)
-        qrys = list_images(Path(args.datasets) / q)
-        data = EvalData(refs, qrys, frame_ground_truth(len(qrys), len(refs), 2), "frames +-2")
+        data = EvalData.frames(Path(args.datasets) / r, Path(args.datasets) / q, 2)
         for part, split in zip(("train", "test"), split_data(data), strict=True):
             bank = ScoreBank.build(pool, split, cache=cache)
             rec = {

@@ -36,6 +36,14 @@ __all__ = [
 
 EARTH_RADIUS_M = 6_378_137.0
 
+#: The Gardens Point Walking protocols the benchmarks and reports use: name -> (reference
+#: folder, query folder), relative to :func:`dataset_root`; frame-aligned (+-N frames).
+GARDENS_POINT_PROTOCOLS = {
+    "gp_dr_nr": ("gardens_point/day_right", "gardens_point/night_right"),
+    "gp_dl_nr": ("gardens_point/day_left", "gardens_point/night_right"),
+    "gp_dl_dr": ("gardens_point/day_left", "gardens_point/day_right"),
+}
+
 
 def dataset_root() -> Path:
     """Folder holding the shared datasets: ``$HMPF_DATASETS`` or ``../shared/datasets``."""

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.config import HierarchyConfig, build_methods
+from hmpf.datasets import frame_ground_truth, list_images
 from hmpf.features import FeatureCache, extract_images, fit_methods
 from hmpf.fusion import flat_fusion, nan_argmax, zscore
 from hmpf.hierarchy import Hierarchy, HierarchyResult, feature_scorer
@@ -93,6 +94,13 @@ class EvalData:
     query: list[Path]
     gt: np.ndarray  # (n_query, n_ref) bool
     ground_truth: str  # e.g. "frames +-2"
+
+    @classmethod
+    def frames(cls, reference: str | Path, query: str | Path, tolerance: int) -> EvalData:
+        """Two frame-aligned traverses (image folders): a match is within +-``tolerance``."""
+        refs, qrys = list_images(reference), list_images(query)
+        gt = frame_ground_truth(len(qrys), len(refs), tolerance)
+        return cls(refs, qrys, gt, f"frames +-{tolerance}")
 
 
 def _full_scores(method: Method, queries: Any, db: Any) -> np.ndarray:

@@ -323,6 +323,11 @@ def _f(x: float) -> str:
     return f"{x:.3f}"
 
 
+def _tier_row(label: str, r: dict[str, Any]) -> str:
+    """``| label | R@1 of each tier | Combined |``."""
+    return f"| {label} | " + " | ".join(_f(t) for t in r["tier_top1"]) + f" | {_f(r['combined'])} |"
+
+
 def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = ()) -> str:
     """The studies' tables in Markdown (figures linked by file name)."""
     fig = {p.name: p.name for p in figures}
@@ -353,9 +358,7 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
     L.append("")
     L.append("| hierarchy | first method R@1 | second method R@1 | Combined |")
     L.append("|---|---|---|---|")
-    for r in res["two_tier"]:
-        t = r["tier_top1"]
-        L.append(f"| {_arrow(r['tiers'])} | {_f(t[0])} | {_f(t[1])} | {_f(r['combined'])} |")
+    L.extend(_tier_row(_arrow(r["tiers"]), r) for r in res["two_tier"])
     L.append("")
     img("fig2_two_tier.png")
 
@@ -363,11 +366,7 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
     L.append("")
     L.append("| hierarchy | first | second | third | Combined |")
     L.append("|---|---|---|---|---|")
-    for r in res["three_tier"]:
-        t = r["tier_top1"]
-        L.append(
-            f"| {_arrow(r['tiers'])} | {_f(t[0])} | {_f(t[1])} | {_f(t[2])} | {_f(r['combined'])} |"
-        )
+    L.extend(_tier_row(_arrow(r["tiers"]), r) for r in res["three_tier"])
     m = res["three_tier_mean"]
     L.append(
         f"| **mean per position** | {_f(m['first'])} | {_f(m['second'])} | {_f(m['third'])} "
@@ -403,9 +402,7 @@ def report_markdown(res: dict[str, Any], title: str, figures: Sequence[Path] = (
         + " | Combined |"
     )
     L.append("|---|---|---|---|---|")
-    for r in res["counts"]:
-        t = r["tier_top1"]
-        L.append(f"| {r['setting']} | {_f(t[0])} | {_f(t[1])} | {_f(t[2])} | {_f(r['combined'])} |")
+    L.extend(_tier_row(r["setting"], r) for r in res["counts"])
     L.append("")
     img("fig5_candidates.png")
 

@@ -117,3 +117,11 @@ def test_evaluate_on_synthetic_identical_sets(tmp_path: Path, image_folder):
     assert h["matches"] == list(range(8))
     assert [t["recall"] for t in h["tiers"]] == [1.0, 1.0]
     assert set(report["timing_ms"]["extract_per_image"]) == {"gist", "sad", "hog", "kaze"}
+
+
+def test_evaldata_frames_reads_two_aligned_traverses(gardens_point: Path):
+    data = EvalData.frames(gardens_point / "day_left", gardens_point / "night_right", 3)
+    assert data.reference == list_images(gardens_point / "day_left")
+    assert data.query == list_images(gardens_point / "night_right")
+    np.testing.assert_array_equal(data.gt, frame_ground_truth(200, 200, 3))
+    assert data.ground_truth == "frames +-3"
