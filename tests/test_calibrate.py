@@ -255,6 +255,17 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
     assert cfg.acceptance.threshold == pytest.approx(rep["train"]["acceptance"]["threshold"])
     assert rep["train"]["winner"]["hierarchy"] == cfg.description
     assert "| 1 |" in (out / "leaderboard.md").read_text()
+    assert set(rep["costs"]["match_ms"]) == {"hog", "gist", "sad", "kaze"}
+    # --methods: only those are searched, and only those are scored (the banks hold the
+    # restricted pool, so KAZE's costly full score matrix is never computed).
+    sub_out = tmp_path / "cal-hog-gist"
+    only = [*cmd[:-2], "--seed", "3", "--methods", "hog", "gist"]
+    only[only.index(str(out))] = str(sub_out)
+    proc = subprocess.run(only, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    rep2 = json.loads((sub_out / "calibration.json").read_text())
+    assert set(rep2["costs"]["match_ms"]) == {"hog", "gist"}
+    assert set(load_config(sub_out / "calibrated.yaml").method_ids) <= {"hog", "gist"}
     # Bad input: a clear message, exit 2, no traceback.
     bad = subprocess.run(
         [*cmd[:-2], "--seed", "3", "--methods", "nope"], capture_output=True, text=True

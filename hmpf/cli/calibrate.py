@@ -28,7 +28,7 @@ from hmpf.datasets import list_images
 from hmpf.errors import HmpfError
 from hmpf.evaluate import EvalData
 from hmpf.features import FeatureCache, default_cache_dir
-from hmpf.study import SPLITS, ScoreBank, split_data
+from hmpf.study import SPLITS, ScoreBank, derive_config, split_data
 
 DEFAULT_POOL = Path(__file__).resolve().parents[2] / "configs" / "calibration-pool.yaml"
 
@@ -113,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
             raise HmpfError(
                 f"--methods not in the pool {args.pool}: {', '.join(unknown)} "
                 f"(pool: {', '.join(pool.method_ids)})"
+            )
+        if set(methods) != set(pool.method_ids):
+            # Score only the methods the search may use: a bank holds every pool method's
+            # full score matrix, and the unused ones (KAZE, OLO) cost the most to score.
+            pool = derive_config(
+                pool, [(methods, 1)], None, name=pool.name, description=pool.description
             )
         train, test = load_banks(args, pool)
         space = SearchSpace(
