@@ -163,7 +163,8 @@ def search(
     """Every hierarchy tried, best first (see the module docstring); over-budget ones dropped.
 
     Args:
-        progress: optional callable ``(done, total)`` for long searches.
+        progress: optional callable ``(done, total)`` for long searches; ``total`` grows
+            once, when the first pass has chosen the structures to refine.
     """
     if not 1 <= space.max_tiers <= 3:
         raise ValueError("max_tiers must be 1, 2 or 3")
@@ -229,10 +230,12 @@ def search(
             best_structures.append(cand.tiers)
         if len(best_structures) >= space.refine:
             break
-    for st in best_structures:
-        for kg in _k_grid(space, len(st)):
-            for ws in _weight_grid(len(st)):
-                evaluate(st, kg, ws)
+    grid = [(st, kg, ws) for st in best_structures for kg in _k_grid(space, len(st))
+            for ws in _weight_grid(len(st))]  # fmt: skip
+    for j, (st, kg, ws) in enumerate(grid):
+        evaluate(st, kg, ws)
+        if progress is not None:
+            progress(total + j + 1, total + len(grid))
     return sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
 
 

@@ -183,8 +183,14 @@ def test_search_is_deterministic_respects_budget_and_ranks(banks):
     costs = measure_costs(train, images=2)
     assert all(v > 0 for k, v in costs.units.items() if k.startswith("extract:"))
     space = SearchSpace(tuple(pool.method_ids), k1=(3, 6), k2=(2,), samples=40, refine=3)
-    a = search(train, pool, costs, space, seed=1)
+    calls: list[tuple[int, int]] = []
+    a = search(train, pool, costs, space, seed=1, progress=lambda d, t: calls.append((d, t)))
     b = search(train, pool, costs, space, seed=1)
+    # Progress counts every structure of the first pass and every refined setting: it rises
+    # by one per call, its total grows once (refinement), and it ends at its total.
+    done = [d for d, _ in calls]
+    assert done == list(range(1, len(calls) + 1)) and calls[-1][0] == calls[-1][1]
+    assert len({t for _, t in calls}) == 2 and len(a) <= len(calls)
     assert [c.label() for c in a] == [c.label() for c in b]
     assert [c.sort_key() for c in a] == sorted(c.sort_key() for c in a)
     three = lambda r: {c.tiers for c in r if len(c.tiers) == 3}  # noqa: E731

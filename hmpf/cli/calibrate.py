@@ -17,9 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
+from tqdm import tqdm
 
 from hmpf.calibrate import SearchSpace, calibrate, leaderboard_markdown
 from hmpf.cli.eval import add_ground_truth_args, ground_truth_from_args
@@ -61,6 +63,16 @@ def load_banks(args: argparse.Namespace, pool: HierarchyConfig) -> tuple[ScoreBa
         for part in parts
     )
     return train, test
+
+
+def _bar_update(bar: tqdm) -> Callable[[int, int], None]:
+    """The search's ``progress`` callback driving ``bar`` (its total may grow)."""
+
+    def update(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    return update
 
 
 def write_config(config: HierarchyConfig, path: Path, header: str) -> None:
@@ -130,18 +142,21 @@ def main(argv: list[str] | None = None) -> int:
             samples=args.samples,
             refine=args.refine,
         )
-        config, report = calibrate(
-            pool,
-            train,
-            test,
-            space,
-            budget_ms=args.budget_ms,
-            seed=args.seed,
-            target_precision=args.target_precision,
-            db_size=args.db_size,
-            name=args.name,
-            top=args.top,
-        )
+        bar = tqdm(desc="search", unit="hierarchy", disable=True if args.quiet else None)
+        with bar:
+            config, report = calibrate(
+                pool,
+                train,
+                test,
+                space,
+                budget_ms=args.budget_ms,
+                seed=args.seed,
+                target_precision=args.target_precision,
+                db_size=args.db_size,
+                name=args.name,
+                top=args.top,
+                progress=_bar_update(bar),
+            )
     except HmpfError as exc:
         print(f"hmpf-calibrate: error: {exc}", file=sys.stderr)
         return 2
