@@ -265,7 +265,7 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
     # --methods: only those are searched, and only those are scored (the banks hold the
     # restricted pool, so KAZE's costly full score matrix is never computed).
     sub_out = tmp_path / "cal-hog-gist"
-    only = [*cmd[:-2], "--seed", "3", "--methods", "hog", "gist"]
+    only = [*cmd[:-2], "--seed", "3", "--methods", "hog", "gist", "hog"]  # named twice: once
     only[only.index(str(out))] = str(sub_out)
     proc = subprocess.run(only, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr

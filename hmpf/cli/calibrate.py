@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         if min(args.k1 + args.k2) < 1:
             raise HmpfError("candidate counts must be >= 1")
         pool = load_config(args.pool)
-        methods = tuple(args.methods) if args.methods else tuple(pool.method_ids)
+        methods = tuple(dict.fromkeys(args.methods or pool.method_ids))  # once each
         unknown = sorted(set(methods) - set(pool.method_ids))
         if unknown:
             raise HmpfError(
