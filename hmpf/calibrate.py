@@ -230,8 +230,12 @@ def search(
             best_structures.append(cand.tiers)
         if len(best_structures) >= space.refine:
             break
-    grid = [(st, kg, ws) for st in best_structures for kg in _k_grid(space, len(st))
-            for ws in _weight_grid(len(st))]  # fmt: skip
+    grid = [
+        (st, kg, ws)
+        for st in best_structures
+        for kg in _k_grid(space, len(st))
+        for ws in _weight_grid(len(st))
+    ]
     for j, (st, kg, ws) in enumerate(grid):
         evaluate(st, kg, ws)
         if progress is not None:
