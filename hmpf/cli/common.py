@@ -1,0 +1,79 @@
+"""What every hmpf command shares: ``--version``, one-line errors and a quiet Ctrl-C.
+
+Each command's ``main(argv)`` is ``return run(PROG, body, argv_or_args)``-shaped::
+
+    def main(argv: list[str] | None = None) -> int:
+        parser = build_parser()          # add_version(parser) inside
+        args = parser.parse_args(argv)
+        return run("hmpf-eval", lambda: _run(args))
+
+``run`` turns an :class:`~hmpf.errors.HmpfError` into ``prog: error: message`` and exit 2,
+and Ctrl-C (``KeyboardInterrupt``) into one line and exit 130 (the shell's code for SIGINT),
+never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from collections.abc import Callable
+from importlib import metadata
+
+from hmpf.errors import HmpfError
+
+__all__ = [
+    "EXIT_ERROR",
+    "EXIT_INTERRUPTED",
+    "add_version",
+    "ignore_sigint",
+    "package_version",
+    "run",
+]
+
+#: Exit status of a command that stopped on a user error (bad input, corrupt index, ...).
+EXIT_ERROR = 2
+#: Exit status after Ctrl-C: 128 + SIGINT, what a shell reports for an interrupted program.
+EXIT_INTERRUPTED = 130
+
+
+def package_version() -> str:
+    """The installed distribution's version (``"unknown"`` when run from a bare checkout)."""
+    try:
+        return metadata.version("hmpf")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def add_version(parser: argparse.ArgumentParser) -> None:
+    """Add ``--version`` (prints ``prog hmpf X.Y.Z`` and exits 0) to a parser."""
+    parser.add_argument(
+        "--version", action="version", version=f"%(prog)s (hmpf {package_version()})"
+    )
+
+
+def ignore_sigint() -> None:
+    """Pool-worker initializer: leave Ctrl-C to the parent, so workers print no tracebacks."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def run(prog: str, body: Callable[[], int], *, interrupted: str = "interrupted") -> int:
+    """Run a command's body; map errors to one stderr line and an exit status.
+
+    Args:
+        prog: the command's name, the prefix of every message (``hmpf-index``).
+        body: the command itself, returning its exit status.
+        interrupted: what to say after Ctrl-C (e.g. that the index is untouched).
+
+    Returns:
+        ``body()``'s status, :data:`EXIT_ERROR` after an :class:`HmpfError`, or
+        :data:`EXIT_INTERRUPTED` after Ctrl-C.
+    """
+    try:
+        return body()
+    except HmpfError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f"{prog}: {interrupted}", file=sys.stderr)
+        return EXIT_INTERRUPTED
