@@ -1,6 +1,10 @@
 """Hierarchy configuration: YAML presets validated by pydantic (unknown keys are errors).
 
-Example (``configs/handcrafted.yaml``)::
+The presets ship inside the package (``hmpf/presets/``, browsable as ``configs/`` in the
+repository) and are loaded by name: ``load_config("handcrafted")``,
+``load_config("calibrated/gp_dr_nr")``; a path to a YAML file works too.
+
+Example (preset ``handcrafted``)::
 
     name: handcrafted
     mode: default            # or "faithful": the original's duplicate-keeping fusion
@@ -24,6 +28,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+from importlib.resources import files
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -42,6 +48,7 @@ __all__ = [
     "TierConfig",
     "build_methods",
     "load_config",
+    "preset_names",
 ]
 
 
@@ -174,15 +181,56 @@ def parse_config(data: Any, source: str = "<config>") -> HierarchyConfig:
     return config
 
 
-def load_config(path: str | Path) -> HierarchyConfig:
-    """Read and validate a YAML hierarchy preset."""
-    p = Path(path)
+def _presets_dir() -> Traversable:
+    return files("hmpf").joinpath("presets")
+
+
+def _preset_files(folder: Traversable, prefix: str = "") -> dict[str, Traversable]:
+    out: dict[str, Traversable] = {}
+    for entry in folder.iterdir():
+        if entry.is_dir():
+            out.update(_preset_files(entry, f"{prefix}{entry.name}/"))
+        elif entry.name.endswith(".yaml"):
+            out[prefix + entry.name.removesuffix(".yaml")] = entry
+    return out
+
+
+def preset_names() -> list[str]:
+    """Names of the shipped presets, sorted: ``handcrafted``, ``calibrated/gp_dr_nr``, ...
+
+    A preset's name is its path under ``hmpf/presets/`` (``configs/`` in the repository)
+    without ``.yaml``.
+    """
+    return sorted(_preset_files(_presets_dir()))
+
+
+def load_config(path_or_name: str | Path) -> HierarchyConfig:
+    """Read and validate a hierarchy: a YAML file, or a shipped preset's name.
+
+    An existing file wins; otherwise ``path_or_name`` (with or without ``.yaml``) names a
+    preset (see :func:`preset_names`). Anything else is a :class:`ConfigError` that lists the
+    presets.
+    """
+    p = Path(path_or_name)
+    if p.is_file():
+        source, read = str(p), p.read_text
+    else:
+        name = str(path_or_name).removesuffix(".yaml")
+        preset = _preset_files(_presets_dir()).get(name)
+        if preset is None:
+            if p.suffix or p.is_absolute() or p.exists():  # meant as a path
+                why = "not a file" if p.exists() else "no such file"
+                what = f"cannot read config {str(p)!r}: {why}"
+            else:
+                what = f"unknown config {str(path_or_name)!r}: neither a file nor a preset"
+            raise ConfigError(f"{what}; presets: {', '.join(preset_names())}")
+        source, read = f"preset {name!r}", preset.read_text
     try:
-        text = p.read_text()
+        text = read()
     except OSError as exc:
-        raise ConfigError(f"cannot read config {str(p)!r}: {exc.strerror or exc}") from None
+        raise ConfigError(f"cannot read config {source}: {exc.strerror or exc}") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: invalid YAML: {exc}") from None
-    return parse_config(data, str(p))
+        raise ConfigError(f"{source}: invalid YAML: {exc}") from None
+    return parse_config(data, source)

@@ -2,18 +2,63 @@ from pathlib import Path
 
 import pytest
 
-from hmpf.config import build_methods, load_config, parse_config
+import hmpf
+from hmpf.config import build_methods, load_config, parse_config, preset_names
 from hmpf.errors import ConfigError, UnknownMethodError
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+PRESETS = Path(hmpf.__file__).parent / "presets"
 
 
-@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda p: p.name)
-def test_shipped_presets_validate(path: Path):
-    cfg = load_config(path)
+@pytest.mark.parametrize("name", preset_names())
+def test_shipped_presets_validate(name: str):
+    cfg = load_config(name)
     methods = build_methods(cfg)
     assert set(methods) == set(cfg.method_ids)
     assert len(cfg.tier_weights) == len(cfg.tiers)
+
+
+def test_configs_folder_is_the_packaged_presets():
+    """``configs/`` (browsing, documented paths) and the package data are one folder, and
+    every YAML file in it is a preset named by its relative path."""
+    assert CONFIGS.resolve() == PRESETS.resolve()
+    names = sorted(str(p.relative_to(CONFIGS).with_suffix("")) for p in CONFIGS.rglob("*.yaml"))
+    assert names == preset_names()
+    assert {"default", "handcrafted", "calibration-pool", "calibrated/gp_dr_nr"} <= set(
+        preset_names()
+    )
+
+
+def test_preset_by_name_equals_the_file_from_any_folder(tmp_path: Path, monkeypatch):
+    by_path = load_config(CONFIGS / "calibrated" / "gp_dr_nr.yaml")
+    monkeypatch.chdir(tmp_path)
+    for name in ("calibrated/gp_dr_nr", "calibrated/gp_dr_nr.yaml"):
+        assert load_config(name) == by_path
+    assert load_config("handcrafted").digest() == load_config(CONFIGS / "handcrafted.yaml").digest()
+
+
+def test_an_existing_file_wins_over_a_preset_of_that_name(tmp_path: Path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    Path("handcrafted").write_text("name: mine\ntiers: [{methods: [hog], k: 1}]\n")
+    assert load_config("handcrafted").name == "mine"
+
+
+def test_unknown_name_or_missing_path_lists_the_presets(tmp_path: Path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match="neither a file nor a preset; presets: .*handcrafted"):
+        load_config("handcrafed")
+    with pytest.raises(ConfigError, match="no such file; presets: .*calibrated/gp_dr_nr"):
+        load_config("configs/handcrafted.yaml")
+    with pytest.raises(ConfigError, match="not a file"):
+        load_config(tmp_path)
+
+
+def test_calibration_pool_default_is_a_preset(tmp_path: Path, monkeypatch):
+    from hmpf.cli.calibrate import build_parser
+
+    monkeypatch.chdir(tmp_path)
+    args = build_parser().parse_args(["--reference", "r", "--query", "q", "--out", "o"])
+    assert load_config(args.pool) == load_config(CONFIGS / "calibration-pool.yaml")
 
 
 def test_handcrafted_is_three_tiers_of_the_four_methods():

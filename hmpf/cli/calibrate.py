@@ -32,7 +32,7 @@ from hmpf.evaluate import EvalData
 from hmpf.features import FeatureCache, default_cache_dir
 from hmpf.study import SPLITS, ScoreBank, derive_config, split_data
 
-DEFAULT_POOL = Path(__file__).resolve().parents[2] / "configs" / "calibration-pool.yaml"
+DEFAULT_POOL = "calibration-pool"  # a preset name (hmpf/presets/calibration-pool.yaml)
 
 
 def add_split_args(p: argparse.ArgumentParser) -> None:
