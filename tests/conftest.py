@@ -15,6 +15,20 @@ import pytest
 
 from hmpf.datasets import dataset_root
 
+#: Fixtures that read ``$HMPF_DATASETS`` (directly or through another fixture: pytest's
+#: ``item.fixturenames`` is the closure, so ``service_index`` is covered by ``gardens_point``).
+#: ``gp_subset`` (test_index_reader.py) reads the data without the ``gardens_point`` fixture.
+DATASET_FIXTURES = frozenset({"gardens_point", "nordland", "gp_subset"})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark every test that uses a dataset fixture ``dataset``, so ``pytest -m "not dataset"``
+    is an offline suite (tests that read the data without a fixture carry the mark themselves:
+    tests/test_methods.py, tests/test_e2e_gardens_point.py, tests/test_wheel.py)."""
+    for item in items:
+        if DATASET_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.dataset)
+
 
 def pytest_sessionstart(session: pytest.Session) -> None:
     if os.environ.get("HMPF_REQUIRE_DATASETS") == "1":

@@ -1,0 +1,170 @@
+"""The built wheel works on its own: every command, run from a folder outside the checkout,
+in a fresh virtual environment where hmpf comes from the wheel and nothing else.
+
+The wheel is built (``pip wheel --no-deps --no-build-isolation``, offline) from a copy of the
+files a source distribution holds, so no ``build/`` or ``*.egg-info`` lands in the checkout.
+The fresh venv gets only the wheel; the heavy dependencies (torch, FAISS, ...) are made
+visible by a ``.pth`` line naming this interpreter's site-packages. A plain path line does
+not run that folder's own ``.pth`` files, so an editable install of the checkout there stays
+inactive, and the test asserts that ``hmpf`` is imported from the fresh venv.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+#: What the wheel is built from: the project files the Dockerfile copies too.
+SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
+
+pytestmark = pytest.mark.dataset
+
+
+def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 300) -> str:
+    proc = subprocess.run(
+        args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
+    )
+    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    return proc.stdout
+
+
+@pytest.fixture(scope="module")
+def wheel_env(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[str, str]]:
+    """(bin folder of the fresh venv, a work folder outside the checkout, its environment)."""
+    base = tmp_path_factory.mktemp("wheel")
+    assert not base.resolve().is_relative_to(ROOT)
+    src = base / "src"
+    src.mkdir()
+    for name in SOURCES:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(ROOT / name, src / name)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PIP_"))}
+    env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
+    pip = [sys.executable, "-m", "pip"]
+    _run(
+        [*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", "dist", str(src)],
+        base,
+        env,
+    )
+    (wheel,) = (base / "dist").glob("hmpf-*.whl")
+
+    venv = base / "venv"
+    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], base, env)
+    python = venv / "bin" / "python"
+    _run(
+        [*pip, "--python", str(python), "install", "-q", "--no-deps", "--no-index", str(wheel)],
+        base,
+        env,
+    )
+    fresh_site = Path(
+        _run(
+            [str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], base, env
+        ).strip()
+    )
+    # The dependencies: this (the project's) environment's site-packages, found from its prefix.
+    (fresh_site / "_hmpf_test_dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
+
+    work = base / "work"
+    work.mkdir()
+    env["HMPF_CACHE_DIR"] = str(base / "cache")
+    return venv / "bin", work, env
+
+
+def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
+    bindir, work, env = wheel_env
+    out = _run(
+        [
+            str(bindir / "python"),
+            "-c",
+            "import hmpf, importlib.metadata as m\n"
+            "from hmpf.config import preset_names\n"
+            "print(hmpf.__file__)\n"
+            "print(' '.join(preset_names()))\n"
+            "meta = m.metadata('hmpf')\n"
+            "print(meta['License-Expression'], meta.get_all('License-File'))\n",
+        ],
+        work,
+        env,
+    )
+    where, presets, license_ = out.splitlines()
+    venv = bindir.parent.resolve()
+    assert Path(where).resolve().is_relative_to(venv), where  # the wheel's copy, not ROOT
+    assert not Path(where).resolve().is_relative_to(ROOT)
+    assert set(presets.split()) == {
+        str(p.relative_to(ROOT / "configs").with_suffix(""))
+        for p in (ROOT / "configs").rglob("*.yaml")
+    }
+    assert license_ == "MIT ['LICENSE']"
+
+
+def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> None:
+    bindir, work, env = wheel_env
+    for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve"):
+        assert (bindir / command).is_file(), command
+        assert "usage:" in _run([str(bindir / command), "--help"], work, env)
+    assert "--config" in _run([str(bindir / "hmpf-eval"), "--help"], work, env)
+
+    # A handful of frame-aligned images: references day_right, queries night_right.
+    for folder, traverse in (("refs", "day_right"), ("queries", "night_right")):
+        (work / folder).mkdir()
+        for p in sorted((gardens_point / traverse).iterdir())[:8]:
+            (work / folder / p.name).symlink_to(p)
+
+    # hmpf-calibrate with its default pool (the preset calibration-pool, every method),
+    # the smallest search: 2 training and 2 test stretches of 2 frames.
+    _run(
+        [
+            str(bindir / "hmpf-calibrate"),
+            *("--reference", "refs", "--query", "queries", "--tolerance", "1"),
+            *("--block", "2", "--k1", "2", "--k2", "1", "--samples", "10", "--refine", "2"),
+            *("--workers", "1", "--quiet", "--out", "cal"),
+        ],
+        work,
+        env,
+    )
+    assert (work / "cal" / "calibrated.yaml").is_file()
+
+    # An index from a preset name, then from the calibrated config's path.
+    for config, index in (("single-tier", "idx-preset"), ("cal/calibrated.yaml", "idx-path")):
+        _run(
+            [
+                str(bindir / "hmpf-index"),
+                *("build", "--config", config, "--images", "refs", "--index", index),
+                *("--workers", "1", "--quiet"),
+            ],
+            work,
+            env,
+        )
+        assert (work / index / "CURRENT").is_file()
+    _run([str(bindir / "hmpf-index"), "verify", "--index", "idx-preset"], work, env)
+
+    # A name that is neither a file nor a preset: a one-line error listing the presets.
+    proc = subprocess.run(
+        [
+            str(bindir / "hmpf-index"),
+            "build",
+            "--config",
+            "handcraftd",
+            "--images",
+            "refs",
+            "--index",
+            "idx-bad",
+        ],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode != 0
+    assert "neither a file nor a preset" in proc.stderr and "handcrafted" in proc.stderr
