@@ -212,9 +212,9 @@ def load_config(path_or_name: str | Path) -> HierarchyConfig:
     presets.
     """
     p = Path(path_or_name)
-    if p.is_file():
-        source, read = str(p), p.read_text
-    else:
+    source: Traversable = p
+    label = str(p)
+    if not p.is_file():
         name = str(path_or_name).removesuffix(".yaml")
         preset = _preset_files(_presets_dir()).get(name)
         if preset is None:
@@ -224,13 +224,13 @@ def load_config(path_or_name: str | Path) -> HierarchyConfig:
             else:
                 what = f"unknown config {str(path_or_name)!r}: neither a file nor a preset"
             raise ConfigError(f"{what}; presets: {', '.join(preset_names())}")
-        source, read = f"preset {name!r}", preset.read_text
+        source, label = preset, f"preset {name!r}"
     try:
-        text = read()
+        text = source.read_text()
     except OSError as exc:
-        raise ConfigError(f"cannot read config {source}: {exc.strerror or exc}") from None
+        raise ConfigError(f"cannot read config {label}: {exc.strerror or exc}") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: invalid YAML: {exc}") from None
-    return parse_config(data, source)
+        raise ConfigError(f"{label}: invalid YAML: {exc}") from None
+    return parse_config(data, label)

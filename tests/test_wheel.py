@@ -24,8 +24,6 @@ ROOT = Path(__file__).resolve().parent.parent
 #: What the wheel is built from: the project files the Dockerfile copies too.
 SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
 
-pytestmark = pytest.mark.dataset
-
 
 def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 300) -> str:
     proc = subprocess.run(
