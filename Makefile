@@ -4,7 +4,8 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 DATASETS ?= $(abspath ../shared/datasets)
 export HMPF_DATASETS ?= $(DATASETS)
-CONFIG ?= configs/default.yaml
+# a preset name (hmpf/presets/, browsable as configs/) or a path to a YAML file
+CONFIG ?= default
 REFERENCE ?= $(HMPF_DATASETS)/gardens_point/day_right
 QUERY ?= $(HMPF_DATASETS)/gardens_point/night_right
 TOLERANCE ?= 2
@@ -13,7 +14,7 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 
-.PHONY: install run index clean-index eval test bench lint format clean
+.PHONY: install run index clean-index eval test test-offline bench lint format clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +46,10 @@ eval: install
 ## test: the whole test suite (fails when no test is collected)
 test: install
 	$(PY) -m pytest -q
+
+## test-offline: the tests that need no dataset (pytest -m "not dataset")
+test-offline: install
+	$(PY) -m pytest -q -m "not dataset"
 
 bench: install
 	$(PY) bench/accuracy.py --out results/accuracy.json
