@@ -12,6 +12,7 @@ inactive, and the test asserts that ``hmpf`` is imported from the fresh venv.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -75,6 +76,15 @@ def wheel_env(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     work.mkdir()
     env["HMPF_CACHE_DIR"] = str(base / "cache")
     return venv / "bin", work, env
+
+
+def test_sources_are_what_the_dockerfile_builds_from() -> None:
+    """The Docker image installs hmpf from the same files (a missing LICENSE would fail it)."""
+    dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
+    copied = set()
+    for line in re.findall(r"^COPY (?!--from)(.+)$", dockerfile, re.M):
+        copied.update(line.split()[:-1])
+    assert copied == set(SOURCES)
 
 
 def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
