@@ -35,7 +35,7 @@ import hmpf.features as hfeatures
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import ImageError
 from hmpf.features import FeatureCache, extract_images, file_digest
-from hmpf.index import layout as L
+from hmpf.index import layout
 from hmpf.index.ann import (
     MetricSpec,
     build_faiss,
@@ -184,7 +184,7 @@ class WorkDir:
     """``INDEX/.build``: a resumable job's persisted progress."""
 
     def __init__(self, root: Path) -> None:
-        self.path = root / L.BUILD_DIR
+        self.path = root / layout.BUILD_DIR
 
     def start(self, job: dict[str, Any], resume: bool) -> bool:
         """Create or reuse the folder; True when a previous run of ``job`` is resumed."""
@@ -201,7 +201,7 @@ class WorkDir:
                 )
             shutil.rmtree(self.path)
         self.path.mkdir(parents=True)
-        L.write_json_atomic(job_file, job)
+        layout.write_json_atomic(job_file, job)
         return False
 
     @property
@@ -210,7 +210,7 @@ class WorkDir:
 
     @property
     def state(self) -> Path:
-        return self.path / L.STATE_H5
+        return self.path / layout.STATE_H5
 
     @property
     def out(self) -> Path:
@@ -271,12 +271,7 @@ def _fit(
         for mid, m in todo.items():
             m.load_state(states[mid])
         return paths
-    fit = getattr(hfeatures, "fit_methods", None)
-    if fit is None:
-        raise IndexBuildError(
-            f"methods {', '.join(todo)} need fitting, but this hmpf has no fit_methods"
-        )
-    _, paths = _skipping(lambda ps: fit(todo, ps), paths, strict, skipped)
+    _, paths = _skipping(lambda ps: hfeatures.fit_methods(todo, ps), paths, strict, skipped)
     write_state(work.state, todo)
     return paths
 
@@ -353,8 +348,8 @@ def _write_faiss(
             # An exact Flat index is the stored matrix itself: the reader builds it in memory
             # instead of keeping a second copy on disk.
             index, metric = _faiss_for(mid, matrix, metric, factory, params, parent, retrain)
-            (out / L.FAISS_DIR).mkdir(exist_ok=True)
-            entry["file"] = f"{L.FAISS_DIR}/{mid}.faiss"
+            (out / layout.FAISS_DIR).mkdir(exist_ok=True)
+            entry["file"] = f"{layout.FAISS_DIR}/{mid}.faiss"
             entry["metric"] = metric.to_json()
             faiss_module().write_index(index, str(out / entry["file"]))
         info[mid] = entry
@@ -416,15 +411,15 @@ def _write_version(
     if out.exists():
         shutil.rmtree(out)  # a partial write of an interrupted run: features are cached
     out.mkdir()
-    name = L.next_version_name(root)
+    name = layout.next_version_name(root)
     try:
         glob = {m: c for m, c in cols.items() if isinstance(c, np.ndarray)}
         loc = {m: c for m, c in cols.items() if isinstance(c, dict)}
-        sizes = write_references(out / L.REFERENCES_H5, refs, glob, methods, opt.precision)
+        sizes = write_references(out / layout.REFERENCES_H5, refs, glob, methods, opt.precision)
         if loc:
-            sizes.update(write_local(out / L.LOCAL_H5, loc, methods, opt.precision))
+            sizes.update(write_local(out / layout.LOCAL_H5, loc, methods, opt.precision))
         if any(m.state_arrays() for m in methods.values()):
-            write_state(out / L.STATE_H5, methods)
+            write_state(out / layout.STATE_H5, methods)
         faiss_info = _write_faiss(out, config, methods, cols, opt, parent, retrain)
         for mid, fi in faiss_info.items():
             if fi is not None and fi["file"]:
@@ -446,17 +441,17 @@ def _write_version(
         manifest = _manifest(name, operation, config, methods, refs, cols, opt, parent, faiss_info)
         manifest["summary"] = asdict(summary)
         manifest["files"] = {
-            str(p.relative_to(out)): {"sha256": L.sha256_file(p), "bytes": p.stat().st_size}
+            str(p.relative_to(out)): {"sha256": layout.sha256_file(p), "bytes": p.stat().st_size}
             for p in sorted(out.rglob("*"))
             if p.is_file()
         }
         summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
         manifest["summary"]["bytes_total"] = summary.bytes_total
-        (out / L.MANIFEST).write_text(json.dumps(manifest, indent=1))
-        L.fsync_tree(out)
+        (out / layout.MANIFEST).write_text(json.dumps(manifest, indent=1))
+        layout.fsync_tree(out)
         out.rename(root / name)
-        L.fsync_dir(root)
-        L.set_current(root, name)
+        layout.fsync_dir(root)
+        layout.set_current(root, name)
     except OSError as exc:
         if exc.errno == errno.ENOSPC:
             raise IndexBuildError(
@@ -506,20 +501,20 @@ def _manifest(
         method_info[mid] = entry
     sources = sorted(set(refs.sources))
     return {
-        "format_version": L.FORMAT_VERSION,
+        "format_version": layout.FORMAT_VERSION,
         "version": name,
         "parent": parent.version if parent is not None else None,
         "operation": operation,
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "config": {"name": config.name, "sha256": config.digest(), "resolved": config.model_dump()},
         "methods": method_info,
-        "packages": L.package_versions(),
+        "packages": layout.package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system(), "argv": sys.argv},
         "options": opt.identity(),
         "images": {
             "count": len(refs),
             "list_sha256": h.hexdigest(),
-            "table": f"{L.REFERENCES_H5}:/names,/sha256",
+            "table": f"{layout.REFERENCES_H5}:/names,/sha256",
             "sources": [{"folder": s, "count": refs.sources.count(s)} for s in sources],
             "metadata_columns": sorted(refs.meta),
         },
@@ -548,7 +543,7 @@ def build(
     _check_options(cfg, methods, opt)
     paths, refs = _read_inputs(images, metadata)
     root = Path(index)
-    with L.writer_lock(root):
+    with layout.writer_lock(root):
         refs.sha256 = _digests(paths)
         work = WorkDir(root)
         work.start(_job("build", cfg, refs, options=opt.identity()), resume)
@@ -600,7 +595,7 @@ def add(
     opt = options or BuildOptions()
     root = Path(index)
     paths, new = _read_inputs(images, metadata)
-    with L.writer_lock(root), IndexReader(root) as parent:
+    with layout.writer_lock(root), IndexReader(root) as parent:
         opt = opt.with_config(parent.config)
         _check_options(parent.config, parent.methods, opt)
         clash = sorted(set(new.names) & set(parent.refs.names))
@@ -686,7 +681,7 @@ def remove(
     t0 = time.perf_counter()
     opt = options or BuildOptions()
     root = Path(index)
-    with L.writer_lock(root), IndexReader(root) as parent:
+    with layout.writer_lock(root), IndexReader(root) as parent:
         present = set(parent.refs.names)
         missing = [n for n in names if n not in present]
         if missing:

@@ -18,11 +18,11 @@ import sys
 from collections.abc import Sequence
 
 from hmpf.errors import HmpfError
-from indexer import build as B
-from indexer import maintenance as M
+from indexer import maintenance
+from indexer.build import BuildOptions, add, build, remove
 
 
-def _pairs(values: Sequence[str] | None, flag: str) -> dict[str, str]:
+def _pairs(values: Sequence[str] | None) -> dict[str, str]:
     """``["IVF1024,Flat", "gist=HNSW32"]`` -> ``{"*": "IVF1024,Flat", "gist": "HNSW32"}``."""
     out = {}
     for v in values or []:
@@ -104,10 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _options(args: argparse.Namespace) -> B.BuildOptions:
-    return B.BuildOptions(
-        faiss=_pairs(args.faiss, "--faiss"),
-        faiss_params=_pairs(args.faiss_params, "--faiss-params"),
+def _options(args: argparse.Namespace) -> BuildOptions:
+    return BuildOptions(
+        faiss=_pairs(args.faiss),
+        faiss_params=_pairs(args.faiss_params),
         precision=args.precision,
         strict=args.strict,
         workers=args.workers,
@@ -116,7 +116,7 @@ def _options(args: argparse.Namespace) -> B.BuildOptions:
 
 
 def _print_info(args: argparse.Namespace) -> int:
-    data = M.info(args.index, args.version)
+    data = maintenance.info(args.index, args.version)
     if args.names:
         from hmpf.index.reader import IndexReader
 
@@ -146,7 +146,7 @@ def _print_info(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     cmd = args.command
     if cmd == "build":
-        summary = B.build(
+        summary = build(
             args.config,
             args.images,
             args.index,
@@ -155,7 +155,7 @@ def _run(args: argparse.Namespace) -> int:
             resume=args.resume,
         )
     elif cmd == "add":
-        summary = B.add(
+        summary = add(
             args.index,
             args.images,
             metadata=args.metadata,
@@ -164,9 +164,9 @@ def _run(args: argparse.Namespace) -> int:
             resume=args.resume,
         )
     elif cmd == "remove":
-        summary = B.remove(args.index, args.names)
+        summary = remove(args.index, args.names)
     elif cmd == "verify":
-        problems = M.verify(args.index, args.version)
+        problems = maintenance.verify(args.index, args.version)
         for line in problems:
             print(f"CORRUPT {line}")
         print("ok" if not problems else f"{len(problems)} problem(s)")
@@ -174,7 +174,7 @@ def _run(args: argparse.Namespace) -> int:
     elif cmd == "info":
         return _print_info(args)
     elif cmd == "list":
-        for v in M.list_versions(args.index):
+        for v in maintenance.list_versions(args.index):
             mark = "*" if v["current"] else " "
             print(
                 f"{mark} {v['version']}  {v.get('operation', '?'):<7} {v.get('images')} refs  "
@@ -182,7 +182,7 @@ def _run(args: argparse.Namespace) -> int:
             )
         return 0
     else:  # gc
-        for p in M.gc(args.index, args.keep, args.dry_run):
+        for p in maintenance.gc(args.index, args.keep, args.dry_run):
             print(("would delete " if args.dry_run else "deleted ") + p)
         return 0
     for line in summary.lines():
