@@ -3,8 +3,9 @@
     hmpf-index build --config configs/handcrafted.yaml --images refs/ --index maps/campus
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
-    hmpf-index verify --index maps/campus
-    hmpf-index info|list|gc --index maps/campus
+    hmpf-index verify|info --index maps/campus [--index-version v0002]
+    hmpf-index list|gc --index maps/campus
+    hmpf-index --version
 
 Exit status: 0 success, 1 ``verify`` found a problem, 2 bad input or a failed operation,
 130 interrupted (the current version is untouched; ``--resume`` continues).
@@ -16,10 +17,17 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-from hmpf.errors import HmpfError
-from indexer import maintenance
-from indexer.build import BuildOptions, add, build, remove
+# Only light modules at import time: the heavy ones (numpy, OpenCV, h5py, FAISS) load inside
+# ``run``, so Ctrl-C while they load is one line and exit 130 too, and --version is instant.
+from hmpf.cli.common import add_version, run
+
+if TYPE_CHECKING:
+    from indexer.build import BuildOptions
+
+PROG = "hmpf-index"
+INTERRUPTED = "interrupted; the current version is untouched (rerun with --resume to continue)"
 
 
 def _pairs(values: Sequence[str] | None) -> dict[str, str]:
@@ -60,7 +68,8 @@ def _add_write_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hmpf-index", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
+    add_version(p)
     sub = p.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("build", help="extract every image and publish a new version")
@@ -89,7 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("--index", required=True)
-        s.add_argument("--version", help="version name (default: current)")
+        s.add_argument(
+            "--index-version", metavar="NAME", help="index version, e.g. v0002 (default: current)"
+        )
         if name == "info":
             s.add_argument("--json", action="store_true", help="print JSON")
             s.add_argument("--names", action="store_true", help="also list reference names")
@@ -105,6 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _options(args: argparse.Namespace) -> BuildOptions:
+    from indexer.build import BuildOptions
+
     return BuildOptions(
         faiss=_pairs(args.faiss),
         faiss_params=_pairs(args.faiss_params),
@@ -116,11 +129,12 @@ def _options(args: argparse.Namespace) -> BuildOptions:
 
 
 def _print_info(args: argparse.Namespace) -> int:
-    data = maintenance.info(args.index, args.version)
-    if args.names:
-        from hmpf.index.reader import IndexReader
+    from hmpf.index.reader import IndexReader
+    from indexer import maintenance
 
-        with IndexReader(args.index, args.version) as reader:
+    data = maintenance.info(args.index, args.index_version)
+    if args.names:
+        with IndexReader(args.index, args.index_version) as reader:
             data["names"] = reader.refs.names
     if args.json:
         print(json.dumps(data, indent=1))
@@ -144,6 +158,9 @@ def _print_info(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from indexer import maintenance
+    from indexer.build import add, build, remove
+
     cmd = args.command
     if cmd == "build":
         summary = build(
@@ -166,7 +183,7 @@ def _run(args: argparse.Namespace) -> int:
     elif cmd == "remove":
         summary = remove(args.index, args.names)
     elif cmd == "verify":
-        problems = maintenance.verify(args.index, args.version)
+        problems = maintenance.verify(args.index, args.index_version)
         for line in problems:
             print(f"CORRUPT {line}")
         print("ok" if not problems else f"{len(problems)} problem(s)")
@@ -192,18 +209,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return _run(args)
-    except HmpfError as exc:
-        print(f"hmpf-index: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(
-            "hmpf-index: interrupted; the current version is untouched "
-            "(rerun with --resume to continue)",
-            file=sys.stderr,
-        )
-        return 130
+    return run(PROG, lambda: _run(args), interrupted=INTERRUPTED)
 
 
 if __name__ == "__main__":

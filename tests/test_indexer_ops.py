@@ -4,6 +4,8 @@ bad input (each rejected before any work), skipped images, fitted state, approxi
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 from typing import ClassVar
 
@@ -31,6 +33,7 @@ tiers:
   - {methods: [sad, kaze], k: 1}
 """
 OPTS = BuildOptions(workers=1, progress=False)
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -108,9 +111,36 @@ def test_build_add_remove_list_gc(tmp_path, config_file, capsys):
     assert "* v0003" in listing and "v0001" in listing
     assert _cli("info", "--index", index, "--json") == 0
     assert json.loads(capsys.readouterr().out)["images"]["count"] == 7
+    assert _cli("info", "--index", index, "--index-version", "v0001", "--json") == 0
+    assert json.loads(capsys.readouterr().out)["images"]["count"] == 6
+    assert _cli("verify", "--index", index, "--index-version", "v0002") == 0
+    assert capsys.readouterr().out.strip() == "ok"
     assert _cli("gc", "--index", index, "--keep", 1) == 0
     assert sorted(p.name for p in index.glob("v*")) == ["v0002", "v0003"]
     assert (index / "CURRENT").read_text().strip() == "v0003"
+
+
+def test_version_flag_and_index_version_do_not_collide(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("hmpf-index (hmpf ")
+    with pytest.raises(SystemExit) as exc:  # the old spelling is gone, not silently reused
+        main(["info", "--index", str(tmp_path), "--version", "v0001"])
+    assert exc.value.code == 2
+
+
+def test_cli_module_imports_no_heavy_modules():
+    """Ctrl-C while numpy/OpenCV/h5py/FAISS load must also end in one line and exit 130, so
+    they load inside ``run``; importing the CLI module (and ``--version``) stays instant."""
+    code = (
+        "import sys, indexer.cli; "
+        "print(sorted({'numpy', 'cv2', 'h5py', 'faiss', 'torch'} & set(sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.strip() == "[]"
 
 
 def test_verify_names_the_corrupt_file(tmp_path, config_file, capsys):
