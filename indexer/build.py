@@ -16,6 +16,7 @@ published version untouched.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -23,11 +24,11 @@ import platform
 import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -62,11 +63,9 @@ from hmpf.index.tables import (
     select_columns,
 )
 from hmpf.methods import Method
-from indexer.inputs import read_metadata, scan_images
+from indexer.inputs import read_metadata, scan_images, unreadable_images
 
 __all__ = ["BuildOptions", "Summary", "add", "build", "remove"]
-
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -237,75 +236,70 @@ def _job(operation: str, config: HierarchyConfig, refs: RefTable, **extra: Any) 
 
 
 # -- fitting and extraction ------------------------------------------------------------------
-def _skipping(
-    fn: Callable[[list[Path]], T], paths: list[Path], strict: bool, skipped: list[dict[str, str]]
-) -> tuple[T, list[Path]]:
-    """Run ``fn(paths)``, dropping each image that raises :class:`ImageError` and retrying."""
-    paths = list(paths)
-    while True:
-        try:
-            return fn(paths), paths
-        except ImageError as exc:
-            if strict:
-                raise IndexBuildError(f"{exc} (rerun without --strict to skip it)") from None
-            bad = [p for p in paths if str(p) == exc.source or p.name == Path(exc.source).name]
-            if not bad:
-                raise
-            skipped.append({"name": bad[0].name, "reason": exc.reason})
-            paths.remove(bad[0])
+def _readable(paths: list[Path], strict: bool) -> tuple[list[Path], list[dict[str, str]]]:
+    """The decodable images of ``paths`` and the skipped ones (name, reason), checked once
+    before any work (:func:`indexer.inputs.unreadable_images`).
+
+    Raises:
+        IndexBuildError: with ``strict``, naming every unreadable image.
+    """
+    bad = unreadable_images(paths)
+    if bad and strict:
+        them = "it" if len(bad) == 1 else f"these {len(bad)}"
+        raise IndexBuildError(
+            "; ".join(str(exc) for exc in bad.values())
+            + f" (rerun without --strict to skip {them})"
+        )
+    skipped = [{"name": p.name, "reason": exc.reason} for p, exc in bad.items()]
+    return [p for p in paths if p not in bad], skipped
 
 
-def _fit(
-    methods: Mapping[str, Method],
-    paths: list[Path],
-    work: WorkDir,
-    strict: bool,
-    skipped: list[dict[str, str]],
-) -> list[Path]:
+@contextlib.contextmanager
+def _images_stay_readable() -> Iterator[None]:
+    """An image that passed :func:`_readable` but fails later changed during the operation."""
+    try:
+        yield
+    except ImageError as exc:
+        raise IndexBuildError(
+            f"{exc}; it was readable when this operation started; rerun it"
+        ) from None
+
+
+def _fit(methods: Mapping[str, Method], paths: list[Path], work: WorkDir) -> None:
     """Fit the methods that need it (or reload the state a previous run saved)."""
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
     if not todo:
-        return paths
+        return
     if work.state.exists():
         states = read_state(work.state)
         for mid, m in todo.items():
             m.load_state(states[mid])
-        return paths
-    _, paths = _skipping(lambda ps: hfeatures.fit_methods(todo, ps), paths, strict, skipped)
+        return
+    with _images_stay_readable():
+        hfeatures.fit_methods(todo, paths)
     write_state(work.state, todo)
-    return paths
 
 
 def _extract(
-    paths: list[Path],
-    methods: Mapping[str, Method],
-    work: WorkDir,
-    opt: BuildOptions,
-    skipped: list[dict[str, str]],
-) -> tuple[dict[str, list[Any]], list[Path], int]:
-    """Features of every readable image (finished images persist in ``work``).
+    paths: list[Path], methods: Mapping[str, Method], work: WorkDir, opt: BuildOptions
+) -> tuple[dict[str, list[Any]], int]:
+    """Features of every image (finished images persist in ``work``).
 
     Returns:
-        features per method id, the images kept, and how many were already done.
+        features per method id, and how many images were already done.
     """
     if not methods:
-        return {}, paths, 0
-    done = [0]
-
-    def run(ps: list[Path]) -> dict[str, list[Any]]:
+        return {}, 0
+    with _images_stay_readable():
         res = extract_images(
-            ps,
+            paths,
             methods,
             cache=work.cache,
             workers=opt.workers,
             progress=opt.progress,
             desc="extract",
         )
-        done[0] = max(done[0], min(res.cached.values()))
-        return res.features
-
-    feats, kept = _skipping(run, paths, opt.strict, skipped)
-    return feats, kept, done[0]
+    return res.features, min(res.cached.values())
 
 
 # -- writing -----------------------------------------------------------------------------------
@@ -545,11 +539,11 @@ def build(
     root = Path(index)
     with layout.writer_lock(root):
         refs.sha256 = _digests(paths)
+        paths, skipped = _readable(paths, opt.strict)
         work = WorkDir(root)
         work.start(_job("build", cfg, refs, options=opt.identity()), resume)
-        skipped: list[dict[str, str]] = []
-        paths = _fit(methods, paths, work, opt.strict, skipped)
-        feats, paths, resumed = _extract(paths, methods, work, opt, skipped)
+        _fit(methods, paths, work)
+        feats, resumed = _extract(paths, methods, work, opt)
         keep = _kept(refs, paths)
         refs = refs.select(keep)
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
@@ -605,18 +599,18 @@ def add(
                 "remove them first (hmpf-index remove) or rename them"
             )
         new.sha256 = _digests(paths)
+        paths, skipped = _readable(paths, opt.strict)
         work = WorkDir(root)
         job = _job(
             "add", parent.config, new, parent=parent.version, refit=refit, options=opt.identity()
         )
         work.start(job, resume)
-        skipped: list[dict[str, str]] = []
         methods = parent.methods
         refit_ids: list[str] = []
         if refit:
-            methods, refit_ids = _refit(parent, paths, work, opt.strict, skipped)
+            methods, refit_ids = _refit(parent, paths, work)
         reuse = {mid: m for mid, m in methods.items() if mid not in refit_ids}
-        feats, paths, resumed = _extract(paths, reuse, work, opt, skipped)
+        feats, resumed = _extract(paths, reuse, work, opt)
         new = new.select(_kept(new, paths))
         cols = {
             mid: concat_columns(parent.columns(mid), columns_from_features(m, feats[mid]))
@@ -626,7 +620,7 @@ def add(
         if refit_ids:
             all_paths = [Path(s) / n for s, n in zip(refs.sources, refs.names, strict=True)]
             fresh = {mid: methods[mid] for mid in refit_ids}
-            feats_all, _, _ = _extract(all_paths, fresh, work, opt, [])
+            feats_all, _ = _extract(all_paths, fresh, work, opt)
             cols.update({mid: columns_from_features(fresh[mid], feats_all[mid]) for mid in fresh})
         return _write_version(
             root,
@@ -647,11 +641,7 @@ def add(
 
 
 def _refit(
-    parent: IndexReader,
-    new_paths: list[Path],
-    work: WorkDir,
-    strict: bool,
-    skipped: list[dict[str, str]],
+    parent: IndexReader, new_paths: list[Path], work: WorkDir
 ) -> tuple[dict[str, Method], list[str]]:
     """Refit fitted methods on the old (from their folders, unchanged) and new images."""
     methods = build_methods(parent.config)
@@ -664,7 +654,7 @@ def _refit(
                 f"--refit re-extracts every reference, but {p} is missing or changed since "
                 "it was indexed; restore it, or add without --refit"
             )
-    _fit(methods, old_paths + new_paths, work, strict, skipped)
+    _fit(methods, old_paths + new_paths, work)
     ids = [
         mid for mid, m in methods.items() if m.state_digest() != parent.methods[mid].state_digest()
     ]

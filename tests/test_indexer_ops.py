@@ -16,13 +16,16 @@ import pytest
 from conftest import synthetic_image
 
 import hmpf.features
+import indexer.build
 from hmpf.config import parse_config
-from hmpf.errors import DatasetError
+from hmpf.errors import DatasetError, ImageError
+from hmpf.imageio import load_image
 from hmpf.index import IndexBuildError, IndexReader
 from hmpf.methods import GlobalMethod, MethodConfig, register
 from hmpf.methods.base import euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
+from indexer.inputs import unreadable_images
 
 CONFIG = """
 name: ops-test
@@ -219,6 +222,56 @@ def test_unreadable_image_skipped_or_strict(tmp_path, config_file):
     with pytest.raises(IndexBuildError, match="broken.jpg.*--strict"):
         build(config_file, a, tmp_path / "i2", options=BuildOptions(workers=1, strict=True))
     assert not (tmp_path / "i2" / "CURRENT").exists()
+
+
+def _broken_images(folder: Path) -> dict[str, str]:
+    """Three kinds of unreadable file next to readable ones; name -> load_image's reason."""
+    good = cv2.imencode(".jpg", synthetic_image(7))[1].tobytes()
+    (folder / "b_garbage.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    (folder / "c_truncated.jpg").write_bytes(good[: len(good) // 2])
+    (folder / "d_empty.png").write_bytes(b"")
+    cv2.imwrite(str(folder / "e_one_pixel.png"), np.zeros((1, 1, 3), np.uint8))
+    cv2.imwrite(str(folder / "f_tiny_ok.png"), np.full((2, 3, 3), 200, np.uint8))
+    reasons = {}
+    for p in sorted(folder.iterdir()):
+        try:
+            load_image(p)
+        except ImageError as exc:
+            reasons[p.name] = exc.reason
+    assert len(reasons) == 4
+    return reasons
+
+
+def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
+    folder = _write(tmp_path / "a", 2)
+    reasons = _broken_images(folder)
+    bad = unreadable_images(sorted(folder.iterdir()))
+    assert {p.name: exc.reason for p, exc in bad.items()} == reasons
+    assert all(str(p) == exc.source for p, exc in bad.items())
+
+
+def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):
+    """The unreadable images are found before extraction: one pass over the readable ones
+    (not one restarted pass per unreadable image), and --strict names every one."""
+    folder = _write(tmp_path / "a", 3)
+    reasons = _broken_images(folder)
+    calls = []
+    real = indexer.build.extract_images
+
+    def counting(paths, *args, **kwargs):
+        calls.append([Path(p).name for p in paths])
+        return real(paths, *args, **kwargs)
+
+    monkeypatch.setattr(indexer.build, "extract_images", counting)
+    s = build(config_file, folder, tmp_path / "index", options=OPTS)
+    assert s.skipped == [{"name": n, "reason": r} for n, r in reasons.items()]
+    assert calls == [["f_tiny_ok.png", "img000.png", "img001.png", "img002.png"]]
+    assert s.images == 4 and s.resumed == 0
+    with pytest.raises(IndexBuildError) as exc:
+        build(config_file, folder, tmp_path / "i2", options=BuildOptions(workers=1, strict=True))
+    assert all(name in str(exc.value) for name in reasons)
+    assert "rerun without --strict to skip these 4" in str(exc.value)
+    assert len(calls) == 1 and not (tmp_path / "i2" / ".build").exists()
 
 
 def test_add_rejects_known_names(tmp_path, config_file):
