@@ -259,12 +259,13 @@ def _readable(paths: list[Path], strict: bool) -> tuple[list[Path], list[dict[st
 
 @contextlib.contextmanager
 def _images_stay_readable() -> Iterator[None]:
-    """An image that passed :func:`_readable` but fails later changed during the operation."""
+    """An image that passed :func:`_readable` but fails later: an error naming it, no retry."""
     try:
         yield
     except ImageError as exc:
         raise IndexBuildError(
-            f"{exc}; it was readable when this operation started; rerun it"
+            f"{exc}, after it passed the check before extraction (was it changed meanwhile?); "
+            "rerun, or move it out of the folder"
         ) from None
 
 

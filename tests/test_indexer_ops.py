@@ -274,6 +274,15 @@ def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file,
     assert len(calls) == 1 and not (tmp_path / "i2" / ".build").exists()
 
 
+def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_file, monkeypatch):
+    folder = _write(tmp_path / "a", 2)
+    (folder / "late.jpg").write_bytes(b"\xff\xd8 broken only after the check")
+    monkeypatch.setattr(indexer.build, "unreadable_images", lambda paths: {})
+    with pytest.raises(IndexBuildError, match="late.jpg.*passed the check before extraction"):
+        build(config_file, folder, tmp_path / "index", options=OPTS)
+    assert not (tmp_path / "index" / "CURRENT").exists()
+
+
 def test_add_rejects_known_names(tmp_path, config_file):
     a = _write(tmp_path / "a", 2)
     build(config_file, a, tmp_path / "index", options=OPTS)
