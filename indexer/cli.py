@@ -67,6 +67,13 @@ def _add_write_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+class _RenamedFlag(argparse.Action):
+    """``info|verify --version NAME`` (before ``--version`` printed the program's version)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        parser.error("--version NAME is now --index-version NAME")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
     add_version(p)
@@ -101,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument(
             "--index-version", metavar="NAME", help="index version, e.g. v0002 (default: current)"
         )
+        s.add_argument("--version", nargs="?", action=_RenamedFlag, help=argparse.SUPPRESS)
         if name == "info":
             s.add_argument("--json", action="store_true", help="print JSON")
             s.add_argument("--names", action="store_true", help="also list reference names")

@@ -131,6 +131,7 @@ def test_version_flag_and_index_version_do_not_collide(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:  # the old spelling is gone, not silently reused
         main(["info", "--index", str(tmp_path), "--version", "v0001"])
     assert exc.value.code == 2
+    assert "--version NAME is now --index-version NAME" in capsys.readouterr().err
 
 
 def test_cli_module_imports_no_heavy_modules():
