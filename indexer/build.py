@@ -1,6 +1,8 @@
 """``build``, ``add`` and ``remove``: each writes a new immutable version and publishes it.
 
-Every operation runs under the index's writer lock and works in ``INDEX/.build/``:
+Every operation is a :class:`VersionTransaction`: it holds the index's writer lock, works in
+``INDEX/.build/`` and ends by publishing a :class:`NewVersion` (data files, manifest with
+checksums, fsync, rename, ``CURRENT``). The work folder holds:
 
 * ``job.json``   what the operation is (config hash, images and their sha256, options), so
   that ``--resume`` continues only the same job;
@@ -16,6 +18,7 @@ published version untouched.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -23,11 +26,11 @@ import platform
 import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +38,7 @@ import hmpf.features as hfeatures
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import ImageError
 from hmpf.features import FeatureCache, extract_images, file_digest
-from hmpf.index import layout as L
+from hmpf.index import layout
 from hmpf.index.ann import (
     MetricSpec,
     build_faiss,
@@ -62,11 +65,9 @@ from hmpf.index.tables import (
     select_columns,
 )
 from hmpf.methods import Method
-from indexer.inputs import read_metadata, scan_images
+from indexer.inputs import read_metadata, scan_images, unreadable_images
 
-__all__ = ["BuildOptions", "Summary", "add", "build", "remove"]
-
-T = TypeVar("T")
+__all__ = ["BuildOptions", "NewVersion", "Summary", "VersionTransaction", "add", "build", "remove"]
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,7 @@ class WorkDir:
     """``INDEX/.build``: a resumable job's persisted progress."""
 
     def __init__(self, root: Path) -> None:
-        self.path = root / L.BUILD_DIR
+        self.path = root / layout.BUILD_DIR
 
     def start(self, job: dict[str, Any], resume: bool) -> bool:
         """Create or reuse the folder; True when a previous run of ``job`` is resumed."""
@@ -201,7 +202,7 @@ class WorkDir:
                 )
             shutil.rmtree(self.path)
         self.path.mkdir(parents=True)
-        L.write_json_atomic(job_file, job)
+        layout.write_json_atomic(job_file, job)
         return False
 
     @property
@@ -210,7 +211,7 @@ class WorkDir:
 
     @property
     def state(self) -> Path:
-        return self.path / L.STATE_H5
+        return self.path / layout.STATE_H5
 
     @property
     def out(self) -> Path:
@@ -227,90 +228,82 @@ def _read_json(path: Path) -> Any:
         return None
 
 
-def _job(operation: str, config: HierarchyConfig, refs: RefTable, **extra: Any) -> dict[str, Any]:
-    h = hashlib.sha256()
-    for n, s in zip(refs.names, refs.sha256, strict=True):
-        h.update(f"{n}\t{s}\n".encode())
+def _job_identity(
+    operation: str, config: HierarchyConfig, refs: RefTable, **extra: Any
+) -> dict[str, Any]:
+    """What makes a resumable job the same job (``job.json``): operation, config, inputs."""
+    h = _names_digest(refs)
     for k in sorted(refs.meta):
         h.update(k.encode() + np.asarray(refs.meta[k]).astype(str).tobytes())
     return {"operation": operation, "config": config.digest(), "images": h.hexdigest(), **extra}
 
 
 # -- fitting and extraction ------------------------------------------------------------------
-def _skipping(
-    fn: Callable[[list[Path]], T], paths: list[Path], strict: bool, skipped: list[dict[str, str]]
-) -> tuple[T, list[Path]]:
-    """Run ``fn(paths)``, dropping each image that raises :class:`ImageError` and retrying."""
-    paths = list(paths)
-    while True:
-        try:
-            return fn(paths), paths
-        except ImageError as exc:
-            if strict:
-                raise IndexBuildError(f"{exc} (rerun without --strict to skip it)") from None
-            bad = [p for p in paths if str(p) == exc.source or p.name == Path(exc.source).name]
-            if not bad:
-                raise
-            skipped.append({"name": bad[0].name, "reason": exc.reason})
-            paths.remove(bad[0])
+def _readable(paths: list[Path], strict: bool) -> tuple[list[Path], list[dict[str, str]]]:
+    """The decodable images of ``paths`` and the skipped ones (name, reason), checked once
+    before any work (:func:`indexer.inputs.unreadable_images`).
+
+    Raises:
+        IndexBuildError: with ``strict``, naming every unreadable image.
+    """
+    bad = unreadable_images(paths)
+    if bad and strict:
+        them = "it" if len(bad) == 1 else f"these {len(bad)}"
+        raise IndexBuildError(
+            "; ".join(str(exc) for exc in bad.values())
+            + f" (rerun without --strict to skip {them})"
+        )
+    skipped = [{"name": p.name, "reason": exc.reason} for p, exc in bad.items()]
+    return [p for p in paths if p not in bad], skipped
 
 
-def _fit(
-    methods: Mapping[str, Method],
-    paths: list[Path],
-    work: WorkDir,
-    strict: bool,
-    skipped: list[dict[str, str]],
-) -> list[Path]:
+@contextlib.contextmanager
+def _images_stay_readable() -> Iterator[None]:
+    """An image that passed :func:`_readable` but fails later: an error naming it, no retry."""
+    try:
+        yield
+    except ImageError as exc:
+        raise IndexBuildError(
+            f"{exc}, after it passed the check before extraction (was it changed meanwhile?); "
+            "rerun, or move it out of the folder"
+        ) from None
+
+
+def _fit(methods: Mapping[str, Method], paths: list[Path], work: WorkDir) -> None:
     """Fit the methods that need it (or reload the state a previous run saved)."""
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
     if not todo:
-        return paths
+        return
     if work.state.exists():
         states = read_state(work.state)
         for mid, m in todo.items():
             m.load_state(states[mid])
-        return paths
-    fit = getattr(hfeatures, "fit_methods", None)
-    if fit is None:
-        raise IndexBuildError(
-            f"methods {', '.join(todo)} need fitting, but this hmpf has no fit_methods"
-        )
-    _, paths = _skipping(lambda ps: fit(todo, ps), paths, strict, skipped)
+        return
+    with _images_stay_readable():
+        hfeatures.fit_methods(todo, paths)
     write_state(work.state, todo)
-    return paths
 
 
 def _extract(
-    paths: list[Path],
-    methods: Mapping[str, Method],
-    work: WorkDir,
-    opt: BuildOptions,
-    skipped: list[dict[str, str]],
-) -> tuple[dict[str, list[Any]], list[Path], int]:
-    """Features of every readable image (finished images persist in ``work``).
+    paths: list[Path], methods: Mapping[str, Method], work: WorkDir, opt: BuildOptions
+) -> tuple[dict[str, list[Any]], int]:
+    """Features of every image (finished images persist in ``work``).
 
     Returns:
-        features per method id, the images kept, and how many were already done.
+        features per method id, and how many images were already done.
     """
     if not methods:
-        return {}, paths, 0
-    done = [0]
-
-    def run(ps: list[Path]) -> dict[str, list[Any]]:
+        return {}, 0
+    with _images_stay_readable():
         res = extract_images(
-            ps,
+            paths,
             methods,
             cache=work.cache,
             workers=opt.workers,
             progress=opt.progress,
             desc="extract",
         )
-        done[0] = max(done[0], min(res.cached.values()))
-        return res.features
-
-    feats, kept = _skipping(run, paths, opt.strict, skipped)
-    return feats, kept, done[0]
+    return res.features, min(res.cached.values())
 
 
 # -- writing -----------------------------------------------------------------------------------
@@ -353,8 +346,8 @@ def _write_faiss(
             # An exact Flat index is the stored matrix itself: the reader builds it in memory
             # instead of keeping a second copy on disk.
             index, metric = _faiss_for(mid, matrix, metric, factory, params, parent, retrain)
-            (out / L.FAISS_DIR).mkdir(exist_ok=True)
-            entry["file"] = f"{L.FAISS_DIR}/{mid}.faiss"
+            (out / layout.FAISS_DIR).mkdir(exist_ok=True)
+            entry["file"] = f"{layout.FAISS_DIR}/{mid}.faiss"
             entry["metric"] = metric.to_json()
             faiss_module().write_index(index, str(out / entry["file"]))
         info[mid] = entry
@@ -392,137 +385,212 @@ def _faiss_for(
     return build_faiss(matrix, metric, factory, params)
 
 
-def _write_version(
-    root: Path,
-    work: WorkDir,
-    *,
-    operation: str,
-    config: HierarchyConfig,
-    methods: Mapping[str, Method],
-    refs: RefTable,
-    cols: Mapping[str, Columns],
-    opt: BuildOptions,
-    parent: IndexReader | None,
-    retrain: bool,
-    skipped: list[dict[str, str]],
-    extracted: int,
-    resumed: int,
-    t0: float,
-) -> Summary:
-    """Write ``work.out``, fsync it, rename it to the next version and switch CURRENT."""
-    if len(refs) == 0:
-        raise IndexBuildError("no readable reference image left; nothing to index")
-    out = work.out
-    if out.exists():
-        shutil.rmtree(out)  # a partial write of an interrupted run: features are cached
-    out.mkdir()
-    name = L.next_version_name(root)
-    try:
-        glob = {m: c for m, c in cols.items() if isinstance(c, np.ndarray)}
-        loc = {m: c for m, c in cols.items() if isinstance(c, dict)}
-        sizes = write_references(out / L.REFERENCES_H5, refs, glob, methods, opt.precision)
-        if loc:
-            sizes.update(write_local(out / L.LOCAL_H5, loc, methods, opt.precision))
-        if any(m.state_arrays() for m in methods.values()):
-            write_state(out / L.STATE_H5, methods)
-        faiss_info = _write_faiss(out, config, methods, cols, opt, parent, retrain)
-        for mid, fi in faiss_info.items():
-            if fi is not None and fi["file"]:
-                sizes[mid] += (out / fi["file"]).stat().st_size
-        seconds = time.perf_counter() - t0
-        summary = Summary(
-            version=name,
-            operation=operation,
-            images=len(refs),
-            extracted=extracted,
-            reused=len(refs) - extracted,
-            skipped=skipped,
-            resumed=resumed,
-            seconds=seconds,
-            images_per_s=(extracted or len(refs)) / max(seconds, 1e-9),
-            bytes_total=0,
-            bytes_per_method=sizes,
-        )
-        manifest = _manifest(name, operation, config, methods, refs, cols, opt, parent, faiss_info)
-        manifest["summary"] = asdict(summary)
-        manifest["files"] = {
-            str(p.relative_to(out)): {"sha256": L.sha256_file(p), "bytes": p.stat().st_size}
-            for p in sorted(out.rglob("*"))
-            if p.is_file()
-        }
-        summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
-        manifest["summary"]["bytes_total"] = summary.bytes_total
-        (out / L.MANIFEST).write_text(json.dumps(manifest, indent=1))
-        L.fsync_tree(out)
-        out.rename(root / name)
-        L.fsync_dir(root)
-        L.set_current(root, name)
-    except OSError as exc:
-        if exc.errno == errno.ENOSPC:
-            raise IndexBuildError(
-                f"disk full while writing {out}; free space, then rerun with --resume "
-                "(finished images are kept; the current version is untouched)"
-            ) from None
-        raise
-    work.discard()
-    return summary
+@dataclass
+class NewVersion:
+    """The contents of a version about to be published, and what made them.
+
+    Attributes:
+        config: the hierarchy the methods come from.
+        methods: method id -> instance (fitted where needed).
+        refs: the references, in row order.
+        cols: method id -> its columns (:mod:`hmpf.index.tables`), rows aligned with ``refs``.
+        options: how to store them (precision, FAISS factories and parameters).
+        parent: the version this one derives from (``add``, ``remove``), else None.
+        retrain: train approximate FAISS indexes anew instead of refilling the parent's.
+    """
+
+    config: HierarchyConfig
+    methods: Mapping[str, Method]
+    refs: RefTable
+    cols: Mapping[str, Columns]
+    options: BuildOptions
+    parent: IndexReader | None = None
+    retrain: bool = True
+
+
+class VersionTransaction:
+    """Writing one new version of the index at ``root``, from start to atomic publish.
+
+    ::
+
+        tx = VersionTransaction(root, "build")     # the clock starts (Summary.seconds)
+        with tx:                                   # the index's writer lock
+            tx.begin(job, resume)                  # INDEX/.build (job.json, features/)
+            ...                                    # fit and extract into tx.work
+            summary = tx.publish(NewVersion(...), extracted=n)
+
+    An exception before :meth:`publish` returns leaves ``CURRENT`` and every published
+    version untouched, and ``.build`` in place for ``--resume``.
+    """
+
+    def __init__(self, root: Path, operation: str) -> None:
+        self.root = root
+        self.operation = operation
+        self.work = WorkDir(root)
+        self._started = time.perf_counter()
+        self._lock = contextlib.ExitStack()
+
+    def __enter__(self) -> VersionTransaction:
+        self._lock.enter_context(layout.writer_lock(self.root))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.close()
+
+    def begin(self, job: dict[str, Any], resume: bool = False) -> bool:
+        """Create the work folder for ``job`` (see :meth:`WorkDir.start`)."""
+        return self.work.start(job, resume)
+
+    def publish(
+        self,
+        new: NewVersion,
+        *,
+        extracted: int,
+        resumed: int = 0,
+        skipped: Sequence[dict[str, str]] = (),
+    ) -> Summary:
+        """Write ``new`` into ``.build/out``, fsync it, rename it to the next version name,
+        switch ``CURRENT`` to it and delete ``.build``.
+
+        Args:
+            extracted: references whose features this operation computed (the rest reused).
+            resumed: of those, how many a previous, interrupted run had finished.
+            skipped: unreadable images left out, ``{"name", "reason"}`` each.
+        """
+        if len(new.refs) == 0:
+            raise IndexBuildError("no readable reference image left; nothing to index")
+        out = self.work.out
+        if out.exists():
+            shutil.rmtree(out)  # a partial write of an interrupted run: features are cached
+        out.mkdir()
+        name = layout.next_version_name(self.root)
+        try:
+            sizes, faiss_info = _write_data(out, new)
+            seconds = time.perf_counter() - self._started
+            summary = Summary(
+                version=name,
+                operation=self.operation,
+                images=len(new.refs),
+                extracted=extracted,
+                reused=len(new.refs) - extracted,
+                skipped=list(skipped),
+                resumed=resumed,
+                seconds=seconds,
+                images_per_s=(extracted or len(new.refs)) / max(seconds, 1e-9),
+                bytes_total=0,
+                bytes_per_method=sizes,
+            )
+            manifest = _manifest(name, self.operation, new, faiss_info)
+            manifest["summary"] = asdict(summary)
+            manifest["files"] = _file_entries(out)
+            summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
+            manifest["summary"]["bytes_total"] = summary.bytes_total
+            (out / layout.MANIFEST).write_text(json.dumps(manifest, indent=1))
+            layout.fsync_tree(out)
+            out.rename(self.root / name)
+            layout.fsync_dir(self.root)
+            layout.set_current(self.root, name)
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:
+                raise IndexBuildError(
+                    f"disk full while writing {out}; free space, then rerun with --resume "
+                    "(finished images are kept; the current version is untouched)"
+                ) from None
+            raise
+        self.work.discard()
+        return summary
+
+
+def _write_data(
+    out: Path, new: NewVersion
+) -> tuple[dict[str, int], dict[str, dict[str, Any] | None]]:
+    """The HDF5 and FAISS files of ``new``; returns bytes per method and the FAISS entries."""
+    opt = new.options
+    glob = {m: c for m, c in new.cols.items() if isinstance(c, np.ndarray)}
+    loc = {m: c for m, c in new.cols.items() if isinstance(c, dict)}
+    sizes = write_references(out / layout.REFERENCES_H5, new.refs, glob, new.methods, opt.precision)
+    if loc:
+        sizes.update(write_local(out / layout.LOCAL_H5, loc, new.methods, opt.precision))
+    if any(m.state_arrays() for m in new.methods.values()):
+        write_state(out / layout.STATE_H5, new.methods)
+    faiss_info = _write_faiss(out, new.config, new.methods, new.cols, opt, new.parent, new.retrain)
+    for mid, fi in faiss_info.items():
+        if fi is not None and fi["file"]:
+            sizes[mid] += (out / fi["file"]).stat().st_size
+    return sizes, faiss_info
+
+
+# -- the manifest ------------------------------------------------------------------------------
+def _names_digest(refs: RefTable) -> hashlib._Hash:
+    """sha256 over every reference's ``name<TAB>sha256`` line, in order (to be finished)."""
+    h = hashlib.sha256()
+    for n, s in zip(refs.names, refs.sha256, strict=True):
+        h.update(f"{n}\t{s}\n".encode())
+    return h
 
 
 def _manifest(
     name: str,
     operation: str,
-    config: HierarchyConfig,
-    methods: Mapping[str, Method],
-    refs: RefTable,
-    cols: Mapping[str, Columns],
-    opt: BuildOptions,
-    parent: IndexReader | None,
+    new: NewVersion,
     faiss_info: Mapping[str, dict[str, Any] | None],
 ) -> dict[str, Any]:
-    h = hashlib.sha256()
-    for n, s in zip(refs.names, refs.sha256, strict=True):
-        h.update(f"{n}\t{s}\n".encode())
-    method_info = {}
-    for mid, m in methods.items():
-        c = cols[mid]
-        entry: dict[str, Any] = {
-            "type": type(m).name,
-            "kind": m.kind,
-            "version": type(m).version,
-            "params": m.config.model_dump(mode="json"),
-            "cache_key": m.cache_key(),
-            "higher_is_better": m.higher_is_better,
-            "state_sha256": m.state_digest(),
-            "faiss": faiss_info.get(mid),
-        }
-        if isinstance(c, np.ndarray):
-            entry["dim"] = int(c.shape[1])
-            entry["dtype"] = c.dtype.str
-        else:
-            entry["arrays"] = {
-                k: {"dtype": r.data.dtype.str, "item_shape": list(r.data.shape[1:])}
-                for k, r in c.items()
-            }
-        method_info[mid] = entry
+    """``manifest.json`` of version ``name`` without ``summary`` and ``files`` (added last)."""
+    refs, config = new.refs, new.config
     sources = sorted(set(refs.sources))
     return {
-        "format_version": L.FORMAT_VERSION,
+        "format_version": layout.FORMAT_VERSION,
         "version": name,
-        "parent": parent.version if parent is not None else None,
+        "parent": new.parent.version if new.parent is not None else None,
         "operation": operation,
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "config": {"name": config.name, "sha256": config.digest(), "resolved": config.model_dump()},
-        "methods": method_info,
-        "packages": L.package_versions(),
+        "methods": {
+            mid: _method_entry(m, new.cols[mid], faiss_info.get(mid))
+            for mid, m in new.methods.items()
+        },
+        "packages": layout.package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system(), "argv": sys.argv},
-        "options": opt.identity(),
+        "options": new.options.identity(),
         "images": {
             "count": len(refs),
-            "list_sha256": h.hexdigest(),
-            "table": f"{L.REFERENCES_H5}:/names,/sha256",
+            "list_sha256": _names_digest(refs).hexdigest(),
+            "table": f"{layout.REFERENCES_H5}:/names,/sha256",
             "sources": [{"folder": s, "count": refs.sources.count(s)} for s in sources],
             "metadata_columns": sorted(refs.meta),
         },
+    }
+
+
+def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dict[str, Any]:
+    """A method's manifest entry: type, version, parameters, state hash, FAISS, shapes."""
+    entry: dict[str, Any] = {
+        "type": type(m).name,
+        "kind": m.kind,
+        "version": type(m).version,
+        "params": m.config.model_dump(mode="json"),
+        "cache_key": m.cache_key(),
+        "higher_is_better": m.higher_is_better,
+        "state_sha256": m.state_digest(),
+        "faiss": faiss,
+    }
+    if isinstance(cols, np.ndarray):
+        entry["dim"] = int(cols.shape[1])
+        entry["dtype"] = cols.dtype.str
+    else:
+        entry["arrays"] = {
+            k: {"dtype": r.data.dtype.str, "item_shape": list(r.data.shape[1:])}
+            for k, r in cols.items()
+        }
+    return entry
+
+
+def _file_entries(out: Path) -> dict[str, dict[str, Any]]:
+    """``files`` of the manifest: every file under ``out`` -> its sha256 and size."""
+    return {
+        str(p.relative_to(out)): {"sha256": layout.sha256_file(p), "bytes": p.stat().st_size}
+        for p in sorted(out.rglob("*"))
+        if p.is_file()
     }
 
 
@@ -541,39 +609,22 @@ def build(
     Raises:
         ConfigError, DatasetError, IndexBuildError: bad input, before any extraction.
     """
-    t0 = time.perf_counter()
+    tx = VersionTransaction(Path(index), "build")
     cfg = _load_config(config)
     opt = (options or BuildOptions()).with_config(cfg)
     methods = build_methods(cfg)
     _check_options(cfg, methods, opt)
     paths, refs = _read_inputs(images, metadata)
-    root = Path(index)
-    with L.writer_lock(root):
+    with tx:
         refs.sha256 = _digests(paths)
-        work = WorkDir(root)
-        work.start(_job("build", cfg, refs, options=opt.identity()), resume)
-        skipped: list[dict[str, str]] = []
-        paths = _fit(methods, paths, work, opt.strict, skipped)
-        feats, paths, resumed = _extract(paths, methods, work, opt, skipped)
-        keep = _kept(refs, paths)
-        refs = refs.select(keep)
+        paths, skipped = _readable(paths, opt.strict)
+        tx.begin(_job_identity("build", cfg, refs, options=opt.identity()), resume)
+        _fit(methods, paths, tx.work)
+        feats, resumed = _extract(paths, methods, tx.work, opt)
+        refs = refs.select(_kept(refs, paths))
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
-        return _write_version(
-            root,
-            work,
-            operation="build",
-            config=cfg,
-            methods=methods,
-            refs=refs,
-            cols=cols,
-            opt=opt,
-            parent=None,
-            retrain=True,
-            skipped=skipped,
-            extracted=len(refs),
-            resumed=resumed,
-            t0=t0,
-        )
+        new = NewVersion(cfg, methods, refs, cols, opt)
+        return tx.publish(new, extracted=len(refs), resumed=resumed, skipped=skipped)
 
 
 def _kept(refs: RefTable, paths: Sequence[Path]) -> np.ndarray:
@@ -596,12 +647,10 @@ def add(
     fitted parameters are refitted on old + new images, which then must still be readable
     where they were indexed from (unchanged), and those methods are re-extracted for all.
     """
-    t0 = time.perf_counter()
-    opt = options or BuildOptions()
-    root = Path(index)
+    tx = VersionTransaction(Path(index), "add")
     paths, new = _read_inputs(images, metadata)
-    with L.writer_lock(root), IndexReader(root) as parent:
-        opt = opt.with_config(parent.config)
+    with tx, IndexReader(tx.root) as parent:
+        opt = (options or BuildOptions()).with_config(parent.config)
         _check_options(parent.config, parent.methods, opt)
         clash = sorted(set(new.names) & set(parent.refs.names))
         if clash:
@@ -610,18 +659,17 @@ def add(
                 "remove them first (hmpf-index remove) or rename them"
             )
         new.sha256 = _digests(paths)
-        work = WorkDir(root)
-        job = _job(
+        paths, skipped = _readable(paths, opt.strict)
+        job = _job_identity(
             "add", parent.config, new, parent=parent.version, refit=refit, options=opt.identity()
         )
-        work.start(job, resume)
-        skipped: list[dict[str, str]] = []
+        tx.begin(job, resume)
         methods = parent.methods
         refit_ids: list[str] = []
         if refit:
-            methods, refit_ids = _refit(parent, paths, work, opt.strict, skipped)
+            methods, refit_ids = _refit(parent, paths, tx.work)
         reuse = {mid: m for mid, m in methods.items() if mid not in refit_ids}
-        feats, paths, resumed = _extract(paths, reuse, work, opt, skipped)
+        feats, resumed = _extract(paths, reuse, tx.work, opt)
         new = new.select(_kept(new, paths))
         cols = {
             mid: concat_columns(parent.columns(mid), columns_from_features(m, feats[mid]))
@@ -631,32 +679,14 @@ def add(
         if refit_ids:
             all_paths = [Path(s) / n for s, n in zip(refs.sources, refs.names, strict=True)]
             fresh = {mid: methods[mid] for mid in refit_ids}
-            feats_all, _, _ = _extract(all_paths, fresh, work, opt, [])
+            feats_all, _ = _extract(all_paths, fresh, tx.work, opt)
             cols.update({mid: columns_from_features(fresh[mid], feats_all[mid]) for mid in fresh})
-        return _write_version(
-            root,
-            work,
-            operation="add",
-            config=parent.config,
-            methods=methods,
-            refs=refs,
-            cols=cols,
-            opt=opt,
-            parent=parent,
-            retrain=refit,
-            skipped=skipped,
-            extracted=len(new),
-            resumed=resumed,
-            t0=t0,
-        )
+        version = NewVersion(parent.config, methods, refs, cols, opt, parent, retrain=refit)
+        return tx.publish(version, extracted=len(new), resumed=resumed, skipped=skipped)
 
 
 def _refit(
-    parent: IndexReader,
-    new_paths: list[Path],
-    work: WorkDir,
-    strict: bool,
-    skipped: list[dict[str, str]],
+    parent: IndexReader, new_paths: list[Path], work: WorkDir
 ) -> tuple[dict[str, Method], list[str]]:
     """Refit fitted methods on the old (from their folders, unchanged) and new images."""
     methods = build_methods(parent.config)
@@ -669,7 +699,7 @@ def _refit(
                 f"--refit re-extracts every reference, but {p} is missing or changed since "
                 "it was indexed; restore it, or add without --refit"
             )
-    _fit(methods, old_paths + new_paths, work, strict, skipped)
+    _fit(methods, old_paths + new_paths, work)
     ids = [
         mid for mid, m in methods.items() if m.state_digest() != parent.methods[mid].state_digest()
     ]
@@ -683,10 +713,8 @@ def remove(
     index: str | Path, names: Sequence[str], *, options: BuildOptions | None = None
 ) -> Summary:
     """Publish a version of the current one without the references ``names``."""
-    t0 = time.perf_counter()
-    opt = options or BuildOptions()
-    root = Path(index)
-    with L.writer_lock(root), IndexReader(root) as parent:
+    tx = VersionTransaction(Path(index), "remove")
+    with tx, IndexReader(tx.root) as parent:
         present = set(parent.refs.names)
         missing = [n for n in names if n not in present]
         if missing:
@@ -700,21 +728,14 @@ def remove(
         if len(keep) == 0:
             raise IndexBuildError("removing every reference would leave an empty index")
         cols = {mid: select_columns(parent.columns(mid), keep) for mid in parent.methods}
-        work = WorkDir(root)
-        work.start({"operation": "remove", "parent": parent.version, "names": sorted(drop)}, False)
-        return _write_version(
-            root,
-            work,
-            operation="remove",
-            config=parent.config,
-            methods=parent.methods,
-            refs=parent.refs.select(keep),
-            cols=cols,
-            opt=opt,
-            parent=parent,
+        tx.begin({"operation": "remove", "parent": parent.version, "names": sorted(drop)})
+        new = NewVersion(
+            parent.config,
+            parent.methods,
+            parent.refs.select(keep),
+            cols,
+            options or BuildOptions(),
+            parent,
             retrain=False,
-            skipped=[],
-            extracted=0,
-            resumed=0,
-            t0=t0,
         )
+        return tx.publish(new, extracted=0)

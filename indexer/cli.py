@@ -3,8 +3,9 @@
     hmpf-index build --config configs/handcrafted.yaml --images refs/ --index maps/campus
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
-    hmpf-index verify --index maps/campus
-    hmpf-index info|list|gc --index maps/campus
+    hmpf-index verify|info --index maps/campus [--index-version v0002]
+    hmpf-index list|gc --index maps/campus
+    hmpf-index --version
 
 Exit status: 0 success, 1 ``verify`` found a problem, 2 bad input or a failed operation,
 130 interrupted (the current version is untouched; ``--resume`` continues).
@@ -16,13 +17,20 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-from hmpf.errors import HmpfError
-from indexer import build as B
-from indexer import maintenance as M
+# Only light modules at import time: the heavy ones (numpy, OpenCV, h5py, FAISS) load inside
+# ``run``, so Ctrl-C while they load is one line and exit 130 too, and --version is instant.
+from hmpf.cli.common import add_version, run
+
+if TYPE_CHECKING:
+    from indexer.build import BuildOptions
+
+PROG = "hmpf-index"
+INTERRUPTED = "interrupted; the current version is untouched (rerun with --resume to continue)"
 
 
-def _pairs(values: Sequence[str] | None, flag: str) -> dict[str, str]:
+def _pairs(values: Sequence[str] | None) -> dict[str, str]:
     """``["IVF1024,Flat", "gist=HNSW32"]`` -> ``{"*": "IVF1024,Flat", "gist": "HNSW32"}``."""
     out = {}
     for v in values or []:
@@ -59,8 +67,16 @@ def _add_write_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+class _RenamedFlag(argparse.Action):
+    """``info|verify --version NAME`` (before ``--version`` printed the program's version)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        parser.error("--version NAME is now --index-version NAME")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hmpf-index", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
+    add_version(p)
     sub = p.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("build", help="extract every image and publish a new version")
@@ -89,7 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("--index", required=True)
-        s.add_argument("--version", help="version name (default: current)")
+        s.add_argument(
+            "--index-version", metavar="NAME", help="index version, e.g. v0002 (default: current)"
+        )
+        s.add_argument("--version", nargs="?", action=_RenamedFlag, help=argparse.SUPPRESS)
         if name == "info":
             s.add_argument("--json", action="store_true", help="print JSON")
             s.add_argument("--names", action="store_true", help="also list reference names")
@@ -104,10 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _options(args: argparse.Namespace) -> B.BuildOptions:
-    return B.BuildOptions(
-        faiss=_pairs(args.faiss, "--faiss"),
-        faiss_params=_pairs(args.faiss_params, "--faiss-params"),
+def _options(args: argparse.Namespace) -> BuildOptions:
+    from indexer.build import BuildOptions
+
+    return BuildOptions(
+        faiss=_pairs(args.faiss),
+        faiss_params=_pairs(args.faiss_params),
         precision=args.precision,
         strict=args.strict,
         workers=args.workers,
@@ -116,11 +137,12 @@ def _options(args: argparse.Namespace) -> B.BuildOptions:
 
 
 def _print_info(args: argparse.Namespace) -> int:
-    data = M.info(args.index, args.version)
-    if args.names:
-        from hmpf.index.reader import IndexReader
+    from hmpf.index.reader import IndexReader
+    from indexer import maintenance
 
-        with IndexReader(args.index, args.version) as reader:
+    data = maintenance.info(args.index, args.index_version)
+    if args.names:
+        with IndexReader(args.index, args.index_version) as reader:
             data["names"] = reader.refs.names
     if args.json:
         print(json.dumps(data, indent=1))
@@ -144,9 +166,12 @@ def _print_info(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from indexer import maintenance
+    from indexer.build import add, build, remove
+
     cmd = args.command
     if cmd == "build":
-        summary = B.build(
+        summary = build(
             args.config,
             args.images,
             args.index,
@@ -155,7 +180,7 @@ def _run(args: argparse.Namespace) -> int:
             resume=args.resume,
         )
     elif cmd == "add":
-        summary = B.add(
+        summary = add(
             args.index,
             args.images,
             metadata=args.metadata,
@@ -164,9 +189,9 @@ def _run(args: argparse.Namespace) -> int:
             resume=args.resume,
         )
     elif cmd == "remove":
-        summary = B.remove(args.index, args.names)
+        summary = remove(args.index, args.names)
     elif cmd == "verify":
-        problems = M.verify(args.index, args.version)
+        problems = maintenance.verify(args.index, args.index_version)
         for line in problems:
             print(f"CORRUPT {line}")
         print("ok" if not problems else f"{len(problems)} problem(s)")
@@ -174,7 +199,7 @@ def _run(args: argparse.Namespace) -> int:
     elif cmd == "info":
         return _print_info(args)
     elif cmd == "list":
-        for v in M.list_versions(args.index):
+        for v in maintenance.list_versions(args.index):
             mark = "*" if v["current"] else " "
             print(
                 f"{mark} {v['version']}  {v.get('operation', '?'):<7} {v.get('images')} refs  "
@@ -182,7 +207,7 @@ def _run(args: argparse.Namespace) -> int:
             )
         return 0
     else:  # gc
-        for p in M.gc(args.index, args.keep, args.dry_run):
+        for p in maintenance.gc(args.index, args.keep, args.dry_run):
             print(("would delete " if args.dry_run else "deleted ") + p)
         return 0
     for line in summary.lines():
@@ -192,18 +217,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return _run(args)
-    except HmpfError as exc:
-        print(f"hmpf-index: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(
-            "hmpf-index: interrupted; the current version is untouched "
-            "(rerun with --resume to continue)",
-            file=sys.stderr,
-        )
-        return 130
+    return run(PROG, lambda: _run(args), interrupted=INTERRUPTED)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Input checks done before any work: the image folder and the metadata CSV.
+"""Input checks done before any work: the image folder, the images' decodability, the CSV.
 
 Metadata CSV: a header row with ``name`` (required: the image file name) and any of the
 optional columns ``lat``, ``lon``, ``heading`` (degrees), ``timestamp`` (seconds since the
@@ -15,13 +15,15 @@ from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from hmpf.datasets import list_images
-from hmpf.errors import DatasetError
+from hmpf.errors import DatasetError, ImageError
+from hmpf.imageio import _check_complete, load_image
 from hmpf.index.tables import META_COLUMNS, TEXT_COLUMNS
 
-__all__ = ["read_metadata", "scan_images"]
+__all__ = ["read_metadata", "scan_images", "unreadable_images"]
 
 _RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "heading": (-360.0, 360.0)}
 
@@ -43,6 +45,38 @@ def scan_images(folder: str | Path) -> list[Path]:
             )
         seen[key] = p.name
     return paths
+
+
+def unreadable_images(paths: Sequence[Path]) -> dict[Path, ImageError]:
+    """The images of ``paths`` that :func:`~hmpf.imageio.load_image` cannot read, in order.
+
+    Each file is read and decoded at 1/8 scale, which parses all of a JPEG's compressed data
+    but skips most of the decoding work (about 0.5 ms instead of 2.2 ms for a 960 x 540
+    JPEG), so the extraction that follows is not slowed by a second full decode. Only a file
+    that fails this probe is decoded in full by ``load_image``, whose :class:`ImageError`
+    (same reason text as the extraction would give) is returned.
+    """
+    bad: dict[Path, ImageError] = {}
+    for p in paths:
+        if _decodes_at_small_scale(p):
+            continue
+        try:
+            load_image(p)
+        except ImageError as exc:
+            bad[p] = exc
+    return bad
+
+
+def _decodes_at_small_scale(path: Path) -> bool:
+    """True when ``path`` is a complete image that OpenCV decodes at 1/8 scale to at least
+    2 x 2 pixels (so the full-size image passes ``load_image``'s checks too)."""
+    try:
+        data = path.read_bytes()
+        _check_complete(data, str(path))
+        small = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    except (OSError, ImageError, cv2.error):
+        return False
+    return small is not None and min(small.shape[:2]) >= 2
 
 
 def _parse_value(col: str, text: str, where: str) -> float | str:

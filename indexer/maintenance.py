@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from hmpf.errors import HmpfError
-from hmpf.index import layout as L
+from hmpf.index import layout
 from hmpf.index.layout import IndexCorruptError
 from hmpf.index.reader import IndexReader, resolve_version
 
@@ -22,7 +22,7 @@ def verify(index: str | Path, version: str | None = None) -> list[str]:
     """
     path = resolve_version(Path(index), version)
     try:
-        manifest = L.read_manifest(path)
+        manifest = layout.read_manifest(path)
     except HmpfError as exc:
         return [str(exc)]
     problems = []
@@ -33,10 +33,12 @@ def verify(index: str | Path, version: str | None = None) -> list[str]:
             problems.append(f"{p}: missing")
         elif p.stat().st_size != entry["bytes"]:
             problems.append(f"{p}: {p.stat().st_size} bytes, manifest says {entry['bytes']}")
-        elif L.sha256_file(p) != entry["sha256"]:
+        elif layout.sha256_file(p) != entry["sha256"]:
             problems.append(f"{p}: sha256 differs from the manifest (file is corrupt)")
     extra = {
-        str(p.relative_to(path)) for p in path.rglob("*") if p.is_file() and p.name != L.MANIFEST
+        str(p.relative_to(path))
+        for p in path.rglob("*")
+        if p.is_file() and p.name != layout.MANIFEST
     } - set(listed)
     problems += [f"{path / rel}: not listed in the manifest" for rel in sorted(extra)]
     if problems:
@@ -53,12 +55,12 @@ def verify(index: str | Path, version: str | None = None) -> list[str]:
 def list_versions(index: str | Path) -> list[dict[str, Any]]:
     """Every published version with its operation, count and date, oldest first."""
     root = Path(index)
-    current = L.current_version(root)
+    current = layout.current_version(root)
     out = []
-    for name in L.list_versions(root):
+    for name in layout.list_versions(root):
         entry: dict[str, Any] = {"version": name, "current": name == current}
         try:
-            m = L.read_manifest(root / name)
+            m = layout.read_manifest(root / name)
             entry.update(
                 operation=m.get("operation"),
                 images=m.get("images", {}).get("count"),
@@ -75,7 +77,7 @@ def list_versions(index: str | Path) -> list[dict[str, Any]]:
 def info(index: str | Path, version: str | None = None) -> dict[str, Any]:
     """The manifest of a version (default: current), without the per-file list."""
     path = resolve_version(Path(index), version)
-    manifest = L.read_manifest(path)
+    manifest = layout.read_manifest(path)
     return {k: v for k, v in manifest.items() if k != "files"} | {
         "files": {k: v["bytes"] for k, v in manifest.get("files", {}).items()}
     }
@@ -87,17 +89,17 @@ def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
     Also deletes an abandoned ``.build`` folder. Returns the deleted paths.
     """
     root = Path(index)
-    with L.writer_lock(root):
-        current = L.current_version(root)
+    with layout.writer_lock(root):
+        current = layout.current_version(root)
         if current is None:
             raise IndexCorruptError(f"{root}: no CURRENT version; refusing to delete anything")
-        others = [v for v in L.list_versions(root) if v != current]
+        others = [v for v in layout.list_versions(root) if v != current]
         doomed = others[: max(0, len(others) - keep)]
         paths = [root / v for v in doomed]
-        if (root / L.BUILD_DIR).exists():
-            paths.append(root / L.BUILD_DIR)
+        if (root / layout.BUILD_DIR).exists():
+            paths.append(root / layout.BUILD_DIR)
         if not dry_run:
             for p in paths:
                 shutil.rmtree(p)
-            L.fsync_dir(root)
+            layout.fsync_dir(root)
     return [str(p) for p in paths]

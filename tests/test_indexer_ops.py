@@ -4,6 +4,8 @@ bad input (each rejected before any work), skipped images, fitted state, approxi
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 from typing import ClassVar
 
@@ -14,13 +16,16 @@ import pytest
 from conftest import synthetic_image
 
 import hmpf.features
+import indexer.build
 from hmpf.config import parse_config
-from hmpf.errors import DatasetError
+from hmpf.errors import DatasetError, ImageError
+from hmpf.imageio import load_image
 from hmpf.index import IndexBuildError, IndexReader
 from hmpf.methods import GlobalMethod, MethodConfig, register
 from hmpf.methods.base import euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
+from indexer.inputs import unreadable_images
 
 CONFIG = """
 name: ops-test
@@ -31,6 +36,7 @@ tiers:
   - {methods: [sad, kaze], k: 1}
 """
 OPTS = BuildOptions(workers=1, progress=False)
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -108,9 +114,37 @@ def test_build_add_remove_list_gc(tmp_path, config_file, capsys):
     assert "* v0003" in listing and "v0001" in listing
     assert _cli("info", "--index", index, "--json") == 0
     assert json.loads(capsys.readouterr().out)["images"]["count"] == 7
+    assert _cli("info", "--index", index, "--index-version", "v0001", "--json") == 0
+    assert json.loads(capsys.readouterr().out)["images"]["count"] == 6
+    assert _cli("verify", "--index", index, "--index-version", "v0002") == 0
+    assert capsys.readouterr().out.strip() == "ok"
     assert _cli("gc", "--index", index, "--keep", 1) == 0
     assert sorted(p.name for p in index.glob("v*")) == ["v0002", "v0003"]
     assert (index / "CURRENT").read_text().strip() == "v0003"
+
+
+def test_version_flag_and_index_version_do_not_collide(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("hmpf-index (hmpf ")
+    with pytest.raises(SystemExit) as exc:  # the old spelling is gone, not silently reused
+        main(["info", "--index", str(tmp_path), "--version", "v0001"])
+    assert exc.value.code == 2
+    assert "--version NAME is now --index-version NAME" in capsys.readouterr().err
+
+
+def test_cli_module_imports_no_heavy_modules():
+    """Ctrl-C while numpy/OpenCV/h5py/FAISS load must also end in one line and exit 130, so
+    they load inside ``run``; importing the CLI module (and ``--version``) stays instant."""
+    code = (
+        "import sys, indexer.cli; "
+        "print(sorted({'numpy', 'cv2', 'h5py', 'faiss', 'torch'} & set(sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.strip() == "[]"
 
 
 def test_verify_names_the_corrupt_file(tmp_path, config_file, capsys):
@@ -189,6 +223,65 @@ def test_unreadable_image_skipped_or_strict(tmp_path, config_file):
     with pytest.raises(IndexBuildError, match="broken.jpg.*--strict"):
         build(config_file, a, tmp_path / "i2", options=BuildOptions(workers=1, strict=True))
     assert not (tmp_path / "i2" / "CURRENT").exists()
+
+
+def _broken_images(folder: Path) -> dict[str, str]:
+    """Three kinds of unreadable file next to readable ones; name -> load_image's reason."""
+    good = cv2.imencode(".jpg", synthetic_image(7))[1].tobytes()
+    (folder / "b_garbage.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    (folder / "c_truncated.jpg").write_bytes(good[: len(good) // 2])
+    (folder / "d_empty.png").write_bytes(b"")
+    cv2.imwrite(str(folder / "e_one_pixel.png"), np.zeros((1, 1, 3), np.uint8))
+    cv2.imwrite(str(folder / "f_tiny_ok.png"), np.full((2, 3, 3), 200, np.uint8))
+    reasons = {}
+    for p in sorted(folder.iterdir()):
+        try:
+            load_image(p)
+        except ImageError as exc:
+            reasons[p.name] = exc.reason
+    assert len(reasons) == 4
+    return reasons
+
+
+def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
+    folder = _write(tmp_path / "a", 2)
+    reasons = _broken_images(folder)
+    bad = unreadable_images(sorted(folder.iterdir()))
+    assert {p.name: exc.reason for p, exc in bad.items()} == reasons
+    assert all(str(p) == exc.source for p, exc in bad.items())
+
+
+def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):
+    """The unreadable images are found before extraction: one pass over the readable ones
+    (not one restarted pass per unreadable image), and --strict names every one."""
+    folder = _write(tmp_path / "a", 3)
+    reasons = _broken_images(folder)
+    calls = []
+    real = indexer.build.extract_images
+
+    def counting(paths, *args, **kwargs):
+        calls.append([Path(p).name for p in paths])
+        return real(paths, *args, **kwargs)
+
+    monkeypatch.setattr(indexer.build, "extract_images", counting)
+    s = build(config_file, folder, tmp_path / "index", options=OPTS)
+    assert s.skipped == [{"name": n, "reason": r} for n, r in reasons.items()]
+    assert calls == [["f_tiny_ok.png", "img000.png", "img001.png", "img002.png"]]
+    assert s.images == 4 and s.resumed == 0
+    with pytest.raises(IndexBuildError) as exc:
+        build(config_file, folder, tmp_path / "i2", options=BuildOptions(workers=1, strict=True))
+    assert all(name in str(exc.value) for name in reasons)
+    assert "rerun without --strict to skip these 4" in str(exc.value)
+    assert len(calls) == 1 and not (tmp_path / "i2" / ".build").exists()
+
+
+def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_file, monkeypatch):
+    folder = _write(tmp_path / "a", 2)
+    (folder / "late.jpg").write_bytes(b"\xff\xd8 broken only after the check")
+    monkeypatch.setattr(indexer.build, "unreadable_images", lambda paths: {})
+    with pytest.raises(IndexBuildError, match="late.jpg.*passed the check before extraction"):
+        build(config_file, folder, tmp_path / "index", options=OPTS)
+    assert not (tmp_path / "index" / "CURRENT").exists()
 
 
 def test_add_rejects_known_names(tmp_path, config_file):

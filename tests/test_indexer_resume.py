@@ -95,3 +95,43 @@ def test_kill_then_resume_equals_clean_build(tmp_path):
     assert set(got) == set(want)
     for k in want:
         assert np.array_equal(got[k], want[k]), k
+
+
+def test_ctrl_c_during_extraction_is_one_line_and_exit_130(tmp_path):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C does) while the
+    extraction pool runs: exit 130, one line on stderr (no traceback from the parent or the
+    workers), CURRENT untouched, and --resume finishes the job."""
+    config = tmp_path / "c.yaml"
+    config.write_text(CONFIG)
+    images = _folder(tmp_path / "imgs", 30)
+    index = tmp_path / "index"
+    cmd = [sys.executable, "-m", "indexer.cli", "build", "--config", str(config)]
+    cmd += ["--images", str(images), "--index", str(index), "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(
+        cmd,
+        cwd=Path(__file__).resolve().parent.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    features = index / ".build" / "features"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        done = len(list(features.rglob("*.npz"))) if features.exists() else 0
+        if done >= 3 * 2 or proc.poll() is not None:  # >= 1 image with all 3 methods
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "build finished before it could be interrupted"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.splitlines() == [
+        "hmpf-index: interrupted; the current version is untouched "
+        "(rerun with --resume to continue)"
+    ]
+    assert not (index / "CURRENT").exists()
+    summary = build(
+        config, images, index, options=BuildOptions(workers=1, progress=False), resume=True
+    )
+    assert summary.images == 30 and summary.resumed >= 1

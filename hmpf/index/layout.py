@@ -13,9 +13,9 @@
         state.h5              fitted parameters per method (only when a method has any)
         faiss/<method>.faiss  tier-1 FAISS index per global method
 
-A version is written into ``.tmp-<name>``, every file fsynced, renamed to ``<name>``, and only
+A version is written into ``.build/out``, every file fsynced, renamed to ``<name>``, and only
 then ``CURRENT`` is replaced atomically, so an interrupted writer never changes what readers
-see.
+see (``.build`` also keeps the finished images' features, for ``--resume``).
 """
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ import numpy as np
 from hmpf.config import HierarchyConfig, build_methods, parse_config
 from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, ScoreFn
-from hmpf.index import layout as L
+from hmpf.index import layout
 from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
 from hmpf.index.storage import (
@@ -62,14 +62,14 @@ log = logging.getLogger("hmpf.index")
 #: ops; torch: the CNN methods) or how the index files are read (FAISS): a different major
 #: version than the build's is an error. Other differences (minor versions, numpy, h5py) are
 #: logged as warnings.
-STRICT_PACKAGES = (*L.OPENCV_DISTS, "torch", "faiss-cpu")
+STRICT_PACKAGES = (*layout.OPENCV_DISTS, "torch", "faiss-cpu")
 
 
 def resolve_version(root: Path, version: str | None = None) -> Path:
     """Folder of ``version`` (default: the one ``CURRENT`` names)."""
     if not root.is_dir():
         raise IndexNotFoundError(f"index folder {str(root)!r} does not exist")
-    name = version or L.current_version(root)
+    name = version or layout.current_version(root)
     if name is None:
         raise IndexNotFoundError(
             f"{root}: no published index version; build one with `hmpf-index build`"
@@ -77,7 +77,7 @@ def resolve_version(root: Path, version: str | None = None) -> Path:
     path = root / name
     if not path.is_dir():
         raise IndexNotFoundError(
-            f"{root}: no version {name!r} (have: {', '.join(L.list_versions(root)) or 'none'})"
+            f"{root}: no version {name!r} (have: {', '.join(layout.list_versions(root)) or 'none'})"
         )
     return path
 
@@ -101,9 +101,9 @@ def check_packages(built_with: Mapping[str, str], where: Path) -> list[str]:
     for dist, built in sorted(built_with.items()):
         if dist in ("python", "hmpf") or not isinstance(built, str):
             continue
-        here = L.installed_version(dist)
+        here = layout.installed_version(dist)
         if here is None and dist.startswith("opencv"):  # the other OpenCV wheel is fine
-            here = next(filter(None, map(L.installed_version, L.OPENCV_DISTS)), None)
+            here = next(filter(None, map(layout.installed_version, layout.OPENCV_DISTS)), None)
         if here == built:
             continue
         if here is not None and dist in STRICT_PACKAGES and _major(here) != _major(built):
@@ -144,14 +144,14 @@ class IndexReader:
         self.root = Path(root)
         self.path = resolve_version(self.root, version)
         self.version = self.path.name
-        self.manifest = L.read_manifest(self.path)
+        self.manifest = layout.read_manifest(self.path)
         check_packages(self.manifest.get("packages", {}), self.path)
         self.config = self._check_config(expected_config)
         self.methods: dict[str, Method] = self._load_methods()
         self._files: list[Any] = []
-        self._ref_h5 = self._open(L.REFERENCES_H5)
+        self._ref_h5 = self._open(layout.REFERENCES_H5)
         has_local = any(m.kind == "local" for m in self.methods.values())
-        self._local_h5 = self._open(L.LOCAL_H5) if has_local else None
+        self._local_h5 = self._open(layout.LOCAL_H5) if has_local else None
         try:
             self.refs = read_ref_table(self._ref_h5)
             self.n = len(self.refs)
@@ -186,14 +186,14 @@ class IndexReader:
     def _check_config(self, expected: HierarchyConfig | None) -> HierarchyConfig:
         entry = self.manifest.get("config", {})
         try:
-            config = parse_config(entry.get("resolved"), f"{self.path / L.MANIFEST}:config")
+            config = parse_config(entry.get("resolved"), f"{self.path / layout.MANIFEST}:config")
         except ConfigError as exc:
             raise IndexVersionError(
                 f"{self.path}: this hmpf cannot honour the index's config ({exc}); rebuild it"
             ) from None
         if config.digest() != entry.get("sha256"):
             raise IndexCorruptError(
-                f"{self.path / L.MANIFEST}: config hash does not match the stored config"
+                f"{self.path / layout.MANIFEST}: config hash does not match the stored config"
             )
         if expected is not None and expected.digest() != config.digest():
             raise IndexVersionError(
@@ -206,12 +206,14 @@ class IndexReader:
     def _load_methods(self) -> dict[str, Method]:
         methods = build_methods(self.config)
         info = self.manifest.get("methods", {})
-        state_file = self.path / L.STATE_H5
+        state_file = self.path / layout.STATE_H5
         states = read_state(state_file) if state_file.exists() else {}
         for mid, m in methods.items():
             entry = info.get(mid)
             if entry is None:
-                raise IndexCorruptError(f"{self.path / L.MANIFEST}: no entry for method {mid!r}")
+                raise IndexCorruptError(
+                    f"{self.path / layout.MANIFEST}: no entry for method {mid!r}"
+                )
             if str(entry.get("version")) != str(type(m).version):
                 raise IndexVersionError(
                     f"{self.path}: method {mid!r} was built with code version "
@@ -233,18 +235,21 @@ class IndexReader:
         expect = self.manifest.get("images", {}).get("count")
         if expect != n or len(self.refs.sha256) != n:
             raise IndexCorruptError(
-                f"{self.path / L.REFERENCES_H5}: {n} names, manifest says {expect}"
+                f"{self.path / layout.REFERENCES_H5}: {n} names, manifest says {expect}"
             )
         for col, v in self.refs.meta.items():
             if len(v) != n:
-                raise IndexCorruptError(f"{self.path / L.REFERENCES_H5}: meta/{col} has {len(v)}")
+                raise IndexCorruptError(
+                    f"{self.path / layout.REFERENCES_H5}: meta/{col} has {len(v)}"
+                )
         for mid, mat in self._globals.items():
             dim = self.manifest["methods"][mid].get("dim")
             if mat.ndim != 2 or mat.shape[0] != n or (dim is not None and mat.shape[1] != dim):
                 raise IndexCorruptError(
-                    f"{self.path / L.REFERENCES_H5}: global/{mid} has shape {mat.shape}, "
+                    f"{self.path / layout.REFERENCES_H5}: global/{mid} has shape {mat.shape}, "
                     f"expected ({n}, {dim})"
                 )
+        local_h5 = self.path / layout.LOCAL_H5
         for mid, offs in self._offsets.items():
             for key, o in offs.items():
                 rows = self._local_rows(mid, key, o)
@@ -252,11 +257,11 @@ class IndexReader:
                     len(o) != n + 1 or o[0] != 0 or (np.diff(o) < 0).any() or o[-1] != rows
                 ):
                     raise IndexCorruptError(
-                        f"{self.path / L.LOCAL_H5}: local/{mid}/{key} offsets are inconsistent"
+                        f"{local_h5}: local/{mid}/{key} offsets are inconsistent"
                     )
                 if o is None and rows != n:
                     raise IndexCorruptError(
-                        f"{self.path / L.LOCAL_H5}: local/{mid}/{key} has {rows} blocks for {n}"
+                        f"{local_h5}: local/{mid}/{key} has {rows} blocks for {n}"
                     )
 
     def _local_rows(self, mid: str, key: str, offsets: np.ndarray | None) -> int:
@@ -335,7 +340,7 @@ class IndexReader:
                 index = read_faiss(self.path / info["file"], info.get("params", ""))
             if index.ntotal != self.n or index.d != self._globals[mid].shape[1]:
                 raise IndexCorruptError(
-                    f"{self.path / (info['file'] or L.REFERENCES_H5)}: {index.ntotal} x "
+                    f"{self.path / (info['file'] or layout.REFERENCES_H5)}: {index.ntotal} x "
                     f"{index.d} vectors, "
                     f"expected {self.n} x {self._globals[mid].shape[1]}"
                 )
@@ -422,11 +427,3 @@ class IndexReader:
         if method.kind == "global":
             return method.scores(q, self._globals[mid], subset)
         return method.scores(q, method.stack(self.local_features(mid, subset)), None)
-
-
-def faiss_available() -> bool:
-    try:
-        faiss_module()
-    except Exception:
-        return False
-    return True

@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 
 from hmpf.index.layout import IndexCorruptError
-from hmpf.index.tables import META_COLUMNS, TEXT_COLUMNS, Columns, Ragged, RefTable
+from hmpf.index.tables import META_COLUMNS, TEXT_COLUMNS, Ragged, RefTable
 from hmpf.methods import Method
 
 __all__ = [
@@ -258,10 +258,3 @@ def read_local_columns(f: Any, mid: str) -> dict[str, Ragged]:
         else:
             out[key] = Ragged(_get(sub["data"]), np.asarray(sub["offsets"][()]), scalar)
     return out
-
-
-def bytes_in(cols: Columns) -> int:
-    """In-memory bytes of one method's columns."""
-    if isinstance(cols, np.ndarray):
-        return int(cols.nbytes)
-    return int(sum(r.data.nbytes + r.offsets.nbytes for r in cols.values()))

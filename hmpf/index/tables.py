@@ -11,7 +11,7 @@ Every operation keeps image order, so row ``i`` of every table is the same refer
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,7 +27,6 @@ __all__ = [
     "RefTable",
     "columns_from_features",
     "concat_columns",
-    "feature_at",
     "select_columns",
 ]
 
@@ -143,13 +142,6 @@ def columns_from_features(method: Method, features: Sequence[Any]) -> Columns:
     return {k: Ragged.from_items(v) for k, v in per_key.items()}
 
 
-def feature_at(method: Method, cols: Columns, i: int) -> Any:
-    """The feature of image ``i`` as :meth:`Method.from_arrays` rebuilds it."""
-    if isinstance(cols, np.ndarray):
-        return method.from_arrays({"x": cols[i]})
-    return method.from_arrays({k: r.item(i) for k, r in cols.items()})
-
-
 def select_columns(cols: Columns, idx: np.ndarray) -> Columns:
     if isinstance(cols, np.ndarray):
         return cols[np.asarray(idx, dtype=np.int64)]
@@ -217,10 +209,3 @@ def _column(t: RefTable, key: str) -> np.ndarray:
     if key in TEXT_COLUMNS:
         return np.array([""] * len(t), dtype=object)
     return np.full(len(t), np.nan)
-
-
-def method_columns(
-    methods: Mapping[str, Method], features: Mapping[str, Sequence[Any]]
-) -> dict[str, Columns]:
-    """Columns of every method id (convenience over :func:`columns_from_features`)."""
-    return {mid: columns_from_features(m, features[mid]) for mid, m in methods.items()}
