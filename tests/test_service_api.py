@@ -265,16 +265,16 @@ def test_batch_larger_than_the_admission_limit_runs_in_lanes(client, car, garden
 def test_batch_item_failing_unexpectedly_gets_its_own_error(
     client, car, gardens_point, monkeypatch
 ) -> None:
-    import service.app as app_module
+    import service.query as query_module
 
-    real = app_module.decode_upload
+    real = query_module.decode_upload
 
     def flaky(data: bytes, **kw: object) -> np.ndarray:
         if data.startswith(b"BOOM"):
             raise RuntimeError("a bug, not the client's fault")
         return real(data, **kw)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(app_module, "decode_upload", flaky)
+    monkeypatch.setattr(query_module, "decode_upload", flaky)
     a = _ref(gardens_point, 5)
     files = [
         ("images", ("boom.jpg", b"BOOM", "image/jpeg")),

@@ -1,0 +1,80 @@
+"""What the routes take from the app, as ``Annotated`` dependencies.
+
+* :data:`EngineDep`, :data:`SettingsDep`, :data:`MetricsDep`: the objects ``create_app``
+  keeps in ``app.state``.
+* :data:`VehicleKey`, :data:`AdminKey`: the caller's API key (header ``X-API-Key``, declared
+  with :class:`~fastapi.security.APIKeyHeader` so that ``/docs`` shows the scheme), checked
+  against the keys file for the route's role; ``None`` when the service runs without auth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Annotated
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader
+
+from service.auth import ApiKey, KeyStore
+from service.engine import Engine
+from service.errors import ApiError
+from service.metrics import Metrics
+from service.settings import Settings
+
+__all__ = ["AdminKey", "EngineDep", "MetricsDep", "SettingsDep", "VehicleKey", "api_key_header"]
+
+
+def get_engine(request: Request) -> Engine:
+    engine: Engine = request.app.state.engine
+    return engine
+
+
+def get_settings(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+def get_metrics(request: Request) -> Metrics:
+    metrics: Metrics = request.app.state.metrics
+    return metrics
+
+
+EngineDep = Annotated[Engine, Depends(get_engine)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+
+#: ``auto_error=False``: a missing key is answered by :func:`_authorize` in the API's own
+#: error format (401 + ``WWW-Authenticate: ApiKey``), not by FastAPI's default.
+api_key_header = APIKeyHeader(
+    name="X-API-Key",
+    auto_error=False,
+    description="API key (create one with `hmpf-serve keys add`); not needed when the "
+    "service runs with auth=false",
+)
+PresentedKey = Annotated[str | None, Security(api_key_header)]
+
+
+def _authorize(role: str) -> Callable[[Request, str | None], ApiKey | None]:
+    """A dependency admitting keys whose role allows ``role`` routes (401 / 403 otherwise)."""
+
+    def check(request: Request, presented: PresentedKey) -> ApiKey | None:
+        keys: KeyStore | None = request.app.state.keys
+        if keys is None:
+            return None
+        key = keys.check(presented)
+        if key is None:
+            raise ApiError(
+                401,
+                "unauthorized",
+                "missing or invalid API key (header X-API-Key)",
+                {"WWW-Authenticate": "ApiKey"},
+            )
+        if not key.allows(role):
+            raise ApiError(403, "forbidden", f"this key's role may not {role}-only routes")
+        return key
+
+    return check
+
+
+VehicleKey = Annotated[ApiKey | None, Depends(_authorize("vehicle"))]
+AdminKey = Annotated[ApiKey | None, Depends(_authorize("admin"))]

@@ -1,0 +1,326 @@
+"""``POST /v1/localize`` (one image) and ``POST /v1/localize/batch`` (several, in order).
+
+``/v1/localize`` takes its image in one of two ways, served by two routes on the same path:
+
+* a multipart form, field ``image`` (a :class:`MultipartRoute`, which matches only
+  ``multipart/form-data`` requests); its OpenAPI operation lists the raw-body content types
+  too (:data:`RAW_BODY_TYPES`), so ``/docs`` describes both ways;
+* the raw body with an image content type (the route after it, hidden from the schema).
+
+The optional fields (:class:`~service.schemas.LocalizeFields`) may come as query parameters
+or, with multipart, as form fields; a field given twice is refused. A batch runs its images
+in up to ``workers`` lanes, one admission slot each, and answers a bad image with its own
+error entry while the others are answered.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Coroutine
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
+from fastapi.routing import APIRoute
+from pydantic import Field, ValidationError
+from starlette.exceptions import HTTPException
+from starlette.responses import Response
+from starlette.routing import Match
+from starlette.types import Scope
+
+from service.deps import EngineDep, MetricsDep, SettingsDep, VehicleKey
+from service.engine import Engine
+from service.errors import (
+    ERROR_RESPONSES,
+    ApiError,
+    invalid_request,
+    malformed_body,
+    overloaded,
+    upload_too_large,
+    validation_message,
+)
+from service.images import ACCEPTED_TYPES, check_content_type
+from service.metrics import Metrics
+from service.query import ImageQuery
+from service.schemas import (
+    BatchItem,
+    BatchResponse,
+    ErrorDetail,
+    LocalizeFields,
+    LocalizeParams,
+    LocalizeResponse,
+)
+from service.settings import Settings
+
+__all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
+
+log = logging.getLogger("hmpf.service")
+
+_MULTIPART = "multipart/form-data"
+#: Content types of a raw-body image (the bytes are sniffed; octet-stream is accepted too).
+RAW_BODY_TYPES = (*ACCEPTED_TYPES, "application/octet-stream")
+
+
+class LocalizeForm(LocalizeFields):
+    """The multipart form of ``POST /v1/localize``."""
+
+    image: UploadFile = Field(description="the camera frame: JPEG, PNG or WebP")
+
+
+class BatchForm(LocalizeFields):
+    """The multipart form of ``POST /v1/localize/batch`` (one set of fields for all images)."""
+
+    images: list[UploadFile] = Field(description="one or more frames, answered in order")
+
+
+class FormRoute(APIRoute):
+    """A route whose form body, when the parser cannot read it, is a 422 like every invalid
+    request (``invalid_request``) rather than FastAPI's 400."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def parse_errors_are_422(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except HTTPException as exc:
+                if exc.status_code != 400:
+                    raise
+                raise malformed_body(str(exc.detail)) from None
+
+        return parse_errors_are_422
+
+
+class MultipartRoute(FormRoute):
+    """A :class:`FormRoute` for ``multipart/form-data`` requests only: another request does
+    not match it, so the next route on the same path and method takes it."""
+
+    def matches(self, scope: Scope) -> tuple[Match, Scope]:
+        match, child = super().matches(scope)
+        if match is Match.FULL and not _is_multipart(scope):
+            return Match.NONE, {}
+        return match, child
+
+
+def _is_multipart(scope: Scope) -> bool:
+    for name, value in scope.get("headers", ()):
+        if name == b"content-type":
+            return value.decode("latin-1").startswith(_MULTIPART)
+    return False
+
+
+async def _require_multipart(request: Request) -> None:
+    if not _is_multipart(request.scope):
+        raise ApiError(
+            415, "unsupported_media_type", "send the images as multipart fields 'images'"
+        )
+
+
+def _raw_content_type(request: Request) -> str:
+    """The raw body's declared image type (415 for another type, or none)."""
+    declared = request.headers.get("content-type", "")
+    check_content_type(declared or None)
+    if not declared:
+        raise ApiError(
+            415,
+            "unsupported_media_type",
+            "send the image as multipart field 'image' or as the body with "
+            "Content-Type image/jpeg, image/png or image/webp",
+        )
+    return declared
+
+
+def _binary_bodies() -> dict[str, Any]:
+    """The OpenAPI request bodies of a raw-body image, one per accepted content type."""
+    return {t: {"schema": {"type": "string", "format": "binary"}} for t in RAW_BODY_TYPES}
+
+
+QueryFields = Annotated[LocalizeFields, Query()]
+
+
+async def localize(
+    key: VehicleKey,
+    request: Request,
+    query: QueryFields,
+    form: Annotated[LocalizeForm, Form(media_type=_MULTIPART)],
+    engine: EngineDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+) -> LocalizeResponse:
+    """Localise one image against the current index version.
+
+    Send it as multipart field ``image`` or as the raw body with an image content type; the
+    optional fields as query parameters (either way) or form fields (multipart).
+    """
+    params = await _params(request, query, form)
+    _check_size(form.image, settings.max_upload_bytes, "image")
+    data = await form.image.read()
+    _check_top_k(params, settings)
+    return await _localize_one(engine, settings, metrics, params, data, form.image.content_type)
+
+
+async def localize_raw_body(
+    key: VehicleKey,
+    content_type: Annotated[str, Depends(_raw_content_type)],
+    request: Request,
+    query: QueryFields,
+    engine: EngineDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+) -> LocalizeResponse:
+    """``/v1/localize`` with the image as the raw body (documented with the multipart route)."""
+    params = await _params(request, query, None)
+    _check_top_k(params, settings)
+    data = await request.body()
+    return await _localize_one(engine, settings, metrics, params, data, content_type)
+
+
+async def localize_batch(
+    key: VehicleKey,
+    multipart: Annotated[None, Depends(_require_multipart)],
+    request: Request,
+    query: QueryFields,
+    form: Annotated[BatchForm, Form(media_type=_MULTIPART)],
+    engine: EngineDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+) -> BatchResponse:
+    """Localise several images (multipart, ``images`` fields); answers in order."""
+    params = await _params(request, query, form, repeatable="images")
+    for i, upload in enumerate(form.images):
+        _check_size(upload, settings.max_upload_bytes, f"images[{i}]")
+    blobs = [(await f.read(), f.content_type) for f in form.images]
+    _check_top_k(params, settings)
+    for i, (data, _) in enumerate(blobs):
+        if len(data) > settings.max_upload_bytes:
+            raise upload_too_large(settings.max_upload_bytes, f"images[{i}]")
+    # A batch runs its images in up to `workers` lanes, one slot each, so that any batch
+    # size fits the admission limit and a batch cannot take the queue's slots.
+    lanes = min(len(blobs), engine.workers)
+    _admit(engine, settings, lanes)
+    queries = [
+        _query(settings, engine, params, data, ctype, f"images[{i}]")
+        for i, (data, ctype) in enumerate(blobs)
+    ]
+    version = engine.current.version
+    items = []
+    for i, (ok, value) in enumerate(await engine.run(queries, lanes)):
+        if ok:
+            metrics.observe_stages(value.timing_ms)
+            version = value.index_version
+        items.append(_batch_item(i, ok, value))
+    return BatchResponse(results=items, index_version=version)
+
+
+router = APIRouter(tags=["localize"], responses=ERROR_RESPONSES)
+# The multipart route first: it matches only multipart requests, the raw-body route the rest.
+router.add_api_route(
+    "/v1/localize",
+    localize,
+    methods=["POST"],
+    response_model=LocalizeResponse,
+    openapi_extra={"requestBody": {"content": _binary_bodies()}},
+    route_class_override=MultipartRoute,
+)
+router.add_api_route(
+    "/v1/localize",
+    localize_raw_body,
+    methods=["POST"],
+    response_model=LocalizeResponse,
+    include_in_schema=False,
+)
+router.add_api_route(
+    "/v1/localize/batch",
+    localize_batch,
+    methods=["POST"],
+    response_model=BatchResponse,
+    route_class_override=FormRoute,
+)
+
+
+# -- the steps the routes share -------------------------------------------------------------
+async def _params(
+    request: Request,
+    query: LocalizeFields,
+    form: LocalizeFields | None,
+    repeatable: str = "",
+) -> LocalizeParams:
+    """The request's fields from the query string and the form, checked together.
+
+    FastAPI has validated each source on its own (types, ranges, unknown names) but keeps the
+    last of repeated values; here a field given more than once (in one source or in both,
+    except the ``repeatable`` file field) and a partial GPS prior are refused (422).
+    """
+    names = [k for k, _ in request.query_params.multi_items()]
+    if form is not None:
+        names += [k for k, _ in (await request.form()).multi_items() if k != repeatable]
+    repeated = [name for name, n in Counter(names).items() if n > 1]
+    if repeated:
+        raise invalid_request(f"{repeated[0]}: given twice")
+    fields = set(LocalizeFields.model_fields)
+    given = query.model_dump(exclude_unset=True)
+    if form is not None:
+        given |= form.model_dump(exclude_unset=True, include=fields)
+    try:
+        return LocalizeParams.model_validate(given)
+    except ValidationError as exc:
+        raise invalid_request(validation_message(exc.errors())) from None
+
+
+def _check_top_k(params: LocalizeParams, settings: Settings) -> None:
+    if params.top_k > settings.max_top_k:
+        raise invalid_request(f"top_k: at most {settings.max_top_k} (got {params.top_k})")
+
+
+def _check_size(upload: UploadFile, limit: int, what: str) -> None:
+    """Refuse an uploaded file from its parsed size, before reading it into memory."""
+    if upload.size is not None and upload.size > limit:
+        raise upload_too_large(limit, what)
+
+
+def _admit(engine: Engine, settings: Settings, slots: int) -> None:
+    if not engine.admit(slots):
+        raise overloaded(settings.retry_after_s)
+
+
+def _query(
+    settings: Settings,
+    engine: Engine,
+    params: LocalizeParams,
+    data: bytes,
+    content_type: str | None,
+    source: str,
+) -> ImageQuery:
+    return ImageQuery(data, content_type, params, source, settings.max_pixels, engine.compute)
+
+
+async def _localize_one(
+    engine: Engine,
+    settings: Settings,
+    metrics: Metrics,
+    params: LocalizeParams,
+    data: bytes,
+    content_type: str | None,
+) -> LocalizeResponse:
+    """Check the size of one image, admit it, run it and return its answer."""
+    if len(data) > settings.max_upload_bytes:
+        raise upload_too_large(settings.max_upload_bytes)
+    _admit(engine, settings, 1)
+    ((ok, value),) = await engine.run(
+        [_query(settings, engine, params, data, content_type, "image")]
+    )
+    if not ok:
+        raise value
+    metrics.observe_stages(value.timing_ms)
+    answer: LocalizeResponse = value
+    return answer
+
+
+def _batch_item(i: int, ok: bool, value: Any) -> BatchItem:
+    """Batch entry ``i``: the answer, or the error that one image met (never the batch's)."""
+    if ok:
+        return BatchItem(index=i, result=value)
+    if isinstance(value, ApiError):
+        return BatchItem(index=i, error=ErrorDetail(code=value.code, message=value.message))
+    log.error("batch item %d failed", i, exc_info=value)
+    return BatchItem(index=i, error=ErrorDetail(code="internal", message="internal error"))
