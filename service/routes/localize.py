@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable, Coroutine
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
 from fastapi.routing import APIRoute
@@ -109,13 +109,6 @@ def _is_multipart(scope: Scope) -> bool:
     return False
 
 
-async def _require_multipart(request: Request) -> None:
-    if not _is_multipart(request.scope):
-        raise ApiError(
-            415, "unsupported_media_type", "send the images as multipart fields 'images'"
-        )
-
-
 def _raw_content_type(request: Request) -> str:
     """The raw body's declared image type (415 for another type, or none)."""
     declared = request.headers.get("content-type", "")
@@ -177,7 +170,6 @@ async def localize_raw_body(
 
 async def localize_batch(
     key: VehicleKey,
-    multipart: Annotated[None, Depends(_require_multipart)],
     request: Request,
     query: QueryFields,
     form: Annotated[BatchForm, Form(media_type=_MULTIPART)],
@@ -212,6 +204,11 @@ async def localize_batch(
     return BatchResponse(results=items, index_version=version)
 
 
+def batch_not_multipart(key: VehicleKey) -> NoReturn:
+    """``/v1/localize/batch`` with a body that is not multipart: 415 (the body is not read)."""
+    raise ApiError(415, "unsupported_media_type", "send the images as multipart fields 'images'")
+
+
 router = APIRouter(tags=["localize"], responses=ERROR_RESPONSES)
 # The multipart route first: it matches only multipart requests, the raw-body route the rest.
 router.add_api_route(
@@ -234,7 +231,14 @@ router.add_api_route(
     localize_batch,
     methods=["POST"],
     response_model=BatchResponse,
-    route_class_override=FormRoute,
+    route_class_override=MultipartRoute,
+)
+router.add_api_route(
+    "/v1/localize/batch",
+    batch_not_multipart,
+    methods=["POST"],
+    response_model=None,
+    include_in_schema=False,
 )
 
 
