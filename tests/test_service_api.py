@@ -332,11 +332,12 @@ def test_batch_errors(client, car, gardens_point) -> None:
         422,
         "invalid_request",
     )
-    _error(
-        client.post("/v1/localize/batch", content=a, headers={**car, "Content-Type": "image/jpeg"}),
-        415,
-        "unsupported_media_type",
-    )
+    for ctype in ("image/jpeg", "application/x-www-form-urlencoded"):
+        _error(
+            client.post("/v1/localize/batch", content=a, headers={**car, "Content-Type": ctype}),
+            415,
+            "unsupported_media_type",
+        )
 
 
 def test_batch_larger_than_the_admission_limit_runs_in_lanes(client, car, gardens_point) -> None:
