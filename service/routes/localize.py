@@ -18,7 +18,8 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable, Coroutine
-from typing import Annotated, Any, NoReturn
+from dataclasses import dataclass
+from typing import Annotated, Any, NamedTuple, NoReturn
 
 from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
 from fastapi.routing import APIRoute
@@ -131,14 +132,86 @@ def _binary_bodies() -> dict[str, Any]:
 QueryFields = Annotated[LocalizeFields, Query()]
 
 
+class Upload(NamedTuple):
+    """One uploaded image as read from the request."""
+
+    data: bytes
+    content_type: str | None
+    source: str  # how messages name it: image, images[3]
+
+
+@dataclass(frozen=True)
+class Localizer:
+    """What the localisation routes use of the app: admit, run and answer images."""
+
+    engine: Engine
+    settings: Settings
+    metrics: Metrics
+
+    def check(self, params: LocalizeParams) -> None:
+        """422 for a ``top_k`` over the service's limit."""
+        limit = self.settings.max_top_k
+        if params.top_k > limit:
+            raise invalid_request(f"top_k: at most {limit} (got {params.top_k})")
+
+    def check_size(self, upload: UploadFile, what: str) -> None:
+        """413 for an uploaded file over the limit, from its parsed size, before reading it."""
+        if upload.size is not None and upload.size > self.settings.max_upload_bytes:
+            raise upload_too_large(self.settings.max_upload_bytes, what)
+
+    def queries(self, params: LocalizeParams, uploads: list[Upload]) -> list[ImageQuery]:
+        """Admitted work for each upload: 413 over the size limit, 503 when the slots are
+        taken (a batch takes one per lane, at most ``workers``)."""
+        limit = self.settings.max_upload_bytes
+        for upload in uploads:
+            if len(upload.data) > limit:
+                raise upload_too_large(limit, upload.source)
+        if not self.engine.admit(self.lanes(len(uploads))):
+            raise overloaded(self.settings.retry_after_s)
+        pixels, compute = self.settings.max_pixels, self.engine.compute
+        return [
+            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute) for u in uploads
+        ]
+
+    def lanes(self, images: int) -> int:
+        # A batch runs its images in up to `workers` lanes, one slot each, so that any batch
+        # size fits the admission limit and a batch cannot take the queue's slots.
+        return min(images, self.engine.workers)
+
+    async def answer(self, params: LocalizeParams, upload: Upload) -> Any:
+        """One image's answer (its error raised as the request's)."""
+        ((ok, value),) = await self.engine.run(self.queries(params, [upload]))
+        if not ok:
+            raise value
+        self.metrics.observe_stages(value.timing_ms)
+        return value
+
+    async def answer_batch(self, params: LocalizeParams, uploads: list[Upload]) -> BatchResponse:
+        """Every image's answer or error, in order."""
+        queries = self.queries(params, uploads)
+        version = self.engine.current.version
+        items = []
+        for i, (ok, value) in enumerate(await self.engine.run(queries, self.lanes(len(uploads)))):
+            if ok:
+                self.metrics.observe_stages(value.timing_ms)
+                version = value.index_version
+            items.append(_batch_item(i, ok, value))
+        return BatchResponse(results=items, index_version=version)
+
+
+def _localizer(engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> Localizer:
+    return Localizer(engine, settings, metrics)
+
+
+LocalizerDep = Annotated[Localizer, Depends(_localizer)]
+
+
 async def localize(
     key: VehicleKey,
     request: Request,
     query: QueryFields,
     form: Annotated[LocalizeForm, Form(media_type=_MULTIPART)],
-    engine: EngineDep,
-    settings: SettingsDep,
-    metrics: MetricsDep,
+    localizer: LocalizerDep,
 ) -> LocalizeResponse:
     """Localise one image against the current index version.
 
@@ -146,10 +219,13 @@ async def localize(
     optional fields as query parameters (either way) or form fields (multipart).
     """
     params = await _params(request, query, form)
-    _check_size(form.image, settings.max_upload_bytes, "image")
+    localizer.check_size(form.image, "image")
     data = await form.image.read()
-    _check_top_k(params, settings)
-    return await _localize_one(engine, settings, metrics, params, data, form.image.content_type)
+    localizer.check(params)
+    answer: LocalizeResponse = await localizer.answer(
+        params, Upload(data, form.image.content_type, "image")
+    )
+    return answer
 
 
 async def localize_raw_body(
@@ -157,15 +233,14 @@ async def localize_raw_body(
     content_type: Annotated[str, Depends(_raw_content_type)],
     request: Request,
     query: QueryFields,
-    engine: EngineDep,
-    settings: SettingsDep,
-    metrics: MetricsDep,
+    localizer: LocalizerDep,
 ) -> LocalizeResponse:
     """``/v1/localize`` with the image as the raw body (documented with the multipart route)."""
     params = await _params(request, query, None)
-    _check_top_k(params, settings)
+    localizer.check(params)
     data = await request.body()
-    return await _localize_one(engine, settings, metrics, params, data, content_type)
+    answer: LocalizeResponse = await localizer.answer(params, Upload(data, content_type, "image"))
+    return answer
 
 
 async def localize_batch(
@@ -173,35 +248,17 @@ async def localize_batch(
     request: Request,
     query: QueryFields,
     form: Annotated[BatchForm, Form(media_type=_MULTIPART)],
-    engine: EngineDep,
-    settings: SettingsDep,
-    metrics: MetricsDep,
+    localizer: LocalizerDep,
 ) -> BatchResponse:
     """Localise several images (multipart, ``images`` fields); answers in order."""
     params = await _params(request, query, form, repeatable="images")
     for i, upload in enumerate(form.images):
-        _check_size(upload, settings.max_upload_bytes, f"images[{i}]")
-    blobs = [(await f.read(), f.content_type) for f in form.images]
-    _check_top_k(params, settings)
-    for i, (data, _) in enumerate(blobs):
-        if len(data) > settings.max_upload_bytes:
-            raise upload_too_large(settings.max_upload_bytes, f"images[{i}]")
-    # A batch runs its images in up to `workers` lanes, one slot each, so that any batch
-    # size fits the admission limit and a batch cannot take the queue's slots.
-    lanes = min(len(blobs), engine.workers)
-    _admit(engine, settings, lanes)
-    queries = [
-        _query(settings, engine, params, data, ctype, f"images[{i}]")
-        for i, (data, ctype) in enumerate(blobs)
+        localizer.check_size(upload, f"images[{i}]")
+    uploads = [
+        Upload(await f.read(), f.content_type, f"images[{i}]") for i, f in enumerate(form.images)
     ]
-    version = engine.current.version
-    items = []
-    for i, (ok, value) in enumerate(await engine.run(queries, lanes)):
-        if ok:
-            metrics.observe_stages(value.timing_ms)
-            version = value.index_version
-        items.append(_batch_item(i, ok, value))
-    return BatchResponse(results=items, index_version=version)
+    localizer.check(params)
+    return await localizer.answer_batch(params, uploads)
 
 
 def batch_not_multipart(key: VehicleKey) -> NoReturn:
@@ -269,55 +326,6 @@ async def _params(
         return LocalizeParams.model_validate(given)
     except ValidationError as exc:
         raise invalid_request(validation_message(exc.errors())) from None
-
-
-def _check_top_k(params: LocalizeParams, settings: Settings) -> None:
-    if params.top_k > settings.max_top_k:
-        raise invalid_request(f"top_k: at most {settings.max_top_k} (got {params.top_k})")
-
-
-def _check_size(upload: UploadFile, limit: int, what: str) -> None:
-    """Refuse an uploaded file from its parsed size, before reading it into memory."""
-    if upload.size is not None and upload.size > limit:
-        raise upload_too_large(limit, what)
-
-
-def _admit(engine: Engine, settings: Settings, slots: int) -> None:
-    if not engine.admit(slots):
-        raise overloaded(settings.retry_after_s)
-
-
-def _query(
-    settings: Settings,
-    engine: Engine,
-    params: LocalizeParams,
-    data: bytes,
-    content_type: str | None,
-    source: str,
-) -> ImageQuery:
-    return ImageQuery(data, content_type, params, source, settings.max_pixels, engine.compute)
-
-
-async def _localize_one(
-    engine: Engine,
-    settings: Settings,
-    metrics: Metrics,
-    params: LocalizeParams,
-    data: bytes,
-    content_type: str | None,
-) -> LocalizeResponse:
-    """Check the size of one image, admit it, run it and return its answer."""
-    if len(data) > settings.max_upload_bytes:
-        raise upload_too_large(settings.max_upload_bytes)
-    _admit(engine, settings, 1)
-    ((ok, value),) = await engine.run(
-        [_query(settings, engine, params, data, content_type, "image")]
-    )
-    if not ok:
-        raise value
-    metrics.observe_stages(value.timing_ms)
-    answer: LocalizeResponse = value
-    return answer
 
 
 def _batch_item(i: int, ok: bool, value: Any) -> BatchItem:
