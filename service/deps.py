@@ -21,7 +21,15 @@ from service.errors import ApiError
 from service.metrics import Metrics
 from service.settings import Settings
 
-__all__ = ["AdminKey", "EngineDep", "MetricsDep", "SettingsDep", "VehicleKey", "api_key_header"]
+__all__ = [
+    "AdminKey",
+    "EngineDep",
+    "MetricsDep",
+    "SettingsDep",
+    "VehicleKey",
+    "api_key_header",
+    "authorize",
+]
 
 
 def get_engine(request: Request) -> Engine:
@@ -45,8 +53,9 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 #: ``auto_error=False``: a missing key is answered by :func:`_authorize` in the API's own
 #: error format (401 + ``WWW-Authenticate: ApiKey``), not by FastAPI's default.
+API_KEY_HEADER = "X-API-Key"
 api_key_header = APIKeyHeader(
-    name="X-API-Key",
+    name=API_KEY_HEADER,
     auto_error=False,
     description="API key (create one with `hmpf-serve keys add`); not needed when the "
     "service runs with auth=false",
@@ -54,24 +63,33 @@ api_key_header = APIKeyHeader(
 PresentedKey = Annotated[str | None, Security(api_key_header)]
 
 
+def authorize(request: Request, presented: str | None, role: str) -> ApiKey | None:
+    """The key ``presented`` if its role allows ``role`` routes (None without auth).
+
+    Raises:
+        ApiError: 401 for a missing or unknown key, 403 for a key whose role falls short.
+    """
+    keys: KeyStore | None = request.app.state.keys
+    if keys is None:
+        return None
+    key = keys.check(presented)
+    if key is None:
+        raise ApiError(
+            401,
+            "unauthorized",
+            "missing or invalid API key (header X-API-Key)",
+            {"WWW-Authenticate": "ApiKey"},
+        )
+    if not key.allows(role):
+        raise ApiError(403, "forbidden", f"this key's role may not {role}-only routes")
+    return key
+
+
 def _authorize(role: str) -> Callable[[Request, str | None], ApiKey | None]:
     """A dependency admitting keys whose role allows ``role`` routes (401 / 403 otherwise)."""
 
     def check(request: Request, presented: PresentedKey) -> ApiKey | None:
-        keys: KeyStore | None = request.app.state.keys
-        if keys is None:
-            return None
-        key = keys.check(presented)
-        if key is None:
-            raise ApiError(
-                401,
-                "unauthorized",
-                "missing or invalid API key (header X-API-Key)",
-                {"WWW-Authenticate": "ApiKey"},
-            )
-        if not key.allows(role):
-            raise ApiError(403, "forbidden", f"this key's role may not {role}-only routes")
-        return key
+        return authorize(request, presented, role)
 
     return check
 

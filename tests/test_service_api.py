@@ -456,6 +456,24 @@ def test_auth(client, car, admin, gardens_point) -> None:
     }
     for open_route in ("/healthz", "/readyz", "/metrics"):
         assert client.get(open_route).status_code == 200
+    # Without a key, what is wrong with the body is not the answer: 401 comes first.
+    for route in ("/v1/localize", "/v1/localize/batch"):
+        bad = client.post(route, content=b"x", headers={"Content-Type": "multipart/form-data"})
+        _error(bad, 401, "unauthorized")
+        fields = client.post(route, files=image, data={"top_k": "abc"})
+        _error(fields, 401, "unauthorized")
+
+    def chunks():  # streamed past the limit, without Content-Length
+        yield b"--b\r\nContent-Disposition: form-data; name=image; filename=a.jpg\r\n\r\n"
+        for _ in range(48):
+            yield bytes(128 * 1024)
+
+    streamed = client.post(
+        "/v1/localize",
+        content=chunks(),
+        headers={"Content-Type": "multipart/form-data; boundary=b"},
+    )
+    _error(streamed, 401, "unauthorized")
 
 
 # -- bad input ---------------------------------------------------------------------------------

@@ -29,7 +29,14 @@ from starlette.responses import Response
 from starlette.routing import Match
 from starlette.types import Scope
 
-from service.deps import EngineDep, MetricsDep, SettingsDep, VehicleKey
+from service.deps import (
+    API_KEY_HEADER,
+    EngineDep,
+    MetricsDep,
+    SettingsDep,
+    VehicleKey,
+    authorize,
+)
 from service.engine import Engine
 from service.errors import (
     ERROR_RESPONSES,
@@ -75,21 +82,31 @@ class BatchForm(LocalizeFields):
 
 
 class FormRoute(APIRoute):
-    """A route whose form body, when the parser cannot read it, is a 422 like every invalid
-    request (``invalid_request``) rather than FastAPI's 400."""
+    """A route with a form body, read (by FastAPI) before the key is checked.
+
+    A body the parser cannot read is a 422 like every invalid request (``invalid_request``)
+    rather than FastAPI's 400; and, as for a body that parses, a caller without a key for
+    :attr:`role` hears 401 / 403 instead of what is wrong with its body (or its size).
+    """
+
+    #: The role the route's key dependency asks for.
+    role = "vehicle"
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()
 
-        async def parse_errors_are_422(request: Request) -> Response:
+        async def key_first_parse_errors_422(request: Request) -> Response:
             try:
                 return await handler(request)
             except HTTPException as exc:
-                if exc.status_code != 400:
+                if exc.status_code not in (400, 413):
+                    raise
+                authorize(request, request.headers.get(API_KEY_HEADER), self.role)
+                if exc.status_code == 413:
                     raise
                 raise malformed_body(str(exc.detail)) from None
 
-        return parse_errors_are_422
+        return key_first_parse_errors_422
 
 
 class MultipartRoute(FormRoute):
