@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass
 from typing import Annotated, Any, NamedTuple, NoReturn
 
 from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
@@ -37,7 +36,6 @@ from service.deps import (
     VehicleKey,
     authorize,
 )
-from service.engine import Engine
 from service.errors import (
     ERROR_RESPONSES,
     ApiError,
@@ -48,7 +46,6 @@ from service.errors import (
     validation_message,
 )
 from service.images import ACCEPTED_TYPES, check_content_type
-from service.metrics import Metrics
 from service.query import ImageQuery
 from service.schemas import (
     BatchItem,
@@ -58,7 +55,6 @@ from service.schemas import (
     LocalizeParams,
     LocalizeResponse,
 )
-from service.settings import Settings
 
 __all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
 
@@ -157,13 +153,17 @@ class Upload(NamedTuple):
     source: str  # how messages name it: image, images[3]
 
 
-@dataclass(frozen=True)
 class Localizer:
-    """What the localisation routes use of the app: admit, run and answer images."""
+    """What the localisation routes use of the app: admit, run and answer images.
 
-    engine: Engine
-    settings: Settings
-    metrics: Metrics
+    A class dependency: FastAPI builds one per request from the app's engine, settings and
+    metrics (``Annotated[Localizer, Depends()]``).
+    """
+
+    def __init__(self, engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> None:
+        self.engine = engine
+        self.settings = settings
+        self.metrics = metrics
 
     def check(self, params: LocalizeParams) -> None:
         """422 for a ``top_k`` over the service's limit."""
@@ -216,11 +216,7 @@ class Localizer:
         return BatchResponse(results=items, index_version=version)
 
 
-def _localizer(engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> Localizer:
-    return Localizer(engine, settings, metrics)
-
-
-LocalizerDep = Annotated[Localizer, Depends(_localizer)]
+LocalizerDep = Annotated[Localizer, Depends()]
 
 
 async def localize(
