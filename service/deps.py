@@ -5,11 +5,14 @@
 * :data:`VehicleKey`, :data:`AdminKey`: the caller's API key (header ``X-API-Key``, declared
   with :class:`~fastapi.security.APIKeyHeader` so that ``/docs`` shows the scheme), checked
   against the keys file for the route's role; ``None`` when the service runs without auth.
+
+They are ``async def`` because they do not block: FastAPI calls a plain ``def`` dependency in
+its thread pool, a hop that costs more than the work itself.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Annotated
 
 from fastapi import Depends, Request, Security
@@ -32,17 +35,17 @@ __all__ = [
 ]
 
 
-def get_engine(request: Request) -> Engine:
+async def get_engine(request: Request) -> Engine:
     engine: Engine = request.app.state.engine
     return engine
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     settings: Settings = request.app.state.settings
     return settings
 
 
-def get_metrics(request: Request) -> Metrics:
+async def get_metrics(request: Request) -> Metrics:
     metrics: Metrics = request.app.state.metrics
     return metrics
 
@@ -85,10 +88,10 @@ def authorize(request: Request, presented: str | None, role: str) -> ApiKey | No
     return key
 
 
-def _authorize(role: str) -> Callable[[Request, str | None], ApiKey | None]:
+def _authorize(role: str) -> Callable[[Request, str | None], Awaitable[ApiKey | None]]:
     """A dependency admitting keys whose role allows ``role`` routes (401 / 403 otherwise)."""
 
-    def check(request: Request, presented: PresentedKey) -> ApiKey | None:
+    async def check(request: Request, presented: PresentedKey) -> ApiKey | None:
         return authorize(request, presented, role)
 
     return check

@@ -123,7 +123,7 @@ def _is_multipart(scope: Scope) -> bool:
     return False
 
 
-def _raw_content_type(request: Request) -> str:
+async def _raw_content_type(request: Request) -> str:
     """The raw body's declared image type (415 for another type, or none)."""
     declared = request.headers.get("content-type", "")
     check_content_type(declared or None)
@@ -154,11 +154,7 @@ class Upload(NamedTuple):
 
 
 class Localizer:
-    """What the localisation routes use of the app: admit, run and answer images.
-
-    A class dependency: FastAPI builds one per request from the app's engine, settings and
-    metrics (``Annotated[Localizer, Depends()]``).
-    """
+    """What the localisation routes use of the app: admit, run and answer images."""
 
     def __init__(self, engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> None:
         self.engine = engine
@@ -216,7 +212,11 @@ class Localizer:
         return BatchResponse(results=items, index_version=version)
 
 
-LocalizerDep = Annotated[Localizer, Depends()]
+async def _localizer(engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> Localizer:
+    return Localizer(engine, settings, metrics)
+
+
+LocalizerDep = Annotated[Localizer, Depends(_localizer)]
 
 
 async def localize(
