@@ -1,100 +1,143 @@
 """``hmpf-serve``: serve an index over HTTP, and manage API keys.
 
-    hmpf-serve --index DIR [--host H] [--port P] [--settings FILE] [--workers N]
+    hmpf-serve [--index DIR] [--host H] [--port P] [--settings FILE] [--workers N]
+               [--keys-file KEYS.yaml]                 (no subcommand: serve)
     hmpf-serve keys add --file KEYS.yaml --name car-17 [--role vehicle|admin]
     hmpf-serve keys list --file KEYS.yaml
+    hmpf-serve --version
 
-Every flag can also come from the environment (``HMPF_INDEX``, ``HMPF_PORT``, ...) or from a
-settings file; flags win. Exit codes: 0 ok, 2 bad settings or index.
+Every serving flag can also come from the environment (``HMPF_INDEX``, ``HMPF_PORT``, ...) or
+from a settings file; flags win. Exit codes: 0 ok, 2 bad settings, index or keys file, 130
+interrupted (Ctrl-C, after a graceful shutdown).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING
 
-from hmpf.errors import HmpfError
+from hmpf.cli.common import add_version, run
 
-__all__ = ["main"]
+if TYPE_CHECKING:
+    from fastapi import FastAPI
+
+    from service.settings import Settings
+
+__all__ = ["build_parser", "main"]
+
+PROG = "hmpf-serve"
+#: Exit status when the app could not start inside uvicorn (uvicorn's own code for it).
+_STARTUP_FAILURE = 3
 
 
-def _serve(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hmpf-serve", description="Serve an hmpf index over HTTP.")
-    ap.add_argument("--index", type=Path, help="index folder (HMPF_INDEX)")
-    ap.add_argument("--host", help="bind address (default 127.0.0.1)")
-    ap.add_argument("--port", type=int, help="port (default 8000; 0 = any free port)")
-    ap.add_argument("--settings", type=Path, help="YAML settings file (HMPF_SETTINGS_FILE)")
-    ap.add_argument("--workers", type=int, help="queries computed at once (default: cores)")
-    ap.add_argument("--keys-file", type=Path, help="API keys file (HMPF_KEYS_FILE)")
-    args = ap.parse_args(argv)
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: serving flags at the top level, ``keys`` as a subcommand."""
+    ap = argparse.ArgumentParser(
+        prog=PROG,
+        usage=f"{PROG} [-h] [--version] [--index DIR] [--host H] [--port P] [--settings FILE]\n"
+        f"{' ' * 18}[--workers N] [--keys-file FILE]\n"
+        f"       {PROG} keys {{add,list}} ...",
+        description="Serve an hmpf index over HTTP (the default), or manage API keys.",
+        epilog="Serving flags may also come from HMPF_* variables or a settings file.",
+    )
+    add_version(ap)
+    ap.add_argument("--index", type=Path, metavar="DIR", help="index folder (HMPF_INDEX)")
+    ap.add_argument("--host", metavar="H", help="bind address (default 127.0.0.1)")
+    ap.add_argument("--port", type=int, metavar="P", help="port (default 8000; 0 = any free port)")
+    ap.add_argument(
+        "--settings", type=Path, metavar="FILE", help="YAML settings file (HMPF_SETTINGS_FILE)"
+    )
+    ap.add_argument(
+        "--workers", type=int, metavar="N", help="queries computed at once (default: cores)"
+    )
+    ap.add_argument("--keys-file", type=Path, metavar="FILE", help="API keys file (HMPF_KEYS_FILE)")
+    commands = ap.add_subparsers(
+        dest="command", metavar="COMMAND", title="commands (none: serve the index)"
+    )
+    keys = commands.add_parser("keys", help="manage API keys", description="Manage API keys.")
+    key_commands = keys.add_subparsers(dest="keys_command", required=True)
+    add = key_commands.add_parser("add", help="create a key; prints it once, stores only its hash")
+    add.add_argument("--file", type=Path, required=True)
+    add.add_argument("--name", required=True)
+    add.add_argument("--role", default="vehicle", choices=["vehicle", "admin"])
+    listing = key_commands.add_parser("list", help="names and roles in a keys file")
+    listing.add_argument("--file", type=Path, required=True)
+    return ap
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "keys":
+        return run(f"{PROG} keys", lambda: _keys(args))
+    return run(PROG, lambda: _serve(args))
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from service.app import create_app
     from service.settings import load_settings
 
-    try:
-        settings = load_settings(
-            args.settings,
-            index=args.index,
-            host=args.host,
-            port=args.port,
-            workers=args.workers,
-            keys_file=args.keys_file,
-        )
-        import uvicorn
+    settings = load_settings(
+        args.settings,
+        index=args.index,
+        host=args.host,
+        port=args.port,
+        workers=args.workers,
+        keys_file=args.keys_file,
+    )
+    logging.basicConfig(
+        level=settings.log_level.upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # CPU-feature probing
+    app = create_app(settings)
+    app.state.engine.load()  # fail here, with exit code 2, rather than inside uvicorn
+    return _run_server(app, settings)
 
-        from service.app import create_app
 
-        logging.basicConfig(
-            level=settings.log_level.upper(),
-            format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-        )
-        logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # CPU-feature probing
-        app = create_app(settings)
-        app.state.engine.load()  # fail here, with exit code 2, rather than inside uvicorn
-    except HmpfError as exc:
-        print(f"hmpf-serve: error: {exc}", file=sys.stderr)
-        return 2
-    uvicorn.run(
+def _run_server(app: FastAPI, settings: Settings) -> int:
+    """Serve until stopped: 0 after SIGTERM, 3 when the app did not start (as uvicorn).
+
+    Raises:
+        KeyboardInterrupt: after Ctrl-C and the graceful shutdown it starts (uvicorn itself
+            would return as after SIGTERM), so that the command exits 130.
+    """
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        interrupted = False
+
+        def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+            self.interrupted = self.interrupted or sig == signal.SIGINT
+            super().handle_exit(sig, frame)
+
+    config = uvicorn.Config(
         app,
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
         timeout_graceful_shutdown=10,
     )
-    return 0
+    server = Server(config)
+    server.run()
+    if server.interrupted:
+        raise KeyboardInterrupt
+    return 0 if server.started else _STARTUP_FAILURE
 
 
-def _keys(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="hmpf-serve keys", description="Manage API keys.")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    add = sub.add_parser("add", help="create a key; prints it once, stores only its hash")
-    add.add_argument("--file", type=Path, required=True)
-    add.add_argument("--name", required=True)
-    add.add_argument("--role", default="vehicle", choices=["vehicle", "admin"])
-    ls = sub.add_parser("list", help="names and roles in a keys file")
-    ls.add_argument("--file", type=Path, required=True)
-    args = ap.parse_args(argv)
-
+def _keys(args: argparse.Namespace) -> int:
     from service.auth import KeyStore, add_key
 
-    try:
-        if args.cmd == "add":
-            print(add_key(args.file, args.name, args.role))
-        else:
-            for k in KeyStore.load(args.file).keys:
-                print(f"{k.name}\t{k.role}")
-    except HmpfError as exc:
-        print(f"hmpf-serve keys: error: {exc}", file=sys.stderr)
-        return 2
+    if args.keys_command == "add":
+        print(add_key(args.file, args.name, args.role))
+    else:
+        for k in KeyStore.load(args.file).keys:
+            print(f"{k.name}\t{k.role}")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["keys"]:
-        return _keys(argv[1:])
-    return _serve(argv)
 
 
 if __name__ == "__main__":

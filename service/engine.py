@@ -39,8 +39,8 @@ __all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"
 
 log = logging.getLogger("hmpf.service")
 T = TypeVar("T")
-#: A job's outcome: (True, its value) or (False, the exception it raised).
-Outcome = tuple[bool, Any]
+#: What one job of a lane ended with: (True, its value) or (False, the exception it raised).
+JobResult = tuple[bool, Any]
 
 #: Combined quality (z-score over the final candidates) an answer needs when neither the
 #: settings nor the index's config give a threshold. Measured with configs/default.yaml on the
@@ -240,7 +240,7 @@ class Engine:
 
     def start(
         self, jobs: Sequence[Callable[[Loaded], T]], lanes: int = 1
-    ) -> tuple[list[Future[None]], list[Outcome]]:
+    ) -> tuple[list[Future[None]], list[JobResult]]:
         """Start ``jobs`` on ``lanes`` query threads; the caller has admitted ``lanes`` slots.
 
         Every job gets the same lease on the current version (one request, one version).
@@ -258,7 +258,7 @@ class Engine:
         except BaseException:
             self.done(lanes)
             raise
-        outcomes: list[Outcome] = [(False, RuntimeError("not run"))] * len(jobs)
+        outcomes: list[JobResult] = [(False, RuntimeError("not run"))] * len(jobs)
         order = iter(range(len(jobs)))
         left = [lanes]
         take = threading.Lock()
@@ -300,7 +300,7 @@ class Engine:
             futures.append(fut)
         return futures, outcomes
 
-    async def run(self, jobs: Sequence[Callable[[Loaded], T]], lanes: int = 1) -> list[Outcome]:
+    async def run(self, jobs: Sequence[Callable[[Loaded], T]], lanes: int = 1) -> list[JobResult]:
         """:meth:`start` and wait for every job (the caller has admitted ``lanes`` slots)."""
         futures, outcomes = self.start(jobs, lanes)
         await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))

@@ -1,13 +1,16 @@
 """Every error the API answers is JSON ``{"error": {"code": ..., "message": ...}}``.
 
-Handlers are installed for our own :class:`ApiError`, FastAPI's validation errors (422),
-Starlette's HTTP errors (404, 405, ...) and, as a last resort, any other exception (500 with
-a generic message; the traceback goes to the log, never to the client).
+This module is the one place that builds that body (:func:`error_body`) and maps errors to
+HTTP: our own :class:`ApiError`, FastAPI's validation errors (422), a body over the limit
+(413, :class:`~service.limits.BodyTooLarge`), Starlette's HTTP errors (404, 405, ...) and, as
+a last resort, any other exception (500 with a generic message; the traceback goes to the
+log, never to the client). The constructors below name the errors several routes raise.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -15,9 +18,25 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-__all__ = ["ApiError", "error_body", "install_handlers"]
+from service.schemas import ErrorBody
+
+__all__ = [
+    "ERROR_RESPONSES",
+    "ApiError",
+    "error_body",
+    "install_handlers",
+    "invalid_request",
+    "malformed_body",
+    "overloaded",
+    "upload_too_large",
+]
 
 log = logging.getLogger("hmpf.service")
+
+#: The error answers the API's routes document (``responses=`` of a route or router).
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorBody} for code in (401, 403, 413, 415, 422, 503)
+}
 
 
 class ApiError(Exception):
@@ -39,7 +58,30 @@ class ApiError(Exception):
 
 
 def error_body(code: str, message: str) -> dict[str, Any]:
+    """The JSON body of every error answer."""
     return {"error": {"code": code, "message": message}}
+
+
+def invalid_request(message: str) -> ApiError:
+    return ApiError(422, "invalid_request", message)
+
+
+def malformed_body(detail: str) -> ApiError:
+    """A multipart body the form parser could not read (FastAPI reports it as a 400)."""
+    return invalid_request(f"malformed multipart body: {detail}")
+
+
+def upload_too_large(limit: int, what: str = "image") -> ApiError:
+    return ApiError(413, "payload_too_large", f"{what} exceeds the upload limit of {limit} bytes")
+
+
+def overloaded(retry_after_s: int) -> ApiError:
+    return ApiError(
+        503,
+        "overloaded",
+        "all workers are busy and the queue is full; retry later",
+        {"Retry-After": str(retry_after_s)},
+    )
 
 
 _HTTP_CODES = {
@@ -53,9 +95,10 @@ _HTTP_CODES = {
 }
 
 
-def _validation_message(exc: RequestValidationError) -> str:
+def validation_message(errors: Sequence[Any]) -> str:
+    """``field: problem; ...`` for the first five of pydantic's / FastAPI's error dicts."""
     parts = []
-    for err in exc.errors()[:5]:
+    for err in list(errors)[:5]:
         loc = ".".join(str(x) for x in err.get("loc", ()) if x not in ("body", "query"))
         parts.append(f"{loc or 'request'}: {err.get('msg', 'invalid')}")
     return "; ".join(parts) or "invalid request"
@@ -68,10 +111,11 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(error_body("invalid_request", _validation_message(exc)), 422)
+        return invalid_request(validation_message(exc.errors())).response()
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # Also answers BodyTooLarge (an HTTPException with status 413).
         code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
         return JSONResponse(error_body(code, str(exc.detail)), exc.status_code, headers=exc.headers)
 

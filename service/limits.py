@@ -3,24 +3,33 @@
 A declared ``Content-Length`` over the limit is refused at once (413, nothing read). Otherwise
 the ASGI ``receive`` channel is wrapped: once more bytes than the limit have arrived it raises
 :class:`BodyTooLarge`, which the app answers with 413 (the rest of the upload is never read
-into memory).
+into memory). :class:`BodyTooLarge` is an ``HTTPException`` so that FastAPI's form parsing
+passes it on unchanged instead of answering "error parsing the body" (400).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from typing import Any
 
+from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import error_body
 
 __all__ = ["BodyLimit", "BodyTooLarge"]
 
 
-class BodyTooLarge(Exception):
+class BodyTooLarge(HTTPException):
+    """Raised by the wrapped ``receive`` once a body crosses its limit (answered 413)."""
+
     def __init__(self, limit: int) -> None:
-        super().__init__(f"request body exceeds {limit} bytes")
+        super().__init__(413, _message(limit))
         self.limit = limit
+
+
+def _message(limit: int) -> str:
+    return f"request body exceeds {limit} bytes"
 
 
 class BodyLimit:
@@ -64,10 +73,7 @@ def _content_length(scope: Scope) -> int | None:
 
 
 async def _reject(send: Send, limit: int) -> None:
-    body: dict[str, Any] = {
-        "error": {"code": "payload_too_large", "message": f"request body exceeds {limit} bytes"}
-    }
-    data = json.dumps(body).encode()
+    data = json.dumps(error_body("payload_too_large", _message(limit))).encode()
     await send(
         {
             "type": "http.response.start",

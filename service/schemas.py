@@ -1,22 +1,32 @@
-"""Request parameters and response bodies of the API (they also document /docs)."""
+"""Request parameters and response bodies of the API (they also document /docs).
+
+The multipart form models, which hold uploaded files, live with their routes in
+:mod:`service.routes.localize`; everything here is plain pydantic.
+"""
 
 from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = [
+    "BatchItem",
+    "BatchResponse",
     "Candidate",
     "ErrorBody",
+    "ErrorDetail",
     "IndexInfo",
+    "LocalizeFields",
     "LocalizeParams",
     "LocalizeResponse",
     "Match",
+    "PriorReport",
     "TierReport",
 ]
 
 
-class LocalizeParams(BaseModel):
-    """Optional fields of a localisation request (query string or multipart form fields)."""
+class LocalizeFields(BaseModel):
+    """Optional fields of a localisation request as one source gives them: the query string
+    or the multipart form fields (a field may come from either, not from both)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -25,6 +35,10 @@ class LocalizeParams(BaseModel):
     radius_m: float | None = Field(None, gt=0, le=20_000_000, description="GPS prior radius")
     top_k: int = Field(5, ge=1, description="ranked candidates returned")
     vehicle_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[\w.:@-]+$")
+
+
+class LocalizeParams(LocalizeFields):
+    """A request's fields from the query string and the form together, checked as a whole."""
 
     @model_validator(mode="after")
     def _prior(self) -> LocalizeParams:
@@ -39,7 +53,10 @@ class Match(BaseModel):
     name: str
     lat: float | None = None
     lon: float | None = None
-    score: float = Field(description="Combined score: z-score over the final candidates")
+    score: float | None = Field(
+        description="Combined score: z-score over the final candidates (None: not a number, "
+        "e.g. a method scored NaN; such a match is never accepted)"
+    )
     confidence: float = Field(ge=0, le=1, description="score / largest possible z-score")
     accepted: bool = Field(description="score >= the acceptance threshold")
 
@@ -47,9 +64,9 @@ class Match(BaseModel):
 class Candidate(BaseModel):
     reference_id: int
     name: str
-    score: float | None = Field(None, description="Combined score (final ranking)")
+    score: float | None = Field(default=None, description="Combined score (final ranking)")
     scores: dict[str, float | None] | None = Field(
-        None, description="per method: score normalised over the tier's inputs (1 = best)"
+        default=None, description="per method: score normalised over the tier's inputs (1 = best)"
     )
 
 
@@ -85,7 +102,7 @@ class LocalizeResponse(BaseModel):
 class BatchItem(BaseModel):
     index: int
     result: LocalizeResponse | None = None
-    error: dict[str, str] | None = None
+    error: ErrorDetail | None = None
 
 
 class BatchResponse(BaseModel):

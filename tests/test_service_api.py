@@ -99,6 +99,104 @@ def test_health_ready_docs(client: TestClient) -> None:
     assert {"multipart/form-data", "image/jpeg", "image/png", "image/webp"} <= set(body)
 
 
+def test_openapi_describes_the_key_and_every_body_the_code_accepts(
+    client, car, gardens_point
+) -> None:
+    doc = client.get("/openapi.json").json()
+    schemes = doc["components"]["securitySchemes"]
+    ((scheme_name, scheme),) = schemes.items()
+    assert scheme == {**scheme, "type": "apiKey", "in": "header", "name": "X-API-Key"}
+    paths = doc["paths"]
+    for path, method in (
+        ("/v1/localize", "post"),
+        ("/v1/localize/batch", "post"),
+        ("/v1/index", "get"),
+        ("/v1/index/reload", "post"),
+    ):
+        assert paths[path][method]["security"] == [{scheme_name: []}], path
+    for path in ("/healthz", "/readyz", "/metrics"):
+        assert "security" not in paths[path]["get"], path
+
+    def form_schema(path: str) -> dict:
+        body = paths[path]["post"]["requestBody"]
+        ref = body["content"]["multipart/form-data"]["schema"]["$ref"]
+        return doc["components"]["schemas"][ref.rsplit("/", 1)[-1]]
+
+    fields = {"lat", "lon", "radius_m", "top_k", "vehicle_id"}
+    single, batch = form_schema("/v1/localize"), form_schema("/v1/localize/batch")
+    assert set(single["properties"]) == fields | {"image"} and single["required"] == ["image"]
+    assert set(batch["properties"]) == fields | {"images"} and batch["required"] == ["images"]
+    assert batch["properties"]["images"]["type"] == "array"
+    query = {p["name"] for p in paths["/v1/localize"]["post"]["parameters"] if p["in"] == "query"}
+    assert query == fields
+
+    # Every documented way in is answered: the form with all its fields, and the raw body
+    # under each documented content type.
+    path = _ref(gardens_point, 8)
+    r = client.post(
+        "/v1/localize",
+        files={"image": (path.name, path.read_bytes(), "image/jpeg")},
+        data={
+            "lat": "-27.4762",
+            "lon": "153.028",
+            "radius_m": "50",
+            "top_k": "2",
+            "vehicle_id": "v",
+        },
+        headers=car,
+    )
+    assert r.status_code == 200, r.text
+    raw_types = set(paths["/v1/localize"]["post"]["requestBody"]["content"]) - {
+        "multipart/form-data"
+    }
+    assert {"image/jpeg", "image/png", "image/webp", "application/octet-stream"} <= raw_types
+    for ctype in sorted(raw_types):
+        assert paths["/v1/localize"]["post"]["requestBody"]["content"][ctype]["schema"] == {
+            "type": "string",
+            "format": "binary",
+        }
+        r = client.post(
+            "/v1/localize?top_k=1",
+            content=path.read_bytes(),
+            headers={**car, "Content-Type": ctype},
+        )
+        assert r.status_code == 200, (ctype, r.text)
+        assert r.json()["match"]["name"] == path.name
+
+
+def test_nan_quality_is_reported_as_null_and_never_accepted(service_index, gardens_point) -> None:
+    """A method that scores NaN for a final candidate makes the Combined z-scores NaN: the
+    answer says so (null), rather than a z-value of 0.0, and does not accept the match."""
+    from service.answer import localize_response
+    from service.engine import Loaded
+    from service.schemas import LocalizeParams
+
+    loaded = Loaded.open(service_index, threshold=-100.0)  # any finite score is accepted
+    try:
+        image = cv2.cvtColor(cv2.imread(str(_ref(gardens_point, 4))), cv2.COLOR_BGR2RGB)
+        real = loaded.reader.scorer(loaded.reader.extract_query(image))
+
+        def sad_fails_on_one(mid: str, subset: np.ndarray | None) -> np.ndarray:
+            scores = np.asarray(real(mid, subset), dtype=np.float64)
+            if mid == "sad" and subset is not None:  # the final tier's method
+                scores = scores.copy()
+                scores[0] = np.nan
+            return scores
+
+        result = loaded.hierarchy.run(sad_fails_on_one, loaded.reader.n)
+        assert np.isnan(result.quality) and result.match >= 0
+        answer = localize_response(loaded, result, None, LocalizeParams(), {"total": 1.0})
+    finally:
+        loaded.reader.close()
+    assert answer.match is not None
+    assert answer.match.score is None and answer.match.accepted is False
+    body = json.loads(
+        answer.model_dump_json(), parse_constant=lambda c: pytest.fail(f"non-JSON {c}")
+    )
+    assert body["match"]["score"] is None and body["match"]["accepted"] is False
+    assert all(c["score"] is None for c in body["candidates"])
+
+
 def test_index_info(client: TestClient, car: dict[str, str]) -> None:
     info = client.get("/v1/index", headers=car).json()
     assert info["version"] == "v0001" and info["versions"] == ["v0001"]
@@ -234,11 +332,12 @@ def test_batch_errors(client, car, gardens_point) -> None:
         422,
         "invalid_request",
     )
-    _error(
-        client.post("/v1/localize/batch", content=a, headers={**car, "Content-Type": "image/jpeg"}),
-        415,
-        "unsupported_media_type",
-    )
+    for ctype in ("image/jpeg", "application/x-www-form-urlencoded"):
+        _error(
+            client.post("/v1/localize/batch", content=a, headers={**car, "Content-Type": ctype}),
+            415,
+            "unsupported_media_type",
+        )
 
 
 def test_batch_larger_than_the_admission_limit_runs_in_lanes(client, car, gardens_point) -> None:
@@ -265,16 +364,16 @@ def test_batch_larger_than_the_admission_limit_runs_in_lanes(client, car, garden
 def test_batch_item_failing_unexpectedly_gets_its_own_error(
     client, car, gardens_point, monkeypatch
 ) -> None:
-    import service.app as app_module
+    import service.query as query_module
 
-    real = app_module.decode_upload
+    real = query_module.decode_upload
 
     def flaky(data: bytes, **kw: object) -> np.ndarray:
         if data.startswith(b"BOOM"):
             raise RuntimeError("a bug, not the client's fault")
         return real(data, **kw)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(app_module, "decode_upload", flaky)
+    monkeypatch.setattr(query_module, "decode_upload", flaky)
     a = _ref(gardens_point, 5)
     files = [
         ("images", ("boom.jpg", b"BOOM", "image/jpeg")),
@@ -357,6 +456,24 @@ def test_auth(client, car, admin, gardens_point) -> None:
     }
     for open_route in ("/healthz", "/readyz", "/metrics"):
         assert client.get(open_route).status_code == 200
+    # Without a key, what is wrong with the body is not the answer: 401 comes first.
+    for route in ("/v1/localize", "/v1/localize/batch"):
+        bad = client.post(route, content=b"x", headers={"Content-Type": "multipart/form-data"})
+        _error(bad, 401, "unauthorized")
+        fields = client.post(route, files=image, data={"top_k": "abc"})
+        _error(fields, 401, "unauthorized")
+
+    def chunks():  # streamed past the limit, without Content-Length
+        yield b"--b\r\nContent-Disposition: form-data; name=image; filename=a.jpg\r\n\r\n"
+        for _ in range(48):
+            yield bytes(128 * 1024)
+
+    streamed = client.post(
+        "/v1/localize",
+        content=chunks(),
+        headers={"Content-Type": "multipart/form-data; boundary=b"},
+    )
+    _error(streamed, 401, "unauthorized")
 
 
 # -- bad input ---------------------------------------------------------------------------------
@@ -459,6 +576,9 @@ def test_truncated_and_damaged_images(client, car, gardens_point) -> None:
         ({"vehicle_id": "a b"}, {}, "vehicle_id"),
         ({"color": "red"}, {}, "color"),
         ({"top_k": "2"}, {"top_k": "3"}, "given twice"),
+        ({}, [("top_k", "2"), ("top_k", "3")], "given twice"),
+        ({}, {"color": "red"}, "color"),
+        ({"lat": "10"}, {"lon": "10"}, "lat, lon and radius_m"),
     ],
 )
 def test_malformed_fields(client, car, gardens_point, fields, params, needle) -> None:
@@ -483,6 +603,18 @@ def test_malformed_requests(client, car, gardens_point) -> None:
         headers={**car, "Content-Type": "multipart/form-data; boundary=xyz"},
     )
     assert r.status_code == 422 and "error" in r.json()
+    # A body the multipart parser cannot read is a 422 like any invalid request, not a 400.
+    for route in ("/v1/localize", "/v1/localize/batch"):
+        r = client.post(
+            route, content=b"no parts", headers={**car, "Content-Type": "multipart/form-data"}
+        )
+        assert "malformed multipart body" in _error(r, 422, "invalid_request")["message"]
+    # A text field where a file belongs.
+    _error(
+        client.post("/v1/localize", files={"image": (None, "abc")}, headers=car),
+        422,
+        "invalid_request",
+    )
     _error(client.get("/v1/localize", headers=car), 405, "method_not_allowed")
     _error(client.get("/v1/nothing-here", headers=car), 404, "not_found")
 
@@ -501,9 +633,10 @@ def test_overload_answers_503_with_retry_after(client, car, gardens_point) -> No
 
 
 def test_metrics(client, car, gardens_point) -> None:
-    client.post(
+    r = client.post(
         "/v1/localize", files={"image": ("a.jpg", _ref(gardens_point, 4).read_bytes())}, headers=car
     )
+    assert r.status_code == 200, r.text
     client.get("/v1/index")  # 401
     text = client.get("/metrics").text
     assert 'hmpf_requests_total{method="POST",route="/v1/localize",status="200"}' in text
@@ -565,6 +698,7 @@ def test_response_is_json_serialisable_without_nan(client, car, gardens_point) -
     r = client.post(
         "/v1/localize", files={"image": ("a.jpg", _ref(gardens_point, 0).read_bytes())}, headers=car
     )
+    assert r.status_code == 200, r.text
     json.loads(r.text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
 
 

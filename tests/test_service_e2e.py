@@ -4,12 +4,14 @@ built from Gardens Point, real night images posted with httpx.
 * night_right queries match their day_right places;
 * an over-limit upload streamed without Content-Length is refused before it has been sent;
 * ``/v1/index/reload`` to a new version while clients keep querying: zero failures;
-* more concurrent requests than workers + queue: 503 + Retry-After, no crash.
+* more concurrent requests than workers + queue: 503 + Retry-After, no crash;
+* Ctrl-C (SIGINT) stops the server with one line and exit code 130, no traceback.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -44,6 +46,12 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _default_sigint() -> None:
+    """In the server process: Ctrl-C as on a terminal, even where the tests run in the
+    background (a shell starts background jobs with SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Server:
     """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
@@ -63,6 +71,7 @@ class Server:
             env=full_env,
             stdout=self._out,
             stderr=subprocess.STDOUT,
+            preexec_fn=_default_sigint,
         )
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
@@ -241,3 +250,15 @@ def test_overload_gets_503_not_a_crash(index, tmp_path, gardens_point) -> None:
         srv.stop()
     assert "Traceback" not in srv.output()
     assert "authentication is OFF" in srv.output()
+
+
+def test_ctrl_c_exits_130_with_one_line(index, tmp_path) -> None:
+    srv = Server(index, tmp_path / "serve.log", auth="false", workers="1")
+    try:
+        srv.proc.send_signal(signal.SIGINT)
+        rc = srv.proc.wait(60)
+    finally:
+        srv.stop()
+    out = srv.output()
+    assert rc == 130, out
+    assert "Traceback" not in out and out.count("hmpf-serve: interrupted") == 1, out

@@ -125,3 +125,19 @@ def test_serve_cli_fails_cleanly(tmp_path: Path, capsys, monkeypatch) -> None:
     rc = serve_main(["--index", str(tmp_path / "none")])
     err = capsys.readouterr().err
     assert rc == 2 and "hmpf-serve: error:" in err and "none" in err and "Traceback" not in err
+
+
+def test_serve_cli_help_lists_the_keys_command_and_version_exits_0(capsys) -> None:
+    with pytest.raises(SystemExit) as done:
+        serve_main(["--help"])
+    out = capsys.readouterr().out
+    assert done.value.code == 0
+    assert "keys" in out and "--index" in out and "--port" in out
+    with pytest.raises(SystemExit) as done:
+        serve_main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.startswith("hmpf-serve (hmpf ")
+    # the old form of the keys command still works, and so does the serving form's parser
+    with pytest.raises(SystemExit) as done:
+        serve_main(["keys", "--help"])
+    assert done.value.code == 0 and "add" in capsys.readouterr().out

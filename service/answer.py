@@ -1,0 +1,153 @@
+"""One image's hierarchy result as the API's response models.
+
+:func:`localize_response` is the only place that turns a :class:`~hmpf.hierarchy.HierarchyResult`
+into a :class:`~service.schemas.LocalizeResponse`: the match (with its position and whether it
+is accepted), the final ranking, each tier's candidates and the GPS prior's report. Numbers
+that are not finite (a method that scored NaN) are reported as ``None``, never as a number
+that looks real, and a match without a finite score is never accepted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hmpf.hierarchy import HierarchyResult
+from service.engine import Loaded, confidence
+from service.schemas import (
+    Candidate,
+    LocalizeParams,
+    LocalizeResponse,
+    Match,
+    PriorReport,
+    TierReport,
+)
+
+__all__ = ["localize_response"]
+
+
+def localize_response(
+    loaded: Loaded,
+    result: HierarchyResult | None,
+    allowed: np.ndarray | None,
+    params: LocalizeParams,
+    timing: dict[str, Any],
+) -> LocalizeResponse:
+    """The answer to one image.
+
+    Args:
+        loaded: the index version the query ran on.
+        result: the hierarchy's result, or None when the GPS prior left no reference.
+        allowed: the reference ids the prior allowed (the result's indices are positions in
+            it), or None without a prior.
+        params: the request's fields (``top_k``, ``vehicle_id``, the prior).
+        timing: the query's stage times in ms, reported as they are.
+    """
+    refs = _References(loaded.reader.refs.names, allowed)
+    return LocalizeResponse(
+        match=None if result is None else _match(loaded, result, refs),
+        candidates=[] if result is None else _ranking(result, refs, params.top_k),
+        tiers=[] if result is None else _tiers(loaded, result, refs),
+        prior=_prior(loaded, params, allowed),
+        timing_ms=timing,
+        index_version=loaded.version,
+        vehicle_id=params.vehicle_id,
+        threshold=loaded.threshold,
+    )
+
+
+@dataclass(frozen=True)
+class _References:
+    """Maps the result's indices to reference ids and names (through the prior's ids)."""
+
+    names: list[str]
+    allowed: np.ndarray | None
+
+    def id_of(self, i: int) -> int:
+        return int(self.allowed[i]) if self.allowed is not None else int(i)
+
+    def name_of(self, i: int) -> str:
+        return self.names[self.id_of(i)]
+
+    @property
+    def searched(self) -> int:
+        """How many references the hierarchy ran over."""
+        return len(self.names) if self.allowed is None else len(self.allowed)
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match | None:
+    if result.match < 0:
+        return None
+    ref_id = refs.id_of(result.match)
+    meta = loaded.reader.refs.meta
+    lat = float(meta["lat"][ref_id]) if "lat" in meta else float("nan")
+    lon = float(meta["lon"][ref_id]) if "lon" in meta else float("nan")
+    score = _finite(result.quality)
+    return Match(
+        reference_id=ref_id,
+        name=refs.names[ref_id],
+        lat=_finite(lat),
+        lon=_finite(lon),
+        score=score,
+        confidence=confidence(result.quality, len(result.final_candidates)),
+        accepted=score is not None and score >= loaded.threshold,
+    )
+
+
+def _ranking(result: HierarchyResult, refs: _References, top_k: int) -> list[Candidate]:
+    """The final candidates by Combined score, best first, at most ``top_k``."""
+    z = dict(zip(result.final_candidates.tolist(), result.combined.tolist(), strict=True))
+    return [
+        Candidate(reference_id=refs.id_of(i), name=refs.name_of(i), score=_finite(z[int(i)]))
+        for i in result.ranking()[:top_k]
+    ]
+
+
+def _tiers(loaded: Loaded, result: HierarchyResult, refs: _References) -> list[TierReport]:
+    configured = loaded.hierarchy.config.tiers
+    reports = []
+    for t, tier in enumerate(result.tiers):
+        unique = list(dict.fromkeys(int(i) for i in tier.candidates))
+        candidates = [
+            Candidate(
+                reference_id=refs.id_of(i),
+                name=refs.name_of(i),
+                scores={m: _finite(float(tier.scores[m][i])) for m in tier.methods},
+            )
+            for i in unique
+        ]
+        inputs = refs.searched if tier.inputs is None else int(len(np.unique(tier.inputs)))
+        reports.append(
+            TierReport(
+                tier=t + 1,
+                methods=tier.methods,
+                k=configured[t].k,
+                inputs=inputs,
+                candidates=candidates,
+                time_ms=tier.time_ms,
+            )
+        )
+    return reports
+
+
+def _prior(
+    loaded: Loaded, params: LocalizeParams, allowed: np.ndarray | None
+) -> PriorReport | None:
+    if params.lat is None:
+        return None
+    assert params.lon is not None and params.radius_m is not None
+    return PriorReport(
+        lat=params.lat,
+        lon=params.lon,
+        radius_m=params.radius_m,
+        applied=loaded.has_positions,
+        references=None if allowed is None else int(len(allowed)),
+        reason=None if loaded.has_positions else "the index has no reference positions",
+    )

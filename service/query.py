@@ -1,0 +1,83 @@
+"""One uploaded image's localisation: the work a request hands to :meth:`Engine.run`.
+
+An :class:`ImageQuery` is built on the event loop when the request has been read and called
+on a query thread with the request's lease on an index version: it decodes the image, runs
+the hierarchy (restricted to the GPS prior, if any), times each stage and returns the answer.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any
+
+from hmpf.errors import HmpfError
+from service.answer import localize_response
+from service.engine import Loaded, Prior, run_query
+from service.errors import ApiError
+from service.images import decode_upload
+from service.schemas import LocalizeParams, LocalizeResponse
+
+__all__ = ["ImageQuery"]
+
+
+@dataclass
+class ImageQuery:
+    """One image of a request, with what its answer needs.
+
+    Attributes:
+        data: the uploaded bytes.
+        content_type: the declared content type (checked again against the bytes).
+        params: the request's fields (one set for every image of a batch).
+        source: how messages name the image (``image``, ``images[3]``).
+        max_pixels: the pixel limit, read from the header before decoding.
+        compute: the engine's pool for the extraction tasks.
+        submitted: when the request handed it over (``perf_counter``), for the queue time.
+    """
+
+    data: bytes
+    content_type: str | None
+    params: LocalizeParams
+    source: str
+    max_pixels: int
+    compute: Executor
+    submitted: float = field(default_factory=time.perf_counter)
+
+    def __call__(self, loaded: Loaded) -> LocalizeResponse:
+        """Localise the image against ``loaded`` (on a query thread).
+
+        Raises:
+            ApiError: 413 / 415 / 422 for an image that cannot be used.
+        """
+        timing: dict[str, Any] = {"queue": _ms_since(self.submitted)}
+        t = time.perf_counter()
+        image = decode_upload(
+            self.data,
+            max_pixels=self.max_pixels,
+            content_type=self.content_type,
+            source=self.source,
+        )
+        timing["decode"] = _ms_since(t)
+        try:
+            result, allowed = run_query(loaded, image, _prior(self.params), timing, self.compute)
+        except HmpfError as exc:
+            raise ApiError(422, "invalid_image", f"{self.source}: {exc}") from None
+        if result is None:
+            timing["hierarchy"] = 0.0
+        else:
+            timing["tiers"] = [t.time_ms for t in result.tiers]
+            timing["fusion"] = result.fusion_ms
+        answer = localize_response(loaded, result, allowed, self.params, timing)
+        answer.timing_ms["total"] = _ms_since(self.submitted)
+        return answer
+
+
+def _prior(params: LocalizeParams) -> Prior | None:
+    if params.lat is None or params.lon is None or params.radius_m is None:
+        return None  # LocalizeParams has checked that they come together
+    return Prior(params.lat, params.lon, params.radius_m)
+
+
+def _ms_since(start: float) -> float:
+    return (time.perf_counter() - start) * 1e3

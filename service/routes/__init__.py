@@ -1,0 +1,1 @@
+"""The API's routers, one per concern: localisation, the index, health and metrics."""

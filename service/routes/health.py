@@ -1,0 +1,33 @@
+"""``GET /healthz`` (alive), ``GET /readyz`` (an index is loaded) and ``GET /metrics``
+(Prometheus); none of them needs a key."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse, Response
+
+from service.deps import EngineDep, MetricsDep
+from service.errors import error_body
+from service.schemas import ErrorBody
+
+__all__ = ["router"]
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz")
+def healthz() -> dict[str, str]:
+    return {"status": "ok"}
+
+
+@router.get("/readyz", responses={503: {"model": ErrorBody}})
+def readyz(engine: EngineDep) -> Response:
+    if not engine.ready:
+        return JSONResponse(error_body("not_ready", "no index loaded"), 503)
+    return JSONResponse({"status": "ready", "index_version": engine.current.version})
+
+
+@router.get("/metrics")
+def prometheus(engine: EngineDep, metrics: MetricsDep) -> Response:
+    metrics.set_queue(engine.queued, engine.running)
+    return metrics.response()

@@ -1,0 +1,351 @@
+"""``POST /v1/localize`` (one image) and ``POST /v1/localize/batch`` (several, in order).
+
+``/v1/localize`` takes its image in one of two ways, served by two routes on the same path:
+
+* a multipart form, field ``image`` (a :class:`MultipartRoute`, which matches only
+  ``multipart/form-data`` requests); its OpenAPI operation lists the raw-body content types
+  too (:data:`RAW_BODY_TYPES`), so ``/docs`` describes both ways;
+* the raw body with an image content type (the route after it, hidden from the schema).
+
+The optional fields (:class:`~service.schemas.LocalizeFields`) may come as query parameters
+or, with multipart, as form fields; a field given twice is refused. A batch runs its images
+in up to ``workers`` lanes, one admission slot each, and answers a bad image with its own
+error entry while the others are answered.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Coroutine
+from typing import Annotated, Any, NamedTuple, NoReturn
+
+from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
+from fastapi.routing import APIRoute
+from pydantic import Field, ValidationError
+from starlette.exceptions import HTTPException
+from starlette.responses import Response
+from starlette.routing import Match
+from starlette.types import Scope
+
+from service.deps import (
+    API_KEY_HEADER,
+    EngineDep,
+    MetricsDep,
+    SettingsDep,
+    VehicleKey,
+    authorize,
+)
+from service.errors import (
+    ERROR_RESPONSES,
+    ApiError,
+    invalid_request,
+    malformed_body,
+    overloaded,
+    upload_too_large,
+    validation_message,
+)
+from service.images import ACCEPTED_TYPES, check_content_type
+from service.query import ImageQuery
+from service.schemas import (
+    BatchItem,
+    BatchResponse,
+    ErrorDetail,
+    LocalizeFields,
+    LocalizeParams,
+    LocalizeResponse,
+)
+
+__all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
+
+log = logging.getLogger("hmpf.service")
+
+_MULTIPART = "multipart/form-data"
+#: Content types of a raw-body image (the bytes are sniffed; octet-stream is accepted too).
+RAW_BODY_TYPES = (*ACCEPTED_TYPES, "application/octet-stream")
+
+
+class LocalizeForm(LocalizeFields):
+    """The multipart form of ``POST /v1/localize``."""
+
+    image: UploadFile = Field(description="the camera frame: JPEG, PNG or WebP")
+
+
+class BatchForm(LocalizeFields):
+    """The multipart form of ``POST /v1/localize/batch`` (one set of fields for all images)."""
+
+    images: list[UploadFile] = Field(description="one or more frames, answered in order")
+
+
+class FormRoute(APIRoute):
+    """A route with a form body, read (by FastAPI) before the key is checked.
+
+    A body the parser cannot read is a 422 like every invalid request (``invalid_request``)
+    rather than FastAPI's 400; and, as for a body that parses, a caller without a key for
+    :attr:`role` hears 401 / 403 instead of what is wrong with its body (or its size).
+    """
+
+    #: The role the route's key dependency asks for.
+    role = "vehicle"
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def key_first_parse_errors_422(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except HTTPException as exc:
+                if exc.status_code not in (400, 413):
+                    raise
+                authorize(request, request.headers.get(API_KEY_HEADER), self.role)
+                if exc.status_code == 413:
+                    raise
+                raise malformed_body(str(exc.detail)) from None
+
+        return key_first_parse_errors_422
+
+
+class MultipartRoute(FormRoute):
+    """A :class:`FormRoute` for ``multipart/form-data`` requests only: another request does
+    not match it, so the next route on the same path and method takes it."""
+
+    def matches(self, scope: Scope) -> tuple[Match, Scope]:
+        match, child = super().matches(scope)
+        if match is Match.FULL and not _is_multipart(scope):
+            return Match.NONE, {}
+        return match, child
+
+
+def _is_multipart(scope: Scope) -> bool:
+    for name, value in scope.get("headers", ()):
+        if name == b"content-type":
+            return value.decode("latin-1").startswith(_MULTIPART)
+    return False
+
+
+async def _raw_content_type(request: Request) -> str:
+    """The raw body's declared image type (415 for another type, or none)."""
+    declared = request.headers.get("content-type", "")
+    check_content_type(declared or None)
+    if not declared:
+        raise ApiError(
+            415,
+            "unsupported_media_type",
+            "send the image as multipart field 'image' or as the body with "
+            "Content-Type image/jpeg, image/png or image/webp",
+        )
+    return declared
+
+
+def _binary_bodies() -> dict[str, Any]:
+    """The OpenAPI request bodies of a raw-body image, one per accepted content type."""
+    return {t: {"schema": {"type": "string", "format": "binary"}} for t in RAW_BODY_TYPES}
+
+
+QueryFields = Annotated[LocalizeFields, Query()]
+
+
+class Upload(NamedTuple):
+    """One uploaded image as read from the request."""
+
+    data: bytes
+    content_type: str | None
+    source: str  # how messages name it: image, images[3]
+
+
+class Localizer:
+    """What the localisation routes use of the app: admit, run and answer images."""
+
+    def __init__(self, engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> None:
+        self.engine = engine
+        self.settings = settings
+        self.metrics = metrics
+
+    def check(self, params: LocalizeParams) -> None:
+        """422 for a ``top_k`` over the service's limit."""
+        limit = self.settings.max_top_k
+        if params.top_k > limit:
+            raise invalid_request(f"top_k: at most {limit} (got {params.top_k})")
+
+    def check_size(self, upload: UploadFile, what: str) -> None:
+        """413 for an uploaded file over the limit, from its parsed size, before reading it."""
+        if upload.size is not None and upload.size > self.settings.max_upload_bytes:
+            raise upload_too_large(self.settings.max_upload_bytes, what)
+
+    def queries(self, params: LocalizeParams, uploads: list[Upload]) -> list[ImageQuery]:
+        """Admitted work for each upload: 413 over the size limit, 503 when the slots are
+        taken (a batch takes one per lane, at most ``workers``)."""
+        limit = self.settings.max_upload_bytes
+        for upload in uploads:
+            if len(upload.data) > limit:
+                raise upload_too_large(limit, upload.source)
+        if not self.engine.admit(self.lanes(len(uploads))):
+            raise overloaded(self.settings.retry_after_s)
+        pixels, compute = self.settings.max_pixels, self.engine.compute
+        return [
+            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute) for u in uploads
+        ]
+
+    def lanes(self, images: int) -> int:
+        # A batch runs its images in up to `workers` lanes, one slot each, so that any batch
+        # size fits the admission limit and a batch cannot take the queue's slots.
+        return min(images, self.engine.workers)
+
+    async def answer(self, params: LocalizeParams, upload: Upload) -> Any:
+        """One image's answer (its error raised as the request's)."""
+        ((ok, value),) = await self.engine.run(self.queries(params, [upload]))
+        if not ok:
+            raise value
+        self.metrics.observe_stages(value.timing_ms)
+        return value
+
+    async def answer_batch(self, params: LocalizeParams, uploads: list[Upload]) -> BatchResponse:
+        """Every image's answer or error, in order."""
+        queries = self.queries(params, uploads)
+        version = self.engine.current.version
+        items = []
+        for i, (ok, value) in enumerate(await self.engine.run(queries, self.lanes(len(uploads)))):
+            if ok:
+                self.metrics.observe_stages(value.timing_ms)
+                version = value.index_version
+            items.append(_batch_item(i, ok, value))
+        return BatchResponse(results=items, index_version=version)
+
+
+async def _localizer(engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> Localizer:
+    return Localizer(engine, settings, metrics)
+
+
+LocalizerDep = Annotated[Localizer, Depends(_localizer)]
+
+
+async def localize(
+    key: VehicleKey,
+    request: Request,
+    query: QueryFields,
+    form: Annotated[LocalizeForm, Form(media_type=_MULTIPART)],
+    localizer: LocalizerDep,
+) -> LocalizeResponse:
+    """Localise one image against the current index version.
+
+    Send it as multipart field ``image`` or as the raw body with an image content type; the
+    optional fields as query parameters (either way) or form fields (multipart).
+    """
+    params = await _params(request, query, form)
+    localizer.check_size(form.image, "image")
+    data = await form.image.read()
+    localizer.check(params)
+    answer: LocalizeResponse = await localizer.answer(
+        params, Upload(data, form.image.content_type, "image")
+    )
+    return answer
+
+
+async def localize_raw_body(
+    key: VehicleKey,
+    content_type: Annotated[str, Depends(_raw_content_type)],
+    request: Request,
+    query: QueryFields,
+    localizer: LocalizerDep,
+) -> LocalizeResponse:
+    """``/v1/localize`` with the image as the raw body (documented with the multipart route)."""
+    params = await _params(request, query, None)
+    localizer.check(params)
+    data = await request.body()
+    answer: LocalizeResponse = await localizer.answer(params, Upload(data, content_type, "image"))
+    return answer
+
+
+async def localize_batch(
+    key: VehicleKey,
+    request: Request,
+    query: QueryFields,
+    form: Annotated[BatchForm, Form(media_type=_MULTIPART)],
+    localizer: LocalizerDep,
+) -> BatchResponse:
+    """Localise several images (multipart, ``images`` fields); answers in order."""
+    params = await _params(request, query, form, repeatable="images")
+    for i, upload in enumerate(form.images):
+        localizer.check_size(upload, f"images[{i}]")
+    uploads = [
+        Upload(await f.read(), f.content_type, f"images[{i}]") for i, f in enumerate(form.images)
+    ]
+    localizer.check(params)
+    return await localizer.answer_batch(params, uploads)
+
+
+def batch_not_multipart(key: VehicleKey) -> NoReturn:
+    """``/v1/localize/batch`` with a body that is not multipart: 415 (the body is not read)."""
+    raise ApiError(415, "unsupported_media_type", "send the images as multipart fields 'images'")
+
+
+router = APIRouter(tags=["localize"], responses=ERROR_RESPONSES)
+# The multipart route first: it matches only multipart requests, the raw-body route the rest.
+router.add_api_route(
+    "/v1/localize",
+    localize,
+    methods=["POST"],
+    response_model=LocalizeResponse,
+    openapi_extra={"requestBody": {"content": _binary_bodies()}},
+    route_class_override=MultipartRoute,
+)
+router.add_api_route(
+    "/v1/localize",
+    localize_raw_body,
+    methods=["POST"],
+    response_model=LocalizeResponse,
+    include_in_schema=False,
+)
+router.add_api_route(
+    "/v1/localize/batch",
+    localize_batch,
+    methods=["POST"],
+    response_model=BatchResponse,
+    route_class_override=MultipartRoute,
+)
+router.add_api_route(
+    "/v1/localize/batch",
+    batch_not_multipart,
+    methods=["POST"],
+    response_model=None,
+    include_in_schema=False,
+)
+
+
+# -- the steps the routes share -------------------------------------------------------------
+async def _params(
+    request: Request,
+    query: LocalizeFields,
+    form: LocalizeFields | None,
+    repeatable: str = "",
+) -> LocalizeParams:
+    """The request's fields from the query string and the form, checked together.
+
+    FastAPI has validated each source on its own (types, ranges, unknown names) but keeps the
+    last of repeated values; here a field given more than once (in one source or in both,
+    except the ``repeatable`` file field) and a partial GPS prior are refused (422).
+    """
+    names = [k for k, _ in request.query_params.multi_items()]
+    if form is not None:
+        names += [k for k, _ in (await request.form()).multi_items() if k != repeatable]
+    repeated = [name for name, n in Counter(names).items() if n > 1]
+    if repeated:
+        raise invalid_request(f"{repeated[0]}: given twice")
+    fields = set(LocalizeFields.model_fields)
+    given = query.model_dump(exclude_unset=True)
+    if form is not None:
+        given |= form.model_dump(exclude_unset=True, include=fields)
+    try:
+        return LocalizeParams.model_validate(given)
+    except ValidationError as exc:
+        raise invalid_request(validation_message(exc.errors())) from None
+
+
+def _batch_item(i: int, ok: bool, value: Any) -> BatchItem:
+    """Batch entry ``i``: the answer, or the error that one image met (never the batch's)."""
+    if ok:
+        return BatchItem(index=i, result=value)
+    if isinstance(value, ApiError):
+        return BatchItem(index=i, error=ErrorDetail(code=value.code, message=value.message))
+    log.error("batch item %d failed", i, exc_info=value)
+    return BatchItem(index=i, error=ErrorDetail(code="internal", message="internal error"))
