@@ -18,7 +18,7 @@ from hmpf.config import parse_config
 from hmpf.errors import DatasetError
 from hmpf.index import IndexBuildError, IndexReader
 from hmpf.methods import GlobalMethod, MethodConfig, register
-from hmpf.methods.base import euclidean
+from hmpf.methods.base import MetricSpec, euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
 
@@ -229,6 +229,9 @@ class ToyFit(GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
+
+    def faiss_metric(self) -> MetricSpec:
+        return MetricSpec("l2", 1.0)
 
 
 def test_fitted_state_persists(tmp_path, monkeypatch):
