@@ -161,11 +161,22 @@ def test_cnn_methods_declare_batched_and_grouped() -> None:
         assert (m.group_key() is not None) == isinstance(m, CnnMethod), name
 
 
-class _Batched(Method):
+class _Toy(Method):
+    """A method of one-value features that is only extracted, never scored."""
+
+    kind = "global"
+
+    def scores(self, query: Any, references: Any, subset: np.ndarray | None = None) -> np.ndarray:
+        raise NotImplementedError
+
+    def stack(self, features: Sequence[Any]) -> Any:
+        return np.stack(features)
+
+
+class _Batched(_Toy):
     """A non-CNN batched, grouped method: features read what it declares, not its type."""
 
     name = "batched_test"
-    kind = "global"
     batched = True
     calls: ClassVar[list[tuple[str, ...]]] = []
 
@@ -188,12 +199,6 @@ class _Batched(Method):
         own = {mid: [1.0] * len(images) for mid in methods}
         return GroupOutput(feats, own, [10.0] * len(images))
 
-    def scores(self, query: Any, references: Any, subset: np.ndarray | None = None) -> np.ndarray:
-        raise NotImplementedError
-
-    def stack(self, features: Sequence[Any]) -> Any:
-        return np.stack(features)
-
 
 def test_batched_grouped_method_runs_in_process_in_batches(tmp_path: Path) -> None:
     paths = list_images(_write_images(tmp_path / "img", 5))
@@ -206,20 +211,13 @@ def test_batched_grouped_method_runs_in_process_in_batches(tmp_path: Path) -> No
     assert ms == {"a": 11.0, "b": 1.0}  # the shared pass is counted once
 
 
-class _SigintProbe(Method):
+class _SigintProbe(_Toy):
     """Its feature is whether the process extracting it ignores Ctrl-C."""
 
     name = "sigint_probe_test"
-    kind = "global"
 
     def _extract(self, image: np.ndarray) -> np.ndarray:
         return np.array([signal.getsignal(signal.SIGINT) == signal.SIG_IGN])
-
-    def scores(self, query: Any, references: Any, subset: np.ndarray | None = None) -> np.ndarray:
-        raise NotImplementedError
-
-    def stack(self, features: Sequence[Any]) -> Any:
-        return np.stack(features)
 
 
 def test_pool_workers_leave_ctrl_c_to_the_parent(tmp_path: Path) -> None:
