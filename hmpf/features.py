@@ -4,6 +4,11 @@ The cache is keyed by the method's :meth:`~hmpf.methods.base.Method.cache_key` (
 version, config) and by the sha256 of the image file's bytes, so a second run re-extracts
 nothing and a change to either the method or the image invalidates the entry. Entries are
 ``.npz`` files written atomically (temporary file + rename); a corrupt entry is re-extracted.
+
+How a method is run is what it declares (:mod:`hmpf.methods.base`), never its type: ``batched``
+methods (the CNNs) run in this process ``batch_size`` images at a time, the others image by
+image in worker processes; methods with equal ``group_key()`` share one pass per image (one CNN
+forward pass); methods whose ``requires_fit()`` is True are fitted first (:func:`fit_methods`).
 """
 
 from __future__ import annotations
@@ -273,6 +278,9 @@ def extract_images(
 ) -> ExtractionResult:
     """Extract every method's feature for every image (cached ones are loaded, not recomputed).
 
+    The cache wraps the one extraction path: hits are loaded, the misses extracted, and each
+    new feature written to the cache as it arrives.
+
     Args:
         paths: image files.
         methods: method id -> instance.
@@ -298,11 +306,6 @@ def extract_images(
             else:
                 features[mid][i], ms[mid][i] = hit
                 cached[mid] += 1
-    decode: list[float] = []
-    batched_ids = [m for m in ids if methods[m].batched]
-    batched_todo = sorted(i for i, mids in todo.items() if set(mids) & set(batched_ids))
-    cpu_todo = {i: [m for m in mids if m not in batched_ids] for i, mids in todo.items()}
-    cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
 
     def store(i: int, mid: str, f: Any, t_ms: float) -> None:
         features[mid][i] = f
@@ -310,45 +313,70 @@ def extract_images(
         if cache is not None:
             cache.put(methods[mid], digests[i], f, t_ms)
 
+    decode = _extract(paths, methods, todo, store, workers=workers, progress=progress, desc=desc)
+    return ExtractionResult(
+        features, ms, cached, float(np.median(decode)) if decode else float("nan")
+    )
+
+
+def _extract(
+    paths: Sequence[str | os.PathLike[str]],
+    methods: Mapping[str, Method],
+    todo: Mapping[int, Sequence[str]],
+    store: Callable[[int, str, Any, float], None],
+    *,
+    workers: int | None,
+    progress: bool,
+    desc: str,
+) -> list[float]:
+    """Extract ``todo`` (image index -> method ids), handing each feature to ``store``.
+
+    Batched methods run here, ``batch_size`` images at a time; the others image by image, in
+    ``workers`` processes.
+
+    Returns:
+        The decode time (ms) of each image the worker path read.
+    """
+    decode: list[float] = []
+    batched_ids = [m for m in methods if methods[m].batched]
+    batched_todo = sorted(i for i, mids in todo.items() if set(mids) & set(batched_ids))
+    cpu_todo = {i: [m for m in mids if m not in batched_ids] for i, mids in todo.items()}
+    cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
     if batched_todo:
         batched = {m: methods[m] for m in batched_ids}
         _extract_batched(paths, batched_todo, batched, store, progress)
     jobs = sorted(cpu_todo)
-    if jobs:
-        n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-        bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
+    if not jobs:
+        return decode
+    n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+    bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
 
-        def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
-            feats, times, dms = res
-            decode.append(dms)
-            for mid, f in feats.items():
-                store(i, mid, f, times[mid])
-            bar.update(1)
+    def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
+        feats, times, dms = res
+        decode.append(dms)
+        for mid, f in feats.items():
+            store(i, mid, f, times[mid])
+        bar.update(1)
 
-        try:
-            if n_workers == 1:
-                _init_worker(methods, single_thread=False)
-                for i in jobs:
-                    collect(i, _extract_one(str(paths[i]), cpu_todo[i]))
-            else:
-                # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
-                ctx = multiprocessing.get_context("forkserver")
-                cpu_methods = {m: methods[m] for m in ids if m not in batched_ids}
-                with ProcessPoolExecutor(
-                    n_workers,
-                    mp_context=ctx,
-                    initializer=_init_pool_worker,
-                    initargs=(cpu_methods,),
-                ) as pool:
-                    futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
-                    try:
-                        for i in jobs:
-                            collect(i, futs[i].result())
-                    except BaseException:
-                        pool.shutdown(wait=False, cancel_futures=True)
-                        raise
-        finally:
-            bar.close()
-    return ExtractionResult(
-        features, ms, cached, float(np.median(decode)) if decode else float("nan")
-    )
+    try:
+        if n_workers == 1:
+            _init_worker(methods, single_thread=False)
+            for i in jobs:
+                collect(i, _extract_one(str(paths[i]), cpu_todo[i]))
+        else:
+            # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
+            ctx = multiprocessing.get_context("forkserver")
+            cpu_methods = {m: methods[m] for m in methods if m not in batched_ids}
+            with ProcessPoolExecutor(
+                n_workers, mp_context=ctx, initializer=_init_pool_worker, initargs=(cpu_methods,)
+            ) as pool:
+                futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
+                try:
+                    for i in jobs:
+                        collect(i, futs[i].result())
+                except BaseException:
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
+    finally:
+        bar.close()
+    return decode
