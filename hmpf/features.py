@@ -4,6 +4,11 @@ The cache is keyed by the method's :meth:`~hmpf.methods.base.Method.cache_key` (
 version, config) and by the sha256 of the image file's bytes, so a second run re-extracts
 nothing and a change to either the method or the image invalidates the entry. Entries are
 ``.npz`` files written atomically (temporary file + rename); a corrupt entry is re-extracted.
+
+How a method is run is what it declares (:mod:`hmpf.methods.base`), never its type: ``batched``
+methods (the CNNs) run in this process ``batch_size`` images at a time, the others image by
+image in worker processes; methods with equal ``group_key()`` share one pass per image (one CNN
+forward pass); methods whose ``requires_fit()`` is True are fitted first (:func:`fit_methods`).
 """
 
 from __future__ import annotations
@@ -18,17 +23,16 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeGuard
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from hmpf.cli.common import ignore_sigint
 from hmpf.imageio import load_image
 from hmpf.methods import Method
+from hmpf.methods.base import extract_many, fit_many, method_groups
 from hmpf.runtime import set_compute_threads
-
-if TYPE_CHECKING:
-    from hmpf.methods.cnn import CnnMethod
 
 __all__ = [
     "ExtractionResult",
@@ -133,25 +137,25 @@ def _init_worker(methods: Mapping[str, Method], single_thread: bool = True) -> N
     _WORKER_METHODS.update(methods)
 
 
+def _init_pool_worker(methods: Mapping[str, Method]) -> None:
+    ignore_sigint()  # Ctrl-C is the parent's: a worker stops without a traceback
+    _init_worker(methods)
+
+
 def _extract_one(
     path: str, method_ids: Sequence[str]
 ) -> tuple[dict[str, Any], dict[str, float], float]:
+    """One image's features of the worker's methods ``method_ids`` (image by image)."""
     t0 = time.perf_counter()
     image = load_image(path)
     decode_ms = (time.perf_counter() - t0) * 1e3
-    feats: dict[str, Any] = {}
-    times: dict[str, float] = {}
-    for mid in method_ids:
-        t = time.perf_counter()
-        feats[mid] = _WORKER_METHODS[mid].extract(image)
-        times[mid] = (time.perf_counter() - t) * 1e3
-    return feats, times, decode_ms
-
-
-def _is_cnn(method: Method) -> TypeGuard[CnnMethod]:
-    from hmpf.methods.cnn import CnnMethod
-
-    return isinstance(method, CnnMethod)
+    times: dict[str, list[float]] = {}
+    feats = extract_many({mid: _WORKER_METHODS[mid] for mid in method_ids}, [image], times)
+    return (
+        {mid: f[0] for mid, f in feats.items()},
+        {mid: t[0] for mid, t in times.items()},
+        decode_ms,
+    )
 
 
 def extract_query(
@@ -162,21 +166,15 @@ def extract_query(
 ) -> dict[str, Any]:
     """Every method's feature of one decoded image.
 
-    CNN methods sharing a backbone and input size share one forward pass. Without
-    ``executor`` everything runs in the calling thread; with one, each forward-pass group and
-    each other method is a task on it, so one query can use several cores while the
-    executor's size bounds the whole process's compute. When ``ms`` is given, each method's
-    time (ms) is stored in it; a shared forward pass is counted once, in the first method of
-    its group.
+    Methods sharing a :meth:`~hmpf.methods.base.Method.group_key` (CNN methods on one
+    backbone and input size) share one forward pass. Without ``executor`` everything runs in
+    the calling thread; with one, each group is a task on it, so one query can use several
+    cores while the executor's size bounds the whole process's compute. When ``ms`` is given,
+    each method's time (ms) is stored in it; a group's shared pass is counted once, in its
+    first method.
     """
-    from hmpf.methods.cnn import cnn_groups, extract_cnn_timed
-
-    cnn = {mid: m for mid, m in methods.items() if _is_cnn(m)}
     tasks: list[Callable[[], tuple[dict[str, Any], dict[str, float]]]] = [
-        partial(extract_cnn_timed, group, image) for group in cnn_groups(cnn)
-    ]
-    tasks += [
-        partial(_timed_extract, mid, m, image) for mid, m in methods.items() if mid not in cnn
+        partial(_extract_group_once, group, image) for group in method_groups(methods)
     ]
     if executor is None or len(tasks) < 2:
         results = [task() for task in tasks]
@@ -190,32 +188,36 @@ def extract_query(
     return {mid: out[mid] for mid in methods}
 
 
-def _timed_extract(
-    mid: str, method: Method, image: np.ndarray
+def _extract_group_once(
+    group: Mapping[str, Method], image: np.ndarray
 ) -> tuple[dict[str, Any], dict[str, float]]:
-    t = time.perf_counter()
-    feat = method.extract(image)
-    return {mid: feat}, {mid: (time.perf_counter() - t) * 1e3}
+    """One image's features of one group and per-method times (shared time in the first)."""
+    res = type(next(iter(group.values()))).extract_group(group, [image])
+    feats = {mid: f[0] for mid, f in res.features.items()}
+    times = {
+        mid: own[0] + (res.shared_ms[0] if j == 0 else 0.0)
+        for j, (mid, own) in enumerate(res.own_ms.items())
+    }
+    return feats, times
 
 
-def _extract_cnn_images(
+def _extract_batched(
     paths: Sequence[str | os.PathLike[str]],
     todo: Sequence[int],
     methods: Mapping[str, Method],
     store: Callable[[int, str, Any, float], None],
     progress: bool,
 ) -> None:
-    """CNN methods in this process, batched (torch uses every core for one batch)."""
-    from hmpf.methods.cnn import extract_cnn
-
-    chunk = max(m.cnn.batch_size for m in methods.values())  # type: ignore[attr-defined]
+    """Batched methods in this process, ``batch_size`` images at a time (torch uses every
+    core for one batch)."""
+    chunk = max(m.batch_size for m in methods.values())
     bar = tqdm(total=len(todo), desc="cnn", unit="img", disable=None if progress else True)
     try:
         for start in range(0, len(todo), chunk):
             idx = list(todo[start : start + chunk])
             images = [load_image(paths[i]) for i in idx]
             times: dict[str, list[float]] = {}
-            feats = extract_cnn(methods, images, times)  # type: ignore[arg-type]
+            feats = extract_many(methods, images, times)
             for mid, fs in feats.items():
                 for j, i in enumerate(idx):
                     store(i, mid, fs[j], times[mid][j])
@@ -242,8 +244,6 @@ def fit_methods(
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
     if not todo or not paths:
         return []
-    from hmpf.methods.cnn import fit_cnn
-
     n = len(paths)
     pick = np.unique(np.linspace(0, n - 1, min(n, max_images)).round().astype(np.int64))
     fit_key = ""
@@ -260,7 +260,7 @@ def fit_methods(
     if pending:
         keys = {mid: m.cache_key() for mid, m in pending.items()}  # before fitting
         images = [load_image(paths[i]) for i in pick]
-        fit_cnn(pending, images)  # type: ignore[arg-type]
+        fit_many(pending, images)
         if cache is not None:
             for mid, m in pending.items():
                 cache.put_state(keys[mid], fit_key, m.state_arrays())
@@ -277,6 +277,9 @@ def extract_images(
     desc: str = "extract",
 ) -> ExtractionResult:
     """Extract every method's feature for every image (cached ones are loaded, not recomputed).
+
+    The cache wraps the one extraction path: hits are loaded, the misses extracted, and each
+    new feature written to the cache as it arrives.
 
     Args:
         paths: image files.
@@ -303,11 +306,6 @@ def extract_images(
             else:
                 features[mid][i], ms[mid][i] = hit
                 cached[mid] += 1
-    decode: list[float] = []
-    cnn_ids = [m for m in ids if _is_cnn(methods[m])]
-    cnn_todo = sorted(i for i, mids in todo.items() if set(mids) & set(cnn_ids))
-    cpu_todo = {i: [m for m in mids if m not in cnn_ids] for i, mids in todo.items()}
-    cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
 
     def store(i: int, mid: str, f: Any, t_ms: float) -> None:
         features[mid][i] = f
@@ -315,41 +313,70 @@ def extract_images(
         if cache is not None:
             cache.put(methods[mid], digests[i], f, t_ms)
 
-    if cnn_todo:
-        _extract_cnn_images(paths, cnn_todo, {m: methods[m] for m in cnn_ids}, store, progress)
-    jobs = sorted(cpu_todo)
-    if jobs:
-        n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-        bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
-
-        def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
-            feats, times, dms = res
-            decode.append(dms)
-            for mid, f in feats.items():
-                store(i, mid, f, times[mid])
-            bar.update(1)
-
-        try:
-            if n_workers == 1:
-                _init_worker(methods, single_thread=False)
-                for i in jobs:
-                    collect(i, _extract_one(str(paths[i]), cpu_todo[i]))
-            else:
-                # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
-                ctx = multiprocessing.get_context("forkserver")
-                cpu_methods = {m: methods[m] for m in ids if m not in cnn_ids}
-                with ProcessPoolExecutor(
-                    n_workers, mp_context=ctx, initializer=_init_worker, initargs=(cpu_methods,)
-                ) as pool:
-                    futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
-                    try:
-                        for i in jobs:
-                            collect(i, futs[i].result())
-                    except BaseException:
-                        pool.shutdown(wait=False, cancel_futures=True)
-                        raise
-        finally:
-            bar.close()
+    decode = _extract(paths, methods, todo, store, workers=workers, progress=progress, desc=desc)
     return ExtractionResult(
         features, ms, cached, float(np.median(decode)) if decode else float("nan")
     )
+
+
+def _extract(
+    paths: Sequence[str | os.PathLike[str]],
+    methods: Mapping[str, Method],
+    todo: Mapping[int, Sequence[str]],
+    store: Callable[[int, str, Any, float], None],
+    *,
+    workers: int | None,
+    progress: bool,
+    desc: str,
+) -> list[float]:
+    """Extract ``todo`` (image index -> method ids), handing each feature to ``store``.
+
+    Batched methods run here, ``batch_size`` images at a time; the others image by image, in
+    ``workers`` processes.
+
+    Returns:
+        The decode time (ms) of each image the worker path read.
+    """
+    decode: list[float] = []
+    batched_ids = [m for m in methods if methods[m].batched]
+    batched_todo = sorted(i for i, mids in todo.items() if set(mids) & set(batched_ids))
+    cpu_todo = {i: [m for m in mids if m not in batched_ids] for i, mids in todo.items()}
+    cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
+    if batched_todo:
+        batched = {m: methods[m] for m in batched_ids}
+        _extract_batched(paths, batched_todo, batched, store, progress)
+    jobs = sorted(cpu_todo)
+    if not jobs:
+        return decode
+    n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+    bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
+
+    def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
+        feats, times, dms = res
+        decode.append(dms)
+        for mid, f in feats.items():
+            store(i, mid, f, times[mid])
+        bar.update(1)
+
+    try:
+        if n_workers == 1:
+            _init_worker(methods, single_thread=False)
+            for i in jobs:
+                collect(i, _extract_one(str(paths[i]), cpu_todo[i]))
+        else:
+            # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
+            ctx = multiprocessing.get_context("forkserver")
+            cpu_methods = {m: methods[m] for m in methods if m not in batched_ids}
+            with ProcessPoolExecutor(
+                n_workers, mp_context=ctx, initializer=_init_pool_worker, initargs=(cpu_methods,)
+            ) as pool:
+                futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
+                try:
+                    for i in jobs:
+                        collect(i, futs[i].result())
+                except BaseException:
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
+    finally:
+        bar.close()
+    return decode

@@ -42,7 +42,7 @@ from hmpf.index import layout
 from hmpf.index.ann import (
     MetricSpec,
     build_faiss,
-    detect_metric,
+    declared_metric,
     faiss_module,
     is_exact_factory,
     read_faiss,
@@ -316,7 +316,7 @@ def _write_faiss(
     parent: IndexReader | None,
     retrain: bool,
 ) -> dict[str, dict[str, Any] | None]:
-    """One FAISS file per tier-1 global method with a detectable metric."""
+    """One FAISS file per tier-1 global method with a FAISS metric (its declaration)."""
     info: dict[str, dict[str, Any] | None] = {}
     for mid in config.tiers[0].methods:
         m = methods[mid]
@@ -325,11 +325,11 @@ def _write_faiss(
         factory, params = opt.factory(mid), opt.params(mid)
         matrix = cols[mid]
         assert isinstance(matrix, np.ndarray)
-        metric = detect_metric(m, matrix)
+        metric = declared_metric(mid, m)
         if metric is None:
             if not is_exact_factory(factory):
                 raise IndexBuildError(
-                    f"method {mid!r}: its scores match no FAISS metric, so it cannot use "
+                    f"method {mid!r} has no FAISS metric, so it cannot use "
                     f"{factory!r}; use Flat (tier 1 then scans the stored matrix)"
                 )
             info[mid] = None

@@ -15,7 +15,6 @@ from hmpf.features import extract_images
 from hmpf.hierarchy import Hierarchy, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.index import IndexCorruptError, IndexReader, IndexVersionError
-from hmpf.index.ann import detect_metric
 from hmpf.index.storage import storage_dtype
 from hmpf.index.tables import Ragged
 from hmpf.methods import create_method
@@ -111,15 +110,6 @@ def test_faiss_flat_equals_brute_force(built):
                 order = np.argsort(brute, kind="stable")[:6]
                 assert list(ids) == list(order)
                 np.testing.assert_allclose(raw, brute[order], rtol=1e-4, atol=1e-3)
-
-
-def test_metric_detection():
-    rng = np.random.default_rng(0)
-    x = rng.random((20, 64)).astype(np.float32)
-    assert detect_metric(create_method("gist"), x).kind == "l2"
-    sad = create_method("sad")
-    spec = detect_metric(sad, rng.integers(0, 256, (20, sad.dim), dtype=np.uint8))
-    assert spec.kind == "l1" and spec.scale == pytest.approx(1 / sad.dim)
 
 
 def test_storage_dtype_policy():

@@ -22,7 +22,7 @@ from hmpf.errors import DatasetError, ImageError
 from hmpf.imageio import load_image
 from hmpf.index import IndexBuildError, IndexReader
 from hmpf.methods import GlobalMethod, MethodConfig, register
-from hmpf.methods.base import euclidean
+from hmpf.methods.base import MetricSpec, euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
 from indexer.inputs import unreadable_images
@@ -322,6 +322,9 @@ class ToyFit(GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
+
+    def faiss_metric(self) -> MetricSpec:
+        return MetricSpec("l2", 1.0)
 
 
 def test_fitted_state_persists(tmp_path, monkeypatch):

@@ -32,10 +32,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Backbone",
+    "MapsModuleBackbone",
     "available_backbones",
     "load_backbone",
     "register_backbone",
     "require_torch",
+    "rgb3",
     "weights_file",
 ]
 
@@ -91,6 +93,11 @@ class Backbone(ABC):
         """The weight file of a backbone that takes no options and has no bundled weights."""
         if options:
             raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
+        return cls.weights_path(path)
+
+    @classmethod
+    def weights_path(cls, path: Path | None) -> Path:
+        """``path``, an existing file, for a backbone without bundled weights."""
         if path is None:
             raise WeightsError(f"backbone {cls.name!r} needs a weight file. {cls.weights_hint}")
         return weights_file(path, cls.name, cls.weights_hint)
@@ -101,6 +108,29 @@ class Backbone(ABC):
             raise ValueError(
                 f"backbone {self.name!r} has no layer {unknown}; it exposes {sorted(self.layers)}"
             )
+
+
+class MapsModuleBackbone(Backbone):
+    """A backbone whose torch module computes the maps itself: ``module.forward_maps(x, wanted)``
+    on a float32 batch returns {layer: (B, C, h, w)} for the ``wanted`` names."""
+
+    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
+        import torch
+
+        self.check_layers(layers)
+        module: Any = self.module
+        with torch.no_grad():
+            maps: dict[str, torch.Tensor] = module.forward_maps(
+                batch.to(self.device, torch.float32), set(layers)
+            )
+        return maps
+
+
+def rgb3(image: np.ndarray) -> np.ndarray:
+    """H x W (grey), H x W x 3 or H x W x 4 -> H x W x 3."""
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    return image[:, :, :3]
 
 
 _BACKBONES: dict[str, type[Backbone]] = {}

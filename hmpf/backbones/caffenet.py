@@ -41,10 +41,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+import torch.nn.functional as nnf
 from torch import nn
-from torch.nn import functional as F
 
-from hmpf.backbones.base import Backbone, register_backbone, weights_file
+from hmpf.backbones.base import MapsModuleBackbone, register_backbone, rgb3, weights_file
 from hmpf.backbones.caffe_proto import ProtoError, parse_net
 from hmpf.errors import ConfigError, WeightsError
 from hmpf.imops import imresize, initcrop
@@ -80,9 +80,9 @@ class HybridNetConvs(nn.Module):
     def forward_maps(self, x: torch.Tensor, wanted: Collection[str]) -> dict[str, torch.Tensor]:
         """(B, 3, H, W) -> the requested maps among ``relu4``, ``conv5``, ``relu5``."""
         out: dict[str, torch.Tensor] = {}
-        x = self.norm1(self.pool1(F.relu(self.conv1(x))))
-        x = self.norm2(self.pool2(F.relu(self.conv2(x))))
-        x = F.relu(self.conv4(F.relu(self.conv3(x))))
+        x = self.norm1(self.pool1(nnf.relu(self.conv1(x))))
+        x = self.norm2(self.pool2(nnf.relu(self.conv2(x))))
+        x = nnf.relu(self.conv4(nnf.relu(self.conv3(x))))
         if "relu4" in wanted:
             out["relu4"] = x
         if "conv5" in wanted or "relu5" in wanted:
@@ -90,7 +90,7 @@ class HybridNetConvs(nn.Module):
             if "conv5" in wanted:
                 out["conv5"] = c5
             if "relu5" in wanted:
-                out["relu5"] = F.relu(c5)
+                out["relu5"] = nnf.relu(c5)
         return out
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -168,15 +168,8 @@ def _read_mean(path: Path) -> np.ndarray:
     raise WeightsError(f"mean file {str(p)!r} has shape {mean.shape}, expected (3, H, W) BGR")
 
 
-def _rgb3(image: np.ndarray) -> np.ndarray:
-    """H x W (grey), H x W x 3 or H x W x 4 -> H x W x 3."""
-    if image.ndim == 2:
-        return np.repeat(image[:, :, None], 3, axis=2)
-    return image[:, :, :3]
-
-
 @register_backbone
-class CaffeNet(Backbone):
+class CaffeNet(MapsModuleBackbone):
     """HybridNet conv layers; see the module docstring for options and layers."""
 
     name = "caffenet"
@@ -217,9 +210,7 @@ class CaffeNet(Backbone):
             )
         if "mean_file" in options and mean_mode != "caffe":
             raise ConfigError(f"backbone {cls.name!r}: mean_file needs mean_mode 'caffe'")
-        if path is None:
-            raise WeightsError(f"backbone {cls.name!r} needs a weight file. {cls.weights_hint}")
-        path = weights_file(path, cls.name, cls.weights_hint)
+        path = cls.weights_path(path)
         mean_bgr = None
         if mean_mode == "caffe":
             mean_bgr = _read_mean(Path(options.get("mean_file", path.parent / "amosnet_mean.npy")))
@@ -229,15 +220,8 @@ class CaffeNet(Backbone):
 
     def preprocess(self, image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """H x W x 3 RGB uint8 -> 3 x rows x cols float32 (RGB 0-255, or BGR minus the mean)."""
-        img = imresize(initcrop(_rgb3(image)), size, "lanczos3").astype(np.float32)
+        img = imresize(initcrop(rgb3(image)), size, "lanczos3").astype(np.float32)
         if self.mean_mode == "caffe":
             assert self.mean_bgr is not None
             img = img[:, :, ::-1] - self.mean_bgr
         return np.ascontiguousarray(img.transpose(2, 0, 1))
-
-    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
-        """(B, 3, rows, cols) -> {layer: (B, C, h, w)}; 227 x 227 gives 13 x 13."""
-        self.check_layers(layers)
-        module: HybridNetConvs = self.module  # type: ignore[assignment]
-        with torch.no_grad():
-            return module.forward_maps(batch.to(self.device, torch.float32), set(layers))

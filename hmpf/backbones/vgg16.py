@@ -32,15 +32,13 @@ resize differently (§8.9).
 
 from __future__ import annotations
 
-from collections.abc import Collection
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-import torch
 
-from hmpf.backbones.base import Backbone, register_backbone
-from hmpf.backbones.vgg_m import SimpleNN, load_mat, parse_chain, rgb3, simplenn
+from hmpf.backbones.base import MapsModuleBackbone, register_backbone, rgb3
+from hmpf.backbones.vgg_m import SimpleNN, load_mat, parse_chain, simplenn
 from hmpf.errors import WeightsError
 from hmpf.imops import imresize, initcrop
 
@@ -147,7 +145,7 @@ def _channel_mean(norm: Any, path: Path) -> np.ndarray:
 
 
 @register_backbone
-class Vgg16NetVLAD(Backbone):
+class Vgg16NetVLAD(MapsModuleBackbone):
     """VGG-16 to conv5_3 with the Pitts30k NetVLAD/WPCA head as arrays; see the module doc."""
 
     name = "vgg16"
@@ -196,10 +194,3 @@ class Vgg16NetVLAD(Backbone):
         """H x W x 3 RGB uint8 -> 3 x rows x cols float32 (uint8 lanczos3, minus the mean)."""
         img = imresize(initcrop(rgb3(image)), size, "lanczos3").astype(np.float32)
         return np.ascontiguousarray((img - self.mean).transpose(2, 0, 1))
-
-    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
-        """(B, 3, rows, cols) -> {"conv5_3": (B, 512, rows/16, cols/16)}."""
-        self.check_layers(layers)
-        module: SimpleNN = self.module  # type: ignore[assignment]
-        with torch.no_grad():
-            return module.forward_maps(batch.to(self.device, torch.float32), set(layers))

@@ -18,7 +18,7 @@ Network (224 x 224 -> 109 -> 54 -> 26 -> 13), hyper-parameters taken from the fi
 
 Conversions: ``W`` (h, w, cin, cout) -> OIHW by ``transpose(3, 2, 0, 1)`` (MatConvNet
 cross-correlates like torch). MatConvNet pads are ``[top bottom left right]``: asymmetric conv
-padding is applied with ``F.pad`` (zeros), pool padding with ``-inf`` then a plain max pool,
+padding is applied with ``nnf.pad`` (zeros), pool padding with ``-inf`` then a plain max pool,
 which reproduces ``vl_nnpool`` (26 -> 13 for pool2). MatConvNet LRN ``param = [N kappa alpha
 beta]`` is ``x / (kappa + alpha * sum_N x^2)^beta`` with alpha *not* divided by N, so it maps to
 ``torch.nn.LocalResponseNorm(N, alpha * N, beta, kappa)``; this is exact for odd N (both
@@ -49,10 +49,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+import torch.nn.functional as nnf
 from torch import nn
-from torch.nn import functional as F
 
-from hmpf.backbones.base import Backbone, register_backbone
+from hmpf.backbones.base import MapsModuleBackbone, register_backbone, rgb3
 from hmpf.errors import WeightsError
 from hmpf.imops import imresize, initcrop
 
@@ -62,7 +62,6 @@ __all__ = [
     "VggM1024",
     "load_mat",
     "parse_chain",
-    "rgb3",
     "simplenn",
 ]
 
@@ -280,7 +279,7 @@ class _Conv(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.pad is not None:
-            x = F.pad(x, self.pad)
+            x = nnf.pad(x, self.pad)
         return self.conv(x)
 
 
@@ -290,7 +289,7 @@ class _Relu(nn.Module):
         self.leak = leak
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.leaky_relu(x, self.leak) if self.leak else F.relu(x)
+        return nnf.leaky_relu(x, self.leak) if self.leak else nnf.relu(x)
 
 
 class _MaxPool(nn.Module):
@@ -302,8 +301,8 @@ class _MaxPool(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.pad is not None:
-            x = F.pad(x, self.pad, value=-math.inf)
-        return F.max_pool2d(x, self.pool, self.stride)
+            x = nnf.pad(x, self.pad, value=-math.inf)
+        return nnf.max_pool2d(x, self.pool, self.stride)
 
 
 def _lrn(spec: LayerSpec) -> nn.LocalResponseNorm:
@@ -360,13 +359,6 @@ class SimpleNN(nn.Module):
         return self.forward_maps(x, (self.names[-1],))[self.names[-1]]
 
 
-def rgb3(image: np.ndarray) -> np.ndarray:
-    """H x W (grey), H x W x 3 or H x W x 4 -> H x W x 3."""
-    if image.ndim == 2:
-        return np.repeat(image[:, :, None], 3, axis=2)
-    return image[:, :, :3]
-
-
 # ----------------------------------------------------------------------------- VGG-M-1024
 
 _C = "conv"
@@ -402,7 +394,7 @@ def _average_image(norm: Any, path: Path) -> np.ndarray:
 
 
 @register_backbone
-class VggM1024(Backbone):
+class VggM1024(MapsModuleBackbone):
     """VGG-M-1024 conv1-relu5 (MatConvNet); see the module docstring."""
 
     name = "vgg_m_1024"
@@ -457,10 +449,3 @@ class VggM1024(Backbone):
         img = imresize(initcrop(rgb3(image)).astype(np.float64), size, "lanczos3")
         img = img - self._mean(size)
         return np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32)
-
-    def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
-        """(B, 3, rows, cols) -> {layer: (B, 512, h, w)}; 224 x 224 gives 13 x 13."""
-        self.check_layers(layers)
-        module: SimpleNN = self.module  # type: ignore[assignment]
-        with torch.no_grad():
-            return module.forward_maps(batch.to(self.device, torch.float32), set(layers))

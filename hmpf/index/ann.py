@@ -1,42 +1,40 @@
-"""FAISS indexes for tier-1 global methods: metric detection, build, search.
+"""FAISS indexes for tier-1 global methods: declared metric, build, search.
 
-A method does not declare its distance, so it is *detected* from the method itself: its
-``pairwise`` scores on a sample of reference vectors are compared with FAISS's metrics,
+Every global method declares the FAISS metric reproducing its scores
+(:meth:`~hmpf.methods.base.GlobalMethod.faiss_metric`), up to a constant factor
+(``raw = scale * metric``):
 
 * ``l2``: Euclidean (FAISS returns squared distances; the square root is taken),
 * ``l1``: sum of absolute differences (SAD's mean absolute difference is ``l1 / D``),
-* ``ip``: inner product (cosine similarity on normalised CNN descriptors),
+* ``ip``: inner product (cosine similarity on normalised CNN descriptors).
 
-each up to a constant factor (``raw = scale * metric``). A method whose scores match none gets
-no FAISS index (tier 1 then scans the stored matrix; approximate types are refused). Types
-that cannot search with L1 (PQ) fall back to L2 as a *proxy* to generate candidates; the
-candidates are always re-scored exactly by the method (see :mod:`hmpf.index.reader`).
+A method that declares None gets no FAISS index (tier 1 then scans the stored matrix;
+approximate types are refused); one that declares nothing is an error. Types that cannot
+search with L1 (PQ) fall back to L2 as a *proxy* to generate candidates; the candidates are
+always re-scored exactly by the method (see :mod:`hmpf.index.reader`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from hmpf.errors import MissingDependencyError
 from hmpf.index.layout import IndexBuildError, IndexCorruptError
-from hmpf.methods import Method
+from hmpf.methods import GlobalMethod, Method
+from hmpf.methods.base import MetricKind, MetricSpec
 
 __all__ = [
     "MetricSpec",
     "build_faiss",
-    "detect_metric",
+    "declared_metric",
     "faiss_module",
     "is_exact_factory",
     "read_faiss",
     "to_raw",
 ]
-
-MetricKind = Literal["l2", "l1", "ip"]
-_PROBE_ROWS = 32
 
 
 def faiss_module() -> Any:
@@ -50,61 +48,22 @@ def faiss_module() -> Any:
     return faiss
 
 
-@dataclass(frozen=True)
-class MetricSpec:
-    """How FAISS values map to the method's raw score: ``raw = scale * value``.
+def declared_metric(mid: str, method: Method) -> MetricSpec | None:
+    """The FAISS metric tier-1 method ``mid`` declares (None: it has none).
 
-    Attributes:
-        kind: FAISS metric used for search.
-        scale: factor from the FAISS value (after ``sqrt`` for l2) to the raw score.
-        proxy: True when ``kind`` only approximates the method's distance (candidates are
-            re-scored exactly).
+    Raises:
+        IndexBuildError: ``method`` is not global, or declares no metric at all.
     """
-
-    kind: MetricKind
-    scale: float
-    proxy: bool = False
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-def _candidates(a: np.ndarray, b: np.ndarray) -> dict[str, np.ndarray]:
-    d = a[:, None, :] - b[None, :, :]
-    return {
-        "l2": np.sqrt((d * d).sum(-1)),
-        "l1": np.abs(d).sum(-1),
-        "ip": a @ b.T,
-    }
-
-
-def detect_metric(method: Method, matrix: np.ndarray) -> MetricSpec | None:
-    """The FAISS metric reproducing ``method.pairwise`` on ``matrix``'s rows, or None.
-
-    Args:
-        method: a global method.
-        matrix: (N, D) stored reference vectors (any dtype).
-    """
-    if method.kind != "global" or matrix.shape[0] < 2:
-        return None
-    step = max(1, matrix.shape[0] // _PROBE_ROWS)
-    sample = np.asarray(matrix[::step][:_PROBE_ROWS])
-    scores = np.asarray(method.pairwise(sample, sample), dtype=np.float64)  # type: ignore[attr-defined]
-    x = sample.astype(np.float64)
-    for kind, cand in _candidates(x, x).items():
-        denom = float((cand * cand).sum())
-        if denom == 0.0:
-            continue
-        scale = float((scores * cand).sum() / denom)
-        tol = 1e-4 * max(1e-12, float(np.abs(scores).max()))
-        if scale == 0.0 or not np.allclose(scores, scale * cand, rtol=1e-4, atol=tol):
-            continue
-        # FAISS ranks l2 / l1 ascending and ip descending: the method must agree.
-        ascending = (kind != "ip") == (scale > 0)
-        if ascending == method.higher_is_better:
-            continue
-        return MetricSpec(kind, scale)  # type: ignore[arg-type]
-    return None
+    if not isinstance(method, GlobalMethod):
+        raise IndexBuildError(f"method {mid!r} ({method.name}) is not global: no FAISS index")
+    try:
+        return method.faiss_metric()
+    except NotImplementedError:
+        raise IndexBuildError(
+            f"method {mid!r}: {type(method).__name__} declares no FAISS metric, so it cannot "
+            "serve tier 1; give it a faiss_metric() (None when no FAISS metric reproduces "
+            "its scores)"
+        ) from None
 
 
 def is_exact_factory(factory: str) -> bool:

@@ -10,23 +10,51 @@ features, giving one raw score per reference. Two kinds exist (ARCHITECTURE.md):
 
 ``higher_is_better`` says which direction of the raw score is better; fusion normalises every
 score to ``best = 1`` (METHODS.md §5.1).
+
+A method also declares how it is extracted, so that :mod:`hmpf.features` needs to know no
+method family:
+
+* ``batched``: extracted many images at a time in the calling process (a CNN: torch uses every
+  core for one batch of ``batch_size`` images) instead of image by image in worker processes;
+* :meth:`Method.group_key`: methods with equal keys share one pass per image (one CNN forward
+  pass feeds every method on that backbone and input size); :meth:`Method.extract_group` and
+  :meth:`Method.fit_group` run such a group;
+* :meth:`Method.requires_fit`: parameters are fitted on the reference set first.
+
+A global method declares the FAISS metric reproducing its scores
+(:meth:`GlobalMethod.faiss_metric`), which tier 1 searches with.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import time
 import weakref
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
-from typing import Any, ClassVar, Literal
+from collections.abc import Hashable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from hmpf.imageio import to_rgb
 
-__all__ = ["GlobalMethod", "LocalMethod", "Method", "MethodConfig"]
+__all__ = [
+    "GlobalMethod",
+    "GroupOutput",
+    "LocalMethod",
+    "Method",
+    "MethodConfig",
+    "MetricKind",
+    "MetricSpec",
+    "extract_many",
+    "fit_many",
+    "method_groups",
+]
+
+MetricKind = Literal["l2", "l1", "ip"]
 
 
 class MethodConfig(BaseModel):
@@ -35,12 +63,50 @@ class MethodConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+@dataclass(frozen=True)
+class MetricSpec:
+    """How FAISS values map to a global method's raw score: ``raw = scale * value``.
+
+    Attributes:
+        kind: FAISS metric: ``l2`` Euclidean (FAISS returns squared distances; the square root
+            is taken), ``l1`` sum of absolute differences, ``ip`` inner product.
+        scale: factor from the FAISS value (after ``sqrt`` for l2) to the raw score.
+        proxy: True when ``kind`` only approximates the method's distance (candidates are
+            re-scored exactly).
+    """
+
+    kind: MetricKind
+    scale: float
+    proxy: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class GroupOutput(NamedTuple):
+    """What :meth:`Method.extract_group` returns for a group over ``n`` images.
+
+    Attributes:
+        features: method id -> ``n`` features.
+        own_ms: method id -> ``n`` times (ms) of that method's own work per image.
+        shared_ms: ``n`` times (ms) of the group's shared work per image (the forward pass).
+    """
+
+    features: dict[str, list[Any]]
+    own_ms: dict[str, list[float]]
+    shared_ms: list[float]
+
+
 class Method(ABC):
     """One image-matching technique.
 
     Subclasses set the class attributes and implement :meth:`_extract` plus the comparison of
     their kind. ``version`` is part of the cache key: bump it whenever the feature a method
     produces changes, so that stale cached descriptors are never reused.
+
+    ``batched``: True for methods extracted many images at a time in the calling process
+    (``batch_size`` images per call of :meth:`extract_group`); False for methods extracted
+    image by image, in worker processes when there are many images.
     """
 
     name: ClassVar[str]
@@ -48,6 +114,7 @@ class Method(ABC):
     higher_is_better: ClassVar[bool] = False
     version: ClassVar[str] = "2"
     Config: ClassVar[type[MethodConfig]] = MethodConfig
+    batched: ClassVar[bool] = False
 
     def __init__(self, config: MethodConfig | None = None) -> None:
         self.config = config if config is not None else self.Config()
@@ -59,6 +126,43 @@ class Method(ABC):
 
     @abstractmethod
     def _extract(self, image: np.ndarray) -> Any: ...
+
+    @property
+    def batch_size(self) -> int:
+        """Images per call of :meth:`extract_group` when a batched method extracts many."""
+        return 1
+
+    def group_key(self) -> Hashable | None:
+        """Methods with equal keys share one pass per image (None: this method runs alone).
+
+        Grouped methods are extracted together by their class's :meth:`extract_group`, so a
+        key must differ from every key of another method family.
+        """
+        return None
+
+    @classmethod
+    def extract_group(
+        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
+    ) -> GroupOutput:
+        """Features of ``methods`` (sharing one :meth:`group_key`, or one alone) per image.
+
+        The default extracts each method on its own (no shared work).
+        """
+        features: dict[str, list[Any]] = {mid: [] for mid in methods}
+        own: dict[str, list[float]] = {mid: [] for mid in methods}
+        for image in images:
+            for mid, method in methods.items():
+                t0 = time.perf_counter()
+                features[mid].append(method.extract(image))
+                own[mid].append((time.perf_counter() - t0) * 1e3)
+        return GroupOutput(features, own, [0.0] * len(images))
+
+    @classmethod
+    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
+        """Fit (in place) ``methods`` (sharing one :meth:`group_key`, each ``requires_fit()``)
+        on reference ``images``; methods that fit parameters override it."""
+        names = ", ".join(repr(m.name) for m in methods)
+        raise NotImplementedError(f"method {names} requires fitting but implements no fit_group")
 
     # -- comparison -------------------------------------------------------------------------
     @abstractmethod
@@ -147,12 +251,68 @@ def _rebuild(cls: type[Method], config: MethodConfig, state: dict[str, np.ndarra
     return method
 
 
+def method_groups(methods: Mapping[str, Method]) -> list[dict[str, Method]]:
+    """``methods`` split into groups sharing one pass per image (:meth:`Method.group_key`).
+
+    Groups keep the order of first appearance; a method whose key is None is a group alone.
+    """
+    groups: dict[Hashable, dict[str, Method]] = {}
+    for mid, m in methods.items():
+        key = m.group_key()
+        groups.setdefault(("alone", mid) if key is None else ("shared", key), {})[mid] = m
+    return list(groups.values())
+
+
+def extract_many(
+    methods: Mapping[str, Method],
+    images: Sequence[np.ndarray],
+    ms: dict[str, list[float]] | None = None,
+) -> dict[str, list[Any]]:
+    """Every method's feature for every image: {method id: [feature per image]}.
+
+    One pass per image for each group (:func:`method_groups`). When ``ms`` is given, each
+    method's time per image (its group's shared time plus its own, ms) is appended to
+    ``ms[method id]``.
+    """
+    out: dict[str, list[Any]] = {mid: [] for mid in methods}
+    for group in method_groups(methods):
+        res = type(next(iter(group.values()))).extract_group(group, images)
+        out.update(res.features)
+        if ms is not None:
+            for mid, own in res.own_ms.items():
+                ms.setdefault(mid, []).extend(
+                    s + o for s, o in zip(res.shared_ms, own, strict=True)
+                )
+    return out
+
+
+def fit_many(methods: Mapping[str, Method], images: Sequence[np.ndarray]) -> None:
+    """Fit (in place) every method whose ``requires_fit()`` is True on ``images``, one pass
+    per image for each group."""
+    todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
+    for group in method_groups(todo):
+        members = list(group.values())
+        type(members[0]).fit_group(members, images)
+
+
 class GlobalMethod(Method):
-    """A method with one vector per image; the stored set is an N x D matrix."""
+    """A method with one vector per image; the stored set is an N x D matrix.
+
+    Subclasses declare :meth:`faiss_metric`.
+    """
 
     kind: ClassVar[Literal["global", "local"]] = "global"
     # Descriptor length: a class default, set per instance where the config decides it.
     dim: int
+
+    def faiss_metric(self) -> MetricSpec | None:
+        """The FAISS metric reproducing :meth:`pairwise` (``raw = scale * value``), or None
+        when no FAISS metric does (tier 1 then scans the stored matrix).
+
+        Every global method declares it; this default raises :class:`NotImplementedError`,
+        which the index build reports as an error for a tier-1 method.
+        """
+        raise NotImplementedError(f"global method {self.name!r} declares no FAISS metric")
 
     def stack(self, features: Sequence[np.ndarray]) -> np.ndarray:
         if len(features) == 0:

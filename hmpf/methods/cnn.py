@@ -4,10 +4,12 @@ A :class:`CnnMethod` names a backbone (``efficientnet_lite0`` by default, bundle
 ``vgg16``, ``caffenet``, ``vgg_m_1024`` from the original weight files), the feature maps it
 reads and an input size; it turns those maps into its feature in :meth:`CnnMethod.from_maps`.
 
-:func:`extract_cnn` runs every CNN method of a hierarchy over a list of images with one forward
-pass per image for each (backbone, weights, input size) group, batched, under
-``torch.inference_mode()``. :func:`fit_cnn` fits the parameters of methods that learn them from
-the reference set (VLAD centroids, PCA whitening, an OLO vocabulary).
+CNN methods are ``batched`` and grouped by (backbone, weights, input size)
+(:meth:`CnnMethod.group_key`): :meth:`CnnMethod.extract_group` runs one batched forward pass
+per image under ``torch.inference_mode()`` for every method of a group, and
+:meth:`CnnMethod.fit_group` fits the parameters of methods that learn them from the reference
+set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`extract_cnn` and :func:`fit_cnn`
+run that over every group of a hierarchy.
 """
 
 from __future__ import annotations
@@ -22,7 +24,14 @@ from pydantic import Field
 
 from hmpf.backbones import Backbone, load_backbone
 from hmpf.imageio import to_rgb
-from hmpf.methods.base import Method, MethodConfig
+from hmpf.methods.base import (
+    GroupOutput,
+    Method,
+    MethodConfig,
+    extract_many,
+    fit_many,
+    method_groups,
+)
 from hmpf.runtime import compute_threads
 
 __all__ = [
@@ -30,7 +39,6 @@ __all__ = [
     "CnnMethod",
     "cnn_groups",
     "extract_cnn",
-    "extract_cnn_timed",
     "fit_cnn",
     "kmeans",
     "l2_rows",
@@ -65,10 +73,15 @@ class CnnMethod(Method):
     """
 
     Config = CnnConfig
+    batched = True
 
     @property
     def cnn(self) -> CnnConfig:
         return self.config  # type: ignore[return-value]
+
+    @property
+    def batch_size(self) -> int:
+        return self.cnn.batch_size
 
     def backbone(self) -> Backbone:
         c = self.cnn
@@ -100,7 +113,32 @@ class CnnMethod(Method):
         raise NotImplementedError(f"method {self.name!r} fits nothing")
 
     def _extract(self, image: np.ndarray) -> Any:
-        return extract_cnn({"m": self}, [image])["m"][0]
+        return self.extract_group({"m": self}, [image]).features["m"][0]
+
+    @classmethod
+    def extract_group(
+        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
+    ) -> GroupOutput:
+        """One batched forward pass per image feeds every method of the group (same key)."""
+        group: list[CnnMethod] = list(methods.values())  # type: ignore[arg-type]
+        features: dict[str, list[Any]] = {mid: [] for mid in methods}
+        own: dict[str, list[float]] = {mid: [] for mid in methods}
+        forward_ms: list[float] = []
+        for maps in forward_group(group, images, forward_ms):
+            for mid, m in zip(methods, group, strict=True):
+                t0 = time.perf_counter()
+                features[mid].append(m.from_maps(maps))
+                own[mid].append((time.perf_counter() - t0) * 1e3)
+        return GroupOutput(features, own, forward_ms)
+
+    @classmethod
+    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
+        """Fit the group on ``images``' maps (one forward pass per image for all of them)."""
+        group: list[CnnMethod] = list(methods)  # type: ignore[arg-type]
+        # Keep only the layers the fitting methods need (maps are small: <= 1 MB per image).
+        samples = list(forward_group(group, images))
+        for m in group:
+            m.fit_from_maps(samples)
 
 
 def _batches(n: int, size: int) -> Iterator[slice]:
@@ -136,71 +174,23 @@ def forward_group(
             yield {k: v[i] for k, v in arrays.items()}
 
 
-def _groups(methods: Mapping[str, CnnMethod]) -> dict[tuple[Any, ...], list[str]]:
-    groups: dict[tuple[Any, ...], list[str]] = {}
-    for mid, m in methods.items():
-        groups.setdefault(m.group_key(), []).append(mid)
-    return groups
-
-
 def extract_cnn(
     methods: Mapping[str, CnnMethod],
     images: Sequence[np.ndarray],
     ms: dict[str, list[float]] | None = None,
 ) -> dict[str, list[Any]]:
-    """Every method's feature for every image: {method id: [feature per image]}.
-
-    When ``ms`` is given, each method's time per image (its share-free forward time plus its
-    own descriptor time, ms) is appended to ``ms[method id]``.
-    """
-    out: dict[str, list[Any]] = {mid: [] for mid in methods}
-    for ids in _groups(methods).values():
-        group = [methods[mid] for mid in ids]
-        forward_ms: list[float] = []
-        for i, maps in enumerate(forward_group(group, images, forward_ms)):
-            for mid, m in zip(ids, group, strict=True):
-                t0 = time.perf_counter()
-                out[mid].append(m.from_maps(maps))
-                if ms is not None:
-                    own = (time.perf_counter() - t0) * 1e3
-                    ms.setdefault(mid, []).append(forward_ms[i] + own)
-    return out
+    """Every CNN method's feature for every image (:func:`hmpf.methods.base.extract_many`)."""
+    return extract_many(methods, images, ms)
 
 
 def cnn_groups(methods: Mapping[str, CnnMethod]) -> list[dict[str, CnnMethod]]:
     """The methods split into groups that share one forward pass per image."""
-    return [{mid: methods[mid] for mid in ids} for ids in _groups(methods).values()]
-
-
-def extract_cnn_timed(
-    methods: Mapping[str, CnnMethod], image: np.ndarray
-) -> tuple[dict[str, Any], dict[str, float]]:
-    """One image's features and per-method times (ms), one forward pass per group.
-
-    A group's forward time is charged to its first method only, so the times add up.
-    """
-    feats: dict[str, Any] = {}
-    times: dict[str, float] = {}
-    for ids in _groups(methods).values():
-        group = [methods[mid] for mid in ids]
-        forward_ms: list[float] = []
-        maps = next(iter(forward_group(group, [image], forward_ms)))
-        for j, (mid, m) in enumerate(zip(ids, group, strict=True)):
-            t0 = time.perf_counter()
-            feats[mid] = m.from_maps(maps)
-            times[mid] = (time.perf_counter() - t0) * 1e3 + (forward_ms[0] if j == 0 else 0.0)
-    return feats, times
+    return method_groups(methods)  # type: ignore[return-value]
 
 
 def fit_cnn(methods: Mapping[str, CnnMethod], images: Sequence[np.ndarray]) -> None:
     """Fit (in place) every method whose ``requires_fit()`` is True on ``images``' maps."""
-    todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
-    for ids in _groups(todo).values():
-        group = [todo[mid] for mid in ids]
-        # Keep only the layers the fitting methods need (maps are small: <= 1 MB per image).
-        samples = list(forward_group(group, images))
-        for m in group:
-            m.fit_from_maps(samples)
+    fit_many(methods, images)
 
 
 # -- small numeric helpers shared by the CNN methods ----------------------------------------

@@ -32,7 +32,7 @@ import scipy.fft
 from pydantic import Field
 
 from hmpf.imops import imresize, initcrop, rgb2gray
-from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec, euclidean
 from hmpf.methods.registry import register
 from hmpf.runtime import compute_threads
 
@@ -222,3 +222,6 @@ class Gist(GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
+
+    def faiss_metric(self) -> MetricSpec:
+        return MetricSpec("l2", 1.0)

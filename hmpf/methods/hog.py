@@ -23,7 +23,7 @@ from pydantic import Field
 
 from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray
-from hmpf.methods.base import GlobalMethod, MethodConfig, euclidean
+from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec, euclidean
 from hmpf.methods.registry import register
 
 
@@ -71,3 +71,6 @@ class Hog(GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
+
+    def faiss_metric(self) -> MetricSpec:
+        return MetricSpec("l2", 1.0)

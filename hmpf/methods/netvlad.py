@@ -28,7 +28,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from hmpf.methods.base import GlobalMethod, euclidean
+from hmpf.methods.base import GlobalMethod, MetricSpec, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, l2_rows
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
@@ -186,3 +186,6 @@ class NetVlad(CnnMethod, GlobalMethod):
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
+
+    def faiss_metric(self) -> MetricSpec:
+        return MetricSpec("l2", 1.0)

@@ -19,7 +19,7 @@ from pydantic import Field
 
 from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray, round_half_away
-from hmpf.methods.base import GlobalMethod, MethodConfig
+from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec
 from hmpf.methods.registry import register
 
 
@@ -75,3 +75,9 @@ class Sad(GlobalMethod):
             diff = op(r, np.broadcast_to(row, r.shape).copy())
             out[i] = cv2.reduce(diff, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel()
         return out / r.shape[1]
+
+    def faiss_metric(self) -> MetricSpec | None:
+        """L1 over ``dim`` (the mean absolute difference); the faithful one-sided difference
+        is no FAISS metric."""
+        c: SadConfig = self.config  # type: ignore[assignment]
+        return None if c.faithful else MetricSpec("l1", 1.0 / self.dim)
