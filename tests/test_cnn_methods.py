@@ -344,3 +344,26 @@ def test_extract_query_parallel_tasks_equal_serial(fitted: dict[str, object]) ->
         if name == "olo":
             a, b = a.regions, b.regions
         np.testing.assert_array_equal(a, b)
+
+
+def test_missing_torch_is_an_install_hint_not_a_traceback() -> None:
+    """Without torch (blocked in a fresh interpreter, as in a venv without the cnn extra), a CNN
+    method's extraction raises MissingDependencyError naming the extra to install."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "import numpy as np\n"
+        "from hmpf.errors import MissingDependencyError\n"
+        "from hmpf.methods import create_method\n"
+        "from hmpf.methods.cnn import forward_group\n"
+        "m = create_method('gem', {})\n"
+        "try:\n"
+        "    list(forward_group([m], [np.zeros((64, 64, 3), np.uint8)]))\n"
+        "except MissingDependencyError as e:\n"
+        "    print('HINT', e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "HINT" in out.stdout and "hmpf[cnn]" in out.stdout

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from hmpf.backbones import Backbone, load_backbone
+from hmpf.backbones import Backbone, load_backbone, require_torch
 from hmpf.imageio import to_rgb
 from hmpf.methods.base import (
     GroupOutput,
@@ -154,6 +154,7 @@ def forward_group(
     All ``methods`` must share :meth:`CnnMethod.group_key`. When ``timing`` is given, the
     preprocessing + forward time per image (ms) is appended to it for every image.
     """
+    require_torch()  # an install hint, not a ModuleNotFoundError traceback
     import torch
 
     torch.set_num_threads(compute_threads())
