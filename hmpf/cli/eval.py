@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog=PROG,
+        usage="%(prog)s [options] --config YAML --reference DIR --query DIR\n"
+        "       %(prog)s [options] --index DIR --query DIR\n"
+        "       %(prog)s experiments [options] --reference DIR --query DIR --out DIR",
         description="Evaluate an HMPF hierarchy (and every method alone) on real images. "
         "Without a command: evaluate --config on --reference and --query (or --index).",
     )
