@@ -10,6 +10,10 @@ part only; the test part then checks the winner against its best single method a
 fusion. Writes ``calibrated.yaml`` (a hierarchy config with ``acceptance.threshold``, ready for
 ``hmpf-index build --config`` and the service), ``leaderboard.md`` and ``calibration.json``.
 Descriptors come through the feature cache, so a second run extracts nothing.
+
+The time budget is enforced on a cost model measured on this machine, so the winner may differ
+between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
+with it the choice, on any machine.
 """
 
 from __future__ import annotations
