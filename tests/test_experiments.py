@@ -114,3 +114,16 @@ def test_experiments_without_matplotlib_stop_before_any_work(short_route, tmp_pa
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "pip install 'hmpf[report]'" in proc.stderr and "Traceback" not in proc.stderr
     assert not cache.exists() and not out.exists()  # nothing extracted, nothing written
+
+
+def test_experiments_ctrl_c_is_one_line(monkeypatch, capsys, tmp_path: Path):
+    from hmpf.cli import eval as cli
+    from hmpf.cli import experiments
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(experiments, "load_banks", interrupted)
+    argv = ["experiments", "--reference", str(tmp_path), "--query", str(tmp_path)]
+    assert cli.main([*argv, "--out", str(tmp_path / "exp")]) == 130
+    assert capsys.readouterr().err == "hmpf-eval experiments: interrupted\n"
