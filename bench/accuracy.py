@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root  # noqa: E402
-from hmpf.evaluate import EvalData, evaluate, format_report  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData, evaluate, format_report  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description as machine  # noqa: E402
 

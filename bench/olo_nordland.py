@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
-from hmpf.evaluate import recall_at_n  # noqa: E402
+from hmpf.evaluation.evaluate import recall_at_n  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods  # noqa: E402
 from hmpf.methods import create_method  # noqa: E402
 

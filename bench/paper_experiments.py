@@ -23,15 +23,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hmpf.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown  # noqa: E402
 from hmpf.cli.calibrate import write_config  # noqa: E402
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
 from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluate import EvalData  # noqa: E402
-from hmpf.experiments import report_markdown, run_studies, write_figures  # noqa: E402
+from hmpf.evaluation.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData  # noqa: E402
+from hmpf.evaluation.experiments import report_markdown, run_studies, write_figures  # noqa: E402
+from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
 
 PRESETS = ("paper-nordland", "paper-berlin", "default")
 

@@ -28,7 +28,7 @@ from accuracy import machine  # noqa: E402
 
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
-from hmpf.evaluate import EvalData, evaluate  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
 from hmpf.imageio import load_image  # noqa: E402
 from hmpf.methods import create_method  # noqa: E402
 from hmpf.methods.kaze import best_two_ssd, unit_rows  # noqa: E402

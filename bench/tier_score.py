@@ -22,14 +22,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-from hmpf.calibrate import WEIGHT_LADDER, SearchSpace, describe  # noqa: E402
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
 from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluate import EvalData  # noqa: E402
+from hmpf.evaluation.calibrate import WEIGHT_LADDER, SearchSpace, describe  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData  # noqa: E402
+from hmpf.evaluation.study import ScoreBank, derive_config, split_data  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
-from hmpf.study import ScoreBank, derive_config, split_data  # noqa: E402
 
 
 def draw(

@@ -3,29 +3,31 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import link_route
 
-from hmpf.calibrate import (
-    Candidate,
+from hmpf.config import HierarchyConfig, load_config, parse_config
+from hmpf.datasets import frame_ground_truth, list_images
+from hmpf.errors import ConfigError, DatasetError
+from hmpf.evaluation.calibrate import (
     SearchSpace,
+    Trial,
     acceptance_threshold,
     calibrate,
     paired_test,
     precision_recall_at,
     search,
 )
-from hmpf.config import HierarchyConfig, load_config, parse_config
-from hmpf.datasets import frame_ground_truth, list_images
-from hmpf.errors import ConfigError, DatasetError
-from hmpf.evaluate import EvalData, evaluate
+from hmpf.evaluation.evaluate import EvalData, evaluate
+from hmpf.evaluation.study import CostModel, ScoreBank, derive_config, measure_costs, split_data
 from hmpf.features import FeatureCache
-from hmpf.study import CostModel, ScoreBank, derive_config, measure_costs, split_data
 
 POOL = {
     "name": "cheap-pool",
@@ -117,6 +119,20 @@ def test_paired_sign_test_hand_computed():
     assert paired_test(a, a)["p"] == 1.0
     with pytest.raises(ValueError, match="same queries"):
         paired_test(a, b[:5])
+
+
+def test_paired_sign_test_on_a_long_route():
+    """Over 1,024 discordant queries: 2.0**n overflowed a float; the exact p still comes."""
+    wins, losses = 620, 520  # 1140 discordant queries, plus 100 both got right
+    a = np.array([True] * wins + [False] * losses + [True] * 100)
+    b = np.array([False] * wins + [True] * losses + [True] * 100)
+    n = wins + losses
+    exact = 2 * Fraction(sum(math.comb(n, i) for i in range(losses + 1)), 2**n)
+    t = paired_test(a, b)
+    assert (t["wins"], t["losses"]) == (wins, losses)
+    assert t["p"] == pytest.approx(float(exact), rel=1e-9)
+    assert 0.001 < t["p"] < 0.01  # 54 % of the discordant queries: significant, not wildly
+    assert paired_test(b, a)["p"] == pytest.approx(t["p"], rel=1e-12)  # two-sided
 
 
 def test_cost_model_charges_shared_passes_once_and_reuses_tier1_scores():
@@ -231,9 +247,9 @@ def test_calibrate_stores_threshold_and_checks_test(banks):
         calibrate(pool, train, None, space, budget_ms=0.001, seed=0)
 
 
-def test_candidate_config_carries_pool_parameters(banks):
+def test_trial_config_carries_pool_parameters(banks):
     pool = banks[0]
-    c = Candidate((("kaze",), ("gist",)), (5, 1), (0.5, 1.0), 0.5, 1.0)
+    c = Trial((("kaze",), ("gist",)), (5, 1), (0.5, 1.0), 0.5, 1.0)
     cfg = c.config(pool)
     assert cfg.methods == {"kaze": {"max_keypoints": 150}}
     assert cfg.weights == [0.5, 1.0] and cfg.tiers[0].k == 5
@@ -277,3 +293,50 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
         [*cmd[:-2], "--seed", "3", "--methods", "nope"], capture_output=True, text=True
     )
     assert bad.returncode == 2 and "not in the pool" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_fixed_cost_model_round_trips_and_is_used(banks):
+    """A cost model read back from a report gives the same search on any machine."""
+    pool, train, _, _, _ = banks
+    costs = CostModel(
+        units={f"extract:{m}": ms for m, ms in (("hog", 4.1), ("gist", 4.4), ("sad", 1.0))}
+        | {"extract:kaze": 48.2},
+        method_units={m: [f"extract:{m}"] for m in ("hog", "gist", "sad", "kaze")},
+        match={"hog": (0.1, 0.002), "gist": (0.1, 0.001), "sad": (0.0, 0.01), "kaze": (0.3, 0.9)},
+        fusion_ms=0.05,
+        n_db=train.n_db,
+    )
+    back = CostModel.from_dict(json.loads(json.dumps({"costs": costs.to_dict()}))["costs"])
+    assert back == costs
+    with pytest.raises(ConfigError, match="not a cost model"):
+        CostModel.from_dict({"units_ms": {}})
+    space = SearchSpace(tuple(pool.method_ids), k1=(3, 6), k2=(2,), samples=10, refine=2)
+    _, rep = calibrate(pool, train, None, space, budget_ms=60.0, seed=0, costs=back)
+    assert rep["costs"] == costs.to_dict()
+    assert rep["train"]["winner"]["model_ms"] == costs.query_ms(
+        rep_config(pool, rep), train.run(rep_config(pool, rep)).mean_inputs
+    )
+    # KAZE alone costs 48.2 ms to extract plus 0.9 ms per reference: over a 60 ms budget.
+    assert all("kaze" not in c["hierarchy"] for c in rep["train"]["leaderboard"])
+
+
+def rep_config(pool: HierarchyConfig, rep: dict) -> HierarchyConfig:
+    w = rep["train"]["winner"]
+    return derive_config(pool, list(zip(w["tiers"], w["k"], strict=True)), w["weights"])
+
+
+def test_calibrate_cli_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Path):
+    from hmpf.cli import calibrate as cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("hmpf-calibrate (hmpf ")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "load_banks", interrupted)
+    argv = ["--reference", str(tmp_path), "--query", str(tmp_path), "--out", str(tmp_path / "o")]
+    assert cli.main(argv) == 130
+    err = capsys.readouterr().err
+    assert err == "hmpf-calibrate: interrupted\n"

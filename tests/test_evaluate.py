@@ -6,7 +6,7 @@ import pytest
 from hmpf.config import parse_config
 from hmpf.datasets import frame_ground_truth, list_images
 from hmpf.errors import ImageError
-from hmpf.evaluate import EvalData, evaluate, pr_curve, recall_at_n
+from hmpf.evaluation.evaluate import EvalData, evaluate, pr_curve, recall_at_n
 from hmpf.features import FeatureCache, extract_images, file_digest
 from hmpf.methods import create_method
 
@@ -125,3 +125,29 @@ def test_evaldata_frames_reads_two_aligned_traverses(gardens_point: Path):
     assert data.query == list_images(gardens_point / "night_right")
     np.testing.assert_array_equal(data.gt, frame_ground_truth(200, 200, 3))
     assert data.ground_truth == "frames +-3"
+
+
+def test_hmpf_eval_cli_help_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Path, image_folder):
+    from hmpf.cli import eval as cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    assert exc.value.code == 0 and "experiments" in out and "--config" in out
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("hmpf-eval (hmpf ")
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--config", "x.yaml", "--reference", str(tmp_path)])  # no --query
+    assert exc.value.code == 2 and "--query is required" in capsys.readouterr().err
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "evaluate", interrupted)
+    config = parse_config({"tiers": [{"methods": ["sad"], "k": 1}]})
+    monkeypatch.setattr(cli, "load_config", lambda path: config)
+    folder = str(image_folder("refs", 2))
+    argv = ["--config", "x.yaml", "--reference", folder, "--query", folder, "--no-cache"]
+    assert cli.main(argv) == 130
+    assert capsys.readouterr().err == "hmpf-eval: interrupted\n"

@@ -18,12 +18,14 @@ def short_route(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -
     return link_route(gardens_point, tmp_path_factory.mktemp("route"), N_IMAGES)
 
 
-def _experiments(route: dict[str, Path], tmp_path: Path, *extra: str):
+def _experiments(
+    route: dict[str, Path], tmp_path: Path, *extra: str, launch: tuple[str, ...] = ()
+) -> subprocess.CompletedProcess[str]:
+    """``hmpf-eval experiments`` on ``route`` (``launch``: another ``python`` entry point)."""
     return subprocess.run(
         [
             sys.executable,
-            "-m",
-            "hmpf.cli.eval",
+            *(launch or ("-m", "hmpf.cli.eval")),
             "experiments",
             "--quiet",
             "--reference",
@@ -98,3 +100,30 @@ def test_experiments_reject_unknown_trio(short_route, tmp_path: Path):
         short_route, tmp_path, "--trio", "gist", "netvlad", "surf", "--out", str(tmp_path / "x")
     )
     assert proc.returncode == 2 and "surf" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_experiments_without_matplotlib_stop_before_any_work(short_route, tmp_path: Path):
+    """Without the ``report`` extra: one line with the install hint, before any extraction."""
+    # As for a user who lacks matplotlib: every import of it fails in this interpreter.
+    code = (
+        "import sys; sys.modules['matplotlib'] = None; "
+        "from hmpf.cli.eval import main; sys.exit(main(sys.argv[1:]))"
+    )
+    cache, out = tmp_path / "cache", tmp_path / "exp"
+    proc = _experiments(short_route, tmp_path, "--out", str(out), launch=("-c", code))
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "pip install 'hmpf[report]'" in proc.stderr and "Traceback" not in proc.stderr
+    assert not cache.exists() and not out.exists()  # nothing extracted, nothing written
+
+
+def test_experiments_ctrl_c_is_one_line(monkeypatch, capsys, tmp_path: Path):
+    from hmpf.cli import eval as cli
+    from hmpf.cli import experiments
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(experiments, "load_banks", interrupted)
+    argv = ["experiments", "--reference", str(tmp_path), "--query", str(tmp_path)]
+    assert cli.main([*argv, "--out", str(tmp_path / "exp")]) == 130
+    assert capsys.readouterr().err == "hmpf-eval experiments: interrupted\n"

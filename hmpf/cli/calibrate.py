@@ -10,6 +10,10 @@ part only; the test part then checks the winner against its best single method a
 fusion. Writes ``calibrated.yaml`` (a hierarchy config with ``acceptance.threshold``, ready for
 ``hmpf-index build --config`` and the service), ``leaderboard.md`` and ``calibration.json``.
 Descriptors come through the feature cache, so a second run extracts nothing.
+
+The time budget is enforced on a cost model measured on this machine, so the winner may differ
+between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
+with it the choice, on any machine.
 """
 
 from __future__ import annotations
@@ -19,18 +23,24 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import yaml
 from tqdm import tqdm
 
-from hmpf.calibrate import SearchSpace, calibrate, leaderboard_markdown
-from hmpf.cli.eval import add_ground_truth_args, ground_truth_from_args
+from hmpf.cli.common import add_version, run
+from hmpf.cli.eval import (
+    add_cache_args,
+    add_ground_truth_args,
+    cache_from_args,
+    ground_truth_from_args,
+)
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import list_images
 from hmpf.errors import HmpfError
-from hmpf.evaluate import EvalData
-from hmpf.features import FeatureCache, default_cache_dir
-from hmpf.study import SPLITS, ScoreBank, derive_config, split_data
+from hmpf.evaluation.calibrate import SearchSpace, calibrate, leaderboard_markdown
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import SPLITS, CostModel, ScoreBank, derive_config, split_data
 
 DEFAULT_POOL = "calibration-pool"  # a preset name (hmpf/presets/calibration-pool.yaml)
 
@@ -43,9 +53,7 @@ def add_split_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=SPLITS, default="blocks", help="train/test split")
     p.add_argument("--block", type=int, default=20, help="frames per stretch (blocks split)")
     p.add_argument("--train-fraction", type=float, default=0.5, help="halves split: train share")
-    p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
-    p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
-    p.add_argument("--workers", type=int, default=None, help="extraction processes")
+    add_cache_args(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -57,7 +65,7 @@ def load_banks(args: argparse.Namespace, pool: HierarchyConfig) -> tuple[ScoreBa
     parts = split_data(
         EvalData(refs, qrys, gt, desc), args.train_fraction, scheme=args.split, block=args.block
     )
-    cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
+    cache = cache_from_args(args)
     train, test = (
         ScoreBank.build(pool, part, cache=cache, workers=args.workers, progress=not args.quiet)
         for part in parts
@@ -90,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Search hierarchies on a training split under a time budget; write the "
         "best as a config with its acceptance threshold.",
     )
+    add_version(p)
     add_split_args(p)
     p.add_argument("--pool", default=str(DEFAULT_POOL), help="config whose methods may be used")
     p.add_argument("--methods", nargs="*", help="use only these pool methods")
@@ -97,6 +106,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default="calibrated", help="name of the written config")
     p.add_argument("--budget-ms", type=float, default=150.0, help="per-query time budget (ms)")
     p.add_argument("--db-size", type=int, help="charge tier 1 for this many references")
+    p.add_argument(
+        "--costs",
+        help="a fixed cost model instead of measuring one: a calibration.json (its 'costs') "
+        "or that object alone; the search then picks the same hierarchy on any machine",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--target-precision", type=float, default=0.99)
     p.add_argument("--max-tiers", type=int, default=3, choices=(1, 2, 3))
@@ -109,72 +123,52 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def load_costs(path: str) -> CostModel:
+    """The cost model in a JSON file: a calibration report (its ``costs``) or that object."""
     try:
-        if not 0 < args.target_precision <= 1:
-            raise HmpfError("--target-precision must be in (0, 1]")
-        if args.budget_ms <= 0:
-            raise HmpfError("--budget-ms must be positive")
-        if min(args.k1 + args.k2) < 1:
-            raise HmpfError("candidate counts must be >= 1")
-        pool = load_config(args.pool)
-        methods = tuple(dict.fromkeys(args.methods or pool.method_ids))  # once each
-        unknown = sorted(set(methods) - set(pool.method_ids))
-        if unknown:
-            raise HmpfError(
-                f"--methods not in the pool {args.pool}: {', '.join(unknown)} "
-                f"(pool: {', '.join(pool.method_ids)})"
-            )
-        if set(methods) != set(pool.method_ids):
-            # Score only the methods the search may use: a bank holds every pool method's
-            # full score matrix, and the unused ones (KAZE, OLO) cost the most to score.
-            pool = derive_config(
-                pool, [(methods, 1)], None, name=pool.name, description=pool.description
-            )
-        train, test = load_banks(args, pool)
-        space = SearchSpace(
-            methods,
-            max_tiers=args.max_tiers,
-            max_per_tier=args.max_per_tier,
-            k1=tuple(args.k1),
-            k2=tuple(args.k2),
-            samples=args.samples,
-            refine=args.refine,
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise HmpfError(f"cannot read the cost model {path}: {exc}") from exc
+    return CostModel.from_dict(data.get("costs", data) if isinstance(data, dict) else data)
+
+
+def _pool_and_methods(args: argparse.Namespace) -> tuple[HierarchyConfig, tuple[str, ...]]:
+    """The pool (restricted to ``--methods``) and the methods the search may use."""
+    pool = load_config(args.pool)
+    methods = tuple(dict.fromkeys(args.methods or pool.method_ids))  # once each
+    unknown = sorted(set(methods) - set(pool.method_ids))
+    if unknown:
+        raise HmpfError(
+            f"--methods not in the pool {args.pool}: {', '.join(unknown)} "
+            f"(pool: {', '.join(pool.method_ids)})"
         )
-        bar = tqdm(desc="search", unit="hierarchy", disable=True if args.quiet else None)
-        with bar:
-            config, report = calibrate(
-                pool,
-                train,
-                test,
-                space,
-                budget_ms=args.budget_ms,
-                seed=args.seed,
-                target_precision=args.target_precision,
-                db_size=args.db_size,
-                name=args.name,
-                top=args.top,
-                progress=_bar_update(bar),
-            )
-    except HmpfError as exc:
-        print(f"hmpf-calibrate: error: {exc}", file=sys.stderr)
-        return 2
+    if set(methods) != set(pool.method_ids):
+        # Score only the methods the search may use: a bank holds every pool method's
+        # full score matrix, and the unused ones (KAZE, OLO) cost the most to score.
+        pool = derive_config(
+            pool, [(methods, 1)], None, name=pool.name, description=pool.description
+        )
+    return pool, methods
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    if not 0 < args.target_precision <= 1:
+        raise HmpfError("--target-precision must be in (0, 1]")
+    if args.budget_ms <= 0:
+        raise HmpfError("--budget-ms must be positive")
+    if min(args.k1 + args.k2) < 1:
+        raise HmpfError("candidate counts must be >= 1")
+
+
+def _write(args: argparse.Namespace, config: HierarchyConfig, report: dict[str, Any]) -> None:
+    """calibrated.yaml, leaderboard.md and calibration.json in ``--out``; the board printed."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report["protocol"] = {
-        "reference": args.reference,
-        "query": args.query,
-        "ground_truth": train.data.ground_truth,
-        "split": args.split,
-        "block": args.block,
-        "pool": args.pool,
-    }
+    ground_truth = report["protocol"]["ground_truth"]
     win = report["train"]["winner"]
     header = (
         f"Written by hmpf-calibrate (seed {args.seed}, budget {args.budget_ms:g} ms/query).\n"
-        f"Route: {args.reference} -> {args.query}, {args.split} split, "
-        f"{train.data.ground_truth}.\n"
+        f"Route: {args.reference} -> {args.query}, {args.split} split, {ground_truth}.\n"
         f"Training recall@1 {win['recall_at_1']:.3f}, modelled {win['model_ms']:.1f} ms/query."
     )
     write_config(config, out / "calibrated.yaml", header)
@@ -183,7 +177,54 @@ def main(argv: list[str] | None = None) -> int:
     (out / "calibration.json").write_text(json.dumps(report, indent=1))
     print(md)
     print(f"wrote {out / 'calibrated.yaml'}, {out / 'leaderboard.md'}, {out / 'calibration.json'}")
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """The command's body: check the flags, score the split, search, write."""
+    _check_args(args)
+    costs = load_costs(args.costs) if args.costs else None
+    pool, methods = _pool_and_methods(args)
+    train, test = load_banks(args, pool)
+    space = SearchSpace(
+        methods,
+        max_tiers=args.max_tiers,
+        max_per_tier=args.max_per_tier,
+        k1=tuple(args.k1),
+        k2=tuple(args.k2),
+        samples=args.samples,
+        refine=args.refine,
+    )
+    bar = tqdm(desc="search", unit="hierarchy", disable=True if args.quiet else None)
+    with bar:
+        config, report = calibrate(
+            pool,
+            train,
+            test,
+            space,
+            budget_ms=args.budget_ms,
+            seed=args.seed,
+            target_precision=args.target_precision,
+            db_size=args.db_size,
+            name=args.name,
+            top=args.top,
+            progress=_bar_update(bar),
+            costs=costs,
+        )
+    report["protocol"] = {
+        "reference": args.reference,
+        "query": args.query,
+        "ground_truth": train.data.ground_truth,
+        "split": args.split,
+        "block": args.block,
+        "pool": args.pool,
+    }
+    _write(args, config, report)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("hmpf-calibrate", lambda: run_calibrate(args))
 
 
 if __name__ == "__main__":

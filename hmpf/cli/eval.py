@@ -5,7 +5,7 @@
         --query ../shared/datasets/gardens_point/night_right --tolerance 2 --json out.json
 
 ``hmpf-eval experiments ...`` runs the paper's studies on a train/test split instead
-(:mod:`hmpf.cli.experiments`).
+(:mod:`hmpf.cli.experiments`); without a subcommand ``hmpf-eval`` evaluates one hierarchy.
 
 With ``--index DIR`` the references come from a built index (``hmpf-index build``) and the
 queries run through the same code as the service (``--config`` and ``--reference`` are then
@@ -21,30 +21,39 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from hmpf.cli.common import add_version, run
 from hmpf.config import load_config
 from hmpf.datasets import frame_ground_truth, gps_ground_truth, list_images, pairs_ground_truth
 from hmpf.errors import HmpfError
-from hmpf.evaluate import EvalData, evaluate, format_report
+from hmpf.evaluation.evaluate import EvalData, evaluate, format_report
 from hmpf.features import FeatureCache, default_cache_dir
+
+PROG = "hmpf-eval"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from hmpf.cli import experiments
+
     p = argparse.ArgumentParser(
-        prog="hmpf-eval",
-        description="Evaluate an HMPF hierarchy (and every method alone) on real images.",
+        prog=PROG,
+        usage="%(prog)s [options] --config YAML --reference DIR --query DIR\n"
+        "       %(prog)s [options] --index DIR --query DIR\n"
+        "       %(prog)s experiments [options] --reference DIR --query DIR --out DIR",
+        description="Evaluate an HMPF hierarchy (and every method alone) on real images. "
+        "Without a command: evaluate --config on --reference and --query (or --index).",
     )
+    add_version(p)
     p.add_argument("--config", help="hierarchy YAML (e.g. configs/handcrafted.yaml)")
     p.add_argument("--reference", help="folder of reference (database) images")
     p.add_argument("--index", help="evaluate against this built index instead of --reference")
-    p.add_argument("--query", required=True, help="folder of query images")
+    p.add_argument("--query", help="folder of query images (required)")
     add_ground_truth_args(p)
     p.add_argument("--json", help="write the full report as JSON to this file")
-    p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
-    p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
-    p.add_argument("--workers", type=int, default=None, help="extraction processes (default: CPUs)")
+    add_cache_args(p)
     p.add_argument(
         "--limit",
         type=int,
@@ -59,7 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="methods whose whole-database curve is not computed",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    commands = p.add_subparsers(dest="command", title="commands", metavar="COMMAND")
+    sub = commands.add_parser(
+        "experiments", help=experiments.DESCRIPTION, description=experiments.DESCRIPTION
+    )
+    add_version(sub)
+    experiments.add_arguments(sub)
     return p
+
+
+def add_cache_args(p: argparse.ArgumentParser) -> None:
+    """The descriptor-cache and extraction flags shared by hmpf-eval and hmpf-calibrate."""
+    p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
+    p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
+    p.add_argument("--workers", type=int, default=None, help="extraction processes (default: CPUs)")
 
 
 def add_ground_truth_args(p: argparse.ArgumentParser) -> None:
@@ -87,19 +109,55 @@ def ground_truth_from_args(
     return frame_ground_truth(len(qrys), len(ref_names), tol), f"frames +-{tol}"
 
 
-def _main_index(args: argparse.Namespace) -> int:
-    from hmpf.index.evaluate import evaluate_index, format_index_report
+def cache_from_args(args: argparse.Namespace) -> FeatureCache | None:
+    """The descriptor cache the flags name (None with ``--no-cache``)."""
+    return None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
+
+
+def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
+    from hmpf.evaluation.evaluate import evaluate_index
     from hmpf.index.reader import IndexReader
 
     expected = load_config(args.config) if args.config else None
     with IndexReader(args.index, expected_config=expected) as reader:
         qrys = list_images(args.query)[: args.limit]
         gt, desc = ground_truth_from_args(args, qrys, reader.refs.names)
-        cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
-        report = evaluate_index(
-            reader, qrys, gt, desc, cache=cache, workers=args.workers, progress=not args.quiet
+        return evaluate_index(
+            reader,
+            qrys,
+            gt,
+            desc,
+            cache=cache_from_args(args),
+            workers=args.workers,
+            progress=not args.quiet,
         )
-    print(format_index_report(report))
+
+
+def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
+    config = load_config(args.config)
+    refs = list_images(args.reference)[: args.limit]
+    qrys = list_images(args.query)[: args.limit]
+    gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
+    return evaluate(
+        config,
+        EvalData(refs, qrys, gt, desc),
+        cache=cache_from_args(args),
+        workers=args.workers,
+        skip_curves=args.skip_curves,
+        progress=not args.quiet,
+    )
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """The command's body without a subcommand: evaluate, print, write the JSON."""
+    from hmpf.evaluation.evaluate import format_index_report
+
+    if args.index is not None:
+        report = _evaluate_index(args)
+        print(format_index_report(report))
+    else:
+        report = _evaluate_route(args)
+        print(format_report(report))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(report, indent=1))
@@ -107,43 +165,17 @@ def _main_index(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["experiments"]:
-        from hmpf.cli.experiments import main as experiments_main
-
-        return experiments_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "experiments":
+        from hmpf.cli import experiments
+
+        return run(experiments.PROG, lambda: experiments.run_experiments(args))
+    if args.query is None:
+        parser.error("--query is required")
     if args.index is None and (args.config is None or args.reference is None):
         parser.error("--config and --reference are required (or --index DIR)")
-    if args.index is not None:
-        try:
-            return _main_index(args)
-        except HmpfError as exc:
-            print(f"hmpf-eval: error: {exc}", file=sys.stderr)
-            return 2
-    try:
-        config = load_config(args.config)
-        refs = list_images(args.reference)[: args.limit]
-        qrys = list_images(args.query)[: args.limit]
-        gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
-        cache = None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
-        report = evaluate(
-            config,
-            EvalData(refs, qrys, gt, desc),
-            cache=cache,
-            workers=args.workers,
-            skip_curves=args.skip_curves,
-            progress=not args.quiet,
-        )
-    except HmpfError as exc:
-        print(f"hmpf-eval: error: {exc}", file=sys.stderr)
-        return 2
-    print(format_report(report))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(report, indent=1))
-    return 0
+    return run(PROG, lambda: run_eval(args))
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
-"""Automatic choice of a hierarchy and of its acceptance threshold on a training split.
+"""Step 3 of :mod:`hmpf.evaluation`: the choice of a hierarchy and its acceptance threshold.
 
-The search (:func:`search`) runs on a :class:`~hmpf.study.ScoreBank`, so every candidate
-hierarchy is evaluated on precomputed scores through the real hierarchy code, and on a
-:class:`~hmpf.study.CostModel` of measured component times, so a per-query time budget can
-be enforced. It is deterministic given its seed:
+The search (:func:`search`) runs on a training split's
+:class:`~hmpf.evaluation.study.ScoreBank`, so every tried hierarchy (a :class:`Trial`) is
+evaluated on precomputed scores through the real hierarchy code, and on a
+:class:`~hmpf.evaluation.study.CostModel` of measured component times, so a per-query time
+budget can be enforced. It is deterministic given its seed and cost model:
 
 1. Structures: every tier is a set of 1..``max_per_tier`` pool methods; every 1-tier and
    2-tier structure is tried, and ``samples`` 3-tier structures drawn with the seed (a method
@@ -21,20 +22,31 @@ which the training answers reach the target precision.
 from __future__ import annotations
 
 import itertools
-import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.stats import binomtest
 
-from hmpf.config import HierarchyConfig
+from hmpf.config import AcceptanceSettings, HierarchyConfig
+from hmpf.errors import ConfigError
+from hmpf.evaluation.evaluate import HierarchyOutcome
+from hmpf.evaluation.study import (
+    CostModel,
+    ScoreBank,
+    check_compatible,
+    derive_config,
+    measure_costs,
+    measure_query_ms,
+)
+from hmpf.fusion import default_weights
 from hmpf.runtime import machine_description
-from hmpf.study import CostModel, Outcome, ScoreBank, check_compatible, derive_config
 
 __all__ = [
-    "Candidate",
     "SearchSpace",
+    "Trial",
     "acceptance_threshold",
     "describe",
     "paired_test",
@@ -76,8 +88,11 @@ class SearchSpace:
 
 
 @dataclass
-class Candidate:
-    """One evaluated hierarchy."""
+class Trial:
+    """One hierarchy the search tried, with its training figures.
+
+    ``recall_at_1`` is -1 and ``model_ms`` infinite for a hierarchy left out over the budget.
+    """
 
     tiers: tuple[tuple[str, ...], ...]
     ks: tuple[int, ...]
@@ -86,7 +101,7 @@ class Candidate:
     model_ms: float
     tier_top1: list[float] = field(default_factory=list)
     tier_recall: list[float] = field(default_factory=list)
-    outcome: Outcome | None = None
+    outcome: HierarchyOutcome | None = None
 
     @property
     def n_methods(self) -> int:
@@ -126,10 +141,6 @@ def describe(
     return text
 
 
-def _default_weights(n: int) -> tuple[float, ...]:
-    return {1: (1.0,), 2: (0.75, 1.0), 3: (0.5, 0.75, 1.0)}[n]
-
-
 def _weight_grid(n: int) -> list[tuple[float, ...]]:
     if n == 1:
         return [(1.0,)]
@@ -150,28 +161,14 @@ def _middle(values: Sequence[int]) -> int:
     return sorted(values)[len(values) // 2]
 
 
-def search(
-    bank: ScoreBank,
-    pool: HierarchyConfig,
-    costs: CostModel,
-    space: SearchSpace,
-    *,
-    budget_ms: float | None = None,
-    seed: int = 0,
-    progress: Any = None,
-) -> list[Candidate]:
-    """Every hierarchy tried, best first (see the module docstring); over-budget ones dropped.
+#: Per tier, the pool methods it fuses; tier 1 first.
+Structure = tuple[tuple[str, ...], ...]
 
-    Args:
-        progress: optional callable ``(done, total)`` for long searches; ``total`` grows
-            once, when the first pass has chosen the structures to refine.
-    """
-    if not 1 <= space.max_tiers <= 3:
-        raise ValueError("max_tiers must be 1, 2 or 3")
-    if not space.k1 or (space.max_tiers == 3 and not space.k2):
-        raise ValueError("candidate counts k1 (and k2 for 3 tiers) must not be empty")
+
+def _structures(space: SearchSpace, seed: int) -> list[Structure]:
+    """The first pass: every 1- and 2-tier structure, ``samples`` 3-tier ones drawn."""
     sets = space.tier_sets()
-    structures: list[tuple[tuple[str, ...], ...]] = [(s,) for s in sets]
+    structures: list[Structure] = [(s,) for s in sets]
     if space.max_tiers >= 2:
         structures += [(a, b) for a in sets for b in sets]
     if space.max_tiers == 3:
@@ -186,48 +183,82 @@ def search(
             a, rest = divmod(int(p), len(sets) ** 2)
             b, c = divmod(rest, len(sets))
             structures.append((sets[a], sets[b], sets[c]))
-    seen: dict[tuple[Any, ...], Candidate] = {}
+    return structures
 
-    def evaluate(tiers: tuple[tuple[str, ...], ...], ks: tuple[int, ...], ws: tuple[float, ...]):
+
+def _middle_counts(space: SearchSpace, n: int) -> tuple[int, ...]:
+    """The candidate counts a structure of ``n`` tiers is first tried with."""
+    if n == 1:
+        return (1,)
+    k1 = _middle(space.k1)
+    if n == 2:
+        return (k1, 1)
+    return (k1, max((k for k in space.k2 if k < k1), default=min(space.k2)), 1)
+
+
+@dataclass
+class _Trials:
+    """The hierarchies tried so far on ``bank``, each evaluated once."""
+
+    bank: ScoreBank
+    pool: HierarchyConfig
+    costs: CostModel
+    budget_ms: float | None
+    seen: dict[tuple[Any, ...], Trial] = field(default_factory=dict)
+
+    def get(self, tiers: Structure, ks: tuple[int, ...], ws: tuple[float, ...]) -> Trial:
         key = (tiers, ks, ws)
-        if key in seen:
-            return seen[key]
-        cfg = derive_config(pool, [(t, k) for t, k in zip(tiers, ks, strict=True)], list(ws))
-        if budget_ms is not None and costs.query_ms(cfg) > budget_ms:
-            # Over budget even at the upper bound of later tiers' inputs? Check the real sizes.
-            if costs.query_ms(cfg, _min_inputs(cfg, costs.n_db)) > budget_ms:
-                seen[key] = Candidate(tiers, ks, ws, -1.0, float("inf"))
-                return seen[key]
-        out = bank.run(cfg)
-        cand = Candidate(
-            tiers,
-            ks,
-            ws,
-            out.recall_at_1,
-            costs.query_ms(cfg, out.mean_inputs),
-            out.tier_top1,
-            out.tier_recall,
-            out,
-        )
-        seen[key] = cand
-        return cand
+        if key not in self.seen:
+            self.seen[key] = self._run(tiers, ks, ws)
+        return self.seen[key]
 
+    def _run(self, tiers: Structure, ks: tuple[int, ...], ws: tuple[float, ...]) -> Trial:
+        cfg = derive_config(self.pool, list(zip(tiers, ks, strict=True)), list(ws))
+        budget, costs = self.budget_ms, self.costs
+        if budget is not None and costs.query_ms(cfg) > budget:
+            # Over budget even at the upper bound of later tiers' inputs? Check the real sizes.
+            if costs.query_ms(cfg, _min_inputs(cfg, costs.n_db)) > budget:
+                return Trial(tiers, ks, ws, -1.0, float("inf"))
+        out = self.bank.run(cfg)
+        model_ms = costs.query_ms(cfg, out.mean_inputs)
+        return Trial(tiers, ks, ws, out.recall_at_1, model_ms, out.tier_top1, out.tier_recall, out)
+
+    def ranked(self) -> list[Trial]:
+        """The trials within the budget, best first."""
+        return sorted(_within(self.seen.values(), self.budget_ms), key=Trial.sort_key)
+
+
+def search(
+    bank: ScoreBank,
+    pool: HierarchyConfig,
+    costs: CostModel,
+    space: SearchSpace,
+    *,
+    budget_ms: float | None = None,
+    seed: int = 0,
+    progress: Callable[[int, int], Any] | None = None,
+) -> list[Trial]:
+    """Every hierarchy tried, best first (see the module docstring); over-budget ones dropped.
+
+    Args:
+        progress: optional callable ``(done, total)`` for long searches; ``total`` grows
+            once, when the first pass has chosen the structures to refine.
+    """
+    if not 1 <= space.max_tiers <= 3:
+        raise ValueError("max_tiers must be 1, 2 or 3")
+    if not space.k1 or (space.max_tiers == 3 and not space.k2):
+        raise ValueError("candidate counts k1 (and k2 for 3 tiers) must not be empty")
+    trials = _Trials(bank, pool, costs, budget_ms)
+    structures = _structures(space, seed)
     total = len(structures)
     for i, st in enumerate(structures):
-        n = len(st)
-        ks: tuple[int, ...] = (1,) if n == 1 else (_middle(space.k1), 1)
-        if n == 3:
-            k1 = _middle(space.k1)
-            k2 = max((k for k in space.k2 if k < k1), default=min(space.k2))
-            ks = (k1, k2, 1)
-        evaluate(st, ks, _default_weights(n))
+        trials.get(st, _middle_counts(space, len(st)), default_weights(len(st)))
         if progress is not None:
             progress(i + 1, total)
-    ranked = sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
-    best_structures: list[tuple[tuple[str, ...], ...]] = []
-    for cand in ranked:
-        if cand.tiers not in best_structures:
-            best_structures.append(cand.tiers)
+    best_structures: list[Structure] = []
+    for trial in trials.ranked():
+        if trial.tiers not in best_structures:
+            best_structures.append(trial.tiers)
         if len(best_structures) >= space.refine:
             break
     grid = [
@@ -237,15 +268,15 @@ def search(
         for ws in _weight_grid(len(st))
     ]
     for j, (st, kg, ws) in enumerate(grid):
-        evaluate(st, kg, ws)
+        trials.get(st, kg, ws)
         if progress is not None:
             progress(total + j + 1, total + len(grid))
-    return sorted(_within(seen.values(), budget_ms), key=Candidate.sort_key)
+    return trials.ranked()
 
 
-def _within(cands: Any, budget_ms: float | None) -> list[Candidate]:
+def _within(trials: Any, budget_ms: float | None) -> list[Trial]:
     return [
-        c for c in cands if c.recall_at_1 >= 0 and (budget_ms is None or c.model_ms <= budget_ms)
+        t for t in trials if t.recall_at_1 >= 0 and (budget_ms is None or t.model_ms <= budget_ms)
     ]
 
 
@@ -333,9 +364,8 @@ def paired_test(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
     if a.shape != b.shape:
         raise ValueError("both answer sets must cover the same queries")
     wins, losses = int(np.sum(a & ~b)), int(np.sum(~a & b))
-    n, low = wins + losses, min(wins, losses)
-    tail = sum(math.comb(n, i) for i in range(low + 1)) / 2.0**n if n else 1.0
-    return {"wins": wins, "losses": losses, "p": min(1.0, 2.0 * tail)}
+    p = float(binomtest(wins, wins + losses, 0.5).pvalue) if wins + losses else 1.0
+    return {"wins": wins, "losses": losses, "p": p}
 
 
 def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:
@@ -363,6 +393,37 @@ def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) 
     }
 
 
+def _accept(
+    win: Trial, pool: HierarchyConfig, name: str, target_precision: float
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """The winner's config with its acceptance threshold, and the threshold's figures."""
+    assert win.outcome is not None
+    acc = acceptance_threshold(win.outcome.quality, win.outcome.correct, target_precision)
+    note = (
+        f"lowest Combined quality giving {target_precision:.0%} precision on the training "
+        f"split ({acc['n_accepted']} of {acc['n_queries']} answers accepted)"
+        if acc["reached"]
+        else f"no threshold reached {target_precision:.0%} precision on the training split: "
+        "nothing is accepted"
+    )
+    acceptance = AcceptanceSettings(
+        threshold=round(acc["threshold"], 6), precision=target_precision, note=note
+    )
+    return win.config(pool, name=name).model_copy(update={"acceptance": acceptance}), acc
+
+
+def _space_dict(space: SearchSpace) -> dict[str, Any]:
+    return {
+        "methods": list(space.methods),
+        "max_tiers": space.max_tiers,
+        "max_per_tier": space.max_per_tier,
+        "k1": list(space.k1),
+        "k2": list(space.k2),
+        "samples": space.samples,
+        "refine": space.refine,
+    }
+
+
 def calibrate(
     pool: HierarchyConfig,
     train: ScoreBank,
@@ -375,55 +436,36 @@ def calibrate(
     db_size: int | None = None,
     name: str = "calibrated",
     top: int = 20,
-    progress: Any = None,
+    progress: Callable[[int, int], Any] | None = None,
+    costs: CostModel | None = None,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
-    """Search, pick the threshold, check on the test part; returns (config, report)."""
-    import time
+    """Search, pick the threshold, check on the test part; returns (config, report).
 
-    from hmpf.config import AcceptanceSettings
-    from hmpf.study import measure_costs, measure_query_ms
-
+    Args:
+        db_size: charge tier 1 for this many references (default: the training split's).
+        costs: a fixed cost model (e.g. :meth:`CostModel.from_dict` of an earlier report's
+            ``costs``) instead of one measured on this machine: the search then chooses the
+            same hierarchy on any machine.
+    """
     t0 = time.perf_counter()
-    costs = measure_costs(train, n_db=db_size)
+    if costs is None:
+        costs = measure_costs(train, n_db=db_size)
+    elif db_size is not None:
+        costs = replace(costs, n_db=db_size)
     ranked = search(train, pool, costs, space, budget_ms=budget_ms, seed=seed, progress=progress)
     if not ranked:
-        from hmpf.errors import ConfigError
-
         raise ConfigError(
             f"no hierarchy of the pool fits the budget of {budget_ms:g} ms per query "
             f"(cheapest extraction: {min(costs.units.values()):.1f} ms); raise --budget-ms"
         )
     search_s = time.perf_counter() - t0
     win = ranked[0]
-    assert win.outcome is not None
-    acc = acceptance_threshold(win.outcome.quality, win.outcome.correct, target_precision)
-    note = (
-        f"lowest Combined quality giving {target_precision:.0%} precision on the training "
-        f"split ({acc['n_accepted']} of {acc['n_queries']} answers accepted)"
-        if acc["reached"]
-        else f"no threshold reached {target_precision:.0%} precision on the training split: "
-        "nothing is accepted"
-    )
-    config = win.config(pool, name=name).model_copy(
-        update={
-            "acceptance": AcceptanceSettings(
-                threshold=round(acc["threshold"], 6), precision=target_precision, note=note
-            )
-        }
-    )
+    config, acc = _accept(win, pool, name, target_precision)
     report: dict[str, Any] = {
         "machine": machine_description(),
         "seed": seed,
         "budget_ms": budget_ms,
-        "space": {
-            "methods": list(space.methods),
-            "max_tiers": space.max_tiers,
-            "max_per_tier": space.max_per_tier,
-            "k1": list(space.k1),
-            "k2": list(space.k2),
-            "samples": space.samples,
-            "refine": space.refine,
-        },
+        "space": _space_dict(space),
         "costs": costs.to_dict(),
         "evaluated": len(ranked),
         "search_s": search_s,
@@ -432,7 +474,7 @@ def calibrate(
             "n_query": train.n_query,
             "winner": win.to_dict(),
             "acceptance": acc,
-            "leaderboard": [c.to_dict() for c in ranked[:top]],
+            "leaderboard": [t.to_dict() for t in ranked[:top]],
         },
         "config": config.model_dump(mode="json"),
     }

@@ -1,4 +1,6 @@
-"""Studies of many hierarchies on one route: train/test splits, score banks and a cost model.
+"""Step 2 of :mod:`hmpf.evaluation`: many hierarchies on one route.
+
+Train/test splits, score banks and a cost model.
 
 A :class:`ScoreBank` holds, for one split of a route, every pool method's raw score of every
 query against every reference (features come through the descriptor cache, so a second run
@@ -24,17 +26,22 @@ import numpy as np
 
 from hmpf.config import HierarchyConfig, TierConfig, build_methods
 from hmpf.errors import ConfigError, DatasetError
-from hmpf.evaluate import EvalData, recall_at_n
-from hmpf.features import FeatureCache, extract_images, extract_query, fit_methods
-from hmpf.fusion import nan_argmax
-from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
+from hmpf.evaluation.evaluate import (
+    EvalData,
+    HierarchyOutcome,
+    outcome_of,
+    prepare,
+    recall_at_n,
+    run_queries,
+)
+from hmpf.features import FeatureCache, extract_query
+from hmpf.hierarchy import Hierarchy, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.methods import Method
 from hmpf.runtime import compute_threads, set_compute_threads
 
 __all__ = [
     "CostModel",
-    "Outcome",
     "ScoreBank",
     "check_compatible",
     "derive_config",
@@ -145,59 +152,6 @@ def check_compatible(config: HierarchyConfig, pool: HierarchyConfig) -> None:
 
 
 @dataclass
-class Outcome:
-    """One hierarchy's results on a bank's queries.
-
-    Attributes:
-        matches: (nq,) the answer per query (-1: none).
-        quality: (nq,) the answer's Combined z-score.
-        correct: (nq,) the answer is within the ground truth.
-        tier_top1: per tier, recall@1 of the tier's mean score over the database (the
-            original's ``recall_top1_by_level``).
-        tier_recall: per tier, fraction of queries whose candidate list holds a correct one.
-        mean_inputs: per tier, mean number of references scored (tier 1: the database).
-    """
-
-    matches: np.ndarray
-    quality: np.ndarray
-    correct: np.ndarray
-    tier_top1: list[float]
-    tier_recall: list[float]
-    mean_inputs: list[float]
-
-    @property
-    def recall_at_1(self) -> float:
-        return float(self.correct.mean()) if self.correct.size else 0.0
-
-
-def outcome_of(results: Sequence[HierarchyResult], gt: np.ndarray, n_db: int) -> Outcome:
-    """Summarise per-query hierarchy results against the ground truth."""
-    nq = len(results)
-    match = np.array([r.match for r in results], dtype=np.int64)
-    quality = np.array([r.quality for r in results], dtype=np.float64)
-    correct = np.zeros(nq, dtype=bool)
-    ok = match >= 0
-    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
-    n_tiers = len(results[0].tiers) if results else 0
-    top1, recall, inputs = [], [], []
-    for t in range(n_tiers):
-        top1.append(
-            float(
-                np.mean([gt[q, nan_argmax(r.tiers[t].mean_score())] for q, r in enumerate(results)])
-            )
-        )
-        recall.append(
-            float(np.mean([gt[q, r.tiers[t].candidates].any() for q, r in enumerate(results)]))
-        )
-        inputs.append(float(np.mean([_n_inputs(r.tiers[t].inputs, n_db) for r in results])))
-    return Outcome(match, quality, correct, top1, recall, inputs)
-
-
-def _n_inputs(inputs: np.ndarray | None, n_db: int) -> int:
-    return n_db if inputs is None else len(inputs)
-
-
-@dataclass
 class ScoreBank:
     """Every pool method's raw scores for one split (queries x references).
 
@@ -226,28 +180,15 @@ class ScoreBank:
         progress: bool = False,
     ) -> ScoreBank:
         """Extract (or load from the cache) every pool method's features and score them all."""
-        methods = build_methods(pool)
-        fit_methods(methods, data.reference, cache=cache)
-        ref = extract_images(
-            data.reference,
-            methods,
-            cache=cache,
-            workers=workers,
-            progress=progress,
-            desc="references",
-        )
-        qry = extract_images(
-            data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
-        )
+        prep = prepare(build_methods(pool), data, cache=cache, workers=workers, progress=progress)
         scores: dict[str, np.ndarray] = {}
         feats: dict[str, tuple[Any, list[Any]]] = {}
-        for mid, m in methods.items():
-            db = m.stack(ref.features[mid])
-            qs = qry.features[mid]
+        for mid, m in prep.methods.items():
+            db, qs = prep.db[mid], prep.queries[mid]
             # Per query with subset None: exactly what the hierarchy's scorer computes.
             scores[mid] = np.stack([np.asarray(m.scores(q, db), np.float64) for q in qs])
             feats[mid] = (db, qs)
-        return cls(methods, scores, np.asarray(data.gt, bool), data, feats)
+        return cls(prep.methods, scores, np.asarray(data.gt, bool), data, feats)
 
     @property
     def n_query(self) -> int:
@@ -267,10 +208,11 @@ class ScoreBank:
 
         return score_fn
 
-    def run(self, config: HierarchyConfig) -> Outcome:
+    def run(self, config: HierarchyConfig) -> HierarchyOutcome:
         """Run ``config`` for every query of the bank."""
         hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
-        results = [hier.run(self.scorer(q), self.n_db) for q in range(self.n_query)]
+        scorers = (self.scorer(q) for q in range(self.n_query))
+        results, _ = run_queries(hier, scorers, self.n_db)
         return outcome_of(results, self.gt, self.n_db)
 
     def single_correct(self, mid: str) -> np.ndarray:
@@ -355,6 +297,26 @@ class CostModel:
             "n_db": self.n_db,
             "threads": self.threads,
         }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> CostModel:
+        """Inverse of :meth:`to_dict` (e.g. the ``costs`` of a calibration report)."""
+        try:
+            return cls(
+                units={str(k): float(v) for k, v in data["units_ms"].items()},
+                method_units={str(k): list(v) for k, v in data["method_units"].items()},
+                match={
+                    str(m): (float(ab["a"]), float(ab["b_per_ref"]))
+                    for m, ab in data["match_ms"].items()
+                },
+                fusion_ms=float(data["fusion_ms_per_tier"]),
+                n_db=int(data["n_db"]),
+                threads=int(data.get("threads", 1)),
+            )
+        except (KeyError, TypeError, AttributeError, ValueError) as exc:
+            raise ConfigError(
+                f"not a cost model (as a calibration report's 'costs'): {exc!r}"
+            ) from exc
 
 
 def measure_costs(

@@ -1,0 +1,519 @@
+"""Step 1 of :mod:`hmpf.evaluation`: one hierarchy against ground truth.
+
+Reports what the paper reports (``recall_final``, ``recall_by_level``,
+``recall_top1_by_level``, the precision-recall curve over the quality score; METHODS.md §6) and
+more: recall@N of every method alone, flat-fusion recall, and time per stage.
+
+Every evaluation starts from :func:`prepare` (fit -> extract -> stack), runs the hierarchy per
+query (:func:`run_queries`), summarises the answers with :func:`outcome_of` and reports the
+tiers with :func:`tier_rows` / :func:`format_tier_table`: on a route (:func:`evaluate`), on a
+built index through the service's own scorer (:func:`evaluate_index`) and, for many
+hierarchies on precomputed scores, in :class:`hmpf.evaluation.study.ScoreBank`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hmpf.config import HierarchyConfig, build_methods
+from hmpf.datasets import frame_ground_truth, list_images
+from hmpf.features import ExtractionResult, FeatureCache, extract_images, fit_methods
+from hmpf.fusion import flat_fusion, nan_argmax, zscore
+from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
+from hmpf.methods import Method
+
+if TYPE_CHECKING:
+    from hmpf.index.reader import IndexReader
+
+__all__ = [
+    "RECALL_NS",
+    "EvalData",
+    "HierarchyOutcome",
+    "Prepared",
+    "evaluate",
+    "evaluate_index",
+    "format_index_report",
+    "format_report",
+    "format_tier_table",
+    "outcome_of",
+    "pr_curve",
+    "prepare",
+    "recall_at_n",
+    "run_queries",
+    "tier_rows",
+]
+
+RECALL_NS = (1, 5, 10, 20, 50, 100)
+PR_THRESHOLDS = np.arange(0.0, 50.0 + 1e-9, 0.5)  # the original's 0:0.5:50
+
+
+def recall_at_n(
+    scores: np.ndarray, gt: np.ndarray, ns: Sequence[int] = RECALL_NS, higher_is_better: bool = True
+) -> dict[int, float]:
+    """Fraction of queries with a correct reference among their N best (ties -> lower index).
+
+    Args:
+        scores: (nq, nd) scores of every query against every reference.
+        gt: (nq, nd) boolean ground truth.
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    key = -s if higher_is_better else s
+    key = np.where(np.isnan(key), np.inf, key)
+    order = np.argsort(key, axis=1, kind="stable")
+    hits = np.take_along_axis(gt, order, axis=1)
+    first = np.where(hits.any(axis=1), hits.argmax(axis=1), np.iinfo(np.int64).max)
+    return {n: float(np.mean(first < n)) for n in ns}
+
+
+def pr_curve(correct: np.ndarray, quality: np.ndarray) -> dict[str, Any]:
+    """Precision-recall over the quality score, the original's definition (METHODS.md §6).
+
+    A query is predicted when ``quality > threshold``; wrong predictions are FP, every
+    unpredicted query is FN (there are no true negatives), so recall = TP / n_queries.
+    """
+    c = np.asarray(correct, dtype=bool)
+    q = np.nan_to_num(np.asarray(quality, dtype=np.float64), nan=-np.inf)
+    pred = q[None, :] > PR_THRESHOLDS[:, None]
+    tp = (pred & c[None, :]).sum(1).astype(np.float64)
+    fp = (pred & ~c[None, :]).sum(1).astype(np.float64)
+    fn = len(c) - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = tp / (tp + fp)
+        recall = tp / (tp + fn)
+        f1 = 2 * tp / (2 * tp + fp + fn)
+    p2 = np.append(precision[~np.isnan(precision)], 1.0)
+    r2 = recall[: len(p2)]
+    p2, r2 = p2[::-1], r2[::-1]
+    if len(r2) == len(p2) - 1:
+        r2 = np.insert(r2, 0, 0.0)
+    auc = float(np.trapezoid(p2, r2)) if len(p2) > 1 else 0.0
+    perfect = recall[(precision == 1.0) & (tp > 0)]
+    return {
+        "auc": auc,
+        "max_f1": float(np.nanmax(f1)) if np.isfinite(f1).any() else 0.0,
+        "recall_at_100_precision": float(perfect.max()) if perfect.size else 0.0,
+        "thresholds": PR_THRESHOLDS.tolist(),
+        "precision": [None if np.isnan(x) else float(x) for x in precision],
+        "recall": recall.tolist(),
+    }
+
+
+@dataclass
+class EvalData:
+    """Everything an evaluation needs: images, ground truth and a description of it."""
+
+    reference: list[Path]
+    query: list[Path]
+    gt: np.ndarray  # (n_query, n_ref) bool
+    ground_truth: str  # e.g. "frames +-2"
+
+    @classmethod
+    def frames(cls, reference: str | Path, query: str | Path, tolerance: int) -> EvalData:
+        """Two frame-aligned traverses (image folders): a match is within +-``tolerance``."""
+        refs, qrys = list_images(reference), list_images(query)
+        gt = frame_ground_truth(len(qrys), len(refs), tolerance)
+        return cls(refs, qrys, gt, f"frames +-{tolerance}")
+
+
+@dataclass
+class Prepared:
+    """Fit -> extract -> stack, the start of every evaluation of one :class:`EvalData`.
+
+    Attributes:
+        methods: method id -> instance, fitted on the references (never on the queries).
+        db: method id -> the stacked reference set (:meth:`Method.stack`).
+        queries: method id -> per-query features, in query order.
+        fitted: method ids whose parameters were fitted.
+        ref, qry: the extraction results (per-image times, cache hits).
+        fit_s, extraction_s: wall time of fitting and of extraction.
+    """
+
+    methods: dict[str, Method]
+    db: dict[str, Any]
+    queries: dict[str, list[Any]]
+    fitted: list[str]
+    ref: ExtractionResult
+    qry: ExtractionResult
+    fit_s: float
+    extraction_s: float
+
+    def query(self, qi: int) -> dict[str, Any]:
+        """Method id -> the features of query ``qi``."""
+        return {m: feats[qi] for m, feats in self.queries.items()}
+
+
+def prepare(
+    methods: dict[str, Method],
+    data: EvalData,
+    *,
+    cache: FeatureCache | None = None,
+    workers: int | None = None,
+    progress: bool = False,
+) -> Prepared:
+    """Fit ``methods`` on the references, extract (or load) every image's features, stack."""
+    t0 = time.perf_counter()
+    fitted = fit_methods(methods, data.reference, cache=cache)
+    fit_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    ref = extract_images(
+        data.reference, methods, cache=cache, workers=workers, progress=progress, desc="references"
+    )
+    qry = extract_images(
+        data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
+    )
+    extraction_s = time.perf_counter() - t0
+    db = {m: methods[m].stack(ref.features[m]) for m in methods}
+    queries = {m: list(qry.features[m]) for m in methods}
+    return Prepared(methods, db, queries, fitted, ref, qry, fit_s, extraction_s)
+
+
+# -- one hierarchy's answers -------------------------------------------------------------------
+
+
+@dataclass
+class HierarchyOutcome:
+    """One hierarchy's results on a set of queries, against the ground truth.
+
+    Attributes:
+        matches: (nq,) the answer per query (-1: none).
+        quality: (nq,) the answer's Combined z-score.
+        correct: (nq,) the answer is within the ground truth.
+        tier_top1: per tier, recall@1 of the tier's mean score over the database (the
+            original's ``recall_top1_by_level``).
+        tier_recall: per tier, fraction of queries whose candidate list holds a correct one.
+        mean_inputs: per tier, mean number of references scored (tier 1: the database).
+        mean_candidates: per tier, mean length of the candidate list it passes on.
+        tier_ms: per tier, median time per query (ms).
+        fusion_ms: median time per query of the cross-tier fusion (ms).
+    """
+
+    matches: np.ndarray
+    quality: np.ndarray
+    correct: np.ndarray
+    tier_top1: list[float]
+    tier_recall: list[float]
+    mean_inputs: list[float]
+    mean_candidates: list[float] = field(default_factory=list)
+    tier_ms: list[float] = field(default_factory=list)
+    fusion_ms: float = float("nan")
+
+    @property
+    def recall_at_1(self) -> float:
+        return float(self.correct.mean()) if self.correct.size else 0.0
+
+
+def outcome_of(results: Sequence[HierarchyResult], gt: np.ndarray, n_db: int) -> HierarchyOutcome:
+    """Summarise per-query hierarchy results against ``gt`` ((nq, n_db) bool)."""
+    nq = len(results)
+    match = np.array([r.match for r in results], dtype=np.int64)
+    quality = np.array([r.quality for r in results], dtype=np.float64)
+    correct = np.zeros(nq, dtype=bool)
+    ok = match >= 0
+    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
+    n_tiers = len(results[0].tiers) if results else 0
+    top1, recall, inputs, cands, ms = [], [], [], [], []
+    for t in range(n_tiers):
+        tier = [r.tiers[t] for r in results]
+        top1.append(float(np.mean([gt[q, nan_argmax(x.mean_score())] for q, x in enumerate(tier)])))
+        recall.append(float(np.mean([gt[q, x.candidates].any() for q, x in enumerate(tier)])))
+        inputs.append(float(np.mean([n_db if x.inputs is None else len(x.inputs) for x in tier])))
+        cands.append(float(np.mean([len(x.candidates) for x in tier])))
+        ms.append(_median([x.time_ms for x in tier]))
+    fusion = _median([r.fusion_ms for r in results])
+    return HierarchyOutcome(match, quality, correct, top1, recall, inputs, cands, ms, fusion)
+
+
+def run_queries(
+    hierarchy: Hierarchy, scorers: Iterable[ScoreFn], n_db: int
+) -> tuple[list[HierarchyResult], float]:
+    """Run ``hierarchy`` with each query's scorer; returns the results and the wall time (s)."""
+    t0 = time.perf_counter()
+    results = [hierarchy.run(score_fn, n_db) for score_fn in scorers]
+    return results, time.perf_counter() - t0
+
+
+def tier_rows(config: HierarchyConfig, outcome: HierarchyOutcome) -> list[dict[str, Any]]:
+    """The report's per-tier table: methods, k, candidate recall, top-1 recall, size, time."""
+    return [
+        {
+            "methods": list(tier.methods),
+            "k": tier.k,
+            "recall": outcome.tier_recall[t],
+            "top1_recall": outcome.tier_top1[t],
+            "mean_candidates_out": outcome.mean_candidates[t],
+            "ms_per_query": outcome.tier_ms[t],
+        }
+        for t, tier in enumerate(config.tiers)
+    ]
+
+
+def format_tier_table(tiers: Sequence[dict[str, Any]]) -> list[str]:
+    """:func:`tier_rows` as text lines, a header first."""
+    lines = ["tier  methods              k   cand.recall  top1.recall  ms/query"]
+    for i, t in enumerate(tiers, start=1):
+        lines.append(
+            f"{i:<5} {'+'.join(t['methods']):<20} {t['k']:<4} {t['recall']:11.3f}"
+            f"  {t['top1_recall']:11.3f}  {t['ms_per_query']:8.2f}"
+        )
+    return lines
+
+
+# -- evaluation on a route ---------------------------------------------------------------------
+
+
+def _full_scores(method: Method, queries: Any, db: Any) -> np.ndarray:
+    """(nq, nd) raw scores of every query against the whole database."""
+    if method.kind == "global":
+        return method.pairwise(queries, db)  # type: ignore[attr-defined]
+    return np.stack([method.scores(q, db) for q in queries])
+
+
+def _median(x: Sequence[float] | np.ndarray) -> float:
+    a = np.asarray(x, dtype=np.float64)
+    a = a[~np.isnan(a)]
+    return float(np.median(a)) if a.size else float("nan")
+
+
+def _method_curves(
+    prep: Prepared, gt: np.ndarray, skip_curves: Sequence[str]
+) -> tuple[dict[str, Any], dict[str, np.ndarray], float]:
+    """Every method alone over the whole database: (report entries, score matrices, seconds)."""
+    full: dict[str, np.ndarray] = {}
+    report: dict[str, Any] = {}
+    n_q = len(gt)
+    t0 = time.perf_counter()
+    for mid, m in prep.methods.items():
+        entry: dict[str, Any] = {
+            "type": type(m).name,
+            "kind": m.kind,
+            "higher_is_better": m.higher_is_better,
+            "extract_ms_per_image": _median(np.concatenate([prep.ref.ms[mid], prep.qry.ms[mid]])),
+        }
+        if mid not in skip_curves:
+            ts = time.perf_counter()
+            full[mid] = _full_scores(m, m.stack(prep.queries[mid]), prep.db[mid])
+            entry["match_ms_per_query_full_db"] = (time.perf_counter() - ts) * 1e3 / max(1, n_q)
+            recall = recall_at_n(full[mid], gt, RECALL_NS, m.higher_is_better)
+            entry["recall_at"] = {str(k): v for k, v in recall.items()}
+        report[mid] = entry
+    return report, full, time.perf_counter() - t0
+
+
+def _flat_baseline(
+    full: dict[str, np.ndarray],
+    methods: dict[str, Method],
+    flat_ids: Sequence[str],
+    faithful: bool,
+    n_q: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat fusion of ``flat_ids`` for ``n_q`` queries: (answers, their z-scored quality).
+
+    Without methods (every curve skipped) the answers are reference 0, quality 0.
+    """
+    match = np.zeros(n_q, dtype=np.int64)
+    quality = np.zeros(n_q)
+    if not flat_ids:
+        return match, quality
+    for qi in range(n_q):
+        fused = flat_fusion(
+            [full[m][qi] for m in flat_ids],
+            [methods[m].higher_is_better for m in flat_ids],
+            faithful=faithful,
+        )
+        match[qi] = nan_argmax(fused)
+        quality[qi] = zscore(fused)[match[qi]]
+    return match, quality
+
+
+def _hierarchy_report(outcome: HierarchyOutcome, tiers: list[dict[str, Any]]) -> dict[str, Any]:
+    """The report's ``hierarchy`` entries every evaluation has (route or index)."""
+    return {
+        "combined_recall_at_1": outcome.recall_at_1,
+        "tiers": tiers,
+        "pr": pr_curve(outcome.correct, outcome.quality),
+    }
+
+
+def evaluate(
+    config: HierarchyConfig,
+    data: EvalData,
+    *,
+    cache: FeatureCache | None = None,
+    workers: int | None = None,
+    skip_curves: Sequence[str] = (),
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Evaluate every method alone, the hierarchy and flat fusion; returns the JSON report.
+
+    ``skip_curves`` lists method ids whose whole-database score matrix is not computed (their
+    recall@N is omitted and flat fusion then uses the remaining methods; the report says so).
+    """
+    gt = data.gt
+    prep = prepare(build_methods(config), data, cache=cache, workers=workers, progress=progress)
+    methods, n_db, n_q = prep.methods, len(data.reference), len(data.query)
+    # The hierarchy, per query, scoring on demand (timed independently of the curves).
+    scorers = (feature_scorer(methods, prep.query(qi), prep.db) for qi in range(n_q))
+    results, hierarchy_s = run_queries(Hierarchy(config, methods), scorers, n_db)
+    outcome = outcome_of(results, gt, n_db)
+    method_report, full, curves_s = _method_curves(prep, gt, skip_curves)
+    flat_ids = [m for m in config.method_ids if m in full]
+    flat_match, flat_quality = _flat_baseline(full, methods, flat_ids, config.faithful, n_q)
+    flat_correct = gt[np.arange(n_q), flat_match]
+    tiers = tier_rows(config, outcome)
+    return {
+        "config": {
+            "name": config.name,
+            "mode": config.mode,
+            "sha256": config.digest(),
+            "resolved": config.model_dump(),
+        },
+        "protocol": {
+            "reference": str(Path(data.reference[0]).parent),
+            "query": str(Path(data.query[0]).parent),
+            "n_reference": n_db,
+            "n_query": n_q,
+            "ground_truth": data.ground_truth,
+            "queries_without_ground_truth": int((~gt.any(axis=1)).sum()),
+        },
+        "methods": method_report,
+        "hierarchy": {
+            **_hierarchy_report(outcome, tiers),
+            "final_tier_recall_at_1": tiers[-1]["top1_recall"],
+            "flat_recall_at_1": float(flat_correct.mean()) if flat_ids else None,
+            "flat_methods": flat_ids,
+            "flat_pr": pr_curve(flat_correct, flat_quality) if flat_ids else None,
+            "matches": outcome.matches.tolist(),
+            "quality": [None if np.isnan(x) else float(x) for x in outcome.quality],
+        },
+        "timing_ms": {
+            "decode_per_image": _median([prep.ref.decode_ms, prep.qry.decode_ms]),
+            "extract_per_image": {m: method_report[m]["extract_ms_per_image"] for m in methods},
+            "tiers_per_query": [t["ms_per_query"] for t in tiers],
+            "fusion_per_query": outcome.fusion_ms,
+            "hierarchy_per_query": hierarchy_s * 1e3 / max(1, n_q),
+        },
+        "wall_s": {
+            "fit": prep.fit_s,
+            "extraction": prep.extraction_s,
+            "hierarchy": hierarchy_s,
+            "extraction_plus_hierarchy": prep.extraction_s + hierarchy_s,
+            "single_method_curves": curves_s,
+        },
+        "cache": {"reference_cached": prep.ref.cached, "query_cached": prep.qry.cached},
+        "fitted_methods": prep.fitted,
+    }
+
+
+def evaluate_index(
+    reader: IndexReader,
+    queries: Sequence[Path],
+    gt: np.ndarray,
+    ground_truth: str,
+    *,
+    cache: FeatureCache | None = None,
+    workers: int | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Queries against a built index, through exactly what the service runs per query.
+
+    Reports the hierarchy's recall, its tier table, the PR curve over the quality score and
+    timings; single-method curves and flat fusion need whole-database score matrices and are
+    left to :func:`evaluate`. ``gt`` is (n_query, n_ref).
+    """
+    t0 = time.perf_counter()
+    qry = extract_images(
+        queries, reader.methods, cache=cache, workers=workers, progress=progress, desc="queries"
+    )
+    extraction_s = time.perf_counter() - t0
+    scorers = (
+        reader.scorer({m: qry.features[m][qi] for m in reader.methods})
+        for qi in range(len(queries))
+    )
+    results, hierarchy_s = run_queries(reader.hierarchy(), scorers, reader.n)
+    outcome = outcome_of(results, gt, reader.n)
+    return {
+        "index": {"path": str(reader.root), "version": reader.version, "n_reference": reader.n},
+        "config": {"name": reader.config.name, "sha256": reader.config.digest()},
+        "protocol": {
+            "query": str(Path(queries[0]).parent),
+            "n_query": len(queries),
+            "ground_truth": ground_truth,
+        },
+        "hierarchy": {
+            **_hierarchy_report(outcome, tier_rows(reader.config, outcome)),
+            "matches": [reader.refs.names[m] if m >= 0 else None for m in outcome.matches],
+        },
+        "wall_s": {"extraction": extraction_s, "hierarchy": hierarchy_s},
+        "timing_ms": {"hierarchy_per_query": hierarchy_s * 1e3 / max(1, len(queries))},
+    }
+
+
+# -- reports as text ---------------------------------------------------------------------------
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """Human-readable tables of a report."""
+    lines = []
+    p = report["protocol"]
+    lines.append(
+        f"{report['config']['name']} ({report['config']['mode']}): {p['reference']} -> {p['query']}"
+        f"  [{p['n_reference']} refs, {p['n_query']} queries, ground truth {p['ground_truth']}]"
+    )
+    lines.append("")
+    header = "method".ljust(12) + "".join(f"R@{n}".rjust(8) for n in RECALL_NS) + "  extract ms/img"
+    lines.append(header)
+    for mid, e in report["methods"].items():
+        rec = e.get("recall_at")
+        cells = (
+            "".join(f"{rec[str(n)]:8.3f}" for n in RECALL_NS)
+            if rec
+            else "  (no whole-database curve)"
+        )
+        lines.append(mid.ljust(12) + cells + f"  {e['extract_ms_per_image']:10.1f}")
+    lines.append("")
+    h = report["hierarchy"]
+    lines.extend(format_tier_table(h["tiers"]))
+    lines.append("")
+    flat = h["flat_recall_at_1"]
+    lines.append(f"Combined recall@1   {h['combined_recall_at_1']:.3f}")
+    lines.append(f"final tier recall@1 {h['final_tier_recall_at_1']:.3f}")
+    lines.append(f"flat fusion recall@1 {flat:.3f}" if flat is not None else "flat fusion: n/a")
+    pr = h["pr"]
+    lines.append(
+        f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
+        f"recall@100%P {pr['recall_at_100_precision']:.3f}"
+    )
+    w = report["wall_s"]
+    tm = report["timing_ms"]
+    lines.append(
+        f"time: extraction {w['extraction']:.1f} s, hierarchy {w['hierarchy']:.1f} s "
+        f"({tm['hierarchy_per_query']:.1f} ms/query), single-method curves "
+        f"{w['single_method_curves']:.1f} s"
+    )
+    return "\n".join(lines)
+
+
+def format_index_report(report: dict[str, Any]) -> str:
+    """Human-readable summary of :func:`evaluate_index`'s report."""
+    i, p, h = report["index"], report["protocol"], report["hierarchy"]
+    lines = [
+        f"{report['config']['name']}: index {i['path']} ({i['version']}, {i['n_reference']} refs)"
+        f" <- {p['query']} [{p['n_query']} queries, ground truth {p['ground_truth']}]",
+        *format_tier_table(h["tiers"]),
+    ]
+    pr = h["pr"]
+    lines += [
+        f"Combined recall@1   {h['combined_recall_at_1']:.3f}",
+        f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
+        f"recall@100%P {pr['recall_at_100_precision']:.3f}",
+        f"time: query extraction {report['wall_s']['extraction']:.1f} s, hierarchy "
+        f"{report['wall_s']['hierarchy']:.1f} s "
+        f"({report['timing_ms']['hierarchy_per_query']:.1f} ms/query)",
+    ]
+    return "\n".join(lines)
