@@ -80,7 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("build", help="extract every image and publish a new version")
-    b.add_argument("--config", required=True, help="hierarchy YAML")
+    b.add_argument(
+        "--config", required=True, help="a preset name (e.g. default) or a hierarchy YAML file"
+    )
     b.add_argument("--images", required=True, help="folder of reference images")
     b.add_argument("--metadata", help="CSV: name[,lat,lon,heading,timestamp,sequence]")
     b.add_argument("--index", required=True, help="index folder (created if missing)")

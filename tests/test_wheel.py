@@ -119,6 +119,7 @@ def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> No
     for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve"):
         assert (bindir / command).is_file(), command
         assert "usage:" in _run([str(bindir / command), "--help"], work, env)
+        assert _run([str(bindir / command), "--version"], work, env).startswith(command)
     assert "--config" in _run([str(bindir / "hmpf-eval"), "--help"], work, env)
 
     # A handful of frame-aligned images: references day_right, queries night_right.

@@ -8,13 +8,14 @@ Each command's ``main(argv)`` is ``return run(PROG, body, argv_or_args)``-shaped
         return run("hmpf-eval", lambda: _run(args))
 
 ``run`` turns an :class:`~hmpf.errors.HmpfError` into ``prog: error: message`` and exit 2,
-and Ctrl-C (``KeyboardInterrupt``) into one line and exit 130 (the shell's code for SIGINT),
-never a traceback.
+Ctrl-C (``KeyboardInterrupt``) into one line and exit 130 (the shell's code for SIGINT), and
+a closed pipe on stdout (``| head``) into a quiet exit 141; never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from collections.abc import Callable
@@ -33,6 +34,8 @@ __all__ = [
 
 #: Exit status of a command that stopped on a user error (bad input, corrupt index, ...).
 EXIT_ERROR = 2
+#: Exit status when stdout's reader closed early (128 + SIGPIPE, as a shell reports it).
+EXIT_BROKEN_PIPE = 141
 #: Exit status after Ctrl-C: 128 + SIGINT, what a shell reports for an interrupted program.
 EXIT_INTERRUPTED = 130
 
@@ -77,3 +80,8 @@ def run(prog: str, body: Callable[[], int], *, interrupted: str = "interrupted")
     except KeyboardInterrupt:
         print(f"{prog}: {interrupted}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # The reader went away (`hmpf-index info | head`): stop quietly, and point stdout at
+        # /dev/null so the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Without a command: evaluate --config on --reference and --query (or --index).",
     )
     add_version(p)
-    p.add_argument("--config", help="hierarchy YAML (e.g. configs/handcrafted.yaml)")
+    p.add_argument("--config", help="a preset name (e.g. handcrafted) or a hierarchy YAML file")
     p.add_argument("--reference", help="folder of reference (database) images")
     p.add_argument("--index", help="evaluate against this built index instead of --reference")
     p.add_argument("--query", help="folder of query images (required)")
