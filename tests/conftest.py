@@ -7,6 +7,7 @@ instead of skipped tests, so CI cannot pass without running the real-data tests.
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import cv2
@@ -143,3 +144,10 @@ def service_index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory)
         options=BuildOptions(workers=1, progress=False),
     )
     return index
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of a subprocess that must stop on Ctrl-C as on a terminal, even where the
+    tests run as a background job (a shell starts those with SIGINT ignored, and a child
+    inherits that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
-from conftest import synthetic_image
+from conftest import default_sigint, synthetic_image
 
 from hmpf.index import IndexReader
 from indexer.build import BuildOptions, build
@@ -114,6 +114,7 @@ def test_ctrl_c_during_extraction_is_one_line_and_exit_130(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=default_sigint,
     )
     features = index / ".build" / "features"
     deadline = time.monotonic() + 60

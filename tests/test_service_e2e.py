@@ -24,7 +24,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import copy_gp
+from conftest import copy_gp, default_sigint
 
 from hmpf.config import parse_config
 from indexer.build import BuildOptions, build, remove
@@ -46,12 +46,6 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _default_sigint() -> None:
-    """In the server process: Ctrl-C as on a terminal, even where the tests run in the
-    background (a shell starts background jobs with SIGINT ignored)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 class Server:
     """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
@@ -71,7 +65,7 @@ class Server:
             env=full_env,
             stdout=self._out,
             stderr=subprocess.STDOUT,
-            preexec_fn=_default_sigint,
+            preexec_fn=default_sigint,
         )
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
