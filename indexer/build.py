@@ -152,6 +152,7 @@ def _load_config(config: str | Path | HierarchyConfig) -> HierarchyConfig:
 
 
 def _check_options(config: HierarchyConfig, methods: Mapping[str, Method], opt: BuildOptions):
+    """Refuse, before any image is read, options and tier-1 methods the build cannot honour."""
     tier1 = [m for m in config.tiers[0].methods if methods[m].kind == "global"]
     for what, mapping in (("faiss", opt.faiss), ("faiss-params", opt.faiss_params)):
         bad = [k for k in mapping if k != "*" and k not in tier1]
@@ -160,6 +161,20 @@ def _check_options(config: HierarchyConfig, methods: Mapping[str, Method], opt: 
                 f"--{what} names {', '.join(bad)}: not a tier-1 global method of "
                 f"{config.name!r} (those are: {', '.join(tier1) or 'none'})"
             )
+    for mid in tier1:
+        _tier1_metric(mid, methods[mid], opt.factory(mid))
+
+
+def _tier1_metric(mid: str, method: Method, factory: str) -> MetricSpec | None:
+    """The FAISS metric tier-1 global method ``mid`` declares, checked against ``factory``:
+    a method without a FAISS metric (None) can only be searched exactly."""
+    metric = declared_metric(mid, method)
+    if metric is None and not is_exact_factory(factory):
+        raise IndexBuildError(
+            f"method {mid!r} has no FAISS metric, so it cannot use "
+            f"{factory!r}; use Flat (tier 1 then scans the stored matrix)"
+        )
+    return metric
 
 
 def _read_inputs(images: str | Path, metadata: str | Path | None) -> tuple[list[Path], RefTable]:
@@ -325,13 +340,8 @@ def _write_faiss(
         factory, params = opt.factory(mid), opt.params(mid)
         matrix = cols[mid]
         assert isinstance(matrix, np.ndarray)
-        metric = declared_metric(mid, m)
+        metric = _tier1_metric(mid, m, factory)
         if metric is None:
-            if not is_exact_factory(factory):
-                raise IndexBuildError(
-                    f"method {mid!r} has no FAISS metric, so it cannot use "
-                    f"{factory!r}; use Flat (tier 1 then scans the stored matrix)"
-                )
             info[mid] = None
             continue
         entry: dict[str, Any] = {

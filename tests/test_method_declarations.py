@@ -147,6 +147,21 @@ def test_build_refuses_a_tier1_method_without_a_declared_metric(tmp_path, monkey
     opts = BuildOptions(workers=1, progress=False)
     with pytest.raises(IndexBuildError, match="declares no FAISS metric.*faiss_metric"):
         build(cfg, images, tmp_path / "index", options=opts)
+    # Refused up front: no work folder, so no image was fitted or extracted.
+    assert not (tmp_path / "index" / ".build").exists()
+
+
+def test_build_refuses_an_approximate_factory_without_a_metric_before_any_work(tmp_path) -> None:
+    from indexer.build import BuildOptions, build
+
+    cfg = parse_config(
+        {"methods": {"sad": {"faithful": True}}, "tiers": [{"methods": ["sad", "hog"], "k": 1}]}
+    )
+    images = _write_images(tmp_path / "img", 3)
+    opts = BuildOptions(workers=1, progress=False, faiss={"sad": "IVF2,Flat"})
+    with pytest.raises(IndexBuildError, match="'sad' has no FAISS metric.*IVF2,Flat"):
+        build(cfg, images, tmp_path / "index", options=opts)
+    assert not (tmp_path / "index" / ".build").exists()
 
 
 def test_build_records_the_declared_metric_even_where_detection_fails(tmp_path) -> None:
