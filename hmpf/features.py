@@ -28,11 +28,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from hmpf.cli.common import ignore_sigint
 from hmpf.imageio import load_image
 from hmpf.methods import Method
 from hmpf.methods.base import extract_many, fit_many, method_groups
-from hmpf.runtime import set_compute_threads
+from hmpf.runtime import default_cache_dir, ignore_sigint, set_compute_threads
 
 __all__ = [
     "ExtractionResult",
@@ -43,12 +42,6 @@ __all__ = [
     "file_digest",
     "fit_methods",
 ]
-
-
-def default_cache_dir() -> Path:
-    """``$HMPF_CACHE_DIR`` or ``~/.cache/hmpf/features``."""
-    env = os.environ.get("HMPF_CACHE_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "hmpf" / "features"
 
 
 def file_digest(path: str | os.PathLike[str]) -> str:

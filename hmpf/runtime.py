@@ -1,12 +1,17 @@
-"""Process-wide compute settings (threads for FFT and BLAS-like work inside one image).
+"""Process-wide settings: compute threads (FFT and BLAS-like work inside one image), the
+signals of worker processes and the descriptor cache's default place. Light to import (the
+commands read it before their heavy imports).
 
 Extraction worker processes call :func:`set_compute_threads(1)` so that parallel workers do not
-oversubscribe the cores; a single process uses every core for one image.
+oversubscribe the cores; a single process uses every core for one image. They also call
+:func:`ignore_sigint`: Ctrl-C is the parent's to handle (one line, exit 130), not theirs.
 """
 
 from __future__ import annotations
 
 import os
+import signal
+from pathlib import Path
 
 _threads: int | None = None
 
@@ -21,10 +26,15 @@ def compute_threads() -> int:
     return os.cpu_count() or 1
 
 
+def default_cache_dir() -> Path:
+    """Where extracted descriptors are cached: ``$HMPF_CACHE_DIR`` or ``~/.cache/hmpf/features``."""
+    env = os.environ.get("HMPF_CACHE_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "hmpf" / "features"
+
+
 def machine_description() -> str:
     """``<CPU model>, <n> cores, Python <version>``: the machine a measurement ran on."""
     import platform
-    from pathlib import Path
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -44,3 +54,8 @@ def set_compute_threads(n: int) -> None:
     import cv2
 
     cv2.setNumThreads(_threads)
+
+
+def ignore_sigint() -> None:
+    """Pool-worker initializer: leave Ctrl-C to the parent, so workers print no tracebacks."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -45,3 +45,16 @@ def test_closed_pipe_is_a_quiet_exit_not_a_traceback() -> None:
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == EXIT_BROKEN_PIPE
     assert "Traceback" not in err and "Exception ignored" not in err, err
+
+
+@pytest.mark.parametrize(
+    "module",
+    ["hmpf.cli.eval", "hmpf.cli.calibrate", "hmpf.cli.experiments", "indexer.cli", "service.cli"],
+)
+def test_command_modules_import_no_heavy_modules(module: str) -> None:
+    """Ctrl-C while numpy/OpenCV/h5py/FAISS/torch/scipy load must also be one line and exit
+    130, so every command loads them inside ``run``; --help and --version stay instant."""
+    heavy = {"numpy", "cv2", "h5py", "faiss", "torch", "scipy"}
+    code = f"import sys, {module}; print(sorted({heavy!r} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

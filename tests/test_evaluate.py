@@ -144,9 +144,10 @@ def test_hmpf_eval_cli_help_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Pa
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "evaluate", interrupted)
+    # The command imports these when it runs (so that --help stays light): patch their homes.
+    monkeypatch.setattr("hmpf.evaluation.evaluate.evaluate", interrupted)
     config = parse_config({"tiers": [{"methods": ["sad"], "k": 1}]})
-    monkeypatch.setattr(cli, "load_config", lambda path: config)
+    monkeypatch.setattr("hmpf.config.load_config", lambda path: config)
     folder = str(image_folder("refs", 2))
     argv = ["--config", "x.yaml", "--reference", folder, "--query", folder, "--no-cache"]
     assert cli.main(argv) == 130

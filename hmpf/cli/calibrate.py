@@ -23,10 +23,7 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
-
-import yaml
-from tqdm import tqdm
+from typing import TYPE_CHECKING, Any
 
 from hmpf.cli.common import add_version, run
 from hmpf.cli.eval import (
@@ -35,12 +32,15 @@ from hmpf.cli.eval import (
     cache_from_args,
     ground_truth_from_args,
 )
-from hmpf.config import HierarchyConfig, load_config
-from hmpf.datasets import list_images
 from hmpf.errors import HmpfError
-from hmpf.evaluation.calibrate import SearchSpace, calibrate, leaderboard_markdown
-from hmpf.evaluation.evaluate import EvalData
-from hmpf.evaluation.study import SPLITS, CostModel, ScoreBank, derive_config, split_data
+from hmpf.evaluation import SPLITS
+
+# numpy, OpenCV and the evaluation load inside the command's body (see hmpf.cli.eval).
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+    from hmpf.config import HierarchyConfig
+    from hmpf.evaluation.study import CostModel, ScoreBank
 
 DEFAULT_POOL = "calibration-pool"  # a preset name (hmpf/presets/calibration-pool.yaml)
 
@@ -59,6 +59,10 @@ def add_split_args(p: argparse.ArgumentParser) -> None:
 
 def load_banks(args: argparse.Namespace, pool: HierarchyConfig) -> tuple[ScoreBank, ScoreBank]:
     """Split the route given by the flags and score the pool on both parts."""
+    from hmpf.datasets import list_images
+    from hmpf.evaluation.evaluate import EvalData
+    from hmpf.evaluation.study import ScoreBank, split_data
+
     refs = list_images(args.reference)
     qrys = list_images(args.query)
     gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
@@ -85,6 +89,8 @@ def _bar_update(bar: tqdm) -> Callable[[int, int], None]:
 
 def write_config(config: HierarchyConfig, path: Path, header: str) -> None:
     """A config as YAML (loadable by :func:`hmpf.config.load_config`) with a comment header."""
+    import yaml
+
     data = config.model_dump(mode="json", exclude_defaults=False)
     if not data["index"]["faiss"] and not data["index"]["faiss_params"]:
         data.pop("index")
@@ -100,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_version(p)
     add_split_args(p)
-    p.add_argument("--pool", default=str(DEFAULT_POOL), help="config whose methods may be used")
+    p.add_argument("--pool", default=DEFAULT_POOL, help="config whose methods may be used")
     p.add_argument("--methods", nargs="*", help="use only these pool methods")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--name", default="calibrated", help="name of the written config")
@@ -125,6 +131,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def load_costs(path: str) -> CostModel:
     """The cost model in a JSON file: a calibration report (its ``costs``) or that object."""
+    from hmpf.evaluation.study import CostModel
+
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
@@ -134,6 +142,9 @@ def load_costs(path: str) -> CostModel:
 
 def _pool_and_methods(args: argparse.Namespace) -> tuple[HierarchyConfig, tuple[str, ...]]:
     """The pool (restricted to ``--methods``) and the methods the search may use."""
+    from hmpf.config import load_config
+    from hmpf.evaluation.study import derive_config
+
     pool = load_config(args.pool)
     methods = tuple(dict.fromkeys(args.methods or pool.method_ids))  # once each
     unknown = sorted(set(methods) - set(pool.method_ids))
@@ -162,6 +173,8 @@ def _check_args(args: argparse.Namespace) -> None:
 
 def _write(args: argparse.Namespace, config: HierarchyConfig, report: dict[str, Any]) -> None:
     """calibrated.yaml, leaderboard.md and calibration.json in ``--out``; the board printed."""
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ground_truth = report["protocol"]["ground_truth"]
@@ -181,6 +194,10 @@ def _write(args: argparse.Namespace, config: HierarchyConfig, report: dict[str, 
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """The command's body: check the flags, score the split, search, write."""
+    from tqdm import tqdm
+
+    from hmpf.evaluation.calibrate import SearchSpace, calibrate
+
     _check_args(args)
     costs = load_costs(args.costs) if args.costs else None
     pool, methods = _pool_and_methods(args)

@@ -1,6 +1,6 @@
-"""What every hmpf command shares: ``--version``, one-line errors and a quiet Ctrl-C.
+"""What every hmpf command shares: ``--version``, one-line errors, a quiet Ctrl-C and pipe.
 
-Each command's ``main(argv)`` is ``return run(PROG, body, argv_or_args)``-shaped::
+Each command's ``main(argv)`` parses its arguments, then hands its body to :func:`run`::
 
     def main(argv: list[str] | None = None) -> int:
         parser = build_parser()          # add_version(parser) inside
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 from collections.abc import Callable
 from importlib import metadata
@@ -24,10 +23,10 @@ from importlib import metadata
 from hmpf.errors import HmpfError
 
 __all__ = [
+    "EXIT_BROKEN_PIPE",
     "EXIT_ERROR",
     "EXIT_INTERRUPTED",
     "add_version",
-    "ignore_sigint",
     "package_version",
     "run",
 ]
@@ -55,11 +54,6 @@ def add_version(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def ignore_sigint() -> None:
-    """Pool-worker initializer: leave Ctrl-C to the parent, so workers print no tracebacks."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def run(prog: str, body: Callable[[], int], *, interrupted: str = "interrupted") -> int:
     """Run a command's body; map errors to one stderr line and an exit status.
 
@@ -69,8 +63,9 @@ def run(prog: str, body: Callable[[], int], *, interrupted: str = "interrupted")
         interrupted: what to say after Ctrl-C (e.g. that the index is untouched).
 
     Returns:
-        ``body()``'s status, :data:`EXIT_ERROR` after an :class:`HmpfError`, or
-        :data:`EXIT_INTERRUPTED` after Ctrl-C.
+        ``body()``'s status, :data:`EXIT_ERROR` after an :class:`HmpfError`,
+        :data:`EXIT_INTERRUPTED` after Ctrl-C, or :data:`EXIT_BROKEN_PIPE` when stdout's
+        reader went away.
     """
     try:
         return body()

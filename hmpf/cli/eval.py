@@ -21,16 +21,18 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hmpf.cli.common import add_version, run
-from hmpf.config import load_config
-from hmpf.datasets import frame_ground_truth, gps_ground_truth, list_images, pairs_ground_truth
 from hmpf.errors import HmpfError
-from hmpf.evaluation.evaluate import EvalData, evaluate, format_report
-from hmpf.features import FeatureCache, default_cache_dir
+from hmpf.runtime import default_cache_dir
+
+# numpy, OpenCV and the evaluation load inside the command's body (`run`), so that --help and
+# --version are instant and Ctrl-C while they load is one line and exit 130 too.
+if TYPE_CHECKING:
+    import numpy as np
+
+    from hmpf.features import FeatureCache
 
 PROG = "hmpf-eval"
 
@@ -70,7 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     commands = p.add_subparsers(dest="command", title="commands", metavar="COMMAND")
     sub = commands.add_parser(
-        "experiments", help=experiments.DESCRIPTION, description=experiments.DESCRIPTION
+        "experiments",
+        prog=experiments.PROG,
+        help=experiments.DESCRIPTION,
+        description=experiments.DESCRIPTION,
     )
     add_version(sub)
     experiments.add_arguments(sub)
@@ -97,6 +102,8 @@ def ground_truth_from_args(
     args: argparse.Namespace, qrys: list[Path], ref_names: list[str]
 ) -> tuple[np.ndarray, str]:
     """(gt matrix, description) from the ground-truth flags."""
+    from hmpf.datasets import frame_ground_truth, gps_ground_truth, pairs_ground_truth
+
     if args.gt_csv:
         gt = pairs_ground_truth(args.gt_csv, [q.name for q in qrys], ref_names)
         return gt, f"pairs from {args.gt_csv}"
@@ -111,10 +118,14 @@ def ground_truth_from_args(
 
 def cache_from_args(args: argparse.Namespace) -> FeatureCache | None:
     """The descriptor cache the flags name (None with ``--no-cache``)."""
+    from hmpf.features import FeatureCache
+
     return None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
 
 
 def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
+    from hmpf.config import load_config
+    from hmpf.datasets import list_images
     from hmpf.evaluation.evaluate import evaluate_index
     from hmpf.index.reader import IndexReader
 
@@ -134,6 +145,10 @@ def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
+    from hmpf.config import load_config
+    from hmpf.datasets import list_images
+    from hmpf.evaluation.evaluate import EvalData, evaluate
+
     config = load_config(args.config)
     refs = list_images(args.reference)[: args.limit]
     qrys = list_images(args.query)[: args.limit]
@@ -150,7 +165,7 @@ def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
 
 def run_eval(args: argparse.Namespace) -> int:
     """The command's body without a subcommand: evaluate, print, write the JSON."""
-    from hmpf.evaluation.evaluate import format_index_report
+    from hmpf.evaluation.evaluate import format_index_report, format_report
 
     if args.index is not None:
         report = _evaluate_index(args)

@@ -12,21 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_banks
-from hmpf.cli.common import add_version, run
-from hmpf.config import load_config
 from hmpf.errors import HmpfError
-from hmpf.evaluation.experiments import (
-    check_pool,
-    report_markdown,
-    require_matplotlib,
-    run_studies,
-    write_figures,
-)
-from hmpf.evaluation.study import check_compatible, measure_costs
 
 PROG = "hmpf-eval experiments"
 DESCRIPTION = "Reproduce the paper's studies (Fig. 2-10, Table I) on a training split."
@@ -36,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The command's flags (on its own parser or on ``hmpf-eval``'s subcommand)."""
     add_split_args(p)
     p.add_argument("--out", required=True, help="output folder (figures, report.md, JSON)")
-    p.add_argument("--pool", default=str(DEFAULT_POOL), help="config giving method parameters")
+    p.add_argument("--pool", default=DEFAULT_POOL, help="config giving method parameters")
     for flag, default, help_text in (
         (
             "--trio",
@@ -56,15 +45,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--title", default="", help="title of the report and figures")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
-    add_version(p)
-    add_arguments(p)
-    return p
-
-
 def run_experiments(args: argparse.Namespace) -> int:
     """The command's body: check everything cheap first, then score, study and write."""
+    from hmpf.config import load_config
+    from hmpf.evaluation.experiments import (
+        check_pool,
+        report_markdown,
+        require_matplotlib,
+        run_studies,
+        write_figures,
+    )
+    from hmpf.evaluation.study import check_compatible, measure_costs
+
     if args.k1 < 1 or args.k2 < 1:
         raise HmpfError("--k1 and --k2 must be >= 1")
     require_matplotlib()  # the figures are drawn last: fail before minutes of work
@@ -94,12 +86,3 @@ def run_experiments(args: argparse.Namespace) -> int:
     print(md)
     print(f"wrote {len(figures)} figures, report.md and experiments.json to {out}")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run(PROG, lambda: run_experiments(args))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

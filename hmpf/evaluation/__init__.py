@@ -13,3 +13,7 @@
 Each step imports only the steps before it. The commands are ``hmpf-eval`` (1, and 4 as
 ``hmpf-eval experiments``) and ``hmpf-calibrate`` (3).
 """
+
+#: Train/test split schemes of a route (:func:`hmpf.evaluation.study.split_data`); here, where
+#: the commands can offer them without importing the evaluation's heavy modules.
+SPLITS = ("blocks", "halves")

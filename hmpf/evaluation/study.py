@@ -26,6 +26,7 @@ import numpy as np
 
 from hmpf.config import HierarchyConfig, TierConfig, build_methods
 from hmpf.errors import ConfigError, DatasetError
+from hmpf.evaluation import SPLITS
 from hmpf.evaluation.evaluate import (
     EvalData,
     HierarchyOutcome,
@@ -52,9 +53,6 @@ __all__ = [
 
 
 # -- splits ----------------------------------------------------------------------------------
-
-
-SPLITS = ("blocks", "halves")
 
 
 def split_data(
