@@ -17,6 +17,7 @@ from conftest import synthetic_image
 
 import hmpf.features
 import indexer.build
+import indexer.inputs
 from hmpf.config import parse_config
 from hmpf.errors import DatasetError, ImageError
 from hmpf.imageio import load_image
@@ -278,7 +279,7 @@ def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file,
 def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_file, monkeypatch):
     folder = _write(tmp_path / "a", 2)
     (folder / "late.jpg").write_bytes(b"\xff\xd8 broken only after the check")
-    monkeypatch.setattr(indexer.build, "unreadable_images", lambda paths: {})
+    monkeypatch.setattr(indexer.inputs, "probe_image", lambda data, source="<bytes>": None)
     with pytest.raises(IndexBuildError, match="late.jpg.*passed the check before extraction"):
         build(config_file, folder, tmp_path / "index", options=OPTS)
     assert not (tmp_path / "index" / "CURRENT").exists()
