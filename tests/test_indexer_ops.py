@@ -3,7 +3,9 @@ bad input (each rejected before any work), skipped images, fitted state, approxi
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -250,6 +252,43 @@ def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
     bad = unreadable_images(sorted(folder.iterdir()))
     assert {p.name: exc.reason for p, exc in bad.items()} == reasons
     assert all(str(p) == exc.source for p, exc in bad.items())
+
+
+def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkeypatch):
+    """One read per file gives both the digest (hmpf.features.file_digest's) and the
+    verdict; a file that cannot be read gets the old "unreadable:<OS error>" digest and
+    load_image's reason; known verdicts skip the probe."""
+    folder = _write(tmp_path / "a", 2)
+    reasons = _broken_images(folder)
+    paths = [*sorted(folder.iterdir()), folder / "gone.png"]
+    reads: list[str] = []
+    real_read = Path.read_bytes
+
+    def counting(self):
+        reads.append(self.name)
+        return real_read(self)
+
+    monkeypatch.setattr(Path, "read_bytes", counting)
+    check = indexer.inputs.check_images(paths)
+    monkeypatch.setattr(Path, "read_bytes", real_read)
+    assert sorted(reads) == sorted([p.name for p in paths] + ["gone.png"])  # + load_image's
+    assert check.digests[:-1] == [hmpf.features.file_digest(p) for p in paths[:-1]]
+    assert check.digests[-1] == f"unreadable:{os.strerror(errno.ENOENT)}"
+    got = {p.name: exc.reason for p, exc in check.unreadable.items()}
+    assert got == {**reasons, "gone.png": "no such file"}
+    assert list(got) == [p.name for p in paths if p.name in got]  # in order
+    assert all(str(p) == exc.source for p, exc in check.unreadable.items())
+    assert set(check.verdicts) == set(check.digests[:-1])
+
+    def no_probe(data, source="<bytes>"):
+        raise AssertionError("probed again")
+
+    monkeypatch.setattr(indexer.inputs, "probe_image", no_probe)
+    again = indexer.inputs.check_images(paths, check.verdicts)
+    assert again.digests == check.digests
+    assert {p: (e.source, e.reason) for p, e in again.unreadable.items()} == {
+        p: (e.source, e.reason) for p, e in check.unreadable.items()
+    }
 
 
 def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):
