@@ -113,6 +113,7 @@ def probe_image(data: bytes | bytearray | memoryview, source: str = "<bytes>") -
     2.2 ms for a 960 x 540 JPEG). Data that fails this cheap decode is decoded in full by
     :func:`decode_image` itself, so a reason returned is always the one its
     :class:`~hmpf.errors.ImageError` gives (``source`` only matters to that decode's error).
+    A None verdict cannot foresee failures that only a full-size decode meets (e.g. memory).
 
     Returns:
         None (decodable), or the ``reason`` text of the error :func:`decode_image` raises.
