@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hmpf.errors import HmpfError, ImageError
-from hmpf.imageio import decode_image, load_image, to_rgb
+from hmpf.imageio import decode_image, load_image, probe_image, to_rgb
 
 
 def _encode(ext: str, img: np.ndarray) -> bytes:
@@ -92,3 +92,34 @@ def test_image_error_pickles():
 
     err = pickle.loads(pickle.dumps(ImageError("a.png", "broken")))
     assert err.source == "a.png" and "broken" in str(err)
+
+
+def _probe_cases() -> dict[str, bytes]:
+    img = np.random.default_rng(1).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    jpg, png = _encode(".jpg", img), _encode(".png", img)
+    return {
+        "good.jpg": jpg,
+        "good.png": png,
+        "small_ok.png": _encode(".png", np.full((2, 3, 3), 200, np.uint8)),  # fails at 1/8
+        "one_pixel.png": _encode(".png", np.zeros((1, 1, 3), np.uint8)),
+        "truncated.jpg": jpg[: len(jpg) // 2],
+        "truncated.png": png[: len(png) // 2],
+        "garbage.jpg": b"hello, I am a text file\n" * 20,
+        "garbage_after_soi.jpg": b"\xff\xd8\xff\xe0" + bytes(range(256)) * 4 + b"\xff\xd9",
+        "empty.png": b"",
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_probe_cases()))
+def test_probe_agrees_with_load_image(tmp_path: Path, name: str):
+    data = _probe_cases()[name]
+    p = tmp_path / name
+    p.write_bytes(data)
+    try:
+        load_image(p)
+        expected = None
+    except ImageError as exc:
+        expected = exc.reason
+    assert probe_image(data, str(p)) == expected
+    assert probe_image(bytearray(data)) == expected
+    assert (expected is None) == (name.startswith(("good", "small_ok")))

@@ -3,7 +3,9 @@ bad input (each rejected before any work), skipped images, fitted state, approxi
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 from pathlib import Path
 from typing import ClassVar
 
@@ -15,6 +17,7 @@ from conftest import synthetic_image
 
 import hmpf.features
 import indexer.build
+import indexer.inputs
 from hmpf.config import parse_config
 from hmpf.errors import DatasetError, ImageError
 from hmpf.imageio import load_image
@@ -236,6 +239,43 @@ def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
     assert all(str(p) == exc.source for p, exc in bad.items())
 
 
+def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkeypatch):
+    """One read per file gives both the digest (hmpf.features.file_digest's) and the
+    verdict; a file that cannot be read gets the old "unreadable:<OS error>" digest and
+    load_image's reason; known verdicts skip the probe."""
+    folder = _write(tmp_path / "a", 2)
+    reasons = _broken_images(folder)
+    paths = [*sorted(folder.iterdir()), folder / "gone.png"]
+    reads: list[str] = []
+    real_read = Path.read_bytes
+
+    def counting(self):
+        reads.append(self.name)
+        return real_read(self)
+
+    monkeypatch.setattr(Path, "read_bytes", counting)
+    check = indexer.inputs.check_images(paths)
+    monkeypatch.setattr(Path, "read_bytes", real_read)
+    assert sorted(reads) == sorted([p.name for p in paths] + ["gone.png"])  # + load_image's
+    assert check.digests[:-1] == [hmpf.features.file_digest(p) for p in paths[:-1]]
+    assert check.digests[-1] == f"unreadable:{os.strerror(errno.ENOENT)}"
+    got = {p.name: exc.reason for p, exc in check.unreadable.items()}
+    assert got == {**reasons, "gone.png": "no such file"}
+    assert list(got) == [p.name for p in paths if p.name in got]  # in order
+    assert all(str(p) == exc.source for p, exc in check.unreadable.items())
+    assert set(check.verdicts) == set(check.digests[:-1])
+
+    def no_probe(data, source="<bytes>"):
+        raise AssertionError("probed again")
+
+    monkeypatch.setattr(indexer.inputs, "probe_image", no_probe)
+    again = indexer.inputs.check_images(paths, check.verdicts)
+    assert again.digests == check.digests
+    assert {p: (e.source, e.reason) for p, e in again.unreadable.items()} == {
+        p: (e.source, e.reason) for p, e in check.unreadable.items()
+    }
+
+
 def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):
     """The unreadable images are found before extraction: one pass over the readable ones
     (not one restarted pass per unreadable image), and --strict names every one."""
@@ -263,7 +303,7 @@ def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file,
 def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_file, monkeypatch):
     folder = _write(tmp_path / "a", 2)
     (folder / "late.jpg").write_bytes(b"\xff\xd8 broken only after the check")
-    monkeypatch.setattr(indexer.build, "unreadable_images", lambda paths: {})
+    monkeypatch.setattr(indexer.inputs, "probe_image", lambda data, source="<bytes>": None)
     with pytest.raises(IndexBuildError, match="late.jpg.*passed the check before extraction"):
         build(config_file, folder, tmp_path / "index", options=OPTS)
     assert not (tmp_path / "index" / "CURRENT").exists()
