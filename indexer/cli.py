@@ -1,6 +1,6 @@
 """``hmpf-index``: build, extend and maintain versioned reference indexes.
 
-    hmpf-index build --config configs/handcrafted.yaml --images refs/ --index maps/campus
+    hmpf-index build --config handcrafted --images refs/ --index maps/campus
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
     hmpf-index verify|info --index maps/campus [--index-version v0002]
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
@@ -30,13 +31,21 @@ PROG = "hmpf-index"
 INTERRUPTED = "interrupted; the current version is untouched (rerun with --resume to continue)"
 
 
-def _pairs(values: Sequence[str] | None) -> dict[str, str]:
-    """``["IVF1024,Flat", "gist=HNSW32"]`` -> ``{"*": "IVF1024,Flat", "gist": "HNSW32"}``."""
+# ``METHOD=VALUE``: a method id, then the value. A FAISS parameter value is itself
+# ``name=value[,name=value]``, so there the method form needs a second ``name=`` after it.
+_FOR_METHOD = re.compile(r"([A-Za-z_]\w*)=(.+)")
+_PARAMS_FOR_METHOD = re.compile(r"([A-Za-z_]\w*)=([A-Za-z_]\w*=.*)")
+
+
+def _pairs(values: Sequence[str] | None, pattern: re.Pattern[str] = _FOR_METHOD) -> dict[str, str]:
+    """``["IVF1024,Flat", "gist=HNSW32"]`` -> ``{"*": "IVF1024,Flat", "gist": "HNSW32"}``;
+    with ``_PARAMS_FOR_METHOD``: ``["nprobe=16", "gem=nprobe=32"]`` ->
+    ``{"*": "nprobe=16", "gem": "nprobe=32"}``."""
     out = {}
     for v in values or []:
-        key, sep, val = v.partition("=")
-        if sep and "," not in key and key.isidentifier():
-            out[key] = val
+        m = pattern.fullmatch(v)
+        if m:
+            out[m.group(1)] = m.group(2)
         else:
             out["*"] = v
     return out
@@ -130,7 +139,7 @@ def _options(args: argparse.Namespace) -> BuildOptions:
 
     return BuildOptions(
         faiss=_pairs(args.faiss),
-        faiss_params=_pairs(args.faiss_params),
+        faiss_params=_pairs(args.faiss_params, _PARAMS_FOR_METHOD),
         precision=args.precision,
         strict=args.strict,
         workers=args.workers,

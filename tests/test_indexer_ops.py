@@ -413,3 +413,17 @@ def test_faiss_factory_from_config_and_flag_override(tmp_path, config_file):
     build(cfg, a, tmp_path / "overridden", options=flag)
     with IndexReader(tmp_path / "overridden") as r:
         assert r.is_exact("gist")
+
+
+def test_faiss_params_flag_for_all_and_for_one_method(tmp_path, config_file):
+    """``--faiss-params nprobe=1`` (the help's own form) applies to every tier-1 method;
+    ``gist=nprobe=2`` to gist only. It used to be read as a method named ``nprobe``."""
+    index = tmp_path / "index"
+    a = _write(tmp_path / "a", 12)
+    args = ["build", "--config", config_file, "--images", a, "--index", index, "--workers", 1]
+    args += ["--quiet", "--faiss", "IVF2,Flat", "--faiss-params", "nprobe=1"]
+    args += ["--faiss-params", "gist=nprobe=2"]
+    assert _cli(*args) == 0
+    with IndexReader(index) as r:
+        assert r.faiss_info("hog")["params"] == "nprobe=1"  # type: ignore[index]
+        assert r.faiss_info("gist")["params"] == "nprobe=2"  # type: ignore[index]

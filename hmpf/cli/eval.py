@@ -1,6 +1,6 @@
 """``hmpf-eval``: evaluate a hierarchy on a reference / query image pair of folders.
 
-    hmpf-eval --config configs/handcrafted.yaml \\
+    hmpf-eval --config handcrafted \\
         --reference ../shared/datasets/gardens_point/day_right \\
         --query ../shared/datasets/gardens_point/night_right --tolerance 2 --json out.json
 
