@@ -135,8 +135,9 @@ class Method(ABC):
     def group_key(self) -> Hashable | None:
         """Methods with equal keys share one pass per image (None: this method runs alone).
 
-        Grouped methods are extracted together by their class's :meth:`extract_group`, so a
-        key must differ from every key of another method family.
+        Grouped methods are extracted together by their class's :meth:`extract_group`; only
+        methods whose classes share that implementation are grouped (:func:`method_groups`),
+        so two method families cannot collide on a key.
         """
         return None
 
@@ -254,12 +255,14 @@ def _rebuild(cls: type[Method], config: MethodConfig, state: dict[str, np.ndarra
 def method_groups(methods: Mapping[str, Method]) -> list[dict[str, Method]]:
     """``methods`` split into groups sharing one pass per image (:meth:`Method.group_key`).
 
-    Groups keep the order of first appearance; a method whose key is None is a group alone.
+    Groups keep the order of first appearance; a method whose key is None is a group alone,
+    and methods share a group only when their classes also share :meth:`Method.extract_group`.
     """
     groups: dict[Hashable, dict[str, Method]] = {}
     for mid, m in methods.items():
         key = m.group_key()
-        groups.setdefault(("alone", mid) if key is None else ("shared", key), {})[mid] = m
+        family = type(m).extract_group.__func__  # type: ignore[attr-defined]
+        groups.setdefault(("alone", mid) if key is None else (family, key), {})[mid] = m
     return list(groups.values())
 
 
