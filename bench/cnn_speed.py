@@ -32,7 +32,7 @@ from hmpf.backbones import load_backbone  # noqa: E402
 from hmpf.datasets import dataset_root, list_images  # noqa: E402
 from hmpf.imageio import load_image  # noqa: E402
 from hmpf.methods import create_method  # noqa: E402
-from hmpf.methods.cnn import extract_cnn, fit_cnn  # noqa: E402
+from hmpf.methods.base import extract_many, fit_many  # noqa: E402
 
 
 def main() -> int:
@@ -92,17 +92,17 @@ def main() -> int:
         "olo": create_method("olo", {"device": args.device}),
     }
     t = time.perf_counter()
-    fit_cnn(methods, images[:32])  # type: ignore[arg-type]
+    fit_many(methods, images[:32])
     print(f"\nfitting netvlad + olo on 32 references: {time.perf_counter() - t:.1f} s")
     print("extraction per 960x540 image, batched (median ms; forward shared within a group):")
     for mid, m in methods.items():
         ms: dict[str, list[float]] = {}
-        extract_cnn({mid: m}, images[:16])  # type: ignore[dict-item]
-        extract_cnn({mid: m}, images[16:48], ms)  # type: ignore[dict-item]
+        extract_many({mid: m}, images[:16])
+        extract_many({mid: m}, images[16:48], ms)
         print(f"  {mid:9s} {statistics.median(ms[mid]):6.1f}  (input {m.input_size()})")
 
     olo = methods["olo"]
-    feats = extract_cnn({"olo": olo}, images[:40])["olo"]  # type: ignore[dict-item]
+    feats = extract_many({"olo": olo}, images[:40])["olo"]
     refs = olo.stack(feats[1:])
     n_reg = np.mean([len(f) for f in feats])
     per = median_ms(lambda: olo.scores(feats[0], refs), args.repeats * 4) / len(refs)

@@ -6,12 +6,15 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Hashable, Mapping, Sequence
 from fractions import Fraction
 from pathlib import Path
+from typing import Any, ClassVar
 
+import cv2
 import numpy as np
 import pytest
-from conftest import link_route
+from conftest import link_route, synthetic_image
 
 from hmpf.config import HierarchyConfig, load_config, parse_config
 from hmpf.datasets import frame_ground_truth, list_images
@@ -28,6 +31,9 @@ from hmpf.evaluation.calibrate import (
 from hmpf.evaluation.evaluate import EvalData, evaluate
 from hmpf.evaluation.study import CostModel, ScoreBank, derive_config, measure_costs, split_data
 from hmpf.features import FeatureCache
+from hmpf.imageio import load_image
+from hmpf.methods import GlobalMethod, Method
+from hmpf.methods.base import GroupOutput, euclidean
 
 POOL = {
     "name": "cheap-pool",
@@ -155,6 +161,84 @@ def test_cost_model_charges_shared_passes_once_and_reuses_tier1_scores():
     expected = (20 + 1 + 5) + (0.5 + 0.01 * 100) + (1.0 * 10) + 0.2
     assert cm.query_ms(cfg) == pytest.approx(expected)
     assert cm.query_ms(cfg, [100, 7.5]) == pytest.approx(expected - 2.5)
+
+
+class _GroupedToy(GlobalMethod):
+    """A non-CNN grouped method whose extract_group reports fixed times: shared 10 ms per
+    image, own 1 ms (``a``) or 2 ms (any other id)."""
+
+    name = "grouped_cost_test"
+    dim = 1
+    calls: ClassVar[list[tuple[tuple[str, ...], int]]] = []
+
+    def group_key(self) -> Hashable:
+        return ("grouped_cost_test",)
+
+    def _extract(self, image: np.ndarray) -> np.ndarray:
+        return np.array([float(image.mean())], np.float32)
+
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        return euclidean(queries, references)
+
+    @classmethod
+    def extract_group(
+        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
+    ) -> GroupOutput:
+        cls.calls.append((tuple(methods), len(images)))
+        feats = {mid: [m.extract(im) for im in images] for mid, m in methods.items()}
+        own = {mid: [1.0 if mid == "a" else 2.0] * len(images) for mid in methods}
+        return GroupOutput(feats, own, [10.0] * len(images))
+
+
+class _AloneToy(_GroupedToy):
+    """Extracted alone (no group key) but declaring shared 3 ms and own 4 ms per image."""
+
+    name = "alone_cost_test"
+
+    def group_key(self) -> None:
+        return None
+
+    @classmethod
+    def extract_group(
+        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
+    ) -> GroupOutput:
+        cls.calls.append((tuple(methods), len(images)))
+        feats = {mid: [m.extract(im) for im in images] for mid, m in methods.items()}
+        return GroupOutput(
+            feats, {mid: [4.0] * len(images) for mid in methods}, [3.0] * len(images)
+        )
+
+
+def test_measure_costs_uses_declared_groups_of_any_method(tmp_path: Path):
+    """A non-CNN grouped method is costed by its own extract_group: one shared unit per group
+    plus each member's own unit, one image at a time after a warm-up."""
+    folder = tmp_path / "img"
+    folder.mkdir()
+    for i in range(6):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), synthetic_image(i)[:, :, ::-1])
+    paths = list_images(folder)
+    data = EvalData(paths[:3], paths[3:], frame_ground_truth(3, 3, 0), "frames +-0")
+    methods: dict[str, Method] = {"a": _GroupedToy(), "c": _AloneToy(), "b": _GroupedToy()}
+    feats: dict[str, Any] = {}
+    scores: dict[str, np.ndarray] = {}
+    for mid, m in methods.items():
+        db = m.stack([m.extract(load_image(p)) for p in data.reference])
+        qs = [m.extract(load_image(p)) for p in data.query]
+        feats[mid] = (db, qs)
+        scores[mid] = np.stack([m.scores(q, db) for q in qs])
+    bank = ScoreBank(methods, scores, np.asarray(data.gt, bool), data, feats)
+    _GroupedToy.calls.clear()
+    costs = measure_costs(bank, images=3)
+    # warm-up + 3 images, each alone; a and b in one call per image
+    assert _GroupedToy.calls == [(("a", "b"), 1)] * 4 + [(("c",), 1)] * 4
+    assert costs.units == {"forward:0": 10.0, "head:a": 1.0, "head:b": 2.0, "extract:c": 7.0}
+    assert costs.method_units == {
+        "a": ["forward:0", "head:a"],
+        "b": ["forward:0", "head:b"],
+        "c": ["extract:c"],
+    }
+    assert costs.extract_ms(["a", "b"]) == 13.0 and costs.extract_ms(["a", "c"]) == 18.0
+    assert CostModel.from_dict(json.loads(json.dumps(costs.to_dict()))) == costs
 
 
 # -- on real images ----------------------------------------------------------------------------

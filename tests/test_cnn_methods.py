@@ -12,7 +12,8 @@ import pytest
 from hmpf.config import parse_config
 from hmpf.features import FeatureCache, fit_methods
 from hmpf.methods import create_method
-from hmpf.methods.cnn import extract_cnn, kmeans, l2_rows, nearest
+from hmpf.methods.base import extract_many, fit_many
+from hmpf.methods.cnn import kmeans, l2_rows, nearest
 from hmpf.methods.hybridnet import max_location_histogram
 from hmpf.methods.netvlad import vlad
 from hmpf.methods.olo import OloFeatures, encode_regions, olo_similarity
@@ -209,17 +210,14 @@ SMALL = {
 @pytest.fixture(scope="module")
 def fitted() -> dict[str, object]:
     methods = {name: create_method(name, params) for name, params in SMALL.items()}
-    fit_cnn_images = _images(6)
-    from hmpf.methods.cnn import fit_cnn
-
-    fit_cnn(methods, fit_cnn_images)  # type: ignore[arg-type]
+    fit_many(methods, _images(6))
     return methods
 
 
 def test_methods_shapes_and_determinism(fitted: dict[str, object]) -> None:
     imgs = _images(3, seed=9)
-    a = extract_cnn(fitted, imgs)  # type: ignore[arg-type]
-    b = extract_cnn(fitted, imgs)  # type: ignore[arg-type]
+    a = extract_many(fitted, imgs)  # type: ignore[arg-type]
+    b = extract_many(fitted, imgs)  # type: ignore[arg-type]
     assert a["gem"][0].shape == (1280,)
     assert a["hybridnet"][0].shape == (169,) and a["hybridnet"][0].sum() > 0
     assert a["hybridnet"][0].sum() <= 112  # at most one vote per s5 channel
@@ -280,7 +278,7 @@ def test_shared_forward_pass_per_group() -> None:
 
     net.forward_maps = counting  # type: ignore[method-assign]
     try:
-        out = extract_cnn({"g": gem, "h": hyb, "o": other}, _images(3))
+        out = extract_many({"g": gem, "h": hyb, "o": other}, _images(3))
     finally:
         del net.forward_maps
     assert sorted(calls) == [(3, ("head",)), (3, ("head", "s6"))]

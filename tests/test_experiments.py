@@ -7,8 +7,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import link_route
+
+from hmpf.config import build_methods, load_config
+from hmpf.datasets import frame_ground_truth
+from hmpf.evaluation import experiments as studies
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import CostModel, ScoreBank, derive_config
 
 N_IMAGES = 40  # per traverse; blocks of 10 -> 20 training and 20 test frames
 
@@ -127,3 +134,49 @@ def test_experiments_ctrl_c_is_one_line(monkeypatch, capsys, tmp_path: Path):
     argv = ["experiments", "--reference", str(tmp_path), "--query", str(tmp_path)]
     assert cli.main([*argv, "--out", str(tmp_path / "exp")]) == 130
     assert capsys.readouterr().err == "hmpf-eval experiments: interrupted\n"
+
+
+def test_each_hierarchy_runs_once_on_each_bank(monkeypatch):
+    """The studies reuse each run's outcome (model time, training recall of the chosen one)
+    instead of running a hierarchy on the same bank again; gathered random scores suffice."""
+    pool = load_config("calibration-pool")
+    methods = build_methods(pool)
+    rng = np.random.default_rng(0)
+
+    def bank(n: int) -> ScoreBank:
+        paths = [Path(f"/x/{i:03d}.png") for i in range(n)]
+        data = EvalData(paths, paths, frame_ground_truth(n, n, 1), "frames +-1")
+        scores = {m: rng.random((n, n)) for m in methods}
+        return ScoreBank(methods, scores, np.asarray(data.gt, bool), data)
+
+    train, test = bank(20), bank(20)
+    runs: list[tuple[str, str]] = []
+    original = ScoreBank.run
+
+    def counting(self: ScoreBank, config):  # type: ignore[no-untyped-def]
+        runs.append(("train" if self is train else "test", config.model_dump_json()))
+        return original(self, config)
+
+    monkeypatch.setattr(ScoreBank, "run", counting)
+    monkeypatch.setattr(studies, "measure_query_ms", lambda *a, **k: {"total_ms": 1.0})
+    costs = CostModel(
+        units={f"extract:{m}": 1.0 for m in methods},
+        method_units={m: [f"extract:{m}"] for m in methods},
+        match={m: (0.0, 0.01) for m in methods},
+        fusion_ms=0.1,
+        n_db=20,
+    )
+    calibrated = derive_config(pool, [(("hog", "gist"), 5), (("kaze",), 1)], None)
+    res = studies.run_studies(
+        pool, train, test, costs=costs, k1=6, k2=3, counts=((6, 3),), calibrated=calibrated
+    )
+    assert len(runs) == len(set(runs))  # no hierarchy twice on one bank
+    n_rows = sum(len(res[s]) for s in ("two_tier", "three_tier", "six", "counts"))
+    # Every study row once on train, the calibrated one once more; on test each finalist
+    # and the flat fusion of its methods.
+    assert sum(b == "train" for b, _ in runs) == n_rows + 1
+    assert sum(b == "test" for b, _ in runs) == 4
+    assert all(r["model_ms"] > 0 for r in res["six"])
+    best, cal = res["test"]
+    assert best["train_combined"] == res["chosen"]["train_combined"]
+    assert cal["train_combined"] == original(train, calibrated).recall_at_1

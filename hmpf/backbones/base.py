@@ -2,7 +2,7 @@
 
 A backbone turns a batch of images into named intermediate feature maps. Methods on the same
 backbone (and the same input size) share one forward pass per image
-(:func:`hmpf.methods.cnn.extract_cnn`).
+(:meth:`hmpf.methods.cnn.CnnMethod.extract_group`).
 
 * :meth:`Backbone.preprocess` maps one H x W x 3 RGB ``uint8`` image to the network input
   (3 x rows x cols float32): crop, resize, mean subtraction and channel order, exactly as the

@@ -8,10 +8,11 @@ extracts nothing). Any hierarchy over those methods then runs per query by gathe
 matrices (:meth:`ScoreBank.run`), through the same :class:`~hmpf.hierarchy.Hierarchy` code as
 evaluation and the service: thousands of hierarchies cost seconds, not re-extraction.
 
-:class:`CostModel` turns measured component times (single-image extraction per forward-pass
-group or method, per-method matching as a function of the number of references scored) into
-a per-query time for any hierarchy, so a calibration search can respect a time budget; the
-chosen hierarchy's time is then measured end to end (:func:`measure_query_ms`).
+:class:`CostModel` turns measured component times (single-image extraction: the pass shared by
+a group of methods and each method's own work; per-method matching as a function of the number
+of references scored) into a per-query time for any hierarchy, so a calibration search can
+respect a time budget; the chosen hierarchy's time is then measured end to end
+(:func:`measure_query_ms`).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from hmpf.features import FeatureCache, extract_query
 from hmpf.hierarchy import Hierarchy, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.methods import Method
+from hmpf.methods.base import method_groups
 from hmpf.runtime import compute_threads, set_compute_threads
 
 __all__ = [
@@ -233,7 +235,9 @@ class CostModel:
     """Per-query time of a hierarchy from measured parts (ms, one compute thread).
 
     Attributes:
-        units: extraction unit -> ms (a CNN forward pass shared by a group, or one method).
+        units: extraction unit -> ms: ``forward:<g>`` the pass shared by a group of methods
+            (a CNN forward pass), ``head:<id>`` a grouped method's own work, ``extract:<id>``
+            a method extracted alone.
         method_units: method id -> the units its extraction needs.
         match: method id -> (a, b): scoring n references costs ``a + b * n`` ms.
         fusion_ms: normalisation, selection and fusion per tier.
@@ -322,46 +326,38 @@ def measure_costs(
 ) -> CostModel:
     """Measure extraction and matching costs on the bank's own images and features.
 
-    Extraction: ``images`` query images decoded, then each CNN forward pass (shared by the
-    methods of one backbone and input size), each CNN method's own descriptor and each other
-    method timed one image at a time after a warm-up; medians. Matching: each method scoring
-    10 references and the whole database, medians over the same queries, fitted as
-    ``a + b * n``. Everything on ``threads`` compute threads.
+    Extraction: ``images`` query images decoded, then each group of methods sharing one pass
+    per image (:func:`~hmpf.methods.base.method_groups`) extracted one image at a time by its
+    declared :meth:`~hmpf.methods.base.Method.extract_group` after a warm-up; medians of the
+    times it reports. A group's shared pass (a CNN forward pass) is one unit and each member's
+    own work another; a method extracted alone is one unit (its shared and own time).
+    Matching: each method scoring 10 references and the whole database, medians over the
+    same queries, fitted as ``a + b * n``. Everything on ``threads`` compute threads.
     """
-    from hmpf.methods.cnn import CnnMethod, cnn_groups, forward_group
-
     previous = compute_threads()
     set_compute_threads(threads)
     try:
         decoded = [load_image(p) for p in bank.data.query[: max(1, images)]]
         units: dict[str, float] = {}
         method_units: dict[str, list[str]] = {}
-        cnn = {m: x for m, x in bank.methods.items() if isinstance(x, CnnMethod)}
-        for g, group in enumerate(cnn_groups(cnn)):
-            members = list(group.values())
+        groups = method_groups(bank.methods)
+        shared = [g for g in groups if next(iter(g.values())).group_key() is not None]
+        alone = [g for g in groups if next(iter(g.values())).group_key() is None]
+        # Shared groups first, then methods alone (the order calibration reports were in).
+        for g, group in enumerate(shared):
+            pass_ms, own = _extraction_ms(group, decoded)
             key = f"forward:{g}"
-            fwd: list[float] = []
-            own: dict[str, list[float]] = {m: [] for m in group}
-            for i, img in enumerate([decoded[0], *decoded]):  # the first one warms up
-                t: list[float] = []
-                maps = next(iter(forward_group(members, [img], t)))
-                for mid, m in group.items():
-                    t0 = time.perf_counter()
-                    m.from_maps(maps)
-                    if i:
-                        own[mid].append((time.perf_counter() - t0) * 1e3)
-                if i:
-                    fwd.append(t[0])
-            units[key] = float(np.median(fwd))
+            units[key] = float(np.median(pass_ms))
             for mid in group:
                 units[f"head:{mid}"] = float(np.median(own[mid]))
                 method_units[mid] = [key, f"head:{mid}"]
-        for mid, method in bank.methods.items():
-            if mid in cnn:
-                continue
-            method.extract(decoded[0])  # warm-up
-            units[f"extract:{mid}"] = _median_ms(method.extract, [(img,) for img in decoded])
-            method_units[mid] = [f"extract:{mid}"]
+        for group in alone:
+            pass_ms, own = _extraction_ms(group, decoded)
+            for mid in group:
+                units[f"extract:{mid}"] = float(
+                    np.median([s + o for s, o in zip(pass_ms, own[mid], strict=True)])
+                )
+                method_units[mid] = [f"extract:{mid}"]
         match: dict[str, tuple[float, float]] = {}
         nd = bank.n_db
         small = np.arange(min(10, nd), dtype=np.int64)
@@ -388,6 +384,23 @@ def measure_costs(
     finally:
         set_compute_threads(previous)
     return CostModel(units, method_units, match, fusion_ms, n_db or nd, threads)
+
+
+def _extraction_ms(
+    group: dict[str, Method], decoded: Sequence[np.ndarray]
+) -> tuple[list[float], dict[str, list[float]]]:
+    """Shared and own times (ms) of ``group`` extracting each image alone, after a warm-up
+    on the first: ``(shared per image, {method id: own per image})``."""
+    extract_group = type(next(iter(group.values()))).extract_group
+    extract_group(group, decoded[:1])  # warm-up
+    shared: list[float] = []
+    own: dict[str, list[float]] = {mid: [] for mid in group}
+    for img in decoded:
+        out = extract_group(group, [img])
+        shared.extend(out.shared_ms)
+        for mid in group:
+            own[mid].extend(out.own_ms[mid])
+    return shared, own
 
 
 def _median_ms(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> float:

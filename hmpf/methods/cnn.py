@@ -8,8 +8,8 @@ CNN methods are ``batched`` and grouped by (backbone, weights, input size)
 (:meth:`CnnMethod.group_key`): :meth:`CnnMethod.extract_group` runs one batched forward pass
 per image under ``torch.inference_mode()`` for every method of a group, and
 :meth:`CnnMethod.fit_group` fits the parameters of methods that learn them from the reference
-set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`extract_cnn` and :func:`fit_cnn`
-run that over every group of a hierarchy.
+set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`~hmpf.methods.base.extract_many`
+and :func:`~hmpf.methods.base.fit_many` run that over every group of a hierarchy.
 """
 
 from __future__ import annotations
@@ -24,22 +24,12 @@ from pydantic import Field
 
 from hmpf.backbones import Backbone, load_backbone, require_torch
 from hmpf.imageio import to_rgb
-from hmpf.methods.base import (
-    GroupOutput,
-    Method,
-    MethodConfig,
-    extract_many,
-    fit_many,
-    method_groups,
-)
+from hmpf.methods.base import GroupOutput, Method, MethodConfig
 from hmpf.runtime import compute_threads
 
 __all__ = [
     "CnnConfig",
     "CnnMethod",
-    "cnn_groups",
-    "extract_cnn",
-    "fit_cnn",
     "kmeans",
     "l2_rows",
 ]
@@ -173,25 +163,6 @@ def forward_group(
             timing.extend([(time.perf_counter() - t0) * 1e3 / x.shape[0]] * x.shape[0])
         for i in range(x.shape[0]):
             yield {k: v[i] for k, v in arrays.items()}
-
-
-def extract_cnn(
-    methods: Mapping[str, CnnMethod],
-    images: Sequence[np.ndarray],
-    ms: dict[str, list[float]] | None = None,
-) -> dict[str, list[Any]]:
-    """Every CNN method's feature for every image (:func:`hmpf.methods.base.extract_many`)."""
-    return extract_many(methods, images, ms)
-
-
-def cnn_groups(methods: Mapping[str, CnnMethod]) -> list[dict[str, CnnMethod]]:
-    """The methods split into groups that share one forward pass per image."""
-    return method_groups(methods)  # type: ignore[return-value]
-
-
-def fit_cnn(methods: Mapping[str, CnnMethod], images: Sequence[np.ndarray]) -> None:
-    """Fit (in place) every method whose ``requires_fit()`` is True on ``images``' maps."""
-    fit_many(methods, images)
 
 
 # -- small numeric helpers shared by the CNN methods ----------------------------------------
