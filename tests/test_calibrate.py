@@ -180,33 +180,34 @@ class _GroupedToy(GlobalMethod):
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         return euclidean(queries, references)
 
+    shared_ms = 10.0
+
+    @staticmethod
+    def own_ms(mid: str) -> float:
+        return 1.0 if mid == "a" else 2.0
+
     @classmethod
     def extract_group(
         cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
     ) -> GroupOutput:
         cls.calls.append((tuple(methods), len(images)))
         feats = {mid: [m.extract(im) for im in images] for mid, m in methods.items()}
-        own = {mid: [1.0 if mid == "a" else 2.0] * len(images) for mid in methods}
-        return GroupOutput(feats, own, [10.0] * len(images))
+        own = {mid: [cls.own_ms(mid)] * len(images) for mid in methods}
+        return GroupOutput(feats, own, [cls.shared_ms] * len(images))
 
 
 class _AloneToy(_GroupedToy):
     """Extracted alone (no group key) but declaring shared 3 ms and own 4 ms per image."""
 
     name = "alone_cost_test"
+    shared_ms = 3.0
+
+    @staticmethod
+    def own_ms(mid: str) -> float:
+        return 4.0
 
     def group_key(self) -> None:
         return None
-
-    @classmethod
-    def extract_group(
-        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
-    ) -> GroupOutput:
-        cls.calls.append((tuple(methods), len(images)))
-        feats = {mid: [m.extract(im) for im in images] for mid, m in methods.items()}
-        return GroupOutput(
-            feats, {mid: [4.0] * len(images) for mid in methods}, [3.0] * len(images)
-        )
 
 
 def test_measure_costs_uses_declared_groups_of_any_method(tmp_path: Path):
