@@ -8,8 +8,6 @@ checksums, fsync, rename, ``CURRENT``). The work folder holds:
   that ``--resume`` continues only the same job;
 * ``features/``  one file per image and method, written as soon as the image is done
   (:class:`hmpf.features.FeatureCache`): a resumed job extracts only the missing images;
-* ``probes.json`` which images decode, by content digest (a resumed job does not probe
-  the same bytes again);
 * ``state.h5``   fitted parameters, saved before extraction (a resumed job reuses them);
 * ``out/``       the version being written; fsynced, renamed to ``vNNNN``, then ``CURRENT``
   is switched atomically and ``.build`` deleted.
@@ -67,14 +65,7 @@ from hmpf.index.tables import (
     select_columns,
 )
 from hmpf.methods import Method
-from indexer.inputs import (
-    ImageCheck,
-    check_images,
-    read_metadata,
-    read_verdicts,
-    scan_images,
-    write_verdicts,
-)
+from indexer.inputs import ImageCheck, check_images, read_metadata, scan_images
 
 __all__ = ["BuildOptions", "NewVersion", "Summary", "VersionTransaction", "add", "build", "remove"]
 
@@ -253,26 +244,17 @@ def _job_identity(
 
 
 # -- fitting and extraction ------------------------------------------------------------------
-#: The work folder's file of probe verdicts by content digest (:func:`_readable`).
-PROBES = "probes.json"
-
-
 def _readable(
-    paths: list[Path], strict: bool, work: WorkDir, resume: bool
+    paths: list[Path], strict: bool
 ) -> tuple[ImageCheck, list[Path], list[dict[str, str]]]:
     """Every image's sha256 (:attr:`ImageCheck.digests`), the decodable images of ``paths``
     and the skipped ones (name, reason): each file read once, before any work
-    (:func:`indexer.inputs.check_images`). Save :attr:`ImageCheck.verdicts` to
-    ``work``'s :data:`PROBES` once the work folder is started.
-
-    With ``resume``, the verdicts the interrupted run saved there stand for files with the
-    same bytes (same digest), which are then only hashed, not probed again.
+    (:func:`indexer.inputs.check_images`).
 
     Raises:
         IndexBuildError: with ``strict``, naming every unreadable image.
     """
-    known = read_verdicts(work.path / PROBES) if resume else {}
-    check = check_images(paths, known)
+    check = check_images(paths)
     bad = check.unreadable
     if bad and strict:
         them = "it" if len(bad) == 1 else f"these {len(bad)}"
@@ -638,10 +620,9 @@ def build(
     _check_options(cfg, methods, opt)
     paths, refs = _read_inputs(images, metadata)
     with tx:
-        check, paths, skipped = _readable(paths, opt.strict, tx.work, resume)
+        check, paths, skipped = _readable(paths, opt.strict)
         refs.sha256 = check.digests
         tx.begin(_job_identity("build", cfg, refs, options=opt.identity()), resume)
-        write_verdicts(tx.work.path / PROBES, check.verdicts)
         _fit(methods, paths, tx.work)
         feats, resumed = _extract(paths, methods, tx.work, opt)
         refs = refs.select(_kept(refs, paths))
@@ -681,13 +662,12 @@ def add(
                 f"{len(clash)} image(s) already in the index: {', '.join(clash[:5])}; "
                 "remove them first (hmpf-index remove) or rename them"
             )
-        check, paths, skipped = _readable(paths, opt.strict, tx.work, resume)
+        check, paths, skipped = _readable(paths, opt.strict)
         new.sha256 = check.digests
         job = _job_identity(
             "add", parent.config, new, parent=parent.version, refit=refit, options=opt.identity()
         )
         tx.begin(job, resume)
-        write_verdicts(tx.work.path / PROBES, check.verdicts)
         methods = parent.methods
         refit_ids: list[str] = []
         if refit:

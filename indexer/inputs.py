@@ -11,31 +11,24 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
 
-import cv2
 import numpy as np
 
 from hmpf.datasets import list_images
 from hmpf.errors import DatasetError, ImageError
 from hmpf.imageio import load_image, probe_image
-from hmpf.index.layout import package_versions, write_json_atomic
 from hmpf.index.tables import META_COLUMNS, TEXT_COLUMNS
 
 __all__ = [
     "ImageCheck",
     "check_images",
     "read_metadata",
-    "read_verdicts",
     "scan_images",
-    "unreadable_images",
-    "write_verdicts",
 ]
 
 _RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "heading": (-360.0, 360.0)}
@@ -70,27 +63,19 @@ class ImageCheck:
             cannot be read.
         unreadable: the paths :func:`~hmpf.imageio.load_image` cannot read, in order, with
             the error it raises (same reason text as the extraction would give).
-        verdicts: content digest -> :func:`~hmpf.imageio.probe_image`'s verdict (None or
-            the reason), for every file that could be read; what ``known`` takes next time.
     """
 
     digests: list[str] = field(default_factory=list)
     unreadable: dict[Path, ImageError] = field(default_factory=dict)
-    verdicts: dict[str, str | None] = field(default_factory=dict)
 
 
-def check_images(
-    paths: Sequence[Path], known: Mapping[str, str | None] | None = None
-) -> ImageCheck:
+def check_images(paths: Sequence[Path]) -> ImageCheck:
     """Read each file of ``paths`` once (one at a time): its digest and whether it decodes.
 
     The bytes are hashed and given to :func:`~hmpf.imageio.probe_image` (a cheap decode;
     :func:`~hmpf.imageio.load_image`'s error for the failures). A file that cannot be read
-    at all gets ``load_image``'s error (``no such file``, the OS error). ``known`` holds
-    verdicts of an earlier check by content digest (:attr:`ImageCheck.verdicts`): files
-    with those digests, the same bytes, are not probed again.
+    at all gets ``load_image``'s error (``no such file``, the OS error).
     """
-    known = known or {}
     out = ImageCheck()
     for p in paths:
         try:
@@ -104,45 +89,11 @@ def check_images(
             continue
         digest = hashlib.sha256(data).hexdigest()
         out.digests.append(digest)
-        reason = known[digest] if digest in known else probe_image(data, str(p))
+        reason = probe_image(data, str(p))
         del data
-        out.verdicts[digest] = reason
         if reason is not None:
             out.unreadable[p] = ImageError(str(p), reason)
     return out
-
-
-def unreadable_images(paths: Sequence[Path]) -> dict[Path, ImageError]:
-    """The images of ``paths`` that :func:`~hmpf.imageio.load_image` cannot read, in order,
-    with its error (:attr:`ImageCheck.unreadable` of :func:`check_images`)."""
-    return check_images(paths).unreadable
-
-
-def _verdicts_stamp() -> dict[str, Any]:
-    """What a probe's verdict depends on besides the bytes: the decoder and hmpf's checks."""
-    return {"opencv": cv2.__version__, "packages": package_versions()}
-
-
-def write_verdicts(path: Path, verdicts: Mapping[str, str | None]) -> None:
-    """Save :attr:`ImageCheck.verdicts` (atomically) for :func:`read_verdicts`."""
-    write_json_atomic(path, {"stamp": _verdicts_stamp(), "verdicts": dict(verdicts)})
-
-
-def read_verdicts(path: Path) -> dict[str, str | None]:
-    """The verdicts :func:`write_verdicts` saved at ``path``; empty when the file is
-    missing, malformed, or was written with another OpenCV or hmpf version."""
-    try:
-        saved = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(saved, dict) or saved.get("stamp") != _verdicts_stamp():
-        return {}
-    verdicts = saved.get("verdicts")
-    if not isinstance(verdicts, dict) or not all(
-        isinstance(k, str) and (v is None or isinstance(v, str)) for k, v in verdicts.items()
-    ):
-        return {}
-    return verdicts
 
 
 def _parse_value(col: str, text: str, where: str) -> float | str:

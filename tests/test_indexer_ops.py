@@ -26,7 +26,6 @@ from hmpf.methods import GlobalMethod, MethodConfig, register
 from hmpf.methods.base import MetricSpec, euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
-from indexer.inputs import unreadable_images
 
 CONFIG = """
 name: ops-test
@@ -234,7 +233,7 @@ def _broken_images(folder: Path) -> dict[str, str]:
 def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
     folder = _write(tmp_path / "a", 2)
     reasons = _broken_images(folder)
-    bad = unreadable_images(sorted(folder.iterdir()))
+    bad = indexer.inputs.check_images(sorted(folder.iterdir())).unreadable
     assert {p.name: exc.reason for p, exc in bad.items()} == reasons
     assert all(str(p) == exc.source for p, exc in bad.items())
 
@@ -242,7 +241,7 @@ def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
 def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkeypatch):
     """One read per file gives both the digest (hmpf.features.file_digest's) and the
     verdict; a file that cannot be read gets the old "unreadable:<OS error>" digest and
-    load_image's reason; known verdicts skip the probe."""
+    load_image's reason."""
     folder = _write(tmp_path / "a", 2)
     reasons = _broken_images(folder)
     paths = [*sorted(folder.iterdir()), folder / "gone.png"]
@@ -263,17 +262,6 @@ def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkey
     assert got == {**reasons, "gone.png": "no such file"}
     assert list(got) == [p.name for p in paths if p.name in got]  # in order
     assert all(str(p) == exc.source for p, exc in check.unreadable.items())
-    assert set(check.verdicts) == set(check.digests[:-1])
-
-    def no_probe(data, source="<bytes>"):
-        raise AssertionError("probed again")
-
-    monkeypatch.setattr(indexer.inputs, "probe_image", no_probe)
-    again = indexer.inputs.check_images(paths, check.verdicts)
-    assert again.digests == check.digests
-    assert {p: (e.source, e.reason) for p, e in again.unreadable.items()} == {
-        p: (e.source, e.reason) for p, e in check.unreadable.items()
-    }
 
 
 def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -14,12 +13,9 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
-import pytest
 from conftest import default_sigint, synthetic_image
 
-import indexer.build
-import indexer.inputs
-from hmpf.index import IndexBuildError, IndexReader
+from hmpf.index import IndexReader
 from indexer.build import BuildOptions, build
 from indexer.maintenance import verify
 
@@ -99,62 +95,6 @@ def test_kill_then_resume_equals_clean_build(tmp_path):
     assert set(got) == set(want)
     for k in want:
         assert np.array_equal(got[k], want[k]), k
-
-
-def test_resume_does_not_probe_the_images_again(tmp_path, monkeypatch):
-    """The verdicts of the interrupted run (.build/probes.json) stand for the same bytes:
-    a resumed build only hashes the images, and skips (or, --strict, names) the same ones."""
-    config = tmp_path / "c.yaml"
-    config.write_text(CONFIG)
-    images = _folder(tmp_path / "imgs", 4)
-    good = (images / "img000.png").read_bytes()
-    (images / "bad_truncated.png").write_bytes(good[: len(good) // 2])
-    (images / "bad_empty.jpg").write_bytes(b"")
-    index = tmp_path / "index"
-    opts = BuildOptions(workers=1, progress=False)
-
-    def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    with monkeypatch.context() as m:
-        m.setattr(indexer.build, "extract_images", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            build(config, images, index, options=opts)
-    assert (index / ".build" / indexer.build.PROBES).exists()
-    probed: list[str] = []
-    real = indexer.inputs.probe_image
-    monkeypatch.setattr(
-        indexer.inputs, "probe_image", lambda data, source: probed.append(source) or real(data)
-    )
-    strict = BuildOptions(workers=1, progress=False, strict=True)
-    with pytest.raises(IndexBuildError, match="bad_empty.jpg.*bad_truncated.png.*these 2"):
-        build(config, images, index, options=strict, resume=True)
-    summary = build(config, images, index, options=opts, resume=True)
-    assert probed == []
-    assert summary.images == 4
-    assert summary.skipped == [
-        {"name": "bad_empty.jpg", "reason": "file is empty"},
-        {"name": "bad_truncated.png", "reason": "truncated PNG (no IEND chunk)"},
-    ]
-    clean = build(config, images, tmp_path / "clean", options=opts)
-    assert probed and clean.skipped == summary.skipped
-    got, want = _contents(index / "v0001"), _contents(tmp_path / "clean" / "v0001")
-    assert set(got) == set(want)
-    for k in want:
-        assert np.array_equal(got[k], want[k]), k
-
-
-def test_resume_probes_again_when_the_saved_verdicts_do_not_apply(tmp_path):
-    probes = tmp_path / "probes.json"
-    indexer.inputs.write_verdicts(probes, {"ab" * 32: None, "cd" * 32: "file is empty"})
-    assert indexer.inputs.read_verdicts(probes) == {"ab" * 32: None, "cd" * 32: "file is empty"}
-    saved = json.loads(probes.read_text())
-    saved["stamp"]["opencv"] = "0.0.0"  # another decoder
-    probes.write_text(json.dumps(saved))
-    assert indexer.inputs.read_verdicts(probes) == {}
-    probes.write_text("{not json")
-    assert indexer.inputs.read_verdicts(probes) == {}
-    assert indexer.inputs.read_verdicts(tmp_path / "missing.json") == {}
 
 
 def test_ctrl_c_during_extraction_is_one_line_and_exit_130(tmp_path):
