@@ -36,6 +36,7 @@ from service.deps import (
     VehicleKey,
     authorize,
 )
+from service.engine import Engine
 from service.errors import (
     ERROR_RESPONSES,
     ApiError,
@@ -46,6 +47,7 @@ from service.errors import (
     validation_message,
 )
 from service.images import ACCEPTED_TYPES, check_content_type
+from service.metrics import Metrics
 from service.query import ImageQuery
 from service.schemas import (
     BatchItem,
@@ -55,6 +57,7 @@ from service.schemas import (
     LocalizeParams,
     LocalizeResponse,
 )
+from service.settings import Settings
 
 __all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
 
@@ -156,7 +159,7 @@ class Upload(NamedTuple):
 class Localizer:
     """What the localisation routes use of the app: admit, run and answer images."""
 
-    def __init__(self, engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> None:
+    def __init__(self, engine: Engine, settings: Settings, metrics: Metrics) -> None:
         self.engine = engine
         self.settings = settings
         self.metrics = metrics
