@@ -36,7 +36,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from hmpf.errors import ConfigError
+from hmpf.errors import ConfigError, HmpfError
 from hmpf.fusion import default_weights
 from hmpf.methods import Method, create_method, get_method_class
 from hmpf.methods.registry import format_validation_error
@@ -109,9 +109,17 @@ class HierarchyConfig(BaseModel):
     weights: list[float] | None = None
     index: IndexSettings = Field(default_factory=IndexSettings)
     acceptance: AcceptanceSettings | None = None
+    sequence: dict[str, Any] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> HierarchyConfig:
+        if self.sequence is not None:
+            from hmpf.sequence import FilterParams
+
+            try:
+                FilterParams.from_mapping(self.sequence)
+            except (HmpfError, TypeError) as exc:
+                raise ValueError(f"sequence: {exc}") from None
         for i, tier in enumerate(self.tiers):
             if len(set(tier.methods)) != len(tier.methods):
                 raise ValueError(f"tiers.{i}.methods lists a method twice")
@@ -143,11 +151,19 @@ class HierarchyConfig(BaseModel):
         spec = dict(self.methods.get(method_id, {}))
         return str(spec.pop("type", method_id)), spec
 
+    def sequence_params(self) -> Any:
+        """The sequence filter's :class:`~hmpf.sequence.FilterParams` (``sequence:``
+        settings over the defaults)."""
+        from hmpf.sequence import FilterParams
+
+        return FilterParams.from_mapping(self.sequence)
+
     def digest(self) -> str:
-        """sha256 of the canonical JSON of this config (the acceptance threshold excluded: it
-        changes no stored data, and indexes built before it existed keep their identity;
-        likewise ``tier_score`` when it is the original's ``max``)."""
-        data = self.model_dump(exclude={"acceptance"})
+        """sha256 of the canonical JSON of this config (the acceptance threshold and the
+        sequence filter's settings excluded: they change no stored data, and indexes built
+        before they existed keep their identity; likewise ``tier_score`` when it is the
+        original's ``max``)."""
+        data = self.model_dump(exclude={"acceptance", "sequence"})
         if data["tier_score"] == "max":  # the original's: configs (and indexes) from before
             del data["tier_score"]  # the option existed keep their digest
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

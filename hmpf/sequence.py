@@ -1,0 +1,594 @@
+"""Sequence filtering: where a vehicle is, from its stream of frames rather than one frame.
+
+A vehicle drives along routes that were mapped before, so consecutive frames show
+consecutive places. The filter keeps a *belief* over the references along the mapped routes
+and updates it frame by frame, online (no look-ahead), as the forward pass of a hidden Markov
+model (Multi-Process Fusion, Hausler et al. 2019, ran the Viterbi form of the same model over
+a window):
+
+* **motion** (:meth:`SequenceFilter.predict`): a hypothesis is a reference *and a speed*
+  (0 to ``max_steps`` references per frame: stopped, slower, or up to ``max_steps`` times
+  faster than the mapping run). Each frame the speed may change by one (``accel``) and the
+  hypothesis advances by it, give or take one reference (``jitter``); frames dropped between
+  two updates apply the motion that many times. A constant speed is cheap and a stop in an
+  ambiguous place is not free, which is what keeps a drive from sticking to a "hub" image
+  that resembles many frames. At a
+  junction (references of another route within ``junction_m`` metres, when positions are
+  known) a share of the mass crosses over. With probability ``jump`` per frame the vehicle
+  is anywhere (a new drive, a ferry, a relocated robot): that mass is spread evenly over
+  every reference, which is what lets the filter re-lock.
+* **evidence** (:meth:`SequenceFilter.correct`): one frame's :class:`Evidence` from the
+  hierarchy: tier 1's whole-database scores (normalised, best = 1) read at each hypothesis,
+  plus the Combined score of the final candidates; the log-likelihood of a reference is
+  ``evidence_weight * tier1 + combined_weight * combined``.
+
+The belief is sparse: at most ``hypotheses`` explicit references with their probabilities,
+and a *background* mass spread evenly over the rest. New hypotheses come from the frame's
+best tier-1 references (``proposals``) and the final candidates; the background's
+likelihood is estimated on a fixed random sample of references. A frame's work is thus
+``O(hypotheses x steps + proposals + sample)``, independent of the size of the map (the
+evidence itself, tier 1 over the whole database, is the hierarchy's work).
+
+The estimate (:class:`Estimate`) is the reference whose route neighbourhood (``+- window``
+references) holds the most probability; that mass is its confidence.
+
+Everything here is pure: :meth:`SequenceFilter.update` takes a :class:`FilterState` and
+returns a new one, which :meth:`FilterState.to_bytes` packs into a few hundred bytes (the
+service sends it to the vehicle, signed, and gets it back with the next frame).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+
+from hmpf.errors import HmpfError
+
+__all__ = [
+    "Estimate",
+    "Evidence",
+    "FilterParams",
+    "FilterState",
+    "RouteMap",
+    "SequenceFilter",
+    "StateError",
+]
+
+
+class StateError(HmpfError):
+    """A packed filter state that cannot be read (corrupt, or for another map)."""
+
+
+# -- the routes of a map -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RouteMap:
+    """Where each reference sits along the mapped routes.
+
+    Attributes:
+        ordered: (N,) reference ids, route after route, each route in driving order.
+        rank: (N,) position of each reference in ``ordered``.
+        route_of: (N,) route number of each reference.
+        route_start, route_end: (R,) each route's slice of ``ordered``.
+        route_names: (R,) the ``sequence`` value of each route ("" without the column).
+        junction_ptr, junction_ids: references of *other* routes within ``junction_m`` of a
+            reference (CSR: reference ``r``'s are ``junction_ids[junction_ptr[r]:
+            junction_ptr[r + 1]]``); empty without positions or with one route.
+        sample: a fixed random sample of references (all of them for a small map), on which
+            the filter estimates the background's likelihood.
+    """
+
+    ordered: np.ndarray
+    rank: np.ndarray
+    route_of: np.ndarray
+    route_start: np.ndarray
+    route_end: np.ndarray
+    route_names: tuple[str, ...]
+    junction_ptr: np.ndarray
+    junction_ids: np.ndarray
+    sample: np.ndarray
+
+    @classmethod
+    def from_metadata(
+        cls,
+        n: int,
+        *,
+        sequence: Sequence[Any] | np.ndarray | None = None,
+        timestamp: np.ndarray | None = None,
+        lat: np.ndarray | None = None,
+        lon: np.ndarray | None = None,
+        junction_m: float = 10.0,
+        sample_size: int = 512,
+        seed: int = 0,
+    ) -> RouteMap:
+        """Routes from an index's metadata columns.
+
+        A route is one value of ``sequence`` (the whole map is one route without it); within
+        a route the order is by ``timestamp`` where every reference of the route has a finite
+        one, else file order. With ``lat``/``lon``, references of different routes within
+        ``junction_m`` metres are junctions.
+        """
+        if n < 1:
+            raise HmpfError("a route map needs at least one reference")
+        names = (
+            np.array([""] * n, dtype=object)
+            if sequence is None
+            else np.array([("" if s is None else str(s)) for s in sequence], dtype=object)
+        )
+        if len(names) != n:
+            raise HmpfError(f"sequence column has {len(names)} entries for {n} references")
+        route_names, first, route_of = np.unique(
+            names.astype(str), return_index=True, return_inverse=True
+        )
+        # Routes in order of their first reference, so a one-route map keeps file order.
+        by_first = np.argsort(first, kind="stable")
+        relabel = np.empty(len(first), dtype=np.int64)
+        relabel[by_first] = np.arange(len(first))
+        route_of = relabel[route_of.ravel()]
+        route_names = route_names[by_first]
+        key = np.arange(n, dtype=np.float64)
+        if timestamp is not None:
+            ts = np.asarray(timestamp, dtype=np.float64)
+            if len(ts) != n:
+                raise HmpfError(f"timestamp column has {len(ts)} entries for {n} references")
+            missing = np.bincount(route_of, weights=~np.isfinite(ts), minlength=len(first))
+            timed = (missing == 0)[route_of]  # routes whose every reference has a time
+            key[timed] = ts[timed]
+        ordered = np.lexsort((np.arange(n), key, route_of)).astype(np.int64)
+        rank = np.empty(n, dtype=np.int64)
+        rank[ordered] = np.arange(n)
+        counts = np.bincount(route_of, minlength=len(route_names))
+        route_end = np.cumsum(counts).astype(np.int64)
+        route_start = route_end - counts
+        ptr, ids = _junctions(route_of, lat, lon, junction_m)
+        rng = np.random.default_rng(seed)
+        sample = (
+            np.arange(n, dtype=np.int64)
+            if n <= sample_size
+            else np.sort(rng.choice(n, sample_size, replace=False)).astype(np.int64)
+        )
+        return cls(
+            ordered,
+            rank,
+            route_of.astype(np.int64),
+            route_start,
+            route_end,
+            tuple(str(x) for x in route_names),
+            ptr,
+            ids,
+            sample,
+        )
+
+    @property
+    def n(self) -> int:
+        return int(len(self.ordered))
+
+    @property
+    def n_routes(self) -> int:
+        return len(self.route_names)
+
+    @property
+    def has_junctions(self) -> bool:
+        return bool(len(self.junction_ids))
+
+    def advance(self, refs: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """The references ``steps`` further along each reference's route (broadcasting),
+        stopping at the route's ends."""
+        route = self.route_of[refs]
+        lo, hi = self.route_start[route], self.route_end[route] - 1
+        pos = self.rank[refs]
+        target = np.clip(pos[..., None] + steps, lo[..., None], hi[..., None])
+        return self.ordered[target]
+
+    def separation(self, a: np.ndarray | int, b: np.ndarray | int) -> np.ndarray:
+        """Route steps between references (``inf`` on different routes)."""
+        a, b = np.asarray(a), np.asarray(b)
+        same = self.route_of[a] == self.route_of[b]
+        gap = np.abs(self.rank[a] - self.rank[b]).astype(np.float64)
+        return np.where(same, gap, np.inf)
+
+    def junctions_of(self, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(which entry of ``refs``, the junction reference) pairs, for every junction."""
+        starts, stops = self.junction_ptr[refs], self.junction_ptr[refs + 1]
+        counts = stops - starts
+        owner = np.repeat(np.arange(len(refs)), counts)
+        offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        return owner, self.junction_ids[np.repeat(starts, counts) + offs]
+
+
+def _junctions(
+    route_of: np.ndarray, lat: np.ndarray | None, lon: np.ndarray | None, radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """CSR lists of the references of other routes within ``radius_m`` (a k-d tree on an
+    equirectangular projection, accurate at the scale of a junction)."""
+    n = len(route_of)
+    empty = (np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    if lat is None or lon is None or route_of.max(initial=0) == 0 or radius_m <= 0:
+        return empty
+    la, lo = np.asarray(lat, np.float64), np.asarray(lon, np.float64)
+    ok = np.isfinite(la) & np.isfinite(lo)
+    if not ok.any():
+        return empty
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(ok)
+    lat0 = math.radians(float(np.mean(la[idx])))
+    xy = np.stack([np.radians(lo[idx]) * math.cos(lat0), np.radians(la[idx])], 1) * 6371000.0
+    pairs = cKDTree(xy).query_pairs(radius_m, output_type="ndarray")
+    pairs = idx[pairs.reshape(-1, 2)]
+    pairs = pairs[route_of[pairs[:, 0]] != route_of[pairs[:, 1]]]
+    if not len(pairs):
+        return empty
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    arr = both[np.lexsort((both[:, 1], both[:, 0]))]
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(ptr, arr[:, 0] + 1, 1)
+    return np.cumsum(ptr), arr[:, 1].copy()
+
+
+# -- parameters, evidence, state ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """The filter's settings (the defaults are tuned on training parts; see the README).
+
+    Attributes:
+        max_steps: the fastest speed, in references per frame (the vehicle up to this many
+            times faster than the mapping run); a hypothesis has a speed from 0 (stopped)
+            to ``max_steps``.
+        accel: probability per frame that the speed changes by one (up or down).
+        jitter: probability of a step one reference shorter, and of one longer, than the
+            speed (uneven spacing of the references).
+        jump: probability per frame that the vehicle is anywhere on the map.
+        evidence_weight: log-likelihood weight of the tier-1 score (in [0, 1]).
+        combined_weight: log-likelihood weight of the final candidates' Combined score
+            (min-max normalised over them, in [0, 1]).
+        proposals: best tier-1 references a frame adds as new hypotheses.
+        hypotheses: explicit hypotheses kept after each frame.
+        window: route neighbourhood (+- references) whose mass is the estimate's confidence.
+        lock_mass: confidence from which the estimate counts as locked.
+        max_gap: frames dropped beyond which the motion is not applied any more: the
+            filter starts again from the evidence (a long gap is a jump).
+        junction_m: references of two routes this close are one place (needs positions).
+        junction: share of a hypothesis's mass that crosses to the other route at a junction.
+    """
+
+    max_steps: int = 4
+    accel: float = 0.05
+    jitter: float = 0.1
+    jump: float = 0.01
+    evidence_weight: float = 3.0
+    combined_weight: float = 1.0
+    proposals: int = 50
+    hypotheses: int = 200
+    window: int = 2
+    lock_mass: float = 0.5
+    max_gap: int = 8
+    junction_m: float = 10.0
+    junction: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.max_steps < 1:
+            raise HmpfError("max_steps must be >= 1")
+        if not (0 <= self.accel < 1 and 0 <= self.jitter < 0.5):
+            raise HmpfError("accel must be in [0, 1) and jitter in [0, 0.5)")
+        if not 0 < self.jump < 1:
+            raise HmpfError("jump must be in (0, 1)")
+        if self.evidence_weight < 0 or self.combined_weight < 0:
+            raise HmpfError("evidence weights must be >= 0")
+        if self.proposals < 1 or self.hypotheses < 1 or self.window < 0 or self.max_gap < 1:
+            raise HmpfError("proposals, hypotheses and max_gap must be >= 1, window >= 0")
+        if not 0 <= self.junction < 1 or not 0 < self.lock_mass <= 1:
+            raise HmpfError("junction in [0, 1) and lock_mass in (0, 1] are required")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any] | None) -> FilterParams:
+        """From a config's ``sequence:`` mapping (unknown keys refused)."""
+        values = dict(values or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise HmpfError(f"unknown sequence settings: {', '.join(unknown)}")
+        return cls(**values)
+
+    def with_(self, **changes: Any) -> FilterParams:
+        return replace(self, **changes)
+
+    @property
+    def speeds(self) -> int:
+        """Number of speeds a hypothesis can have (0 .. max_steps)."""
+        return self.max_steps + 1
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """One frame's evidence, in reference ids of the whole map.
+
+    Attributes:
+        tier1: per tier-1 method, the (N,) score normalised over the database (best = 1;
+            NaN or missing: not scored, read as 0). Views of the hierarchy's arrays.
+        proposals: (K,) the best references by the mean tier-1 score.
+        final: (F,) the final candidates; ``combined``: their Combined score min-max
+            normalised to [0, 1].
+    """
+
+    tier1: tuple[np.ndarray, ...]
+    proposals: np.ndarray
+    final: np.ndarray
+    combined: np.ndarray
+
+    @classmethod
+    def from_result(
+        cls, result: Any, n: int, *, proposals: int = 50, allowed: np.ndarray | None = None
+    ) -> Evidence:
+        """The evidence of a :class:`~hmpf.hierarchy.HierarchyResult`.
+
+        Args:
+            result: the hierarchy's result for the frame.
+            n: references in the map.
+            proposals: how many best tier-1 references to propose.
+            allowed: with a GPS prior, the reference ids the hierarchy ran over (its indices
+                are positions in it); references outside score 0.
+        """
+        tier = result.tiers[0]
+        arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
+        mean = np.nan_to_num(np.mean(arrays, axis=0), nan=0.0)
+        k = min(proposals, len(mean))
+        top = np.argpartition(-mean, k - 1)[:k] if k < len(mean) else np.arange(len(mean))
+        final = np.asarray(result.final_candidates, dtype=np.int64)
+        z = np.asarray(result.combined, dtype=np.float64)
+        comb = np.zeros(len(final))
+        if len(final) and np.isfinite(z).any():
+            lo, hi = np.nanmin(z), np.nanmax(z)
+            comb = np.nan_to_num((z - lo) / (hi - lo) if hi > lo else np.ones_like(z), nan=0.0)
+        if allowed is not None:
+            allowed = np.asarray(allowed, dtype=np.int64)
+            full = []
+            for a in arrays:
+                x = np.zeros(n)
+                x[allowed] = a
+                full.append(x)
+            arrays, top, final = full, allowed[top], allowed[final]
+        return cls(tuple(arrays), top.astype(np.int64), final, comb)
+
+    def tier1_at(self, refs: np.ndarray) -> np.ndarray:
+        """Mean tier-1 score at ``refs`` (NaN read as 0)."""
+        if not self.tier1:
+            return np.zeros(len(refs))
+        return np.nan_to_num(np.mean([a[refs] for a in self.tier1], axis=0), nan=0.0)
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """The belief after some frames: explicit hypotheses plus an even background.
+
+    A hypothesis is a reference and a speed, one integer ``key = ref * speeds + speed``
+    (``speeds`` = :attr:`FilterParams.speeds`).
+
+    Attributes:
+        keys: (H,) hypothesis keys, unique and sorted.
+        prob: (H,) their probabilities.
+        background: probability spread evenly over every reference and speed
+            (``1 - prob.sum()``).
+        frames: frames seen since the start.
+    """
+
+    keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    background: float = 1.0
+    frames: int = 0
+
+    _MAGIC = b"HQS1"
+    _HEAD = "<IfH"
+
+    def to_bytes(self, keep: int = 64) -> bytes:
+        """A compact form: the ``keep`` most probable hypotheses (the rest joins the
+        background), keys as uint32 and probabilities as float16 logs."""
+        order = np.sort(np.argsort(-self.prob, kind="stable")[:keep])
+        keys, prob = self.keys[order], self.prob[order]
+        background = max(0.0, 1.0 - float(prob.sum()))
+        head = self._MAGIC + struct.pack(self._HEAD, self.frames, background, len(keys))
+        logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
+        return head + keys.astype("<u4").tobytes() + logs.tobytes()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, n_keys: int) -> FilterState:
+        """Read :meth:`to_bytes`; ``n_keys`` = references x speeds of the map it is for
+        (a key beyond it is refused)."""
+        size = len(cls._MAGIC) + struct.calcsize(cls._HEAD)
+        if len(data) < size or not data.startswith(cls._MAGIC):
+            raise StateError("not a sequence state")
+        frames, background, h = struct.unpack(cls._HEAD, data[len(cls._MAGIC) : size])
+        if len(data) != size + 6 * h:
+            raise StateError("sequence state has the wrong length")
+        keys = np.frombuffer(data, "<u4", h, size).astype(np.int64)
+        logs = np.frombuffer(data, "<f2", h, size + 4 * h).astype(np.float64)
+        if (keys >= n_keys).any() or (h > 1 and (np.diff(keys) <= 0).any()):
+            raise StateError("sequence state names hypotheses that are not in this map")
+        if not (np.isfinite(logs).all() and math.isfinite(background) and background >= 0):
+            raise StateError("sequence state has invalid probabilities")
+        prob = np.exp(np.minimum(logs, 0.0))
+        total = float(prob.sum()) + background
+        if total <= 0:
+            raise StateError("sequence state has no probability")
+        return cls(keys, prob / total, background / total, int(frames))
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The filter's answer after a frame.
+
+    Attributes:
+        ref: the estimated reference (-1 before the first frame).
+        mass: probability within ``+- window`` route references of it (its confidence).
+        locked: ``mass >= lock_mass``.
+        frames: frames seen since the start.
+        speed: the most probable speed there (references per frame).
+    """
+
+    ref: int
+    mass: float
+    locked: bool
+    frames: int
+    speed: float = float("nan")
+
+
+# -- the filter ----------------------------------------------------------------------------------
+
+
+class SequenceFilter:
+    """The forward filter over a :class:`RouteMap` (pure: states in, states out)."""
+
+    def __init__(self, routes: RouteMap, params: FilterParams | None = None) -> None:
+        self.routes = routes
+        self.params = params or FilterParams()
+        p = self.params
+        s = p.speeds
+        # One frame's motion: the speed changes by -1/0/+1 (clipped), then the hypothesis
+        # advances by the new speed, one less or one more (jitter).
+        dv = np.array([-1, 0, 1])
+        pv = np.array([p.accel / 2, 1 - p.accel, p.accel / 2])
+        dj = np.array([-1, 0, 1])
+        pj = np.array([p.jitter, 1 - 2 * p.jitter, p.jitter])
+        v = np.arange(s)[:, None, None]
+        new_v = np.clip(v + dv[None, :, None], 0, p.max_steps)
+        self._new_v = np.broadcast_to(new_v, (s, 3, 3)).reshape(s, 9)
+        self._step = (new_v + dj[None, None, :]).reshape(s, 9)
+        self._w = np.broadcast_to(pv[None, :, None] * pj[None, None, :], (s, 3, 3)).reshape(s, 9)
+
+    @property
+    def n(self) -> int:
+        return self.routes.n
+
+    @property
+    def n_keys(self) -> int:
+        """Hypothesis keys of this map: references x speeds."""
+        return self.routes.n * self.params.speeds
+
+    def start(self) -> FilterState:
+        """The belief at the start of a drive: anywhere, at any speed."""
+        return FilterState()
+
+    def update(
+        self, state: FilterState, evidence: Evidence, steps: int = 1
+    ) -> tuple[FilterState, Estimate]:
+        """One frame: move the belief ``steps`` frames on (1: the next frame; more: frames
+        were dropped; 0: the same instant again), weigh it with ``evidence``."""
+        predicted = self.predict(state, steps)
+        posterior = self.correct(predicted, evidence)
+        return posterior, self.estimate(posterior)
+
+    # -- the two halves ---------------------------------------------------------------------
+    def predict(self, state: FilterState, steps: int = 1) -> FilterState:
+        """Motion (``steps`` frames) and the chance of a jump."""
+        p = self.params
+        if steps < 0:
+            raise HmpfError("steps must be >= 0")
+        if steps > p.max_gap or not len(state.keys):
+            return FilterState(background=1.0, frames=state.frames)
+        keys, prob = state.keys, state.prob
+        for _ in range(steps):
+            keys, prob = self._move(keys, prob)
+        lost = 1.0 - (1.0 - p.jump) ** steps
+        return FilterState(
+            keys, prob * (1.0 - lost), state.background * (1.0 - lost) + lost, state.frames
+        )
+
+    def _move(self, keys: np.ndarray, prob: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p, routes, s = self.params, self.routes, self.params.speeds
+        refs, v = keys // s, keys % s
+        new_v, step = self._new_v[v], self._step[v]
+        to = routes.advance(refs, step) * s + new_v
+        w = prob[:, None] * self._w[v]
+        to, w = to.ravel(), w.ravel()
+        if routes.has_junctions and p.junction > 0:
+            owner, other = routes.junctions_of(refs)
+            if len(owner):
+                n_j = np.bincount(owner, minlength=len(refs))
+                stay = np.where(n_j > 0, 1.0 - p.junction, 1.0)
+                w = w * np.repeat(stay, step.shape[1])
+                j_to = routes.advance(other, step[owner]) * s + new_v[owner]
+                share = prob[owner] * p.junction / n_j[owner]
+                j_w = share[:, None] * self._w[v[owner]]
+                to, w = np.concatenate([to, j_to.ravel()]), np.concatenate([w, j_w.ravel()])
+        uniq, inv = np.unique(to, return_inverse=True)
+        return uniq, np.bincount(inv, weights=w, minlength=len(uniq))
+
+    def correct(self, predicted: FilterState, evidence: Evidence) -> FilterState:
+        """Weigh the predicted belief with one frame's evidence, keep the best hypotheses."""
+        p, n, s = self.params, self.n, self.params.speeds
+        new_refs = np.concatenate([evidence.proposals, evidence.final])
+        new = (new_refs[:, None] * s + np.arange(s)[None, :]).ravel()
+        keys = np.union1d(predicted.keys, new).astype(np.int64)
+        n_keys = n * s
+        prior = np.full(len(keys), predicted.background / n_keys)
+        prior[np.searchsorted(keys, predicted.keys)] += predicted.prob
+        refs = keys // s
+        loglik = p.evidence_weight * evidence.tier1_at(refs)
+        if len(evidence.final) and p.combined_weight:
+            bonus = np.zeros(len(keys))
+            order = np.argsort(evidence.final, kind="stable")
+            fin, comb = evidence.final[order], evidence.combined[order]
+            at = np.searchsorted(fin, refs)
+            hit = at < len(fin)
+            hit[hit] = fin[at[hit]] == refs[hit]
+            bonus[hit] = comb[at[hit]]
+            loglik = loglik + p.combined_weight * bonus
+        # Background: the even mass over the keys without a hypothesis, weighed by the mean
+        # likelihood of a fixed sample of references.
+        top = float(loglik.max(initial=0.0))
+        lik = np.exp(loglik - top)
+        sample = self.routes.sample
+        bg_lik = float(np.mean(np.exp(p.evidence_weight * evidence.tier1_at(sample) - top)))
+        post = prior * lik
+        bg = predicted.background * max(0, n_keys - len(keys)) / n_keys * bg_lik
+        total = float(post.sum()) + bg
+        if not total > 0 or not math.isfinite(total):
+            return FilterState(background=1.0, frames=predicted.frames + 1)
+        post, bg = post / total, bg / total
+        if len(keys) > p.hypotheses:
+            keep = np.sort(np.argpartition(-post, p.hypotheses - 1)[: p.hypotheses])
+            bg += float(post.sum() - post[keep].sum())
+            keys, post = keys[keep], post[keep]
+        return FilterState(keys, post, bg, predicted.frames + 1)
+
+    def estimate(self, state: FilterState) -> Estimate:
+        """The reference with the most probability within ``+- window`` along its route
+        (every speed counted)."""
+        if not len(state.keys):
+            return Estimate(-1, 0.0, False, state.frames)
+        routes, w, s = self.routes, self.params.window, self.params.speeds
+        refs_all = state.keys // s
+        refs, inv = np.unique(refs_all, return_inverse=True)
+        prob = np.bincount(inv, weights=state.prob, minlength=len(refs))
+        pos = routes.rank[refs]
+        order = np.argsort(pos, kind="stable")
+        pos_s, prob_s, refs_s = pos[order], prob[order], refs[order]
+        route = routes.route_of[refs_s]
+        lo = np.maximum(pos_s - w, routes.route_start[route])
+        hi = np.minimum(pos_s + w, routes.route_end[route] - 1)
+        csum = np.concatenate([[0.0], np.cumsum(prob_s)])
+        mass = csum[np.searchsorted(pos_s, hi, "right")] - csum[np.searchsorted(pos_s, lo, "left")]
+        best = int(np.argmax(mass + 1e-9 * prob_s))  # ties: the more probable centre
+        ref = int(refs_s[best])
+        mine = refs_all == ref
+        speed = float(state.keys[mine][np.argmax(state.prob[mine])] % s)
+        m = float(min(1.0, mass[best]))
+        return Estimate(ref, m, m >= self.params.lock_mass, state.frames, speed)
+
+    def run(
+        self, evidences: Sequence[Evidence], steps: Sequence[int] | None = None
+    ) -> list[Estimate]:
+        """A whole drive from its start, frame by frame (``steps``: per frame, default 1)."""
+        state, out = self.start(), []
+        for i, ev in enumerate(evidences):
+            state, est = self.update(state, ev, 1 if steps is None else int(steps[i]))
+            out.append(est)
+        return out
