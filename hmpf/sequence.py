@@ -20,7 +20,8 @@ a window):
 * **evidence** (:meth:`SequenceFilter.correct`): one frame's :class:`Evidence` from the
   hierarchy: tier 1's whole-database scores (normalised, best = 1) read at each hypothesis,
   plus the Combined score of the final candidates; the log-likelihood of a reference is
-  ``evidence_weight * tier1 + combined_weight * combined``.
+  ``evidence_weight * z + combined_weight * combined``, ``z`` the tier-1 score as a z-score
+  over the map (a frame whose scores are all alike says little).
 
 The belief is sparse: at most ``hypotheses`` explicit references with their probabilities,
 and a *background* mass spread evenly over the rest. New hypotheses come from the frame's
@@ -247,7 +248,7 @@ class FilterParams:
         jitter: probability of a step one reference shorter, and of one longer, than the
             speed (uneven spacing of the references).
         jump: probability per frame that the vehicle is anywhere on the map.
-        evidence_weight: log-likelihood weight of the tier-1 score (in [0, 1]).
+        evidence_weight: log-likelihood weight of the tier-1 score's z-score over the map.
         combined_weight: log-likelihood weight of the final candidates' Combined score
             (min-max normalised over them, in [0, 1]).
         proposals: best tier-1 references a frame adds as new hypotheses.
@@ -261,10 +262,10 @@ class FilterParams:
     """
 
     max_steps: int = 4
-    accel: float = 0.05
+    accel: float = 0.02
     jitter: float = 0.1
     jump: float = 0.01
-    evidence_weight: float = 3.0
+    evidence_weight: float = 0.25
     combined_weight: float = 1.0
     proposals: int = 50
     hypotheses: int = 200
@@ -303,8 +304,9 @@ class FilterParams:
 
     @property
     def speeds(self) -> int:
-        """Number of speeds a hypothesis can have (0 .. max_steps)."""
-        return self.max_steps + 1
+        """Number of speeds a hypothesis can have: 0 to ``max_steps`` references per frame
+        in half-reference steps (a vehicle half as fast as the mapping run is a speed)."""
+        return 2 * self.max_steps + 1
 
 
 @dataclass(frozen=True)
@@ -369,7 +371,8 @@ class Evidence:
 class FilterState:
     """The belief after some frames: explicit hypotheses plus an even background.
 
-    A hypothesis is a reference and a speed, one integer ``key = ref * speeds + speed``
+    A hypothesis is a position along a route, in half references, and a speed, in half
+    references per frame: one integer ``key = (2 * ref + half) * speeds + speed``
     (``speeds`` = :attr:`FilterParams.speeds`).
 
     Attributes:
@@ -400,8 +403,8 @@ class FilterState:
 
     @classmethod
     def from_bytes(cls, data: bytes, n_keys: int) -> FilterState:
-        """Read :meth:`to_bytes`; ``n_keys`` = references x speeds of the map it is for
-        (a key beyond it is refused)."""
+        """Read :meth:`to_bytes`; ``n_keys`` = :attr:`SequenceFilter.n_keys` of the map it
+        is for (a key beyond it is refused)."""
         size = len(cls._MAGIC) + struct.calcsize(cls._HEAD)
         if len(data) < size or not data.startswith(cls._MAGIC):
             raise StateError("not a sequence state")
@@ -451,14 +454,14 @@ class SequenceFilter:
         self.params = params or FilterParams()
         p = self.params
         s = p.speeds
-        # One frame's motion: the speed changes by -1/0/+1 (clipped), then the hypothesis
-        # advances by the new speed, one less or one more (jitter).
+        # One frame's motion, in half references: the speed changes by -1/0/+1 (clipped),
+        # then the hypothesis advances by the new speed, one less or one more (jitter).
         dv = np.array([-1, 0, 1])
         pv = np.array([p.accel / 2, 1 - p.accel, p.accel / 2])
         dj = np.array([-1, 0, 1])
         pj = np.array([p.jitter, 1 - 2 * p.jitter, p.jitter])
         v = np.arange(s)[:, None, None]
-        new_v = np.clip(v + dv[None, :, None], 0, p.max_steps)
+        new_v = np.clip(v + dv[None, :, None], 0, s - 1)
         self._new_v = np.broadcast_to(new_v, (s, 3, 3)).reshape(s, 9)
         self._step = (new_v + dj[None, None, :]).reshape(s, 9)
         self._w = np.broadcast_to(pv[None, :, None] * pj[None, None, :], (s, 3, 3)).reshape(s, 9)
@@ -469,8 +472,22 @@ class SequenceFilter:
 
     @property
     def n_keys(self) -> int:
-        """Hypothesis keys of this map: references x speeds."""
-        return self.routes.n * self.params.speeds
+        """Hypothesis keys of this map: references x 2 halves x speeds."""
+        return self.routes.n * 2 * self.params.speeds
+
+    def _split(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(reference, half, speed) of each key."""
+        s = self.params.speeds
+        pos, speed = np.divmod(keys, s)
+        ref, half = np.divmod(pos, 2)
+        return ref, half, speed
+
+    def _join(self, ref: np.ndarray, half: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        return (ref * 2 + half) * self.params.speeds + speed
+
+    def refs_of(self, keys: np.ndarray) -> np.ndarray:
+        """The reference of each hypothesis key."""
+        return np.asarray(keys) // (2 * self.params.speeds)
 
     def start(self) -> FilterState:
         """The belief at the start of a drive: anywhere, at any speed."""
@@ -502,10 +519,11 @@ class SequenceFilter:
         )
 
     def _move(self, keys: np.ndarray, prob: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p, routes, s = self.params, self.routes, self.params.speeds
-        refs, v = keys // s, keys % s
-        new_v, step = self._new_v[v], self._step[v]
-        to = routes.advance(refs, step) * s + new_v
+        p, routes = self.params, self.routes
+        refs, half, v = self._split(keys)
+        new_v = self._new_v[v]
+        dref, new_half = np.divmod(half[:, None] + self._step[v], 2)
+        to = self._join(routes.advance(refs, dref), new_half, new_v)
         w = prob[:, None] * self._w[v]
         to, w = to.ravel(), w.ravel()
         if routes.has_junctions and p.junction > 0:
@@ -513,8 +531,8 @@ class SequenceFilter:
             if len(owner):
                 n_j = np.bincount(owner, minlength=len(refs))
                 stay = np.where(n_j > 0, 1.0 - p.junction, 1.0)
-                w = w * np.repeat(stay, step.shape[1])
-                j_to = routes.advance(other, step[owner]) * s + new_v[owner]
+                w = w * np.repeat(stay, dref.shape[1])
+                j_to = self._join(routes.advance(other, dref[owner]), new_half[owner], new_v[owner])
                 share = prob[owner] * p.junction / n_j[owner]
                 j_w = share[:, None] * self._w[v[owner]]
                 to, w = np.concatenate([to, j_to.ravel()]), np.concatenate([w, j_w.ravel()])
@@ -523,15 +541,19 @@ class SequenceFilter:
 
     def correct(self, predicted: FilterState, evidence: Evidence) -> FilterState:
         """Weigh the predicted belief with one frame's evidence, keep the best hypotheses."""
-        p, n, s = self.params, self.n, self.params.speeds
+        p, n_keys = self.params, self.n_keys
         new_refs = np.concatenate([evidence.proposals, evidence.final])
-        new = (new_refs[:, None] * s + np.arange(s)[None, :]).ravel()
+        new = (new_refs[:, None] * (2 * p.speeds) + np.arange(2 * p.speeds)[None, :]).ravel()
         keys = np.union1d(predicted.keys, new).astype(np.int64)
-        n_keys = n * s
         prior = np.full(len(keys), predicted.background / n_keys)
         prior[np.searchsorted(keys, predicted.keys)] += predicted.prob
-        refs = keys // s
-        loglik = p.evidence_weight * evidence.tier1_at(refs)
+        refs = self.refs_of(keys)
+        # The tier-1 score as a z-score over the map (mean and spread on the fixed sample):
+        # a frame whose scores are all alike says little, a frame with one clear peak a lot.
+        at_sample = evidence.tier1_at(self.routes.sample)
+        mu, sd = float(at_sample.mean()), float(at_sample.std())
+        scale = p.evidence_weight / sd if sd > 1e-9 else 0.0
+        loglik = scale * (evidence.tier1_at(refs) - mu)
         if len(evidence.final) and p.combined_weight:
             bonus = np.zeros(len(keys))
             order = np.argsort(evidence.final, kind="stable")
@@ -545,8 +567,7 @@ class SequenceFilter:
         # likelihood of a fixed sample of references.
         top = float(loglik.max(initial=0.0))
         lik = np.exp(loglik - top)
-        sample = self.routes.sample
-        bg_lik = float(np.mean(np.exp(p.evidence_weight * evidence.tier1_at(sample) - top)))
+        bg_lik = float(np.mean(np.exp(scale * (at_sample - mu) - top)))
         post = prior * lik
         bg = predicted.background * max(0, n_keys - len(keys)) / n_keys * bg_lik
         total = float(post.sum()) + bg
@@ -564,8 +585,8 @@ class SequenceFilter:
         (every speed counted)."""
         if not len(state.keys):
             return Estimate(-1, 0.0, False, state.frames)
-        routes, w, s = self.routes, self.params.window, self.params.speeds
-        refs_all = state.keys // s
+        routes, w = self.routes, self.params.window
+        refs_all = self.refs_of(state.keys)
         refs, inv = np.unique(refs_all, return_inverse=True)
         prob = np.bincount(inv, weights=state.prob, minlength=len(refs))
         pos = routes.rank[refs]
@@ -579,7 +600,7 @@ class SequenceFilter:
         best = int(np.argmax(mass + 1e-9 * prob_s))  # ties: the more probable centre
         ref = int(refs_s[best])
         mine = refs_all == ref
-        speed = float(state.keys[mine][np.argmax(state.prob[mine])] % s)
+        speed = float(self._split(state.keys[mine][np.argmax(state.prob[mine])])[2]) / 2
         m = float(min(1.0, mass[best]))
         return Estimate(ref, m, m >= self.params.lock_mass, state.frames, speed)
 

@@ -9,7 +9,10 @@ of ``--block`` frames; ``halves``: first and second part). The search runs on th
 part only; the test part then checks the winner against its best single method and flat
 fusion. Writes ``calibrated.yaml`` (a hierarchy config with ``acceptance.threshold``, ready for
 ``hmpf-index build --config`` and the service), ``leaderboard.md`` and ``calibration.json``.
-Descriptors come through the feature cache, so a second run extracts nothing.
+Descriptors come through the feature cache, so a second run extracts nothing. With
+``--sequence`` the sequence filter's settings and lock threshold are chosen for the winner on
+the training part too (written as ``sequence:`` in calibrated.yaml) and its sequence-mode
+figures measured on the test part.
 
 The time budget is enforced on a cost model measured on this machine, so the winner may differ
 between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
@@ -29,6 +32,7 @@ from hmpf.cli.common import add_version, run
 from hmpf.cli.eval import (
     add_cache_args,
     add_ground_truth_args,
+    add_sequence_arg,
     cache_from_args,
     ground_truth_from_args,
 )
@@ -126,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=1500, help="3-tier structures drawn")
     p.add_argument("--refine", type=int, default=25, help="structures searched in full")
     p.add_argument("--top", type=int, default=20, help="leaderboard length")
+    add_sequence_arg(p)
     return p
 
 
@@ -226,6 +231,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             top=args.top,
             progress=_bar_update(bar),
             costs=costs,
+            sequence=args.sequence,
         )
     report["protocol"] = {
         "reference": args.reference,

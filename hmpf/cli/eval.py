@@ -11,6 +11,9 @@ With ``--index DIR`` the references come from a built index (``hmpf-index build`
 queries run through the same code as the service (``--config`` and ``--reference`` are then
 optional; a given ``--config`` must match the index's).
 
+With ``--sequence`` the queries are also driven in order as one vehicle through the sequence
+filter (:mod:`hmpf.evaluation.sequence`); the config's ``sequence:`` settings apply.
+
 Ground truth: frame alignment (``--tolerance T``, the default form), ``--gt-csv FILE``
 (query,reference[,tolerance] rows) or ``--gps-csv FILE --radius-m R`` (role,name,lat,lon).
 """
@@ -69,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="METHOD",
         help="methods whose whole-database curve is not computed",
     )
+    add_sequence_arg(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     commands = p.add_subparsers(dest="command", title="commands", metavar="COMMAND")
     sub = commands.add_parser(
@@ -87,6 +91,16 @@ def add_cache_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
     p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
     p.add_argument("--workers", type=int, default=None, help="extraction processes (default: CPUs)")
+
+
+def add_sequence_arg(p: argparse.ArgumentParser) -> None:
+    """``--sequence``, shared by hmpf-eval, its experiments and hmpf-calibrate."""
+    p.add_argument(
+        "--sequence",
+        action="store_true",
+        help="also drive the queries in order as one vehicle through the sequence filter "
+        "(frames to lock on after a start and a jump, recall by speed, accepted answers)",
+    )
 
 
 def add_ground_truth_args(p: argparse.ArgumentParser) -> None:
@@ -141,6 +155,7 @@ def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
             cache=cache_from_args(args),
             workers=args.workers,
             progress=not args.quiet,
+            sequence=args.sequence,
         )
 
 
@@ -160,6 +175,7 @@ def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
         workers=args.workers,
         skip_curves=args.skip_curves,
         progress=not args.quiet,
+        sequence=args.sequence,
     )
 
 

@@ -4,7 +4,8 @@
         --query ../shared/datasets/gardens_point/night_right --tolerance 2 --out exp/gp_dr_nr
 
 Writes PNG figures (``fig1``-``fig6``), ``report.md`` and ``experiments.json`` to ``--out``.
-``--calibrated FILE`` adds a config written by ``hmpf-calibrate`` to the test-split check.
+``--calibrated FILE`` adds a config written by ``hmpf-calibrate`` to the test-split check;
+``--sequence`` adds each checked hierarchy's sequence mode (filter tuned on the training part).
 The figures need matplotlib (``pip install 'hmpf[report]'``): checked before any work.
 """
 
@@ -15,6 +16,7 @@ import json
 from pathlib import Path
 
 from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_banks
+from hmpf.cli.eval import add_sequence_arg
 from hmpf.errors import HmpfError
 
 PROG = "hmpf-eval experiments"
@@ -43,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k2", type=int, default=5, help="candidates tier 2 passes on (3 tiers)")
     p.add_argument("--calibrated", help="a hmpf-calibrate config to check on the test split")
     p.add_argument("--title", default="", help="title of the report and figures")
+    add_sequence_arg(p)
 
 
 def run_experiments(args: argparse.Namespace) -> int:
@@ -76,6 +79,7 @@ def run_experiments(args: argparse.Namespace) -> int:
         k1=args.k1,
         k2=args.k2,
         calibrated=calibrated,
+        sequence=args.sequence,
     )
     out = Path(args.out)
     title = args.title or f"{Path(args.reference).name} -> {Path(args.query).name}"

@@ -33,6 +33,7 @@ from scipy.stats import binomtest
 from hmpf.config import AcceptanceSettings, HierarchyConfig
 from hmpf.errors import ConfigError
 from hmpf.evaluation.evaluate import HierarchyOutcome
+from hmpf.evaluation.sequence import format_sequence_report, sequence_settings
 from hmpf.evaluation.study import (
     CostModel,
     ScoreBank,
@@ -438,8 +439,13 @@ def calibrate(
     top: int = 20,
     progress: Callable[[int, int], Any] | None = None,
     costs: CostModel | None = None,
+    sequence: bool = False,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """Search, pick the threshold, check on the test part; returns (config, report).
+
+    With ``sequence``, the sequence filter's settings and lock threshold are chosen for the
+    winner on the training part too (written as the config's ``sequence:``) and its
+    sequence-mode figures measured on the test part.
 
     Args:
         db_size: charge tier 1 for this many references (default: the training split's).
@@ -461,6 +467,12 @@ def calibrate(
     search_s = time.perf_counter() - t0
     win = ranked[0]
     config, acc = _accept(win, pool, name, target_precision)
+    seq_params, seq_train = None, None
+    if sequence:
+        seq_params, seq_train = train.tune_sequence(
+            config, target_precision=target_precision, seed=seed
+        )
+        config = config.model_copy(update={"sequence": sequence_settings(seq_params)})
     report: dict[str, Any] = {
         "machine": machine_description(),
         "seed": seed,
@@ -478,6 +490,8 @@ def calibrate(
         },
         "config": config.model_dump(mode="json"),
     }
+    if seq_train is not None:
+        report["train"]["sequence"] = seq_train
     if test is not None:
         cmp = compare_on(test, pool, config)
         out = cmp.pop("outcome")
@@ -489,6 +503,8 @@ def calibrate(
             "measured_ms": measure_query_ms(config, test),
             "model_ms": costs.query_ms(config, out.mean_inputs),
         }
+        if seq_params is not None:
+            report["test"]["sequence"] = test.sequence(config, seq_params, seed=seed)
     return config, report
 
 
@@ -515,7 +531,17 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
         f"{'reached' if acc['reached'] else 'NOT reached'} on training: precision "
         f"{_fmt(acc['precision'])}, recall {acc['recall']:.3f}).",
     ]
+    if tr.get("sequence"):
+        lines += [
+            "",
+            f"Sequence filter chosen on the training drives ({len(tr['sequence']['grid'])} "
+            f"settings): lock threshold {tr['sequence']['lock_mass']:.3f} for "
+            f"{tr['sequence']['target_precision']:.0%} precision.",
+        ]
     te = report.get("test")
+    if te and te.get("sequence"):
+        lines += ["", "Sequence mode on the test split:", "", "```"]
+        lines += [*format_sequence_report(te["sequence"]), "```"]
     if te:
         ta = te["acceptance"]
         lines += [

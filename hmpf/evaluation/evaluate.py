@@ -27,6 +27,7 @@ from hmpf.features import ExtractionResult, FeatureCache, extract_images, fit_me
 from hmpf.fusion import flat_fusion, nan_argmax, zscore
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.methods import Method
+from hmpf.sequence import RouteMap
 
 if TYPE_CHECKING:
     from hmpf.index.reader import IndexReader
@@ -348,11 +349,15 @@ def evaluate(
     workers: int | None = None,
     skip_curves: Sequence[str] = (),
     progress: bool = False,
+    sequence: bool = False,
 ) -> dict[str, Any]:
     """Evaluate every method alone, the hierarchy and flat fusion; returns the JSON report.
 
     ``skip_curves`` lists method ids whose whole-database score matrix is not computed (their
     recall@N is omitted and flat fusion then uses the remaining methods; the report says so).
+    With ``sequence`` the queries are also driven in order as one vehicle along the
+    references (one route, file order) through the sequence filter of ``config``
+    (:mod:`hmpf.evaluation.sequence`).
     """
     gt = data.gt
     prep = prepare(build_methods(config), data, cache=cache, workers=workers, progress=progress)
@@ -366,7 +371,7 @@ def evaluate(
     flat_match, flat_quality = _flat_baseline(full, methods, flat_ids, config.faithful, n_q)
     flat_correct = gt[np.arange(n_q), flat_match]
     tiers = tier_rows(config, outcome)
-    return {
+    report = {
         "config": {
             "name": config.name,
             "mode": config.mode,
@@ -408,6 +413,21 @@ def evaluate(
         "cache": {"reference_cached": prep.ref.cached, "query_cached": prep.qry.cached},
         "fitted_methods": prep.fitted,
     }
+    if sequence:
+        routes = RouteMap.from_metadata(n_db)
+        report["sequence"] = _sequence(results, gt, routes, config)
+    return report
+
+
+def _sequence(
+    results: Sequence[HierarchyResult], gt: np.ndarray, routes: RouteMap, config: HierarchyConfig
+) -> dict[str, Any]:
+    from hmpf.evaluation.sequence import sequence_report
+
+    t0 = time.perf_counter()
+    rep = sequence_report(results, gt, routes, config.sequence_params())
+    rep["wall_s"] = time.perf_counter() - t0
+    return rep
 
 
 def evaluate_index(
@@ -419,8 +439,12 @@ def evaluate_index(
     cache: FeatureCache | None = None,
     workers: int | None = None,
     progress: bool = False,
+    sequence: bool = False,
 ) -> dict[str, Any]:
     """Queries against a built index, through exactly what the service runs per query.
+
+    With ``sequence`` the queries are also driven in order as one vehicle along the index's
+    routes (:meth:`~hmpf.index.reader.IndexReader.route_map`).
 
     Reports the hierarchy's recall, its tier table, the PR curve over the quality score and
     timings; single-method curves and flat fusion need whole-database score matrices and are
@@ -437,7 +461,7 @@ def evaluate_index(
     )
     results, hierarchy_s = run_queries(reader.hierarchy(), scorers, reader.n)
     outcome = outcome_of(results, gt, reader.n)
-    return {
+    report = {
         "index": {"path": str(reader.root), "version": reader.version, "n_reference": reader.n},
         "config": {"name": reader.config.name, "sha256": reader.config.digest()},
         "protocol": {
@@ -452,6 +476,9 @@ def evaluate_index(
         "wall_s": {"extraction": extraction_s, "hierarchy": hierarchy_s},
         "timing_ms": {"hierarchy_per_query": hierarchy_s * 1e3 / max(1, len(queries))},
     }
+    if sequence:
+        report["sequence"] = _sequence(results, gt, reader.route_map(), reader.config)
+    return report
 
 
 # -- reports as text ---------------------------------------------------------------------------
@@ -489,6 +516,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
         f"recall@100%P {pr['recall_at_100_precision']:.3f}"
     )
+    lines.extend(_sequence_lines(report))
     w = report["wall_s"]
     tm = report["timing_ms"]
     lines.append(
@@ -512,8 +540,19 @@ def format_index_report(report: dict[str, Any]) -> str:
         f"Combined recall@1   {h['combined_recall_at_1']:.3f}",
         f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
         f"recall@100%P {pr['recall_at_100_precision']:.3f}",
+        *_sequence_lines(report),
         f"time: query extraction {report['wall_s']['extraction']:.1f} s, hierarchy "
         f"{report['wall_s']['hierarchy']:.1f} s "
         f"({report['timing_ms']['hierarchy_per_query']:.1f} ms/query)",
     ]
     return "\n".join(lines)
+
+
+def _sequence_lines(report: dict[str, Any]) -> list[str]:
+    if "sequence" not in report:
+        return []
+    from hmpf.evaluation.sequence import format_sequence_report
+
+    return ["", "sequence mode (queries driven in order as one vehicle):"] + [
+        "  " + line for line in format_sequence_report(report["sequence"])
+    ]

@@ -184,13 +184,18 @@ def _on_test(
     pool: HierarchyConfig,
     finalists: Sequence[tuple[str, HierarchyConfig, float]],
     time_images: int,
+    sequence_train: ScoreBank | None = None,
 ) -> list[dict[str, Any]]:
     """Study 6: each (label, config, training Combined recall@1) on the test part against
-    its baselines."""
+    its baselines; with ``sequence_train``, also in sequence mode (the filter's settings
+    chosen on that training part)."""
     rows = []
     for label, cfg, train_combined in finalists:
         cmp = compare_on(test, pool, cfg)
         cmp.pop("outcome")
+        if sequence_train is not None:
+            params, _ = sequence_train.tune_sequence(cfg)
+            cmp["sequence"] = test.sequence(cfg, params)
         rows.append(
             {
                 "label": label,
@@ -218,6 +223,7 @@ def run_studies(
     counts: Sequence[tuple[int, int]] = ((50, 10), (20, 5)),
     calibrated: HierarchyConfig | None = None,
     time_images: int = 10,
+    sequence: bool = False,
 ) -> dict[str, Any]:
     """Run the six studies; returns a JSON-ready dict (see the module docstring)."""
     check_pool(pool, trio, count_trio)
@@ -251,7 +257,7 @@ def run_studies(
         finalists = [("best of studies 2-5", best[1], best[0])]
         if calibrated is not None:
             finalists.append(("calibrated", calibrated, train.run(calibrated).recall_at_1))
-        res["test"] = _on_test(test, pool, finalists, time_images)
+        res["test"] = _on_test(test, pool, finalists, time_images, train if sequence else None)
     return res
 
 
@@ -498,14 +504,15 @@ def _md_test(res: dict[str, Any]) -> list[str]:
         lines += [
             "",
             "| choice | hierarchy | train Combined | test Combined | best single (test) "
-            "| flat fusion (test) | ms/query |",
-            "|---|---|---|---|---|---|---|",
+            "| flat fusion (test) | sequence mode (test) | ms/query |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for r in res["test"]:
+            seq = _f(r["sequence"]["recall_at_1"]) if r.get("sequence") else "-"
             lines.append(
                 f"| {r['label']} | {r['hierarchy']} | {_f(r['train_combined'])} | "
                 f"**{_f(r['recall_at_1'])}** | {_f(r['best_single_recall_at_1'])} "
-                f"({_name(r['best_single'])}) | {_f(r['flat_recall_at_1'])} | "
+                f"({_name(r['best_single'])}) | {_f(r['flat_recall_at_1'])} | {seq} | "
                 f"{r['measured_ms']['total_ms']:.1f} |"
             )
     return lines

@@ -37,11 +37,12 @@ from hmpf.evaluation.evaluate import (
     run_queries,
 )
 from hmpf.features import FeatureCache, extract_query
-from hmpf.hierarchy import Hierarchy, ScoreFn, feature_scorer
+from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.methods import Method
 from hmpf.methods.base import method_groups
 from hmpf.runtime import compute_threads, set_compute_threads
+from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = [
     "CostModel",
@@ -208,12 +209,41 @@ class ScoreBank:
 
         return score_fn
 
-    def run(self, config: HierarchyConfig) -> HierarchyOutcome:
-        """Run ``config`` for every query of the bank."""
+    def results(self, config: HierarchyConfig) -> list[HierarchyResult]:
+        """``config``'s result for every query of the bank, in query order."""
         hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
         scorers = (self.scorer(q) for q in range(self.n_query))
         results, _ = run_queries(hier, scorers, self.n_db)
-        return outcome_of(results, self.gt, self.n_db)
+        return results
+
+    def run(self, config: HierarchyConfig) -> HierarchyOutcome:
+        """Run ``config`` for every query of the bank."""
+        return outcome_of(self.results(config), self.gt, self.n_db)
+
+    def sequence(
+        self, config: HierarchyConfig, params: FilterParams, *, seed: int = 0
+    ) -> dict[str, Any]:
+        """Sequence-mode figures of ``config`` on this part, its queries driven in order
+        along its references (one route, file order)."""
+        from hmpf.evaluation.sequence import sequence_report
+
+        routes = RouteMap.from_metadata(self.n_db)
+        return sequence_report(self.results(config), self.gt, routes, params, seed=seed)
+
+    def tune_sequence(
+        self, config: HierarchyConfig, *, target_precision: float = 0.99, seed: int = 0
+    ) -> tuple[FilterParams, dict[str, Any]]:
+        """The sequence filter's settings for ``config`` chosen on this (training) part."""
+        from hmpf.evaluation.sequence import tune_sequence
+
+        return tune_sequence(
+            self.results(config),
+            self.gt,
+            RouteMap.from_metadata(self.n_db),
+            base=config.sequence_params(),
+            target_precision=target_precision,
+            seed=seed,
+        )
 
     def single_correct(self, mid: str) -> np.ndarray:
         """(Q,) whether one method alone ranks a correct reference first (ties: lower index)."""

@@ -52,6 +52,7 @@ from hmpf.index.storage import (
 )
 from hmpf.index.tables import Columns
 from hmpf.methods import Method
+from hmpf.sequence import RouteMap
 
 __all__ = ["IndexReader", "check_packages", "resolve_version"]
 
@@ -171,6 +172,7 @@ class IndexReader:
             ) from None
         self._check_shapes()
         self._faiss: dict[str, Any] = {}
+        self._routes: RouteMap | None = None
         k1 = self.config.tiers[0].k
         self.approx_k = approx_k or max(256, 4 * k1)
         self._sample = np.unique(
@@ -287,6 +289,22 @@ class IndexReader:
     def hierarchy(self) -> Hierarchy:
         """The :class:`~hmpf.hierarchy.Hierarchy` the index was built for."""
         return Hierarchy(self.config, self.methods)
+
+    def route_map(self) -> RouteMap:
+        """The mapped routes for sequence filtering (:mod:`hmpf.sequence`): the ``sequence``
+        column's routes, ordered by ``timestamp`` where given, junctions from ``lat``/``lon``
+        (built once per reader)."""
+        if self._routes is None:
+            meta = self.refs.meta
+            self._routes = RouteMap.from_metadata(
+                self.n,
+                sequence=meta.get("sequence"),
+                timestamp=meta.get("timestamp"),
+                lat=meta.get("lat"),
+                lon=meta.get("lon"),
+                junction_m=self.config.sequence_params().junction_m,
+            )
+        return self._routes
 
     def extract_query(
         self,

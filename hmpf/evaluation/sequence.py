@@ -1,0 +1,367 @@
+"""Sequence mode of :mod:`hmpf.evaluation`: query traverses driven as vehicles.
+
+A route's queries, in order, are one vehicle's drive; the :class:`~hmpf.sequence.SequenceFilter`
+answers each frame from the hierarchy's evidence of that frame and of the frames before it
+(online, no look-ahead). Besides the whole traverse driven once at the mapping run's speed,
+:func:`sequence_report` drives it in the ways a fleet does:
+
+* **starts**: many drives from random places of the route, to count the frames needed to
+  lock on and recall as a function of the frames seen (the history);
+* **jumps**: spliced drives (a stretch of the route, then a distant stretch), to count the
+  frames needed to re-lock after a relocation;
+* **speeds**: every k-th frame (k times faster than the mapping run) and every frame twice
+  (half as fast);
+* **dropped frames**: a share of the frames left out at random, the gap known to the filter.
+
+Every frame counts, the first frames of a drive included. A drive *locks* at the first frame
+from which its estimate is right for ``hold`` frames in a row (or to the end of the drive).
+
+:func:`tune_sequence` chooses the filter's settings on a training part (a small grid) and
+the lock threshold (``lock_mass``) for a target precision of the accepted (locked) answers.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from hmpf.hierarchy import HierarchyResult
+from hmpf.sequence import Estimate, Evidence, FilterParams, RouteMap, SequenceFilter
+
+__all__ = [
+    "SPEEDS",
+    "Drive",
+    "DriveResult",
+    "drive",
+    "evidences_of",
+    "format_sequence_report",
+    "lock_frames",
+    "sequence_report",
+    "sequence_settings",
+    "tune_sequence",
+]
+
+#: Speed ratios (vehicle / mapping run) the report drives at.
+SPEEDS = (0.5, 1.0, 2.0, 3.0, 4.0)
+#: Frames in a row an estimate must be right to count as locked.
+HOLD = 5
+
+
+@dataclass(frozen=True)
+class Drive:
+    """One simulated drive: query indices in order and the frames elapsed before each.
+
+    Attributes:
+        frames: (T,) query index shown at each step.
+        steps: (T,) frames elapsed since the previous step (1: the next frame; >1: frames
+            were dropped; 0: the vehicle sent the same instant again).
+        splice: the step at which the drive jumps to a distant stretch (None: no jump).
+    """
+
+    frames: np.ndarray
+    steps: np.ndarray
+    splice: int | None = None
+
+    @classmethod
+    def along(cls, frames: Sequence[int] | np.ndarray, splice: int | None = None) -> Drive:
+        f = np.asarray(frames, dtype=np.int64)
+        return cls(f, np.ones(len(f), dtype=np.int64), splice)
+
+
+@dataclass(frozen=True)
+class DriveResult:
+    """The estimates of one drive against the ground truth."""
+
+    drive: Drive
+    estimates: list[Estimate]
+    correct: np.ndarray  # (T,) the estimate is right
+    locked: np.ndarray  # (T,) the estimate is locked (accepted)
+
+
+def evidences_of(results: Sequence[HierarchyResult], n: int, proposals: int) -> list[Evidence]:
+    """Each query's :class:`Evidence` from its hierarchy result (``n`` references)."""
+    return [Evidence.from_result(r, n, proposals=proposals) for r in results]
+
+
+def drive(
+    filt: SequenceFilter, evidences: Sequence[Evidence], d: Drive, gt: np.ndarray
+) -> DriveResult:
+    """Run one drive through the filter from its start."""
+    state, estimates = filt.start(), []
+    for q, step in zip(d.frames, d.steps, strict=True):
+        state, est = filt.update(state, evidences[int(q)], int(step))
+        estimates.append(est)
+    refs = np.array([e.ref for e in estimates], dtype=np.int64)
+    correct = np.array([r >= 0 and bool(gt[q, r]) for q, r in zip(d.frames, refs, strict=True)])
+    locked = np.array([e.locked for e in estimates], dtype=bool)
+    return DriveResult(d, estimates, correct, locked)
+
+
+def lock_frames(correct: np.ndarray, start: int = 0, hold: int = HOLD) -> int | None:
+    """Frames from ``start`` (1 = the first) until the estimate is right ``hold`` frames in a
+    row (or to the end of the drive); None when it never is."""
+    c = np.asarray(correct, dtype=bool)[start:]
+    for i in range(len(c)):
+        if c[i : i + hold].all():
+            return i + 1
+    return None
+
+
+# -- the drives --------------------------------------------------------------------------------
+
+
+def _speed_frames(nq: int, ratio: float, offset: int = 0) -> np.ndarray:
+    if ratio >= 1:
+        return np.arange(offset, nq, int(ratio))
+    repeat = round(1 / ratio)
+    return np.repeat(np.arange(offset, nq), repeat)
+
+
+def _speed_drive(nq: int, ratio: float, offset: int = 0) -> Drive:
+    """The traverse at ``ratio`` times the mapping run's speed (each step one frame of the
+    vehicle: at half speed it sends every place twice)."""
+    return Drive.along(_speed_frames(nq, ratio, offset))
+
+
+def start_drives(
+    nq: int, count: int, length: int, ratio: float, rng: np.random.Generator
+) -> list[Drive]:
+    """``count`` drives of ``length`` steps from random places, at a speed ratio."""
+    span = int(np.ceil(length * max(ratio, 1.0)))
+    if nq <= span:
+        return [Drive.along(_speed_frames(nq, ratio)[:length])]
+    starts = rng.choice(nq - span, size=min(count, nq - span), replace=False)
+    return [Drive.along(_speed_frames(nq, ratio, int(s))[:length]) for s in np.sort(starts)]
+
+
+def jump_drives(
+    nq: int, count: int, before: int, after: int, min_gap: int, rng: np.random.Generator
+) -> list[Drive]:
+    """Spliced drives: ``before`` frames of one stretch, then ``after`` frames of a stretch at
+    least ``min_gap`` frames away."""
+    out: list[Drive] = []
+    tries = 0
+    while len(out) < count and tries < 50 * count:
+        tries += 1
+        a = int(rng.integers(0, nq - before))
+        b = int(rng.integers(0, nq - after))
+        if abs(b - a) < min_gap or abs(b - (a + before)) < min_gap:
+            continue
+        frames = np.concatenate([np.arange(a, a + before), np.arange(b, b + after)])
+        out.append(Drive.along(frames, splice=before))
+    return out
+
+
+def dropped_drive(nq: int, share: float, rng: np.random.Generator) -> Drive:
+    """The whole traverse with ``share`` of the frames left out (the gap known)."""
+    keep = np.sort(np.flatnonzero(rng.random(nq) >= share))
+    if not len(keep):
+        keep = np.array([0])
+    steps = np.diff(np.concatenate([[keep[0] - 1], keep]))
+    return Drive(keep.astype(np.int64), steps.astype(np.int64))
+
+
+# -- the report --------------------------------------------------------------------------------
+
+
+def _precision_recall(runs: Sequence[DriveResult]) -> dict[str, float]:
+    correct = np.concatenate([r.correct for r in runs])
+    locked = np.concatenate([r.locked for r in runs])
+    tp = int((correct & locked).sum())
+    return {
+        "accepted": float(locked.mean()) if len(locked) else 0.0,
+        "precision": tp / int(locked.sum()) if locked.any() else 1.0,
+        "recall": tp / len(correct) if len(correct) else 0.0,
+    }
+
+
+def _summary(values: Sequence[int | None], limit: int) -> dict[str, Any]:
+    """Median / p95 of frames-to-lock (None: never, counted as the drive's length + 1)."""
+    v = np.array([limit + 1 if x is None else x for x in values], dtype=np.float64)
+    if not len(v):
+        return {"n": 0}
+    return {
+        "n": len(v),
+        "median": float(np.median(v)),
+        "p95": float(np.percentile(v, 95)),
+        "within_10": float(np.mean(v <= 10)),
+        "never": int(sum(x is None for x in values)),
+    }
+
+
+def sequence_report(
+    results: Sequence[HierarchyResult],
+    gt: np.ndarray,
+    routes: RouteMap,
+    params: FilterParams,
+    *,
+    seed: int = 0,
+    starts: int = 40,
+    start_length: int = 20,
+    jumps: int = 100,
+    dropped: float = 0.25,
+    speeds: Sequence[float] = SPEEDS,
+) -> dict[str, Any]:
+    """Sequence-mode figures of one route's query traverse (``results`` in route order):
+    the estimate's recall@1 beside the single-frame one, the accepted (locked) answers'
+    share and precision, frames to lock after a start and after a jump, recall by speed
+    ratio and by frames of history, and with dropped frames."""
+    gt = np.asarray(gt, dtype=bool)
+    nq = len(results)
+    filt = SequenceFilter(routes, params)
+    evs = evidences_of(results, routes.n, params.proposals)
+    rng = np.random.default_rng(seed)
+    single = np.array([r.match >= 0 and bool(gt[q, r.match]) for q, r in enumerate(results)])
+    full = drive(filt, evs, Drive.along(np.arange(nq)), gt)
+    by_speed = {}
+    history: dict[str, list[float]] = {}
+    for ratio in speeds:
+        runs = [
+            drive(filt, evs, _speed_drive(nq, ratio, off), gt)
+            for off in range(max(1, int(ratio)) if ratio >= 1 else 1)
+        ]
+        by_speed[f"{ratio:g}"] = float(np.mean(np.concatenate([r.correct for r in runs])))
+        s_runs = [
+            drive(filt, evs, d, gt) for d in start_drives(nq, starts, start_length, ratio, rng)
+        ]
+        curve = np.array([r.correct for r in s_runs if len(r.correct) == start_length])
+        history[f"{ratio:g}"] = curve.mean(axis=0).tolist() if len(curve) else []
+    start_runs = [drive(filt, evs, d, gt) for d in start_drives(nq, starts, start_length, 1.0, rng)]
+    before, after = min(20, nq // 4), min(30, nq // 3)
+    jump_runs = [
+        drive(filt, evs, d, gt)
+        for d in jump_drives(nq, jumps, before, after, max(10, nq // 5), rng)
+    ]
+    drop_run = drive(filt, evs, dropped_drive(nq, dropped, rng), gt)
+    return {
+        "params": asdict(params),
+        "n_query": nq,
+        "single_recall_at_1": float(single.mean()) if nq else 0.0,
+        "recall_at_1": float(full.correct.mean()) if nq else 0.0,
+        "accepted": _precision_recall([full]),
+        "lock_after_start": _summary([lock_frames(r.correct) for r in start_runs], start_length),
+        "lock_after_jump": _summary(
+            [lock_frames(r.correct, r.drive.splice or 0) for r in jump_runs], after
+        ),
+        "recall_by_speed": by_speed,
+        "recall_by_history": history,
+        "dropped": {"share": dropped, "recall_at_1": float(drop_run.correct.mean())},
+        "full_drive": {
+            "correct": full.correct.astype(int).tolist(),
+            "locked": full.locked.astype(int).tolist(),
+            "mass": [round(e.mass, 4) for e in full.estimates],
+        },
+    }
+
+
+def format_sequence_report(rep: dict[str, Any]) -> list[str]:
+    """:func:`sequence_report` as text lines."""
+    acc, drop = rep["accepted"], rep["dropped"]
+
+    def lock(x: dict[str, Any]) -> str:
+        if not x["n"]:
+            return "no drives"
+        return (
+            f"median {x['median']:.0f} frames, p95 {x['p95']:.0f}, within 10: "
+            f"{x['within_10']:.2f} ({x['n']} drives)"
+        )
+
+    speeds = "  ".join(f"x{k}: {v:.3f}" for k, v in rep["recall_by_speed"].items())
+    return [
+        f"sequence recall@1   {rep['recall_at_1']:.3f}   (single frame "
+        f"{rep['single_recall_at_1']:.3f})",
+        f"accepted (locked)   {acc['accepted']:.3f} of frames, precision "
+        f"{acc['precision']:.3f}, recall {acc['recall']:.3f}",
+        f"lock after start    {lock(rep['lock_after_start'])}",
+        f"re-lock after jump  {lock(rep['lock_after_jump'])}",
+        f"recall by speed     {speeds}",
+        f"dropped frames ({drop['share']:.0%})  recall@1 {drop['recall_at_1']:.3f}",
+    ]
+
+
+# -- tuning on a training part -------------------------------------------------------------------
+
+#: The grid :func:`tune_sequence` searches (over the defaults of :class:`FilterParams`).
+TUNING_GRID: dict[str, Sequence[Any]] = {
+    "evidence_weight": (0.05, 0.1, 0.25, 0.5),
+    "combined_weight": (1.0, 2.0, 4.0),
+    "jump": (0.01, 0.05),
+    "jitter": (0.1, 0.2),
+}
+
+
+def sequence_settings(params: FilterParams) -> dict[str, Any]:
+    """The settings of ``params`` that differ from the defaults, for a config's
+    ``sequence:`` (floats rounded to 6 digits)."""
+    default = FilterParams()
+    out: dict[str, Any] = {}
+    for f in fields(FilterParams):
+        value = getattr(params, f.name)
+        if value != getattr(default, f.name):
+            out[f.name] = round(value, 6) if isinstance(value, float) else value
+    return out
+
+
+def _lock_threshold(mass: np.ndarray, correct: np.ndarray, precision: float) -> float:
+    """The lowest posterior mass whose answers at or above it reach ``precision``."""
+    order = np.argsort(-mass, kind="stable")
+    c = correct[order].astype(np.float64)
+    prec = np.cumsum(c) / np.arange(1, len(c) + 1)
+    ok = np.flatnonzero(prec >= precision)
+    if not len(ok):
+        return 1.0
+    return float(min(1.0, mass[order][ok[-1]]))
+
+
+def tune_sequence(
+    results: Sequence[HierarchyResult],
+    gt: np.ndarray,
+    routes: RouteMap,
+    *,
+    base: FilterParams | None = None,
+    grid: dict[str, Sequence[Any]] | None = None,
+    target_precision: float = 0.99,
+    seed: int = 0,
+) -> tuple[FilterParams, dict[str, Any]]:
+    """Choose the filter's settings on a training part, then its lock threshold.
+
+    Each setting of ``grid`` drives the traverse at speeds 1, 2 and 3 and 40 spliced drives;
+    the score is the mean recall@1 over those drives plus the share of jumps re-locked within
+    10 frames (ties: the earlier grid point). ``lock_mass`` is then the lowest posterior mass
+    whose answers reach ``target_precision`` on the training drives.
+    """
+    base = base or FilterParams()
+    grid = grid or TUNING_GRID
+    gt = np.asarray(gt, dtype=bool)
+    nq = len(results)
+    rng = np.random.default_rng(seed)
+    before, after = min(20, nq // 4), min(30, nq // 3)
+    jumps = jump_drives(nq, 40, before, after, max(10, nq // 5), rng)
+    speed_drives = [_speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
+    rows = []
+    best: tuple[float, FilterParams, list[DriveResult]] | None = None
+    evs: dict[int, list[Evidence]] = {}
+    for values in itertools.product(*grid.values()):
+        params = base.with_(**dict(zip(grid, values, strict=True)))
+        ev = evs.setdefault(params.proposals, evidences_of(results, routes.n, params.proposals))
+        filt = SequenceFilter(routes, params)
+        runs = [drive(filt, ev, d, gt) for d in speed_drives]
+        recall = float(np.mean([r.correct.mean() for r in runs]))
+        j_runs = [drive(filt, ev, d, gt) for d in jumps]
+        relock = [lock_frames(r.correct, r.drive.splice or 0) for r in j_runs]
+        within = float(np.mean([x is not None and x <= 10 for x in relock])) if relock else 1.0
+        score = recall + within
+        rows.append({**dict(zip(grid, values, strict=True)), "recall": recall, "relock_10": within})
+        if best is None or score > best[0] + 1e-12:
+            best = (score, params, runs + j_runs)
+    assert best is not None
+    _, params, runs = best
+    mass = np.concatenate([[e.mass for e in r.estimates] for r in runs])
+    correct = np.concatenate([r.correct for r in runs])
+    lock = _lock_threshold(mass, correct, target_precision)
+    chosen = params.with_(lock_mass=max(lock, 1e-6))
+    return chosen, {"grid": rows, "lock_mass": lock, "target_precision": target_precision}
