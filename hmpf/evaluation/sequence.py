@@ -23,7 +23,7 @@ the lock threshold (``lock_mass``) for a target precision of the accepted (locke
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -40,8 +40,10 @@ __all__ = [
     "evidences_of",
     "format_sequence_report",
     "lock_frames",
+    "lock_threshold",
     "sequence_report",
     "sequence_settings",
+    "speed_drive",
     "tune_sequence",
 ]
 
@@ -121,7 +123,7 @@ def _speed_frames(nq: int, ratio: float, offset: int = 0) -> np.ndarray:
     return np.repeat(np.arange(offset, nq), repeat)
 
 
-def _speed_drive(nq: int, ratio: float, offset: int = 0) -> Drive:
+def speed_drive(nq: int, ratio: float, offset: int = 0) -> Drive:
     """The traverse at ``ratio`` times the mapping run's speed (each step one frame of the
     vehicle: at half speed it sends every place twice)."""
     return Drive.along(_speed_frames(nq, ratio, offset))
@@ -221,7 +223,7 @@ def sequence_report(
     history: dict[str, list[float]] = {}
     for ratio in speeds:
         runs = [
-            drive(filt, evs, _speed_drive(nq, ratio, off), gt)
+            drive(filt, evs, speed_drive(nq, ratio, off), gt)
             for off in range(max(1, int(ratio)) if ratio >= 1 else 1)
         ]
         by_speed[f"{ratio:g}"] = float(np.mean(np.concatenate([r.correct for r in runs])))
@@ -306,7 +308,7 @@ def sequence_settings(params: FilterParams) -> dict[str, Any]:
     return out
 
 
-def _lock_threshold(mass: np.ndarray, correct: np.ndarray, precision: float) -> float:
+def lock_threshold(mass: np.ndarray, correct: np.ndarray, precision: float) -> float:
     """The lowest posterior mass whose answers at or above it reach ``precision``."""
     order = np.argsort(-mass, kind="stable")
     c = correct[order].astype(np.float64)
@@ -318,50 +320,63 @@ def _lock_threshold(mass: np.ndarray, correct: np.ndarray, precision: float) -> 
 
 
 def tune_sequence(
-    results: Sequence[HierarchyResult],
-    gt: np.ndarray,
-    routes: RouteMap,
+    parts: Sequence[tuple[Sequence[HierarchyResult], np.ndarray, RouteMap]],
     *,
     base: FilterParams | None = None,
     grid: dict[str, Sequence[Any]] | None = None,
     target_precision: float = 0.99,
     seed: int = 0,
+    progress: Callable[[dict[str, Any]], Any] | None = None,
 ) -> tuple[FilterParams, dict[str, Any]]:
-    """Choose the filter's settings on a training part, then its lock threshold.
+    """Choose the filter's settings on training parts, then its lock threshold.
 
-    Each setting of ``grid`` drives the traverse at speeds 1, 2 and 3 and 40 spliced drives;
-    the score is the mean recall@1 over those drives plus the share of jumps re-locked within
-    10 frames (ties: the earlier grid point). ``lock_mass`` is then the lowest posterior mass
-    whose answers reach ``target_precision`` on the training drives.
+    Args:
+        parts: per route, (hierarchy results in query order, ground truth, routes).
+
+    Each setting of ``grid`` (over ``base``) drives each part's traverse at speeds 1, 2 and 3
+    and 40 spliced drives; a part's score is the mean recall@1 over the speed drives plus
+    the share of jumps re-locked within 10 frames, and the setting's score the mean over the
+    parts (ties: the earlier grid point). ``lock_mass`` is then the lowest posterior mass
+    whose answers reach ``target_precision`` on all the training drives pooled.
     """
     base = base or FilterParams()
     grid = grid or TUNING_GRID
-    gt = np.asarray(gt, dtype=bool)
-    nq = len(results)
     rng = np.random.default_rng(seed)
-    before, after = min(20, nq // 4), min(30, nq // 3)
-    jumps = jump_drives(nq, 40, before, after, max(10, nq // 5), rng)
-    speed_drives = [_speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
+    prepared = []
+    for results, gt, routes in parts:
+        nq = len(results)
+        before, after = min(20, nq // 4), min(30, nq // 3)
+        drives = [speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
+        jumps = jump_drives(nq, 40, before, after, max(10, nq // 5), rng)
+        prepared.append((results, np.asarray(gt, dtype=bool), routes, drives, jumps))
     rows = []
     best: tuple[float, FilterParams, list[DriveResult]] | None = None
-    evs: dict[int, list[Evidence]] = {}
     for values in itertools.product(*grid.values()):
-        params = base.with_(**dict(zip(grid, values, strict=True)))
-        ev = evs.setdefault(params.proposals, evidences_of(results, routes.n, params.proposals))
-        filt = SequenceFilter(routes, params)
-        runs = [drive(filt, ev, d, gt) for d in speed_drives]
-        recall = float(np.mean([r.correct.mean() for r in runs]))
-        j_runs = [drive(filt, ev, d, gt) for d in jumps]
-        relock = [lock_frames(r.correct, r.drive.splice or 0) for r in j_runs]
-        within = float(np.mean([x is not None and x <= 10 for x in relock])) if relock else 1.0
-        score = recall + within
-        rows.append({**dict(zip(grid, values, strict=True)), "recall": recall, "relock_10": within})
-        if best is None or score > best[0] + 1e-12:
-            best = (score, params, runs + j_runs)
+        setting = dict(zip(grid, values, strict=True))
+        params = base.with_(**setting)
+        row: dict[str, Any] = {**setting, "recall": [], "relock_10": []}
+        runs: list[DriveResult] = []
+        for results, gt, routes, drives, jumps in prepared:
+            evs = evidences_of(results, routes.n, params.proposals)
+            filt = SequenceFilter(routes, params)
+            s_runs = [drive(filt, evs, d, gt) for d in drives]
+            j_runs = [drive(filt, evs, d, gt) for d in jumps]
+            relock = [lock_frames(r.correct, r.drive.splice or 0) for r in j_runs]
+            row["recall"].append(float(np.mean([r.correct.mean() for r in s_runs])))
+            row["relock_10"].append(
+                float(np.mean([x is not None and x <= 10 for x in relock])) if relock else 1.0
+            )
+            runs += s_runs + j_runs
+        row["score"] = float(np.mean(row["recall"]) + np.mean(row["relock_10"]))
+        rows.append(row)
+        if progress is not None:
+            progress(row)
+        if best is None or row["score"] > best[0] + 1e-12:
+            best = (row["score"], params, runs)
     assert best is not None
     _, params, runs = best
     mass = np.concatenate([[e.mass for e in r.estimates] for r in runs])
     correct = np.concatenate([r.correct for r in runs])
-    lock = _lock_threshold(mass, correct, target_precision)
+    lock = lock_threshold(mass, correct, target_precision)
     chosen = params.with_(lock_mass=max(lock, 1e-6))
     return chosen, {"grid": rows, "lock_mass": lock, "target_precision": target_precision}

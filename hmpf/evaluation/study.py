@@ -237,9 +237,7 @@ class ScoreBank:
         from hmpf.evaluation.sequence import tune_sequence
 
         return tune_sequence(
-            self.results(config),
-            self.gt,
-            RouteMap.from_metadata(self.n_db),
+            [(self.results(config), self.gt, RouteMap.from_metadata(self.n_db))],
             base=config.sequence_params(),
             target_precision=target_precision,
             seed=seed,
