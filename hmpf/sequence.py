@@ -123,6 +123,9 @@ class RouteMap:
         )
         if len(names) != n:
             raise HmpfError(f"sequence column has {len(names)} entries for {n} references")
+        for column, values in (("lat", lat), ("lon", lon)):
+            if values is not None and len(values) != n:
+                raise HmpfError(f"{column} column has {len(values)} entries for {n} references")
         route_names, first, route_of = np.unique(
             names.astype(str), return_index=True, return_inverse=True
         )
