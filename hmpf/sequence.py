@@ -278,6 +278,14 @@ class FilterParams:
     junction: float = 0.2
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            x = getattr(self, f.name)
+            integral = f.type == "int"
+            kinds = (int, np.integer) if integral else (int, float, np.integer, np.floating)
+            if isinstance(x, bool) or not isinstance(x, kinds):
+                raise HmpfError(f"{f.name} must be {'an integer' if integral else 'a number'}")
+            if not math.isfinite(x):
+                raise HmpfError(f"{f.name} must be finite")
         if self.max_steps < 1:
             raise HmpfError("max_steps must be >= 1")
         if not (0 <= self.accel < 1 and 0 <= self.jitter < 0.5):
@@ -290,6 +298,8 @@ class FilterParams:
             raise HmpfError("proposals, hypotheses and max_gap must be >= 1, window >= 0")
         if not 0 <= self.junction < 1 or not 0 < self.lock_mass <= 1:
             raise HmpfError("junction in [0, 1) and lock_mass in (0, 1] are required")
+        if self.junction_m < 0:
+            raise HmpfError("junction_m must be >= 0")
 
     @classmethod
     def from_mapping(cls, values: dict[str, Any] | None) -> FilterParams:
