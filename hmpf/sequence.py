@@ -554,14 +554,19 @@ class SequenceFilter:
             hit[hit] = fin[at[hit]] == refs[hit]
             bonus[hit] = comb[at[hit]]
             loglik = loglik + p.combined_weight * bonus
-        # Background: the even mass over the keys without a hypothesis, weighed by the mean
-        # likelihood of a fixed sample of references.
+        # Background: the even mass (background / n_keys per key) on the keys without a
+        # hypothesis, weighed by their likelihood, estimated on a fixed sample of references:
+        # a sampled reference counts for its speeds that have no hypothesis (exact when the
+        # sample is the whole map; the final candidates, which alone get the Combined bonus,
+        # always have every speed explicit).
         top = float(loglik.max(initial=0.0))
         lik = np.exp(loglik - top)
         sample = self.routes.sample
-        bg_lik = float(np.mean(np.exp(p.evidence_weight * evidence.tier1_at(sample) - top)))
+        lik_s = np.exp(p.evidence_weight * evidence.tier1_at(sample) - top)
+        explicit = np.searchsorted(refs, sample, "right") - np.searchsorted(refs, sample, "left")
+        bg_sum = float(np.dot(lik_s, s - explicit)) * (n / len(sample))
         post = prior * lik
-        bg = predicted.background * max(0, n_keys - len(keys)) / n_keys * bg_lik
+        bg = predicted.background / n_keys * bg_sum
         total = float(post.sum()) + bg
         if not total > 0 or not math.isfinite(total):
             return FilterState(background=1.0, frames=predicted.frames + 1)
