@@ -404,8 +404,14 @@ class FilterState:
     def to_bytes(self, keep: int = 64) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
         background), keys as uint32 and probabilities as float16 logs."""
+        if keep < 0:
+            raise HmpfError("keep must be >= 0")
         order = np.sort(np.argsort(-self.prob, kind="stable")[:keep])
         keys, prob = self.keys[order], self.prob[order]
+        if len(keys) > 0xFFFF or (len(keys) and int(keys[-1]) > 0xFFFFFFFF):
+            raise HmpfError("a packed state holds at most 65535 hypotheses with keys < 2**32")
+        if not 0 <= self.frames <= 0xFFFFFFFF:
+            raise HmpfError("a packed state counts at most 2**32 - 1 frames")
         background = max(0.0, 1.0 - float(prob.sum()))
         head = self._MAGIC + struct.pack(self._HEAD, self.frames, background, len(keys))
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")

@@ -611,6 +611,19 @@ def test_state_bytes_size() -> None:
     for keep in (0, 1, 10, 64, 200):
         assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 6 * keep
     assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 398
+    # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
+    # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
+    with pytest.raises(HmpfError):
+        state.to_bytes(keep=-1)
+    big = FilterState(np.array([2**32]), np.array([0.5]), 0.5, 1)
+    with pytest.raises(HmpfError):
+        big.to_bytes()
+    many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
+    assert len(many.to_bytes(keep=65535)) == 14 + 6 * 65535
+    with pytest.raises(HmpfError):
+        many.to_bytes(keep=70000)
+    with pytest.raises(HmpfError):
+        FilterState(frames=2**32).to_bytes()
 
 
 def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: int = 3) -> bytes:
@@ -639,6 +652,7 @@ def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: in
         pack([1, 2], [-1, -2], background=float("nan")),
         pack([1, 2], [-1, -2], background=float("inf")),
         pack([1, 2], [-1, -2], background=-0.1),
+        pack([], [], background=0.0),  # no probability at all
     ],
 )
 def test_state_from_bytes_refuses(data: bytes) -> None:
