@@ -780,3 +780,37 @@ def test_first_frame_matches_dense_with_few_proposals() -> None:
     rest = np.ones(f.n_keys, bool)
     rest[state.keys] = False
     assert state.background == pytest.approx(dense[rest].sum(), rel=1e-9)
+
+
+@pytest.mark.parametrize(("proposals", "hypotheses"), [(10, 150), (5, 150), (5, 30)])
+def test_sparse_filter_approximates_dense_with_few_proposals(
+    proposals: int, hypotheses: int
+) -> None:
+    """With fewer proposals than references (and pruning), the sparse belief is an
+    approximation of the dense one: the background is spread evenly again after each frame
+    (its likelihood shape forgotten) and is not moved by the motion. Measured on 5 drives of
+    20 frames: total variation <= 0.2 in the first frames while the background holds mass,
+    <= 0.035 from the 6th frame on; the estimate within 1 reference of the dense one in 99
+    of 100 frames."""
+    rm = RouteMap.from_metadata(30)
+    p = PARAMS.with_(proposals=proposals, hypotheses=hypotheses)
+    near = rm.separation(np.arange(rm.n)[:, None], np.arange(rm.n)[None, :]) <= p.window
+    tv_early, tv_late, agree = 0.0, 0.0, []
+    for seed in range(5):
+        truth = drive(rm, 0, 2, 1.0, 20)
+        rng = np.random.default_rng(seed)
+        evs = [evidence(rm.n, int(t), rng, k=proposals, f=4) for t in truth]
+        f = SequenceFilter(rm, p)
+        dense = dense_forward(rm, p, evs, {})
+        state = f.start()
+        for i, ev in enumerate(evs):
+            state, est = f.update(state, ev)
+            tv = 0.5 * float(np.abs(as_dense(state, f.n_keys) - dense[i]).sum())
+            if i < 5:
+                tv_early = max(tv_early, tv)
+            else:
+                tv_late = max(tv_late, tv)
+            mass = near @ dense[i].reshape(rm.n, p.speeds).sum(1)
+            agree.append(rm.separation(est.ref, int(np.argmax(mass))) <= 1)
+    assert tv_early <= 0.25 and tv_late <= 0.05, (tv_early, tv_late)
+    assert np.mean(agree) >= 0.97
