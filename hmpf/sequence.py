@@ -558,7 +558,7 @@ class SequenceFilter:
             at = np.searchsorted(fin, refs)
             hit = at < len(fin)
             hit[hit] = fin[at[hit]] == refs[hit]
-            bonus[hit] = comb[at[hit]]
+            bonus[hit] = np.nan_to_num(comb[at[hit]], nan=0.0)  # like tier 1: NaN reads 0
             loglik = loglik + p.combined_weight * bonus
         # Background: the even mass (background / n_keys per key) on the keys without a
         # hypothesis, weighed by their likelihood, estimated on a fixed sample of references:
