@@ -521,6 +521,39 @@ def test_steps_zero_and_negative() -> None:
         f.update(f.start(), ev, steps=-1)
 
 
+def test_nan_combined_score_reads_as_zero() -> None:
+    """A NaN among the final candidates' Combined scores weighs like 0 (as a NaN tier-1 score
+    does); it used to turn every posterior into NaN and reset the filter to 'anywhere'."""
+    rm = routes_map(2, 200)
+    f = SequenceFilter(rm, PARAMS)
+    rng = np.random.default_rng(0)
+    state = f.start()
+    for t in drive(rm, 0, 10, 1.0, 15):
+        state, est = f.update(state, evidence(rm.n, int(t), rng))
+    assert est.locked
+    ev = evidence(rm.n, int(est.ref) + 1, rng)
+    nan, zero = ev.combined.copy(), ev.combined.copy()
+    nan[2], zero[2] = np.nan, 0.0
+    a, ea = f.update(state, Evidence(ev.tier1, ev.proposals, ev.final, nan))
+    b, eb = f.update(state, Evidence(ev.tier1, ev.proposals, ev.final, zero))
+    assert ea == eb and ea.locked
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.prob, b.prob)
+
+
+def test_driving_against_the_mapping_direction_is_not_locked() -> None:
+    """Speeds are 0..max_steps along the mapped direction: a vehicle that drives a route
+    backwards is not followed (measured: right in ~20% of frames), and the estimate says so:
+    it is (almost) never locked, and right when it is."""
+    rm = routes_map(2, 200)
+    truth = drive(rm, 1, 10, 1.0, 150)[::-1][:80]
+    est, _ = run_drive(rm, truth, 3)
+    locked = np.array([e.locked for e in est])
+    assert hits(rm, est, truth).mean() <= 0.4
+    assert locked.mean() <= 0.05
+    assert hits(rm, est, truth)[locked].all()
+
+
 # -- Estimate --------------------------------------------------------------------------------
 
 
@@ -562,6 +595,38 @@ def test_estimate_window_mass_and_lock() -> None:
     # a wide window: route 0's three hypotheses
     est = SequenceFilter(rm, PARAMS.with_(window=5)).estimate(st)
     assert est.mass == pytest.approx(0.38)
+
+
+def test_evidence_from_a_hierarchy_result() -> None:
+    from hmpf.hierarchy import HierarchyResult, TierResult
+
+    rng = np.random.default_rng(0)
+    gem, vlad = rng.uniform(0, 1, 100), rng.uniform(0, 1, 100)
+    vlad[5] = np.nan  # not scored: the mean there reads 0
+    tier = TierResult(["gem", "vlad"], None, {"gem": gem, "vlad": vlad}, np.arange(3), 1.0)
+    final = np.array([7, 3, 9])
+    res = HierarchyResult(7, 1.0, final, np.array([2.0, -1.0, np.nan]), [tier])
+    ev = Evidence.from_result(res, 100, proposals=10)
+    mean = np.nan_to_num((gem + vlad) / 2, nan=0.0)
+    assert sorted(ev.proposals.tolist()) == sorted(np.argsort(-mean)[:10].tolist())
+    np.testing.assert_array_equal(ev.final, final)
+    np.testing.assert_allclose(ev.combined, [1.0, 0.0, 0.0])
+    refs = np.array([0, 5, 99])
+    np.testing.assert_allclose(ev.tier1_at(refs), mean[refs])
+    assert len(Evidence.from_result(res, 100, proposals=500).proposals) == 100
+    # with a GPS prior: the hierarchy ran over `allowed`; its indices are positions in it
+    allowed = np.array([40, 41, 42, 60, 61])
+    sub = TierResult(["gem"], None, {"gem": np.array([0.2, 1.0, 0.5, 0.1, 0.9])}, final, 1.0)
+    res = HierarchyResult(1, 1.0, np.array([1, 4]), np.array([0.5, 0.5]), [sub])
+    ev = Evidence.from_result(res, 100, proposals=2, allowed=allowed)
+    assert sorted(ev.proposals.tolist()) == [41, 61]
+    np.testing.assert_array_equal(ev.final, [41, 61])
+    np.testing.assert_allclose(ev.combined, [1.0, 1.0])  # all equal: every candidate 1
+    assert ev.tier1[0].shape == (100,) and ev.tier1[0][42] == 0.5 and ev.tier1[0][0] == 0.0
+    assert (
+        len(Evidence((), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)).tier1_at(refs))
+        == 3
+    )
 
 
 # -- the packed state --------------------------------------------------------------------------
