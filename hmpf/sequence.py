@@ -280,7 +280,7 @@ class FilterParams:
     def __post_init__(self) -> None:
         for f in fields(self):
             x = getattr(self, f.name)
-            integral = f.type == "int"
+            integral = f.type in ("int", int)
             kinds = (int, np.integer) if integral else (int, float, np.integer, np.floating)
             if isinstance(x, bool) or not isinstance(x, kinds):
                 raise HmpfError(f"{f.name} must be {'an integer' if integral else 'a number'}")
