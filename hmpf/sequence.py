@@ -124,6 +124,9 @@ class RouteMap:
         )
         if len(names) != n:
             raise HmpfError(f"sequence column has {len(names)} entries for {n} references")
+        for column, values in (("lat", lat), ("lon", lon)):
+            if values is not None and len(values) != n:
+                raise HmpfError(f"{column} column has {len(values)} entries for {n} references")
         route_names, first, route_of = np.unique(
             names.astype(str), return_index=True, return_inverse=True
         )
@@ -276,6 +279,14 @@ class FilterParams:
     junction: float = 0.2
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            x = getattr(self, f.name)
+            integral = f.type in ("int", int)
+            kinds = (int, np.integer) if integral else (int, float, np.integer, np.floating)
+            if isinstance(x, bool) or not isinstance(x, kinds):
+                raise HmpfError(f"{f.name} must be {'an integer' if integral else 'a number'}")
+            if not math.isfinite(x):
+                raise HmpfError(f"{f.name} must be finite")
         if self.max_steps < 1:
             raise HmpfError("max_steps must be >= 1")
         if not (0 <= self.accel < 1 and 0 <= self.jitter < 0.5):
@@ -288,6 +299,8 @@ class FilterParams:
             raise HmpfError("proposals, hypotheses and max_gap must be >= 1, window >= 0")
         if not 0 <= self.junction < 1 or not 0 < self.lock_mass <= 1:
             raise HmpfError("junction in [0, 1) and lock_mass in (0, 1] are required")
+        if self.junction_m < 0:
+            raise HmpfError("junction_m must be >= 0")
 
     @classmethod
     def from_mapping(cls, values: dict[str, Any] | None) -> FilterParams:
@@ -394,8 +407,14 @@ class FilterState:
     def to_bytes(self, keep: int = 64) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
         background), keys as uint32 and probabilities as float16 logs."""
+        if keep < 0:
+            raise HmpfError("keep must be >= 0")
         order = np.sort(np.argsort(-self.prob, kind="stable")[:keep])
         keys, prob = self.keys[order], self.prob[order]
+        if len(keys) > 0xFFFF or (len(keys) and int(keys[-1]) > 0xFFFFFFFF):
+            raise HmpfError("a packed state holds at most 65535 hypotheses with keys < 2**32")
+        if not 0 <= self.frames <= 0xFFFFFFFF:
+            raise HmpfError("a packed state counts at most 2**32 - 1 frames")
         background = max(0.0, 1.0 - float(prob.sum()))
         head = self._MAGIC + struct.pack(self._HEAD, self.frames, background, len(keys))
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
@@ -561,15 +580,22 @@ class SequenceFilter:
             at = np.searchsorted(fin, refs)
             hit = at < len(fin)
             hit[hit] = fin[at[hit]] == refs[hit]
-            bonus[hit] = comb[at[hit]]
+            bonus[hit] = np.nan_to_num(comb[at[hit]], nan=0.0)  # like tier 1: NaN reads 0
             loglik = loglik + p.combined_weight * bonus
-        # Background: the even mass over the keys without a hypothesis, weighed by the mean
-        # likelihood of a fixed sample of references.
+        # Background: the even mass (background / n_keys per key) on the keys without a
+        # hypothesis, weighed by their likelihood, estimated on a fixed sample of references:
+        # a sampled reference counts for its speeds that have no hypothesis (exact when the
+        # sample is the whole map; the final candidates, which alone get the Combined bonus,
+        # always have every speed explicit).
         top = float(loglik.max(initial=0.0))
         lik = np.exp(loglik - top)
-        bg_lik = float(np.mean(np.exp(scale * (at_sample - mu) - top)))
+        sample = self.routes.sample
+        lik_s = np.exp(scale * (at_sample - mu) - top)
+        explicit = np.searchsorted(refs, sample, "right") - np.searchsorted(refs, sample, "left")
+        per_ref = 2 * p.speeds  # keys of one reference: 2 halves x speeds
+        bg_sum = float(np.dot(lik_s, per_ref - explicit)) * (self.n / len(sample))
         post = prior * lik
-        bg = predicted.background * max(0, n_keys - len(keys)) / n_keys * bg_lik
+        bg = predicted.background / n_keys * bg_sum
         total = float(post.sum()) + bg
         if not total > 0 or not math.isfinite(total):
             return FilterState(background=1.0, frames=predicted.frames + 1)
