@@ -78,8 +78,8 @@ def tune(parts: dict[str, dict[str, Any]]) -> tuple[FilterParams, dict[str, Any]
     names = list(parts)
 
     def show(row: dict[str, Any]) -> None:
-        pairs = zip(names, row["recall"], row["relock_10"], strict=True)
-        per_route = ", ".join(f"{n} {r:.3f}/{w:.2f}" for n, r, w in pairs)
+        pairs = zip(names, row["recall"], row["jump_recall"], row["relock_10"], strict=True)
+        per_route = ", ".join(f"{n} {r:.3f}/{j:.3f}/{w:.2f}" for n, r, j, w in pairs)
         setting = {k: row[k] for k in TUNING_GRID}
         print(f"{setting}: score {row['score']:.4f} ({per_route})", flush=True)
 

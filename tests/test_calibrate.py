@@ -332,6 +332,23 @@ def test_calibrate_stores_threshold_and_checks_test(banks):
         calibrate(pool, train, None, space, budget_ms=0.001, seed=0)
 
 
+def test_calibrate_with_sequence_tunes_the_filter_on_train_and_reports_test(banks):
+    pool, train, test, _, _ = banks
+    space = SearchSpace(tuple(pool.method_ids), k1=(3,), k2=(2,), samples=5, refine=1)
+    config, rep = calibrate(pool, train, test, space, budget_ms=None, seed=0, sequence=True)
+    assert config.sequence is not None and "lock_mass" in config.sequence
+    params = config.sequence_params()  # the written settings load back
+    assert params.lock_mass == pytest.approx(max(rep["train"]["sequence"]["lock_mass"], 1e-6))
+    assert len(rep["train"]["sequence"]["grid"]) > 1
+    seq = rep["test"]["sequence"]
+    assert seq["n_query"] == test.n_query
+    assert seq["params"]["lock_mass"] == pytest.approx(params.lock_mass)
+    assert 0 <= seq["recall_at_1"] <= 1 and seq["single_recall_at_1"] == rep["test"]["recall_at_1"]
+    # The config digest ignores the filter's settings: an index built for the plain winner
+    # serves the sequence one.
+    assert config.digest() == config.model_copy(update={"sequence": None}).digest()
+
+
 def test_trial_config_carries_pool_parameters(banks):
     pool = banks[0]
     c = Trial((("kaze",), ("gist",)), (5, 1), (0.5, 1.0), 0.5, 1.0)

@@ -69,9 +69,15 @@ def test_handcrafted_day_right_to_night_right(gardens_point: Path, tmp_path: Pat
 
     # Second run: every descriptor comes from the cache, results are identical.
     out2 = tmp_path / "report2.json"
-    proc = _eval([*args[:-1], str(out2), "--skip-curves", "kaze"], cache)
+    proc = _eval([*args[:-1], str(out2), "--skip-curves", "kaze", "--sequence"], cache)
     assert proc.returncode == 0, proc.stderr
     rep2 = json.loads(out2.read_text())
+    # --sequence: the night traverse driven as one vehicle, every frame counted.
+    seq = rep2["sequence"]
+    assert "sequence mode" in proc.stdout and len(seq["full_drive"]["correct"]) == 200
+    assert seq["single_recall_at_1"] == h["combined_recall_at_1"]
+    assert seq["recall_at_1"] >= h["combined_recall_at_1"] + 0.15
+    assert seq["lock_after_jump"]["n"] >= 50 and seq["lock_after_start"]["n"] >= 20
     assert rep2["cache"]["reference_cached"] == {k: 200 for k in m}
     assert rep2["cache"]["query_cached"] == {k: 200 for k in m}
     assert rep2["hierarchy"]["matches"] == h["matches"]

@@ -54,7 +54,9 @@ def _experiments(
 def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path):
     out = tmp_path / "exp"
     proc = _experiments(
-        short_route, tmp_path, "--k1", "6", "--k2", "3", "--out", str(out), "--title", "short GP"
+        short_route,
+        tmp_path,
+        *("--k1", "6", "--k2", "3", "--out", str(out), "--title", "short GP", "--sequence"),
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((out / "experiments.json").read_text())
@@ -92,12 +94,14 @@ def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path
         res["single"]
     )
     assert 0 <= t["recall_at_1"] <= 1 and 0 <= t["flat_recall_at_1"] <= 1
+    # --sequence: the same hierarchy driven in order on the test part.
+    assert t["sequence"]["n_query"] == 20 and 0 <= t["sequence"]["recall_at_1"] <= 1
     for i in range(1, 7):
         png = next(out.glob(f"fig{i}_*.png"))
         head = png.read_bytes()[:8]
         assert head == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     report = (out / "report.md").read_text()
-    for section in ("### 1.", "### 2.", "### 3.", "### 4.", "### 5.", "### 6.", "Exp6"):
+    for section in ("### 1.", "### 2.", "### 3.", "### 4.", "### 5.", "### 6.", "Exp6", "sequence"):
         assert section in report
     assert "![fig4_six_methods.png](fig4_six_methods.png)" in report
 
