@@ -32,7 +32,7 @@ PARAMS = FilterParams(
     accel=0.05,
     jitter=0.1,
     jump=0.01,
-    evidence_weight=3.0,
+    evidence_weight=0.75,
     combined_weight=1.0,
     proposals=50,
     hypotheses=200,
@@ -310,7 +310,7 @@ def test_filter_params_mapping() -> None:
     assert FilterParams.from_mapping(None) == FilterParams()
     assert FilterParams.from_mapping({}) == FilterParams()
     p = FilterParams.from_mapping({"jump": 0.02, "max_steps": np.int64(3), "accel": 0})
-    assert p.jump == 0.02 and p.max_steps == 3 and p.speeds == 4
+    assert p.jump == 0.02 and p.max_steps == 3 and p.speeds == 7  # 0..3 refs in halves
     with pytest.raises(HmpfError, match="bogus"):
         FilterParams.from_mapping({"jump": 0.02, "bogus": 1})
     # the edges that are allowed
@@ -569,32 +569,45 @@ def test_estimate_window_mass_and_lock() -> None:
     rm = routes_map(2, 20)
     s = PARAMS.speeds
 
-    def state(pairs: dict[tuple[int, int], float]) -> FilterState:
-        keys = np.array(sorted(r * s + v for r, v in pairs), dtype=np.int64)
-        prob = np.array([pairs[(int(k) // s, int(k) % s)] for k in keys])
+    def state(triples: dict[tuple[int, int, int], float]) -> FilterState:
+        """Hypotheses (reference, half, speed in half references per frame): probability."""
+        keys = np.array(sorted((2 * r + h) * s + v for r, h, v in triples), dtype=np.int64)
+        prob = np.array([triples[(int(k) // (2 * s), int(k) // s % 2, int(k) % s)] for k in keys])
         return FilterState(keys, prob, 1.0 - prob.sum(), 3)
 
+    f = SequenceFilter(rm, PARAMS)
+    key = f._join(np.array([19]), np.array([1]), np.array([5]))
+    assert int(key[0]) == (2 * 19 + 1) * s + 5 and f.refs_of(key)[0] == 19
+    assert [int(x[0]) for x in f._split(key)] == [19, 1, 5]
     # refs 17 and 19 on route 0, 20 and 21 on route 1: the window never crosses routes
-    st = state({(17, 1): 0.1, (19, 2): 0.15, (19, 0): 0.05, (20, 3): 0.25, (21, 1): 0.2})
+    st = state(
+        {(17, 0, 1): 0.1, (19, 1, 2): 0.15, (19, 0, 0): 0.05, (20, 1, 3): 0.25, (21, 0, 1): 0.2}
+    )
     for lock in (0.44, 0.46):
         f = SequenceFilter(rm, PARAMS.with_(window=2, lock_mass=lock))
         est = f.estimate(st)
         assert est.ref in (20, 21) and est.mass == pytest.approx(0.45)
         assert est.locked == (lock < 0.45) and est.frames == 3
     f = SequenceFilter(rm, PARAMS.with_(window=2))
-    assert f.estimate(st).ref == 20 and f.estimate(st).speed == 3  # ties: the more probable
-    # window 0: only the reference's own mass (every speed of it)
+    # ties: the more probable centre; the speed in references per frame (3 half refs)
+    assert f.estimate(st).ref == 20 and f.estimate(st).speed == 1.5
+    # window 0: only the reference's own mass (every half and speed of it)
     f0 = SequenceFilter(rm, PARAMS.with_(window=0))
     est = f0.estimate(st)
     assert est.ref == 20 and est.mass == pytest.approx(0.25)
-    st = state({(17, 1): 0.1, (19, 2): 0.15, (19, 0): 0.05, (20, 3): 0.18, (21, 1): 0.2})
+    st = state(
+        {(17, 0, 1): 0.1, (19, 1, 2): 0.15, (19, 0, 0): 0.05, (20, 1, 3): 0.18, (21, 0, 1): 0.2}
+    )
     est = f0.estimate(st)
-    assert est.ref == 21 or est.ref == 19  # 0.2 each
+    assert est.ref == 21 or est.ref == 19  # 0.2 each (19: both halves)
     est = SequenceFilter(rm, PARAMS.with_(window=2)).estimate(st)
-    assert est.ref == 21 and est.mass == pytest.approx(0.38) and est.speed == 1
+    assert est.ref == 21 and est.mass == pytest.approx(0.38) and est.speed == 0.5
     # a wide window: route 0's three hypotheses
     est = SequenceFilter(rm, PARAMS.with_(window=5)).estimate(st)
     assert est.mass == pytest.approx(0.38)
+    # both halves of a reference count for it; its speed is the most probable key's
+    est = f0.estimate(state({(19, 1, 2): 0.15, (19, 0, 5): 0.1, (21, 0, 1): 0.2}))
+    assert est.ref == 19 and est.mass == pytest.approx(0.25) and est.speed == 1.0
 
 
 def test_evidence_from_a_hierarchy_result() -> None:
@@ -737,7 +750,11 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
 
 def dense_transition(rm: RouteMap, p: FilterParams, junctions: dict[int, list[int]]) -> np.ndarray:
     """T[k, k'] = P(key k' at the next frame | key k), the motion model written out state by
-    state (positions along each route counted here, not with RouteMap.advance)."""
+    state, a state being (reference, half, speed) with ``key = (2 * ref + half) * speeds +
+    speed`` (positions along each route counted here, not with RouteMap.advance). In half
+    references: the speed changes by -1/0/+1 (clipped to 0..speeds-1), the position advances
+    by the new speed -1/0/+1 (jitter); whole references beyond the route's ends stop there,
+    the half is kept."""
     s = p.speeds
     routes: dict[int, list[int]] = {}
     for r in range(rm.n):
@@ -751,39 +768,50 @@ def dense_transition(rm: RouteMap, p: FilterParams, junctions: dict[int, list[in
         k, i = where[r]
         return routes[k][min(max(i + step, 0), len(routes[k]) - 1)]
 
-    t = np.zeros((rm.n * s, rm.n * s))
+    def key(r: int, h: int, v: int) -> int:
+        return (2 * r + h) * s + v
+
+    t = np.zeros((rm.n * 2 * s, rm.n * 2 * s))
     for r in range(rm.n):
-        for v in range(s):
-            for dv, pv in ((-1, p.accel / 2), (0, 1 - p.accel), (1, p.accel / 2)):
-                nv = min(max(v + dv, 0), p.max_steps)
-                for dj, pj in ((-1, p.jitter), (0, 1 - 2 * p.jitter), (1, p.jitter)):
-                    w = pv * pj
-                    js = junctions.get(r, [])
-                    stay = 1 - p.junction if js else 1.0
-                    t[r * s + v, ahead(r, nv + dj) * s + nv] += w * stay
-                    for j in js:
-                        t[r * s + v, ahead(j, nv + dj) * s + nv] += w * p.junction / len(js)
+        js = junctions.get(r, [])
+        stay = 1 - p.junction if js else 1.0
+        for h in (0, 1):
+            for v in range(s):
+                for dv, pv in ((-1, p.accel / 2), (0, 1 - p.accel), (1, p.accel / 2)):
+                    nv = min(max(v + dv, 0), s - 1)
+                    for dj, pj in ((-1, p.jitter), (0, 1 - 2 * p.jitter), (1, p.jitter)):
+                        w = pv * pj
+                        half_refs = h + nv + dj  # from the start of reference r
+                        dref, nh = half_refs // 2, half_refs % 2
+                        t[key(r, h, v), key(ahead(r, dref), nh, nv)] += w * stay
+                        for j in js:
+                            t[key(r, h, v), key(ahead(j, dref), nh, nv)] += w * p.junction / len(js)
     return t
 
 
-def dense_likelihood(n: int, s: int, p: FilterParams, ev: Evidence) -> np.ndarray:
-    ll = p.evidence_weight * ev.tier1[0]
+def dense_likelihood(rm: RouteMap, p: FilterParams, ev: Evidence) -> np.ndarray:
+    """Per key: exp of ``evidence_weight`` x the tier-1 score's z-score over the whole map
+    (a small map: the sample is every reference) + ``combined_weight`` x Combined."""
+    assert len(rm.sample) == rm.n
+    x = ev.tier1[0]
+    sd = float(np.std(x))
+    ll = p.evidence_weight * (x - np.mean(x)) / sd if sd > 1e-9 else np.zeros(rm.n)
     for r, c in zip(ev.final, ev.combined, strict=True):
         ll[r] += p.combined_weight * c
-    return np.repeat(np.exp(ll - ll.max()), s)
+    return np.repeat(np.exp(ll - ll.max()), 2 * p.speeds)
 
 
 def dense_forward(
     rm: RouteMap, p: FilterParams, evs: list[Evidence], junctions: dict[int, list[int]]
 ) -> list[np.ndarray]:
-    n_keys = rm.n * p.speeds
+    n_keys = rm.n * 2 * p.speeds
     t = dense_transition(rm, p, junctions)
     np.testing.assert_allclose(t.sum(1), 1.0)
     alpha, out = np.full(n_keys, 1.0 / n_keys), []
     for i, ev in enumerate(evs):
         if i:
             alpha = (1 - p.jump) * (alpha @ t) + p.jump / n_keys
-        alpha = alpha * dense_likelihood(rm.n, p.speeds, p, ev)
+        alpha = alpha * dense_likelihood(rm, p, ev)
         alpha /= alpha.sum()
         out.append(alpha)
     return out
@@ -796,11 +824,15 @@ def as_dense(state: FilterState, n_keys: int) -> np.ndarray:
     return d
 
 
-@pytest.mark.parametrize("layout", ["one route", "two routes with a junction"])
+@pytest.mark.parametrize(
+    "layout", ["one route", "one route at half speed", "two routes with a junction"]
+)
 def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
-    if layout == "one route":
+    """With every key explicit (proposals: every reference; hypotheses: every key) the sparse
+    filter is the forward algorithm: the same belief to 1e-9 and the same estimate."""
+    if layout.startswith("one route"):
         rm, junctions = RouteMap.from_metadata(30), {}
-        truth = drive(rm, 0, 2, 1.0, 20)
+        truth = drive(rm, 0, 2, 0.5 if "half" in layout else 1.0, 20)
     else:
         lat, lon = cross_positions(7)  # 2 x 15 references crossing at 7 and 22
         rm = RouteMap.from_metadata(
@@ -814,7 +846,7 @@ def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
         junctions = {a: js for a, js in junctions.items() if js}
         assert len(junctions) == 6  # 6, 7, 8 <-> 22; 7 <-> 21, 22, 23
         truth = np.concatenate([np.arange(0, 8), np.arange(23, 30), np.arange(29, 24, -1)])
-    p = PARAMS.with_(hypotheses=rm.n * PARAMS.speeds, proposals=rm.n, junction_m=6.0)
+    p = PARAMS.with_(hypotheses=rm.n * 2 * PARAMS.speeds, proposals=rm.n, junction_m=6.0)
     rng = np.random.default_rng(0)
     evs = [evidence(rm.n, int(t), rng, k=rm.n, f=4) for t in truth]
     f = SequenceFilter(rm, p)
@@ -823,10 +855,14 @@ def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
     state, worst = f.start(), 0.0
     for i, ev in enumerate(evs):
         state, est = f.update(state, ev)
+        assert len(state.keys) == f.n_keys  # every key explicit
         worst = max(worst, float(np.abs(as_dense(state, f.n_keys) - dense[i]).max()))
-        # the estimate: the reference with the most dense mass within +- window on its route
-        mass = near @ dense[i].reshape(rm.n, p.speeds).sum(1)
+        # the estimate: the reference with the most dense mass within +- window on its route,
+        # its speed the most probable there (half references per frame / 2)
+        by_ref = dense[i].reshape(rm.n, 2 * p.speeds)
+        mass = near @ by_ref.sum(1)
         assert est.ref == int(np.argmax(mass)) and est.mass == pytest.approx(mass.max())
+        assert est.speed == int(np.argmax(by_ref[est.ref])) % p.speeds / 2
     assert hits(rm, [est], truth[-1:])[0]
     assert worst <= 1e-9, worst
 
@@ -847,20 +883,21 @@ def test_first_frame_matches_dense_with_few_proposals() -> None:
     assert state.background == pytest.approx(dense[rest].sum(), rel=1e-9)
 
 
-@pytest.mark.parametrize(("proposals", "hypotheses"), [(10, 150), (5, 150), (5, 30)])
+@pytest.mark.parametrize(("proposals", "hypotheses"), [(10, 540), (5, 540), (5, 108)])
 def test_sparse_filter_approximates_dense_with_few_proposals(
     proposals: int, hypotheses: int
 ) -> None:
-    """With fewer proposals than references (and pruning), the sparse belief is an
-    approximation of the dense one: the background is spread evenly again after each frame
-    (its likelihood shape forgotten) and is not moved by the motion. Measured on 5 drives of
-    20 frames: total variation <= 0.2 in the first frames while the background holds mass,
-    <= 0.035 from the 6th frame on; the estimate within 1 reference of the dense one in 99
-    of 100 frames."""
+    """With fewer proposals than references (and pruning: 540 and 108 hypotheses are 30 and
+    6 references' worth of keys), the sparse belief is an approximation of the dense one: the
+    background is spread evenly again after each frame (its likelihood shape forgotten) and
+    is not moved by the motion. Measured on 5 drives of 20 frames: total variation <= 0.19 in
+    the first frames while the background holds mass, <= 0.031 from the 6th frame on; the
+    estimate within 1 reference of the dense one in 98 of 100 frames (the others: near-ties,
+    the dense window mass at the sparse estimate at most 0.037 below the dense best)."""
     rm = RouteMap.from_metadata(30)
     p = PARAMS.with_(proposals=proposals, hypotheses=hypotheses)
     near = rm.separation(np.arange(rm.n)[:, None], np.arange(rm.n)[None, :]) <= p.window
-    tv_early, tv_late, agree = 0.0, 0.0, []
+    tv_early, tv_late, agree, deficit = 0.0, 0.0, [], 0.0
     for seed in range(5):
         truth = drive(rm, 0, 2, 1.0, 20)
         rng = np.random.default_rng(seed)
@@ -875,7 +912,8 @@ def test_sparse_filter_approximates_dense_with_few_proposals(
                 tv_early = max(tv_early, tv)
             else:
                 tv_late = max(tv_late, tv)
-            mass = near @ dense[i].reshape(rm.n, p.speeds).sum(1)
+            mass = near @ dense[i].reshape(rm.n, 2 * p.speeds).sum(1)
             agree.append(rm.separation(est.ref, int(np.argmax(mass))) <= 1)
-    assert tv_early <= 0.25 and tv_late <= 0.05, (tv_early, tv_late)
-    assert np.mean(agree) >= 0.97
+            deficit = max(deficit, float(mass.max() - mass[est.ref]))
+    assert tv_early <= 0.22 and tv_late <= 0.04, (tv_early, tv_late)
+    assert np.mean(agree) >= 0.97 and deficit <= 0.05, (np.mean(agree), deficit)
