@@ -684,11 +684,53 @@ def test_state_bytes_round_trip() -> None:
     assert len(start.keys) == 0 and start.background == 1.0 and start.frames == 0
 
 
+def test_filter_pack_and_unpack_check_the_map() -> None:
+    """SequenceFilter.pack writes the map's speeds into the header, unpack checks them and the
+    keys against its map: a state of a map with another max_steps (other speeds: the same key
+    is another reference, half and speed) or of a larger map is refused, not misread."""
+    f, state = driven_state()
+    data = f.pack(state)
+    assert data == state.to_bytes(64, speeds=PARAMS.speeds) and data[14] == PARAMS.speeds
+    assert len(f.pack(state, keep=10)) == 15 + 60
+    back = f.unpack(data)
+    ref = FilterState.from_bytes(data, f.n_keys)  # the old call: speeds not checked
+    np.testing.assert_array_equal(back.keys, ref.keys)
+    np.testing.assert_array_equal(back.prob, ref.prob)
+    assert back.background == ref.background and back.frames == state.frames
+    assert f.estimate(back).ref == f.estimate(state).ref
+    # another max_steps on the same map: every key is below its n_keys, so only the speeds
+    # byte tells (read unchecked, the same keys name other references)
+    other = SequenceFilter(f.routes, PARAMS.with_(max_steps=3))
+    assert other.n_keys < f.n_keys and int(back.keys.max()) < other.n_keys
+    unchecked = FilterState.from_bytes(data, other.n_keys)
+    assert f.estimate(back).ref != other.estimate(unchecked).ref
+    with pytest.raises(StateError, match="speeds"):
+        other.unpack(data)
+    with pytest.raises(StateError, match="speeds"):
+        FilterState.from_bytes(data, other.n_keys, speeds=other.params.speeds)
+    with pytest.raises(StateError):
+        f.unpack(other.pack(FilterState(np.array([5]), np.array([0.5]), 0.5, 1)))
+    # another number of references: keys beyond the smaller map are refused
+    small = SequenceFilter(routes_map(1, 300), PARAMS)
+    with pytest.raises(StateError, match="not in this map"):
+        small.unpack(data)
+    # a state that does not say its speeds (to_bytes() without them) is read unchecked
+    loose = state.to_bytes()
+    assert loose[14] == 0
+    np.testing.assert_array_equal(f.unpack(loose).keys, back.keys)
+    np.testing.assert_array_equal(other.unpack(loose).keys, back.keys)
+    # the start state packs and unpacks
+    start = f.unpack(f.pack(f.start()))
+    assert len(start.keys) == 0 and start.background == 1.0 and start.frames == 0
+
+
 def test_state_bytes_size() -> None:
     _, state = driven_state()
     for keep in (0, 1, 10, 64, 200):
-        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 6 * keep
-    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 398
+        # magic, frames, background, hypotheses, speeds; 4 + 2 bytes a hypothesis
+        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 6 * keep
+        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 15 + 6 * keep
+    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 399
     # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
     # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
     with pytest.raises(HmpfError):
@@ -697,15 +739,28 @@ def test_state_bytes_size() -> None:
     with pytest.raises(HmpfError):
         big.to_bytes()
     many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
-    assert len(many.to_bytes(keep=65535)) == 14 + 6 * 65535
+    assert len(many.to_bytes(keep=65535)) == 15 + 6 * 65535
     with pytest.raises(HmpfError):
         many.to_bytes(keep=70000)
     with pytest.raises(HmpfError):
         FilterState(frames=2**32).to_bytes()
+    # the speeds byte: 0 (unknown) to 255
+    for bad in (-1, 256):
+        with pytest.raises(HmpfError):
+            state.to_bytes(speeds=bad)
 
 
-def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: int = 3) -> bytes:
-    head = b"HQS1" + struct.pack("<IfH", frames, background, len(keys))
+def pack(
+    keys: list[int],
+    logs: list[float],
+    background: float = 0.5,
+    frames: int = 3,
+    speeds: int = 0,
+    magic: bytes = b"HQS2",
+) -> bytes:
+    """The packed format written out: magic, frames (u32), background (f32), hypotheses
+    (u16), speeds (u8), keys (u32), log probabilities (f16), little-endian."""
+    head = magic + struct.pack("<IfHB", frames, background, len(keys), speeds)
     return head + np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
 
 
@@ -716,10 +771,12 @@ def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: in
         b"HQS1",
         b"garbage that is long enough to be read as a header",
         bytes(range(256)),
-        b"HQS2" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        b"HQS3" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        # format 1 (no speeds byte): refused, not misread
+        b"HQS1" + struct.pack("<IfH", 3, 0.5, 2) + np.array([1, 2], "<u4").tobytes() + bytes(4),
         pack([1, 2], [-1, -2])[:-1],  # truncated
         pack([1, 2], [-1, -2]) + b"\0",  # trailing bytes
-        pack([1, 2], [-1, -2])[:14],  # header only, says 2 hypotheses
+        pack([1, 2], [-1, -2])[:15],  # header only, says 2 hypotheses
         pack([1, 1000], [-1, -2]),  # key beyond n_keys (= 1000)
         pack([999, 1000], [-1, -2]),
         pack([5, 3], [-1, -2]),  # unsorted
@@ -742,6 +799,13 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
     st = FilterState.from_bytes(pack([1, 999], [-1, -2], background=0.0), 1000)
     assert list(st.keys) == [1, 999] and st.frames == 3 and st.background == 0.0
     np.testing.assert_allclose(st.prob, np.exp([-1, -2]) / np.exp([-1, -2]).sum(), rtol=1e-3)
+    # the speeds byte: checked when both the state and the reader say them
+    for packed, expected in ((9, 9), (0, 9), (9, 0), (0, 0), (255, 255)):
+        data = pack([1, 2], [-1, -2], speeds=packed)
+        assert list(FilterState.from_bytes(data, 1000, speeds=expected).keys) == [1, 2]
+    for packed, expected in ((9, 7), (7, 9), (1, 255)):
+        with pytest.raises(StateError):
+            FilterState.from_bytes(pack([1, 2], [-1, -2], speeds=packed), 1000, speeds=expected)
     assert issubclass(StateError, HmpfError)
 
 
