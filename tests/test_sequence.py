@@ -27,6 +27,9 @@ from hmpf.sequence import (
 )
 
 # Explicit parameters (the defaults are being tuned elsewhere): tests depend on these values.
+# evidence_weight is per standard deviation of a frame's tier-1 scores over the map; the
+# synthetic frames below have a standard deviation of ~0.25, so 0.75 weighs them as the
+# earlier raw weight of 3.0 did (the bounds were first measured with that).
 PARAMS = FilterParams(
     max_steps=4,
     accel=0.05,
@@ -352,17 +355,23 @@ def test_start_of_a_drive_locks_and_beats_single_frames() -> None:
     assert min(accs) - np.mean(singles) >= 0.3
 
 
-@pytest.mark.parametrize("speed", [0.5, 1.0, 2.0, 3.0, 4.0])
+@pytest.mark.parametrize("speed", [0.5, 1.0, 1.5, 2.0, 3.0, 4.0])
 def test_speed_ratios(speed: float) -> None:
+    """A vehicle at ``speed`` times the mapping run's speed (0.5: each reference seen in two
+    frames; 1.5: one and two references a frame in turn) is followed, and Estimate.speed
+    (references per frame, in halves) is the ratio. Measured (seeds 11-13): right in every
+    frame from the 8th, the speed right from the 7th frame at the latest."""
     rm = routes_map(4, 500)
     truth = drive(rm, 1, 10, speed, 80)
+    if speed == 0.5:
+        assert (truth[0::2] == truth[1::2]).all() and (np.diff(truth[0::2]) == 1).all()
     est, evs = run_drive(rm, truth, 11)
     ok = hits(rm, est, truth)
     assert ok[8:].mean() >= 0.95, ok.mean()
     assert single_frame_hits(rm, evs, truth).mean() <= 0.75
-    # the estimated speed: the mean over the last frames is the true one
-    speeds = np.array([e.speed for e in est[40:]])
-    assert abs(speeds.mean() - speed) <= 0.35, speeds
+    speeds = np.array([e.speed for e in est[10:]])
+    assert (speeds == speed).mean() >= 0.95, speeds
+    assert abs(speeds.mean() - speed) <= 0.05, speeds
 
 
 def test_stops_and_repeated_frames() -> None:
@@ -374,6 +383,11 @@ def test_stops_and_repeated_frames() -> None:
     est, _ = run_drive(rm, truth, 5)
     ok = hits(rm, est, truth)
     assert ok[6:].mean() >= 0.95, np.flatnonzero(~ok)
+    # the speed: 0 from the 6th stopped frame (frame 35), 1 again from the 7th frame after
+    # the restart (frame 51); measured with seeds 5-7: from the 6th, and the 6th or 7th
+    speeds = np.array([e.speed for e in est])
+    assert (speeds[10:30] == 1.0).all() and (speeds[35:45] == 0.0).all(), speeds
+    assert (speeds[51:] == 1.0).all(), speeds
 
 
 def test_dropped_frames_with_steps() -> None:
@@ -392,7 +406,12 @@ def test_dropped_frames_with_steps() -> None:
     truth2 = drive(rm, 2, 10, 2.0, 60)
     est = f.run([evidence(rm.n, int(t), evr) for t in truth2], steps=[2] * 60)
     assert hits(rm, est, truth2)[6:].mean() >= 0.95
-    assert np.mean([e.speed for e in est[20:]]) == pytest.approx(1.0, abs=0.3)
+    assert np.mean([e.speed == 1.0 for e in est[10:]]) >= 0.95  # measured: every frame
+    # ... and one at 0.5 ref/frame (one reference an update), told steps=2, a speed of 0.5
+    truth3 = drive(rm, 3, 10, 1.0, 60)
+    est = f.run([evidence(rm.n, int(t), evr) for t in truth3], steps=[2] * 60)
+    assert hits(rm, est, truth3)[6:].mean() >= 0.95
+    assert np.mean([e.speed == 0.5 for e in est[10:]]) >= 0.95
 
 
 def relock_frames(rm: RouteMap, truth: np.ndarray, est: list[Estimate], at: int) -> int:
@@ -415,6 +434,146 @@ def test_jump_relocks_within_bounded_frames() -> None:
         delays.append(d)
         assert hits(rm, est, truth)[40 + d + 3 :].mean() >= 0.95
     assert max(delays) <= 10, delays
+
+
+def moved(
+    f: SequenceFilter, triples: dict[tuple[int, int, int], float], steps: int = 1
+) -> dict[tuple[int, int, int], float]:
+    """predict() on hypotheses given as (reference, half, speed): probability, the result
+    read back the same way (the jump's share taken out; moves of probability 0, which
+    predict keeps as keys, left out)."""
+    keys = f._join(*(np.array(x) for x in zip(*triples, strict=True)))
+    order = np.argsort(keys)
+    prob = np.array(list(triples.values()))[order]
+    st = f.predict(FilterState(keys[order], prob, 1.0 - prob.sum(), 0), steps)
+    ref, half, speed = f._split(st.keys)
+    keep = (1.0 - f.params.jump) ** steps
+    return {
+        (int(r), int(h), int(v)): float(q) / keep
+        for r, h, v, q in zip(ref, half, speed, st.prob, strict=True)
+        if q > 0
+    }
+
+
+def test_motion_in_half_references() -> None:
+    """One frame's motion, in half references: the speed changes by -1/0/+1 (accel/2,
+    1 - accel, accel/2; clipped to 0..speeds-1), the position advances by the new speed
+    -1/0/+1 (jitter, 1 - 2 jitter, jitter); whole references beyond a route's end stop
+    there, the half is kept."""
+    rm = routes_map(2, 20)  # route 0: refs 0..19, route 1: 20..39
+    f = SequenceFilter(rm, PARAMS.with_(accel=0.0, jitter=0.0))
+    assert f.params.speeds == 9
+    # 1.5 refs a frame from half 1 of ref 10: 1 + 3 half refs = ref 12, half 0
+    assert moved(f, {(10, 1, 3): 1.0}) == pytest.approx({(12, 0, 3): 1.0})
+    # 0.5 refs a frame: every other frame onto the next reference
+    assert moved(f, {(10, 0, 1): 1.0}) == pytest.approx({(10, 1, 1): 1.0})
+    assert moved(f, {(10, 0, 1): 1.0}, steps=2) == pytest.approx({(11, 0, 1): 1.0})
+    assert moved(f, {(10, 0, 1): 1.0}, steps=3) == pytest.approx({(11, 1, 1): 1.0})
+    # the fastest: 4 refs a frame; stopped: stays
+    assert moved(f, {(3, 1, 8): 1.0}) == pytest.approx({(7, 1, 8): 1.0})
+    assert moved(f, {(3, 1, 0): 1.0}) == pytest.approx({(3, 1, 0): 1.0})
+    # route ends: ref 18, half 1 at 2 refs a frame -> ref 20 is route 1: stops at 19, half 1
+    assert moved(f, {(18, 1, 4): 1.0}) == pytest.approx({(19, 1, 4): 1.0})
+    assert moved(f, {(19, 0, 3): 1.0}) == pytest.approx({(19, 1, 3): 1.0})
+    assert moved(f, {(19, 1, 3): 1.0}) == pytest.approx({(19, 0, 3): 1.0})
+    # jitter: -1/0/+1 half reference; backwards from a stop (ref 20 is route 1's start)
+    fj = SequenceFilter(rm, PARAMS.with_(accel=0.0, jitter=0.1))
+    assert moved(fj, {(10, 0, 2): 1.0}) == pytest.approx(
+        {(10, 1, 2): 0.1, (11, 0, 2): 0.8, (11, 1, 2): 0.1}
+    )
+    assert moved(fj, {(10, 0, 0): 1.0}) == pytest.approx(
+        {(9, 1, 0): 0.1, (10, 0, 0): 0.8, (10, 1, 0): 0.1}
+    )
+    assert moved(fj, {(20, 0, 0): 1.0}) == pytest.approx(
+        {(20, 1, 0): 0.2, (20, 0, 0): 0.8}  # 20 - 1/2 clipped to 20, half 1 kept
+    )
+    # accel: the speed changes first, the step is the new speed's; clipped at 0 and 8
+    fa = SequenceFilter(rm, PARAMS.with_(accel=0.2, jitter=0.0))
+    assert moved(fa, {(10, 0, 2): 1.0}) == pytest.approx(
+        {(10, 1, 1): 0.1, (11, 0, 2): 0.8, (11, 1, 3): 0.1}
+    )
+    assert moved(fa, {(10, 0, 0): 1.0}) == pytest.approx({(10, 0, 0): 0.9, (10, 1, 1): 0.1})
+    assert moved(fa, {(10, 0, 8): 1.0}) == pytest.approx({(13, 1, 7): 0.1, (14, 0, 8): 0.9})
+    # masses of two hypotheses that meet add up
+    assert moved(f, {(10, 0, 2): 0.3, (10, 1, 1): 0.2}) == pytest.approx(
+        {(11, 0, 2): 0.3, (11, 0, 1): 0.2}
+    )
+    assert moved(f, {(10, 0, 2): 0.3, (10, 1, 2): 0.2, (11, 0, 2): 0.1}) == pytest.approx(
+        {(11, 0, 2): 0.3, (11, 1, 2): 0.2, (12, 0, 2): 0.1}
+    )
+    assert moved(f, {(10, 0, 4): 0.3, (11, 0, 2): 0.2}) == pytest.approx(
+        {(12, 0, 4): 0.3, (12, 0, 2): 0.2}
+    )
+
+
+def test_evidence_is_a_z_score_over_the_map() -> None:
+    """The tier-1 term is (evidence_weight / sd) (score - mean), mean and sd over the map's
+    sample: the posterior does not change when a frame's scores are shifted or scaled, and a
+    flat frame (sd 0) leaves the belief as the motion made it."""
+    rm = routes_map(2, 200)
+    f = SequenceFilter(rm, PARAMS.with_(combined_weight=0.0))
+    rng = np.random.default_rng(0)
+    state = f.start()
+    for t in drive(rm, 0, 10, 1.0, 8):
+        state, _ = f.update(state, evidence(rm.n, int(t), rng))
+    ev = evidence(rm.n, int(drive(rm, 0, 10, 1.0, 9)[-1]), rng)
+    a, ea = f.update(state, ev)
+    moved_ev = Evidence((3.0 * ev.tier1[0] - 0.7,), ev.proposals, ev.final, ev.combined)
+    b, eb = f.update(state, moved_ev)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.prob, b.prob, rtol=1e-9)
+    assert a.background == pytest.approx(b.background, rel=1e-9) and ea == eb
+    # a flat frame: every reference alike, the motion's belief (with the new proposals)
+    flat = Evidence((np.full(rm.n, 0.4),), ev.proposals, ev.final, ev.combined)
+    d, _ = f.update(state, flat)
+    pred = f.predict(state)
+    prior = np.full(len(d.keys), pred.background / f.n_keys)
+    assert np.isin(pred.keys, d.keys).all() or len(d.keys) == PARAMS.hypotheses
+    idx = np.searchsorted(d.keys, pred.keys)
+    ok = idx < len(d.keys)
+    ok[ok] = d.keys[idx[ok]] == pred.keys[ok]
+    prior[idx[ok]] += pred.prob[ok]
+    np.testing.assert_allclose(d.prob / prior, d.prob[0] / prior[0], rtol=1e-9)
+    # ... as with evidence_weight 0
+    e, _ = SequenceFilter(rm, f.params.with_(evidence_weight=0.0)).update(state, ev)
+    np.testing.assert_array_equal(e.keys, d.keys)
+    np.testing.assert_allclose(e.prob, d.prob, rtol=1e-9)
+    assert not np.allclose(a.prob[np.isin(a.keys, d.keys)], d.prob[np.isin(d.keys, a.keys)])
+
+
+def test_background_likelihood_on_the_sample() -> None:
+    """On a map larger than its sample, the background's likelihood is estimated on the
+    sample: each sampled reference counts its 2 x speeds keys without a hypothesis, at its
+    z-scored likelihood, scaled by n / len(sample). Checked against that formula (from the
+    start: the first frame), and against the exact sum over the whole map (measured with a
+    sample of 200 of 3000 references: 1% to 7% off over 5 frames)."""
+    rm = RouteMap.from_metadata(3000, sample_size=200, seed=1)
+    p = PARAMS.with_(proposals=20, hypotheses=1000)
+    f = SequenceFilter(rm, p)
+    per_ref = 2 * p.speeds
+    rng = np.random.default_rng(3)
+    errors = []
+    for i in range(5):
+        ev = evidence(rm.n, 100 + i, rng, k=20, f=5)
+        st, _ = f.update(f.start(), ev)
+        refs = np.unique(f.refs_of(st.keys))
+        assert len(st.keys) == len(refs) * per_ref  # a proposed reference: every key
+        x = ev.tier1[0]
+        mu, sd = x[rm.sample].mean(), x[rm.sample].std()
+        lik = np.exp(p.evidence_weight * (x - mu) / sd)
+        bonus = np.zeros(rm.n)
+        bonus[ev.final] = p.combined_weight * ev.combined
+        explicit = float((per_ref * lik[refs] * np.exp(bonus[refs])).sum())
+        free = per_ref - np.isin(rm.sample, refs) * per_ref
+        estimate = float(np.dot(lik[rm.sample], free)) * rm.n / len(rm.sample)
+        # from the start every key has the prior 1 / n_keys: the ratio of the masses is the
+        # ratio of the likelihood sums
+        assert st.background / st.prob.sum() == pytest.approx(estimate / explicit, rel=1e-9)
+        outside = np.ones(rm.n, bool)
+        outside[refs] = False
+        exact = float(lik[outside].sum()) * per_ref
+        errors.append(abs(estimate / exact - 1))
+    assert max(errors) <= 0.08, errors
 
 
 def test_gap_beyond_max_gap_restarts() -> None:
@@ -493,7 +652,8 @@ def test_junction_followed_with_positions(positions: bool) -> None:
         assert max(delays) <= 2 and np.mean(delays) <= 1.0, delays
     else:
         # without positions the routes are not connected: only the jump brings the belief
-        # onto route 1, a re-lock as after a relocation (measured: 5 to 7 frames)
+        # onto route 1, a re-lock as after a relocation (measured: 4 to 8 frames, mean 5.6,
+        # over 12 seeds)
         assert min(delays) >= 4 and max(delays) <= 10, delays
 
 
@@ -542,16 +702,54 @@ def test_nan_combined_score_reads_as_zero() -> None:
 
 
 def test_driving_against_the_mapping_direction_is_not_locked() -> None:
-    """Speeds are 0..max_steps along the mapped direction: a vehicle that drives a route
-    backwards is not followed (measured: right in ~20% of frames), and the estimate says so:
-    it is (almost) never locked, and right when it is."""
+    """Speeds are 0..max_steps along the mapped direction (backwards, only the jitter of a
+    stopped hypothesis: half a reference a frame): a vehicle that drives a route backwards
+    is not followed, and the estimate says so: it is seldom locked. Measured over 10 drives
+    of 80 frames: right in 14% of frames (at most 28% in a drive), locked in 1.1% (at most
+    6% in a drive), and those locks are mostly wrong (7 of 9 frames): a slow forward
+    hypothesis on clutter, or the end of the route (the end is where every hypothesis that
+    drives off it stops), holds the mass that the backward evidence cannot."""
     rm = routes_map(2, 200)
     truth = drive(rm, 1, 10, 1.0, 150)[::-1][:80]
-    est, _ = run_drive(rm, truth, 3)
-    locked = np.array([e.locked for e in est])
-    assert hits(rm, est, truth).mean() <= 0.4
-    assert locked.mean() <= 0.05
-    assert hits(rm, est, truth)[locked].all()
+    right, locked = [], []
+    for seed in range(10):
+        est, _ = run_drive(rm, truth, seed)
+        right.append(hits(rm, est, truth).mean())
+        locked.append(np.mean([e.locked for e in est]))
+    assert np.mean(right) <= 0.2 and max(right) <= 0.35, right
+    assert np.mean(locked) <= 0.02 and max(locked) <= 0.08, locked
+
+
+def test_leaving_the_map_at_a_routes_end() -> None:
+    """A vehicle that drives off the end of a mapped route (then: frames of unmapped places,
+    clutter only) stays locked at the end for a while: clipped there, the hypotheses keep
+    their mass without a cost of motion, and clutter does not contradict them much.
+    Measured over 8 drives: locked at the end (+- 2) for 3 to 16 of the next 30 frames,
+    never after the 16th; one lock elsewhere in the 240 frames (mass 0.50 on clutter)."""
+    rm = routes_map(2, 200)
+    end = int(rm.ordered[rm.route_end[1] - 1])
+    f = SequenceFilter(rm, PARAMS)
+    elsewhere = 0
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        state = f.start()
+        for t in drive(rm, 1, 150, 1.0, 50):
+            state, est = f.update(state, evidence(rm.n, int(t), rng))
+        assert est.locked and rm.separation(est.ref, end) <= 2
+        at_end = []
+        for _ in range(30):
+            s = rng.uniform(0.0, 0.75, rm.n)
+            if rng.random() < 0.3:
+                s[rng.integers(rm.n)] = 1.0
+            s /= s.max()
+            top = np.argsort(-s, kind="stable")
+            ev = Evidence((s,), top[:50], top[:5], np.linspace(1.0, 0.0, 5))
+            state, est = f.update(state, ev)
+            near_end = bool(rm.separation(est.ref, end) <= 2)
+            at_end.append(est.locked and near_end)
+            elsewhere += est.locked and not near_end
+        assert 3 <= sum(at_end) <= 20 and not any(at_end[20:]), at_end
+    assert elsewhere <= 2
 
 
 # -- Estimate --------------------------------------------------------------------------------
