@@ -333,12 +333,17 @@ class Evidence:
         proposals: (K,) the best references by the mean tier-1 score.
         final: (F,) the final candidates; ``combined``: their Combined score min-max
             normalised to [0, 1].
+        scored: the references tier 1 scored when not all of them (with a GPS prior: the
+            ones the hierarchy ran over; the others read 0); None: every reference. The
+            tier-1 z-score takes its mean and spread over these (over the map's sample
+            without them).
     """
 
     tier1: tuple[np.ndarray, ...]
     proposals: np.ndarray
     final: np.ndarray
     combined: np.ndarray
+    scored: np.ndarray | None = None
 
     @classmethod
     def from_result(
@@ -372,7 +377,7 @@ class Evidence:
                 x[allowed] = a
                 full.append(x)
             arrays, top, final = full, allowed[top], allowed[final]
-        return cls(tuple(arrays), top.astype(np.int64), final, comb)
+        return cls(tuple(arrays), top.astype(np.int64), final, comb, allowed)
 
     def tier1_at(self, refs: np.ndarray) -> np.ndarray:
         """Mean tier-1 score at ``refs`` (NaN read as 0)."""
@@ -598,8 +603,13 @@ class SequenceFilter:
         refs = self.refs_of(keys)
         # The tier-1 score as a z-score over the map (mean and spread on the fixed sample):
         # a frame whose scores are all alike says little, a frame with one clear peak a lot.
+        # With a GPS prior (``scored``) the spread is that of the scored references: over the
+        # map's sample, mostly unscored zeros, a narrow prior's frame had sd 0 (its tier-1
+        # evidence dropped) or, with one sampled reference in it, an erratic huge weight.
         at_sample = evidence.tier1_at(self.routes.sample)
-        mu, sd = float(at_sample.mean()), float(at_sample.std())
+        at_stats = at_sample if evidence.scored is None else self._at_scored(evidence)
+        mu = float(at_stats.mean()) if len(at_stats) else 0.0
+        sd = float(at_stats.std()) if len(at_stats) else 0.0
         scale = p.evidence_weight / sd if sd > 1e-9 else 0.0
         loglik = scale * (evidence.tier1_at(refs) - mu)
         if len(evidence.final) and p.combined_weight:
@@ -634,6 +644,15 @@ class SequenceFilter:
             bg += float(post.sum() - post[keep].sum())
             keys, post = keys[keep], post[keep]
         return FilterState(keys, post, bg, predicted.frames + 1)
+
+    def _at_scored(self, evidence: Evidence) -> np.ndarray:
+        """Mean tier-1 score at the scored references (at most as many as the map's sample,
+        evenly spaced among them: a frame's cost stays independent of the prior's size)."""
+        scored = np.asarray(evidence.scored, dtype=np.int64)
+        m = len(self.routes.sample)
+        if len(scored) > m:
+            scored = scored[np.linspace(0, len(scored) - 1, m).round().astype(np.int64)]
+        return evidence.tier1_at(scored)
 
     def estimate(self, state: FilterState) -> Estimate:
         """The reference with the most probability within ``+- window`` along its route
