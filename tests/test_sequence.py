@@ -752,6 +752,48 @@ def test_leaving_the_map_at_a_routes_end() -> None:
     assert elsewhere <= 2
 
 
+def gps_evidence(rm: RouteMap, ev: Evidence, allowed: np.ndarray) -> Evidence:
+    """The evidence of a hierarchy that ran over ``allowed`` only (a GPS prior), from a
+    frame's synthetic scores."""
+    from types import SimpleNamespace
+
+    sub = ev.tier1[0][allowed] / ev.tier1[0][allowed].max()
+    fin = np.argsort(-sub, kind="stable")[:5]
+    tier = SimpleNamespace(methods=["m"], scores={"m": sub})
+    result = SimpleNamespace(tiers=[tier], final_candidates=fin, combined=sub[fin])
+    return Evidence.from_result(result, rm.n, proposals=50, allowed=allowed)
+
+
+def test_gps_prior_keeps_the_tier1_evidence() -> None:
+    """With a GPS prior the tier-1 scores outside it read 0; the z-score's mean and spread are
+    the scored references'. Over the map's sample (what the filter did), a prior narrower
+    than the sample's spacing (here 101 references of 50,000, sample 512) held no sampled
+    reference: sd 0, the tier-1 evidence dropped in every frame (measured: right in 0% of
+    frames with combined_weight 0, against 100% without the prior)."""
+    rm = routes_map(10, 5000)
+    p = PARAMS.with_(combined_weight=0.0)
+    f = SequenceFilter(rm, p)
+    rng = np.random.default_rng(0)
+    truth = drive(rm, 3, 100, 1.0, 40)
+    state, right = f.start(), []
+    for i, t in enumerate(truth):
+        r = int(rm.rank[t])
+        allowed = rm.ordered[r - 50 : r + 51]
+        assert not np.isin(rm.sample, allowed).any()  # the case: no sampled reference
+        ev = gps_evidence(rm, evidence(rm.n, int(t), rng), allowed)
+        np.testing.assert_array_equal(ev.scored, allowed)
+        if i == 0:  # from the start (an even prior): the posterior ratio of two references
+            first, _ = f.update(state, ev)
+            x = ev.tier1[0]
+            a, b = int(ev.proposals[0]), int(ev.proposals[1])
+            ka, kb = np.searchsorted(first.keys, [a * 2 * p.speeds, b * 2 * p.speeds])
+            expect = p.evidence_weight * (x[a] - x[b]) / x[allowed].std()
+            assert math.log(first.prob[ka] / first.prob[kb]) == pytest.approx(expect)
+        state, est = f.update(state, ev)
+        right.append(rm.separation(est.ref, int(t)) <= 2)
+    assert np.mean(right[5:]) >= 0.95, right
+
+
 # -- Estimate --------------------------------------------------------------------------------
 
 
@@ -832,6 +874,8 @@ def test_evidence_from_a_hierarchy_result() -> None:
     ev = Evidence.from_result(res, 100, proposals=2, allowed=allowed)
     assert sorted(ev.proposals.tolist()) == [41, 61]
     np.testing.assert_array_equal(ev.final, [41, 61])
+    np.testing.assert_array_equal(ev.scored, allowed)  # the z-score's references
+    assert Evidence.from_result(res, 100).scored is None
     np.testing.assert_allclose(ev.combined, [1.0, 1.0])  # all equal: every candidate 1
     assert ev.tier1[0].shape == (100,) and ev.tier1[0][42] == 0.5 and ev.tier1[0][0] == 0.0
     assert (
