@@ -34,8 +34,9 @@ The estimate (:class:`Estimate`) is the reference whose route neighbourhood (``+
 references) holds the most probability; that mass is its confidence.
 
 Everything here is pure: :meth:`SequenceFilter.update` takes a :class:`FilterState` and
-returns a new one, which :meth:`FilterState.to_bytes` packs into a few hundred bytes (the
-service sends it to the vehicle, signed, and gets it back with the next frame).
+returns a new one, which :meth:`SequenceFilter.pack` packs into a few hundred bytes (the
+service sends it to the vehicle, signed, and gets it back with the next frame, read by
+:meth:`SequenceFilter.unpack`).
 """
 
 from __future__ import annotations
@@ -332,12 +333,17 @@ class Evidence:
         proposals: (K,) the best references by the mean tier-1 score.
         final: (F,) the final candidates; ``combined``: their Combined score min-max
             normalised to [0, 1].
+        scored: the references tier 1 scored when not all of them (with a GPS prior: the
+            ones the hierarchy ran over; the others read 0); None: every reference. The
+            tier-1 z-score takes its mean and spread over these (over the map's sample
+            without them).
     """
 
     tier1: tuple[np.ndarray, ...]
     proposals: np.ndarray
     final: np.ndarray
     combined: np.ndarray
+    scored: np.ndarray | None = None
 
     @classmethod
     def from_result(
@@ -371,7 +377,7 @@ class Evidence:
                 x[allowed] = a
                 full.append(x)
             arrays, top, final = full, allowed[top], allowed[final]
-        return cls(tuple(arrays), top.astype(np.int64), final, comb)
+        return cls(tuple(arrays), top.astype(np.int64), final, comb, allowed)
 
     def tier1_at(self, refs: np.ndarray) -> np.ndarray:
         """Mean tier-1 score at ``refs`` (NaN read as 0)."""
@@ -401,14 +407,22 @@ class FilterState:
     background: float = 1.0
     frames: int = 0
 
-    _MAGIC = b"HQS1"
-    _HEAD = "<IfH"
+    # Format 2: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
+    # unknown), then the keys (u32) and their log probabilities (f16). Format 1 had no
+    # speeds byte: a state of a map with another max_steps read silently wrong.
+    _MAGIC = b"HQS2"
+    _HEAD = "<IfHB"
 
-    def to_bytes(self, keep: int = 64) -> bytes:
+    def to_bytes(self, keep: int = 64, *, speeds: int = 0) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
-        background), keys as uint32 and probabilities as float16 logs."""
+        background), keys as uint32 and probabilities as float16 logs. ``speeds``
+        (:attr:`FilterParams.speeds` of the map; 0: not said) goes into the header, so that
+        :meth:`from_bytes` can refuse a state of a map with other speeds
+        (:meth:`SequenceFilter.pack` passes it)."""
         if keep < 0:
             raise HmpfError("keep must be >= 0")
+        if not 0 <= speeds <= 0xFF:
+            raise HmpfError("a packed state says speeds from 0 (unknown) to 255")
         order = np.sort(np.argsort(-self.prob, kind="stable")[:keep])
         keys, prob = self.keys[order], self.prob[order]
         if len(keys) > 0xFFFF or (len(keys) and int(keys[-1]) > 0xFFFFFFFF):
@@ -416,20 +430,30 @@ class FilterState:
         if not 0 <= self.frames <= 0xFFFFFFFF:
             raise HmpfError("a packed state counts at most 2**32 - 1 frames")
         background = max(0.0, 1.0 - float(prob.sum()))
-        head = self._MAGIC + struct.pack(self._HEAD, self.frames, background, len(keys))
+        head = self._MAGIC + struct.pack(
+            self._HEAD, self.frames, background, len(keys), int(speeds)
+        )
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
         return head + keys.astype("<u4").tobytes() + logs.tobytes()
 
     @classmethod
-    def from_bytes(cls, data: bytes, n_keys: int) -> FilterState:
+    def from_bytes(cls, data: bytes, n_keys: int, *, speeds: int = 0) -> FilterState:
         """Read :meth:`to_bytes`; ``n_keys`` = :attr:`SequenceFilter.n_keys` of the map it
-        is for (a key beyond it is refused)."""
+        is for (a key beyond it is refused); ``speeds`` = its :attr:`FilterParams.speeds`
+        (refused when the state says other speeds; 0, or a state that does not say: not
+        checked). :meth:`SequenceFilter.unpack` passes both."""
         size = len(cls._MAGIC) + struct.calcsize(cls._HEAD)
         if len(data) < size or not data.startswith(cls._MAGIC):
             raise StateError("not a sequence state")
-        frames, background, h = struct.unpack(cls._HEAD, data[len(cls._MAGIC) : size])
+        frames, background, h, packed_speeds = struct.unpack(
+            cls._HEAD, data[len(cls._MAGIC) : size]
+        )
         if len(data) != size + 6 * h:
             raise StateError("sequence state has the wrong length")
+        if speeds and packed_speeds and packed_speeds != speeds:
+            raise StateError(
+                f"sequence state is for a map with {packed_speeds} speeds, not {speeds}"
+            )
         keys = np.frombuffer(data, "<u4", h, size).astype(np.int64)
         logs = np.frombuffer(data, "<f2", h, size + 4 * h).astype(np.float64)
         if (keys >= n_keys).any() or (h > 1 and (np.diff(keys) <= 0).any()):
@@ -508,6 +532,16 @@ class SequenceFilter:
         """The reference of each hypothesis key."""
         return np.asarray(keys) // (2 * self.params.speeds)
 
+    def pack(self, state: FilterState, keep: int = 64) -> bytes:
+        """:meth:`FilterState.to_bytes` with this map's speeds in the header."""
+        return state.to_bytes(keep, speeds=self.params.speeds)
+
+    def unpack(self, data: bytes) -> FilterState:
+        """:meth:`FilterState.from_bytes` for this map: a state of a map with other speeds
+        (another ``max_steps``) or with keys beyond :attr:`n_keys` raises
+        :class:`StateError`."""
+        return FilterState.from_bytes(data, self.n_keys, speeds=self.params.speeds)
+
     def start(self) -> FilterState:
         """The belief at the start of a drive: anywhere, at any speed."""
         return FilterState()
@@ -569,8 +603,13 @@ class SequenceFilter:
         refs = self.refs_of(keys)
         # The tier-1 score as a z-score over the map (mean and spread on the fixed sample):
         # a frame whose scores are all alike says little, a frame with one clear peak a lot.
+        # With a GPS prior (``scored``) the spread is that of the scored references: over the
+        # map's sample, mostly unscored zeros, a narrow prior's frame had sd 0 (its tier-1
+        # evidence dropped) or, with one sampled reference in it, an erratic huge weight.
         at_sample = evidence.tier1_at(self.routes.sample)
-        mu, sd = float(at_sample.mean()), float(at_sample.std())
+        at_stats = at_sample if evidence.scored is None else self._at_scored(evidence)
+        mu = float(at_stats.mean()) if len(at_stats) else 0.0
+        sd = float(at_stats.std()) if len(at_stats) else 0.0
         scale = p.evidence_weight / sd if sd > 1e-9 else 0.0
         loglik = scale * (evidence.tier1_at(refs) - mu)
         if len(evidence.final) and p.combined_weight:
@@ -605,6 +644,15 @@ class SequenceFilter:
             bg += float(post.sum() - post[keep].sum())
             keys, post = keys[keep], post[keep]
         return FilterState(keys, post, bg, predicted.frames + 1)
+
+    def _at_scored(self, evidence: Evidence) -> np.ndarray:
+        """Mean tier-1 score at the scored references (at most as many as the map's sample,
+        evenly spaced among them: a frame's cost stays independent of the prior's size)."""
+        scored = np.asarray(evidence.scored, dtype=np.int64)
+        m = len(self.routes.sample)
+        if len(scored) > m:
+            scored = scored[np.linspace(0, len(scored) - 1, m).round().astype(np.int64)]
+        return evidence.tier1_at(scored)
 
     def estimate(self, state: FilterState) -> Estimate:
         """The reference with the most probability within ``+- window`` along its route

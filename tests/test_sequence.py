@@ -27,12 +27,15 @@ from hmpf.sequence import (
 )
 
 # Explicit parameters (the defaults are being tuned elsewhere): tests depend on these values.
+# evidence_weight is per standard deviation of a frame's tier-1 scores over the map; the
+# synthetic frames below have a standard deviation of ~0.25, so 0.75 weighs them as the
+# earlier raw weight of 3.0 did (the bounds were first measured with that).
 PARAMS = FilterParams(
     max_steps=4,
     accel=0.05,
     jitter=0.1,
     jump=0.01,
-    evidence_weight=3.0,
+    evidence_weight=0.75,
     combined_weight=1.0,
     proposals=50,
     hypotheses=200,
@@ -310,7 +313,7 @@ def test_filter_params_mapping() -> None:
     assert FilterParams.from_mapping(None) == FilterParams()
     assert FilterParams.from_mapping({}) == FilterParams()
     p = FilterParams.from_mapping({"jump": 0.02, "max_steps": np.int64(3), "accel": 0})
-    assert p.jump == 0.02 and p.max_steps == 3 and p.speeds == 4
+    assert p.jump == 0.02 and p.max_steps == 3 and p.speeds == 7  # 0..3 refs in halves
     with pytest.raises(HmpfError, match="bogus"):
         FilterParams.from_mapping({"jump": 0.02, "bogus": 1})
     # the edges that are allowed
@@ -352,17 +355,23 @@ def test_start_of_a_drive_locks_and_beats_single_frames() -> None:
     assert min(accs) - np.mean(singles) >= 0.3
 
 
-@pytest.mark.parametrize("speed", [0.5, 1.0, 2.0, 3.0, 4.0])
+@pytest.mark.parametrize("speed", [0.5, 1.0, 1.5, 2.0, 3.0, 4.0])
 def test_speed_ratios(speed: float) -> None:
+    """A vehicle at ``speed`` times the mapping run's speed (0.5: each reference seen in two
+    frames; 1.5: one and two references a frame in turn) is followed, and Estimate.speed
+    (references per frame, in halves) is the ratio. Measured (seeds 11-13): right in every
+    frame from the 8th, the speed right from the 7th frame at the latest."""
     rm = routes_map(4, 500)
     truth = drive(rm, 1, 10, speed, 80)
+    if speed == 0.5:
+        assert (truth[0::2] == truth[1::2]).all() and (np.diff(truth[0::2]) == 1).all()
     est, evs = run_drive(rm, truth, 11)
     ok = hits(rm, est, truth)
     assert ok[8:].mean() >= 0.95, ok.mean()
     assert single_frame_hits(rm, evs, truth).mean() <= 0.75
-    # the estimated speed: the mean over the last frames is the true one
-    speeds = np.array([e.speed for e in est[40:]])
-    assert abs(speeds.mean() - speed) <= 0.35, speeds
+    speeds = np.array([e.speed for e in est[10:]])
+    assert (speeds == speed).mean() >= 0.95, speeds
+    assert abs(speeds.mean() - speed) <= 0.05, speeds
 
 
 def test_stops_and_repeated_frames() -> None:
@@ -374,6 +383,11 @@ def test_stops_and_repeated_frames() -> None:
     est, _ = run_drive(rm, truth, 5)
     ok = hits(rm, est, truth)
     assert ok[6:].mean() >= 0.95, np.flatnonzero(~ok)
+    # the speed: 0 from the 6th stopped frame (frame 35), 1 again from the 7th frame after
+    # the restart (frame 51); measured with seeds 5-7: from the 6th, and the 6th or 7th
+    speeds = np.array([e.speed for e in est])
+    assert (speeds[10:30] == 1.0).all() and (speeds[35:45] == 0.0).all(), speeds
+    assert (speeds[51:] == 1.0).all(), speeds
 
 
 def test_dropped_frames_with_steps() -> None:
@@ -392,7 +406,12 @@ def test_dropped_frames_with_steps() -> None:
     truth2 = drive(rm, 2, 10, 2.0, 60)
     est = f.run([evidence(rm.n, int(t), evr) for t in truth2], steps=[2] * 60)
     assert hits(rm, est, truth2)[6:].mean() >= 0.95
-    assert np.mean([e.speed for e in est[20:]]) == pytest.approx(1.0, abs=0.3)
+    assert np.mean([e.speed == 1.0 for e in est[10:]]) >= 0.95  # measured: every frame
+    # ... and one at 0.5 ref/frame (one reference an update), told steps=2, a speed of 0.5
+    truth3 = drive(rm, 3, 10, 1.0, 60)
+    est = f.run([evidence(rm.n, int(t), evr) for t in truth3], steps=[2] * 60)
+    assert hits(rm, est, truth3)[6:].mean() >= 0.95
+    assert np.mean([e.speed == 0.5 for e in est[10:]]) >= 0.95
 
 
 def relock_frames(rm: RouteMap, truth: np.ndarray, est: list[Estimate], at: int) -> int:
@@ -415,6 +434,146 @@ def test_jump_relocks_within_bounded_frames() -> None:
         delays.append(d)
         assert hits(rm, est, truth)[40 + d + 3 :].mean() >= 0.95
     assert max(delays) <= 10, delays
+
+
+def moved(
+    f: SequenceFilter, triples: dict[tuple[int, int, int], float], steps: int = 1
+) -> dict[tuple[int, int, int], float]:
+    """predict() on hypotheses given as (reference, half, speed): probability, the result
+    read back the same way (the jump's share taken out; moves of probability 0, which
+    predict keeps as keys, left out)."""
+    keys = f._join(*(np.array(x) for x in zip(*triples, strict=True)))
+    order = np.argsort(keys)
+    prob = np.array(list(triples.values()))[order]
+    st = f.predict(FilterState(keys[order], prob, 1.0 - prob.sum(), 0), steps)
+    ref, half, speed = f._split(st.keys)
+    keep = (1.0 - f.params.jump) ** steps
+    return {
+        (int(r), int(h), int(v)): float(q) / keep
+        for r, h, v, q in zip(ref, half, speed, st.prob, strict=True)
+        if q > 0
+    }
+
+
+def test_motion_in_half_references() -> None:
+    """One frame's motion, in half references: the speed changes by -1/0/+1 (accel/2,
+    1 - accel, accel/2; clipped to 0..speeds-1), the position advances by the new speed
+    -1/0/+1 (jitter, 1 - 2 jitter, jitter); whole references beyond a route's end stop
+    there, the half is kept."""
+    rm = routes_map(2, 20)  # route 0: refs 0..19, route 1: 20..39
+    f = SequenceFilter(rm, PARAMS.with_(accel=0.0, jitter=0.0))
+    assert f.params.speeds == 9
+    # 1.5 refs a frame from half 1 of ref 10: 1 + 3 half refs = ref 12, half 0
+    assert moved(f, {(10, 1, 3): 1.0}) == pytest.approx({(12, 0, 3): 1.0})
+    # 0.5 refs a frame: every other frame onto the next reference
+    assert moved(f, {(10, 0, 1): 1.0}) == pytest.approx({(10, 1, 1): 1.0})
+    assert moved(f, {(10, 0, 1): 1.0}, steps=2) == pytest.approx({(11, 0, 1): 1.0})
+    assert moved(f, {(10, 0, 1): 1.0}, steps=3) == pytest.approx({(11, 1, 1): 1.0})
+    # the fastest: 4 refs a frame; stopped: stays
+    assert moved(f, {(3, 1, 8): 1.0}) == pytest.approx({(7, 1, 8): 1.0})
+    assert moved(f, {(3, 1, 0): 1.0}) == pytest.approx({(3, 1, 0): 1.0})
+    # route ends: ref 18, half 1 at 2 refs a frame -> ref 20 is route 1: stops at 19, half 1
+    assert moved(f, {(18, 1, 4): 1.0}) == pytest.approx({(19, 1, 4): 1.0})
+    assert moved(f, {(19, 0, 3): 1.0}) == pytest.approx({(19, 1, 3): 1.0})
+    assert moved(f, {(19, 1, 3): 1.0}) == pytest.approx({(19, 0, 3): 1.0})
+    # jitter: -1/0/+1 half reference; backwards from a stop (ref 20 is route 1's start)
+    fj = SequenceFilter(rm, PARAMS.with_(accel=0.0, jitter=0.1))
+    assert moved(fj, {(10, 0, 2): 1.0}) == pytest.approx(
+        {(10, 1, 2): 0.1, (11, 0, 2): 0.8, (11, 1, 2): 0.1}
+    )
+    assert moved(fj, {(10, 0, 0): 1.0}) == pytest.approx(
+        {(9, 1, 0): 0.1, (10, 0, 0): 0.8, (10, 1, 0): 0.1}
+    )
+    assert moved(fj, {(20, 0, 0): 1.0}) == pytest.approx(
+        {(20, 1, 0): 0.2, (20, 0, 0): 0.8}  # 20 - 1/2 clipped to 20, half 1 kept
+    )
+    # accel: the speed changes first, the step is the new speed's; clipped at 0 and 8
+    fa = SequenceFilter(rm, PARAMS.with_(accel=0.2, jitter=0.0))
+    assert moved(fa, {(10, 0, 2): 1.0}) == pytest.approx(
+        {(10, 1, 1): 0.1, (11, 0, 2): 0.8, (11, 1, 3): 0.1}
+    )
+    assert moved(fa, {(10, 0, 0): 1.0}) == pytest.approx({(10, 0, 0): 0.9, (10, 1, 1): 0.1})
+    assert moved(fa, {(10, 0, 8): 1.0}) == pytest.approx({(13, 1, 7): 0.1, (14, 0, 8): 0.9})
+    # masses of two hypotheses that meet add up
+    assert moved(f, {(10, 0, 2): 0.3, (10, 1, 1): 0.2}) == pytest.approx(
+        {(11, 0, 2): 0.3, (11, 0, 1): 0.2}
+    )
+    assert moved(f, {(10, 0, 2): 0.3, (10, 1, 2): 0.2, (11, 0, 2): 0.1}) == pytest.approx(
+        {(11, 0, 2): 0.3, (11, 1, 2): 0.2, (12, 0, 2): 0.1}
+    )
+    assert moved(f, {(10, 0, 4): 0.3, (11, 0, 2): 0.2}) == pytest.approx(
+        {(12, 0, 4): 0.3, (12, 0, 2): 0.2}
+    )
+
+
+def test_evidence_is_a_z_score_over_the_map() -> None:
+    """The tier-1 term is (evidence_weight / sd) (score - mean), mean and sd over the map's
+    sample: the posterior does not change when a frame's scores are shifted or scaled, and a
+    flat frame (sd 0) leaves the belief as the motion made it."""
+    rm = routes_map(2, 200)
+    f = SequenceFilter(rm, PARAMS.with_(combined_weight=0.0))
+    rng = np.random.default_rng(0)
+    state = f.start()
+    for t in drive(rm, 0, 10, 1.0, 8):
+        state, _ = f.update(state, evidence(rm.n, int(t), rng))
+    ev = evidence(rm.n, int(drive(rm, 0, 10, 1.0, 9)[-1]), rng)
+    a, ea = f.update(state, ev)
+    moved_ev = Evidence((3.0 * ev.tier1[0] - 0.7,), ev.proposals, ev.final, ev.combined)
+    b, eb = f.update(state, moved_ev)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.prob, b.prob, rtol=1e-9)
+    assert a.background == pytest.approx(b.background, rel=1e-9) and ea == eb
+    # a flat frame: every reference alike, the motion's belief (with the new proposals)
+    flat = Evidence((np.full(rm.n, 0.4),), ev.proposals, ev.final, ev.combined)
+    d, _ = f.update(state, flat)
+    pred = f.predict(state)
+    prior = np.full(len(d.keys), pred.background / f.n_keys)
+    assert np.isin(pred.keys, d.keys).all() or len(d.keys) == PARAMS.hypotheses
+    idx = np.searchsorted(d.keys, pred.keys)
+    ok = idx < len(d.keys)
+    ok[ok] = d.keys[idx[ok]] == pred.keys[ok]
+    prior[idx[ok]] += pred.prob[ok]
+    np.testing.assert_allclose(d.prob / prior, d.prob[0] / prior[0], rtol=1e-9)
+    # ... as with evidence_weight 0
+    e, _ = SequenceFilter(rm, f.params.with_(evidence_weight=0.0)).update(state, ev)
+    np.testing.assert_array_equal(e.keys, d.keys)
+    np.testing.assert_allclose(e.prob, d.prob, rtol=1e-9)
+    assert not np.allclose(a.prob[np.isin(a.keys, d.keys)], d.prob[np.isin(d.keys, a.keys)])
+
+
+def test_background_likelihood_on_the_sample() -> None:
+    """On a map larger than its sample, the background's likelihood is estimated on the
+    sample: each sampled reference counts its 2 x speeds keys without a hypothesis, at its
+    z-scored likelihood, scaled by n / len(sample). Checked against that formula (from the
+    start: the first frame), and against the exact sum over the whole map (measured with a
+    sample of 200 of 3000 references: 1% to 7% off over 5 frames)."""
+    rm = RouteMap.from_metadata(3000, sample_size=200, seed=1)
+    p = PARAMS.with_(proposals=20, hypotheses=1000)
+    f = SequenceFilter(rm, p)
+    per_ref = 2 * p.speeds
+    rng = np.random.default_rng(3)
+    errors = []
+    for i in range(5):
+        ev = evidence(rm.n, 100 + i, rng, k=20, f=5)
+        st, _ = f.update(f.start(), ev)
+        refs = np.unique(f.refs_of(st.keys))
+        assert len(st.keys) == len(refs) * per_ref  # a proposed reference: every key
+        x = ev.tier1[0]
+        mu, sd = x[rm.sample].mean(), x[rm.sample].std()
+        lik = np.exp(p.evidence_weight * (x - mu) / sd)
+        bonus = np.zeros(rm.n)
+        bonus[ev.final] = p.combined_weight * ev.combined
+        explicit = float((per_ref * lik[refs] * np.exp(bonus[refs])).sum())
+        free = per_ref - np.isin(rm.sample, refs) * per_ref
+        estimate = float(np.dot(lik[rm.sample], free)) * rm.n / len(rm.sample)
+        # from the start every key has the prior 1 / n_keys: the ratio of the masses is the
+        # ratio of the likelihood sums
+        assert st.background / st.prob.sum() == pytest.approx(estimate / explicit, rel=1e-9)
+        outside = np.ones(rm.n, bool)
+        outside[refs] = False
+        exact = float(lik[outside].sum()) * per_ref
+        errors.append(abs(estimate / exact - 1))
+    assert max(errors) <= 0.08, errors
 
 
 def test_gap_beyond_max_gap_restarts() -> None:
@@ -493,7 +652,8 @@ def test_junction_followed_with_positions(positions: bool) -> None:
         assert max(delays) <= 2 and np.mean(delays) <= 1.0, delays
     else:
         # without positions the routes are not connected: only the jump brings the belief
-        # onto route 1, a re-lock as after a relocation (measured: 5 to 7 frames)
+        # onto route 1, a re-lock as after a relocation (measured: 4 to 8 frames, mean 5.6,
+        # over 12 seeds)
         assert min(delays) >= 4 and max(delays) <= 10, delays
 
 
@@ -542,16 +702,96 @@ def test_nan_combined_score_reads_as_zero() -> None:
 
 
 def test_driving_against_the_mapping_direction_is_not_locked() -> None:
-    """Speeds are 0..max_steps along the mapped direction: a vehicle that drives a route
-    backwards is not followed (measured: right in ~20% of frames), and the estimate says so:
-    it is (almost) never locked, and right when it is."""
+    """Speeds are 0..max_steps along the mapped direction (backwards, only the jitter of a
+    stopped hypothesis: half a reference a frame): a vehicle that drives a route backwards
+    is not followed, and the estimate says so: it is seldom locked. Measured over 10 drives
+    of 80 frames: right in 14% of frames (at most 28% in a drive), locked in 1.1% (at most
+    6% in a drive), and those locks are mostly wrong (7 of 9 frames): a slow forward
+    hypothesis on clutter, or the end of the route (the end is where every hypothesis that
+    drives off it stops), holds the mass that the backward evidence cannot."""
     rm = routes_map(2, 200)
     truth = drive(rm, 1, 10, 1.0, 150)[::-1][:80]
-    est, _ = run_drive(rm, truth, 3)
-    locked = np.array([e.locked for e in est])
-    assert hits(rm, est, truth).mean() <= 0.4
-    assert locked.mean() <= 0.05
-    assert hits(rm, est, truth)[locked].all()
+    right, locked = [], []
+    for seed in range(10):
+        est, _ = run_drive(rm, truth, seed)
+        right.append(hits(rm, est, truth).mean())
+        locked.append(np.mean([e.locked for e in est]))
+    assert np.mean(right) <= 0.2 and max(right) <= 0.35, right
+    assert np.mean(locked) <= 0.02 and max(locked) <= 0.08, locked
+
+
+def test_leaving_the_map_at_a_routes_end() -> None:
+    """A vehicle that drives off the end of a mapped route (then: frames of unmapped places,
+    clutter only) stays locked at the end for a while: clipped there, the hypotheses keep
+    their mass without a cost of motion, and clutter does not contradict them much.
+    Measured over 8 drives: locked at the end (+- 2) for 3 to 16 of the next 30 frames,
+    never after the 16th; one lock elsewhere in the 240 frames (mass 0.50 on clutter)."""
+    rm = routes_map(2, 200)
+    end = int(rm.ordered[rm.route_end[1] - 1])
+    f = SequenceFilter(rm, PARAMS)
+    elsewhere = 0
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        state = f.start()
+        for t in drive(rm, 1, 150, 1.0, 50):
+            state, est = f.update(state, evidence(rm.n, int(t), rng))
+        assert est.locked and rm.separation(est.ref, end) <= 2
+        at_end = []
+        for _ in range(30):
+            s = rng.uniform(0.0, 0.75, rm.n)
+            if rng.random() < 0.3:
+                s[rng.integers(rm.n)] = 1.0
+            s /= s.max()
+            top = np.argsort(-s, kind="stable")
+            ev = Evidence((s,), top[:50], top[:5], np.linspace(1.0, 0.0, 5))
+            state, est = f.update(state, ev)
+            near_end = bool(rm.separation(est.ref, end) <= 2)
+            at_end.append(est.locked and near_end)
+            elsewhere += est.locked and not near_end
+        assert 3 <= sum(at_end) <= 20 and not any(at_end[20:]), at_end
+    assert elsewhere <= 2
+
+
+def gps_evidence(rm: RouteMap, ev: Evidence, allowed: np.ndarray) -> Evidence:
+    """The evidence of a hierarchy that ran over ``allowed`` only (a GPS prior), from a
+    frame's synthetic scores."""
+    from types import SimpleNamespace
+
+    sub = ev.tier1[0][allowed] / ev.tier1[0][allowed].max()
+    fin = np.argsort(-sub, kind="stable")[:5]
+    tier = SimpleNamespace(methods=["m"], scores={"m": sub})
+    result = SimpleNamespace(tiers=[tier], final_candidates=fin, combined=sub[fin])
+    return Evidence.from_result(result, rm.n, proposals=50, allowed=allowed)
+
+
+def test_gps_prior_keeps_the_tier1_evidence() -> None:
+    """With a GPS prior the tier-1 scores outside it read 0; the z-score's mean and spread are
+    the scored references'. Over the map's sample (what the filter did), a prior narrower
+    than the sample's spacing (here 101 references of 50,000, sample 512) held no sampled
+    reference: sd 0, the tier-1 evidence dropped in every frame (measured: right in 0% of
+    frames with combined_weight 0, against 100% without the prior)."""
+    rm = routes_map(10, 5000)
+    p = PARAMS.with_(combined_weight=0.0)
+    f = SequenceFilter(rm, p)
+    rng = np.random.default_rng(0)
+    truth = drive(rm, 3, 100, 1.0, 40)
+    state, right = f.start(), []
+    for i, t in enumerate(truth):
+        r = int(rm.rank[t])
+        allowed = rm.ordered[r - 50 : r + 51]
+        assert not np.isin(rm.sample, allowed).any()  # the case: no sampled reference
+        ev = gps_evidence(rm, evidence(rm.n, int(t), rng), allowed)
+        np.testing.assert_array_equal(ev.scored, allowed)
+        if i == 0:  # from the start (an even prior): the posterior ratio of two references
+            first, _ = f.update(state, ev)
+            x = ev.tier1[0]
+            a, b = int(ev.proposals[0]), int(ev.proposals[1])
+            ka, kb = np.searchsorted(first.keys, [a * 2 * p.speeds, b * 2 * p.speeds])
+            expect = p.evidence_weight * (x[a] - x[b]) / x[allowed].std()
+            assert math.log(first.prob[ka] / first.prob[kb]) == pytest.approx(expect)
+        state, est = f.update(state, ev)
+        right.append(rm.separation(est.ref, int(t)) <= 2)
+    assert np.mean(right[5:]) >= 0.95, right
 
 
 # -- Estimate --------------------------------------------------------------------------------
@@ -569,32 +809,45 @@ def test_estimate_window_mass_and_lock() -> None:
     rm = routes_map(2, 20)
     s = PARAMS.speeds
 
-    def state(pairs: dict[tuple[int, int], float]) -> FilterState:
-        keys = np.array(sorted(r * s + v for r, v in pairs), dtype=np.int64)
-        prob = np.array([pairs[(int(k) // s, int(k) % s)] for k in keys])
+    def state(triples: dict[tuple[int, int, int], float]) -> FilterState:
+        """Hypotheses (reference, half, speed in half references per frame): probability."""
+        keys = np.array(sorted((2 * r + h) * s + v for r, h, v in triples), dtype=np.int64)
+        prob = np.array([triples[(int(k) // (2 * s), int(k) // s % 2, int(k) % s)] for k in keys])
         return FilterState(keys, prob, 1.0 - prob.sum(), 3)
 
+    f = SequenceFilter(rm, PARAMS)
+    key = f._join(np.array([19]), np.array([1]), np.array([5]))
+    assert int(key[0]) == (2 * 19 + 1) * s + 5 and f.refs_of(key)[0] == 19
+    assert [int(x[0]) for x in f._split(key)] == [19, 1, 5]
     # refs 17 and 19 on route 0, 20 and 21 on route 1: the window never crosses routes
-    st = state({(17, 1): 0.1, (19, 2): 0.15, (19, 0): 0.05, (20, 3): 0.25, (21, 1): 0.2})
+    st = state(
+        {(17, 0, 1): 0.1, (19, 1, 2): 0.15, (19, 0, 0): 0.05, (20, 1, 3): 0.25, (21, 0, 1): 0.2}
+    )
     for lock in (0.44, 0.46):
         f = SequenceFilter(rm, PARAMS.with_(window=2, lock_mass=lock))
         est = f.estimate(st)
         assert est.ref in (20, 21) and est.mass == pytest.approx(0.45)
         assert est.locked == (lock < 0.45) and est.frames == 3
     f = SequenceFilter(rm, PARAMS.with_(window=2))
-    assert f.estimate(st).ref == 20 and f.estimate(st).speed == 3  # ties: the more probable
-    # window 0: only the reference's own mass (every speed of it)
+    # ties: the more probable centre; the speed in references per frame (3 half refs)
+    assert f.estimate(st).ref == 20 and f.estimate(st).speed == 1.5
+    # window 0: only the reference's own mass (every half and speed of it)
     f0 = SequenceFilter(rm, PARAMS.with_(window=0))
     est = f0.estimate(st)
     assert est.ref == 20 and est.mass == pytest.approx(0.25)
-    st = state({(17, 1): 0.1, (19, 2): 0.15, (19, 0): 0.05, (20, 3): 0.18, (21, 1): 0.2})
+    st = state(
+        {(17, 0, 1): 0.1, (19, 1, 2): 0.15, (19, 0, 0): 0.05, (20, 1, 3): 0.18, (21, 0, 1): 0.2}
+    )
     est = f0.estimate(st)
-    assert est.ref == 21 or est.ref == 19  # 0.2 each
+    assert est.ref == 21 or est.ref == 19  # 0.2 each (19: both halves)
     est = SequenceFilter(rm, PARAMS.with_(window=2)).estimate(st)
-    assert est.ref == 21 and est.mass == pytest.approx(0.38) and est.speed == 1
+    assert est.ref == 21 and est.mass == pytest.approx(0.38) and est.speed == 0.5
     # a wide window: route 0's three hypotheses
     est = SequenceFilter(rm, PARAMS.with_(window=5)).estimate(st)
     assert est.mass == pytest.approx(0.38)
+    # both halves of a reference count for it; its speed is the most probable key's
+    est = f0.estimate(state({(19, 1, 2): 0.15, (19, 0, 5): 0.1, (21, 0, 1): 0.2}))
+    assert est.ref == 19 and est.mass == pytest.approx(0.25) and est.speed == 1.0
 
 
 def test_evidence_from_a_hierarchy_result() -> None:
@@ -621,6 +874,8 @@ def test_evidence_from_a_hierarchy_result() -> None:
     ev = Evidence.from_result(res, 100, proposals=2, allowed=allowed)
     assert sorted(ev.proposals.tolist()) == [41, 61]
     np.testing.assert_array_equal(ev.final, [41, 61])
+    np.testing.assert_array_equal(ev.scored, allowed)  # the z-score's references
+    assert Evidence.from_result(res, 100).scored is None
     np.testing.assert_allclose(ev.combined, [1.0, 1.0])  # all equal: every candidate 1
     assert ev.tier1[0].shape == (100,) and ev.tier1[0][42] == 0.5 and ev.tier1[0][0] == 0.0
     assert (
@@ -671,11 +926,53 @@ def test_state_bytes_round_trip() -> None:
     assert len(start.keys) == 0 and start.background == 1.0 and start.frames == 0
 
 
+def test_filter_pack_and_unpack_check_the_map() -> None:
+    """SequenceFilter.pack writes the map's speeds into the header, unpack checks them and the
+    keys against its map: a state of a map with another max_steps (other speeds: the same key
+    is another reference, half and speed) or of a larger map is refused, not misread."""
+    f, state = driven_state()
+    data = f.pack(state)
+    assert data == state.to_bytes(64, speeds=PARAMS.speeds) and data[14] == PARAMS.speeds
+    assert len(f.pack(state, keep=10)) == 15 + 60
+    back = f.unpack(data)
+    ref = FilterState.from_bytes(data, f.n_keys)  # the old call: speeds not checked
+    np.testing.assert_array_equal(back.keys, ref.keys)
+    np.testing.assert_array_equal(back.prob, ref.prob)
+    assert back.background == ref.background and back.frames == state.frames
+    assert f.estimate(back).ref == f.estimate(state).ref
+    # another max_steps on the same map: every key is below its n_keys, so only the speeds
+    # byte tells (read unchecked, the same keys name other references)
+    other = SequenceFilter(f.routes, PARAMS.with_(max_steps=3))
+    assert other.n_keys < f.n_keys and int(back.keys.max()) < other.n_keys
+    unchecked = FilterState.from_bytes(data, other.n_keys)
+    assert f.estimate(back).ref != other.estimate(unchecked).ref
+    with pytest.raises(StateError, match="speeds"):
+        other.unpack(data)
+    with pytest.raises(StateError, match="speeds"):
+        FilterState.from_bytes(data, other.n_keys, speeds=other.params.speeds)
+    with pytest.raises(StateError):
+        f.unpack(other.pack(FilterState(np.array([5]), np.array([0.5]), 0.5, 1)))
+    # another number of references: keys beyond the smaller map are refused
+    small = SequenceFilter(routes_map(1, 300), PARAMS)
+    with pytest.raises(StateError, match="not in this map"):
+        small.unpack(data)
+    # a state that does not say its speeds (to_bytes() without them) is read unchecked
+    loose = state.to_bytes()
+    assert loose[14] == 0
+    np.testing.assert_array_equal(f.unpack(loose).keys, back.keys)
+    np.testing.assert_array_equal(other.unpack(loose).keys, back.keys)
+    # the start state packs and unpacks
+    start = f.unpack(f.pack(f.start()))
+    assert len(start.keys) == 0 and start.background == 1.0 and start.frames == 0
+
+
 def test_state_bytes_size() -> None:
     _, state = driven_state()
     for keep in (0, 1, 10, 64, 200):
-        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 6 * keep
-    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 398
+        # magic, frames, background, hypotheses, speeds; 4 + 2 bytes a hypothesis
+        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 6 * keep
+        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 15 + 6 * keep
+    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 399
     # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
     # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
     with pytest.raises(HmpfError):
@@ -684,15 +981,28 @@ def test_state_bytes_size() -> None:
     with pytest.raises(HmpfError):
         big.to_bytes()
     many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
-    assert len(many.to_bytes(keep=65535)) == 14 + 6 * 65535
+    assert len(many.to_bytes(keep=65535)) == 15 + 6 * 65535
     with pytest.raises(HmpfError):
         many.to_bytes(keep=70000)
     with pytest.raises(HmpfError):
         FilterState(frames=2**32).to_bytes()
+    # the speeds byte: 0 (unknown) to 255
+    for bad in (-1, 256):
+        with pytest.raises(HmpfError):
+            state.to_bytes(speeds=bad)
 
 
-def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: int = 3) -> bytes:
-    head = b"HQS1" + struct.pack("<IfH", frames, background, len(keys))
+def pack(
+    keys: list[int],
+    logs: list[float],
+    background: float = 0.5,
+    frames: int = 3,
+    speeds: int = 0,
+    magic: bytes = b"HQS2",
+) -> bytes:
+    """The packed format written out: magic, frames (u32), background (f32), hypotheses
+    (u16), speeds (u8), keys (u32), log probabilities (f16), little-endian."""
+    head = magic + struct.pack("<IfHB", frames, background, len(keys), speeds)
     return head + np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
 
 
@@ -703,10 +1013,12 @@ def pack(keys: list[int], logs: list[float], background: float = 0.5, frames: in
         b"HQS1",
         b"garbage that is long enough to be read as a header",
         bytes(range(256)),
-        b"HQS2" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        b"HQS3" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        # format 1 (no speeds byte): refused, not misread
+        b"HQS1" + struct.pack("<IfH", 3, 0.5, 2) + np.array([1, 2], "<u4").tobytes() + bytes(4),
         pack([1, 2], [-1, -2])[:-1],  # truncated
         pack([1, 2], [-1, -2]) + b"\0",  # trailing bytes
-        pack([1, 2], [-1, -2])[:14],  # header only, says 2 hypotheses
+        pack([1, 2], [-1, -2])[:15],  # header only, says 2 hypotheses
         pack([1, 1000], [-1, -2]),  # key beyond n_keys (= 1000)
         pack([999, 1000], [-1, -2]),
         pack([5, 3], [-1, -2]),  # unsorted
@@ -729,6 +1041,13 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
     st = FilterState.from_bytes(pack([1, 999], [-1, -2], background=0.0), 1000)
     assert list(st.keys) == [1, 999] and st.frames == 3 and st.background == 0.0
     np.testing.assert_allclose(st.prob, np.exp([-1, -2]) / np.exp([-1, -2]).sum(), rtol=1e-3)
+    # the speeds byte: checked when both the state and the reader say them
+    for packed, expected in ((9, 9), (0, 9), (9, 0), (0, 0), (255, 255)):
+        data = pack([1, 2], [-1, -2], speeds=packed)
+        assert list(FilterState.from_bytes(data, 1000, speeds=expected).keys) == [1, 2]
+    for packed, expected in ((9, 7), (7, 9), (1, 255)):
+        with pytest.raises(StateError):
+            FilterState.from_bytes(pack([1, 2], [-1, -2], speeds=packed), 1000, speeds=expected)
     assert issubclass(StateError, HmpfError)
 
 
@@ -737,7 +1056,11 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
 
 def dense_transition(rm: RouteMap, p: FilterParams, junctions: dict[int, list[int]]) -> np.ndarray:
     """T[k, k'] = P(key k' at the next frame | key k), the motion model written out state by
-    state (positions along each route counted here, not with RouteMap.advance)."""
+    state, a state being (reference, half, speed) with ``key = (2 * ref + half) * speeds +
+    speed`` (positions along each route counted here, not with RouteMap.advance). In half
+    references: the speed changes by -1/0/+1 (clipped to 0..speeds-1), the position advances
+    by the new speed -1/0/+1 (jitter); whole references beyond the route's ends stop there,
+    the half is kept."""
     s = p.speeds
     routes: dict[int, list[int]] = {}
     for r in range(rm.n):
@@ -751,39 +1074,50 @@ def dense_transition(rm: RouteMap, p: FilterParams, junctions: dict[int, list[in
         k, i = where[r]
         return routes[k][min(max(i + step, 0), len(routes[k]) - 1)]
 
-    t = np.zeros((rm.n * s, rm.n * s))
+    def key(r: int, h: int, v: int) -> int:
+        return (2 * r + h) * s + v
+
+    t = np.zeros((rm.n * 2 * s, rm.n * 2 * s))
     for r in range(rm.n):
-        for v in range(s):
-            for dv, pv in ((-1, p.accel / 2), (0, 1 - p.accel), (1, p.accel / 2)):
-                nv = min(max(v + dv, 0), p.max_steps)
-                for dj, pj in ((-1, p.jitter), (0, 1 - 2 * p.jitter), (1, p.jitter)):
-                    w = pv * pj
-                    js = junctions.get(r, [])
-                    stay = 1 - p.junction if js else 1.0
-                    t[r * s + v, ahead(r, nv + dj) * s + nv] += w * stay
-                    for j in js:
-                        t[r * s + v, ahead(j, nv + dj) * s + nv] += w * p.junction / len(js)
+        js = junctions.get(r, [])
+        stay = 1 - p.junction if js else 1.0
+        for h in (0, 1):
+            for v in range(s):
+                for dv, pv in ((-1, p.accel / 2), (0, 1 - p.accel), (1, p.accel / 2)):
+                    nv = min(max(v + dv, 0), s - 1)
+                    for dj, pj in ((-1, p.jitter), (0, 1 - 2 * p.jitter), (1, p.jitter)):
+                        w = pv * pj
+                        half_refs = h + nv + dj  # from the start of reference r
+                        dref, nh = half_refs // 2, half_refs % 2
+                        t[key(r, h, v), key(ahead(r, dref), nh, nv)] += w * stay
+                        for j in js:
+                            t[key(r, h, v), key(ahead(j, dref), nh, nv)] += w * p.junction / len(js)
     return t
 
 
-def dense_likelihood(n: int, s: int, p: FilterParams, ev: Evidence) -> np.ndarray:
-    ll = p.evidence_weight * ev.tier1[0]
+def dense_likelihood(rm: RouteMap, p: FilterParams, ev: Evidence) -> np.ndarray:
+    """Per key: exp of ``evidence_weight`` x the tier-1 score's z-score over the whole map
+    (a small map: the sample is every reference) + ``combined_weight`` x Combined."""
+    assert len(rm.sample) == rm.n
+    x = ev.tier1[0]
+    sd = float(np.std(x))
+    ll = p.evidence_weight * (x - np.mean(x)) / sd if sd > 1e-9 else np.zeros(rm.n)
     for r, c in zip(ev.final, ev.combined, strict=True):
         ll[r] += p.combined_weight * c
-    return np.repeat(np.exp(ll - ll.max()), s)
+    return np.repeat(np.exp(ll - ll.max()), 2 * p.speeds)
 
 
 def dense_forward(
     rm: RouteMap, p: FilterParams, evs: list[Evidence], junctions: dict[int, list[int]]
 ) -> list[np.ndarray]:
-    n_keys = rm.n * p.speeds
+    n_keys = rm.n * 2 * p.speeds
     t = dense_transition(rm, p, junctions)
     np.testing.assert_allclose(t.sum(1), 1.0)
     alpha, out = np.full(n_keys, 1.0 / n_keys), []
     for i, ev in enumerate(evs):
         if i:
             alpha = (1 - p.jump) * (alpha @ t) + p.jump / n_keys
-        alpha = alpha * dense_likelihood(rm.n, p.speeds, p, ev)
+        alpha = alpha * dense_likelihood(rm, p, ev)
         alpha /= alpha.sum()
         out.append(alpha)
     return out
@@ -796,11 +1130,15 @@ def as_dense(state: FilterState, n_keys: int) -> np.ndarray:
     return d
 
 
-@pytest.mark.parametrize("layout", ["one route", "two routes with a junction"])
+@pytest.mark.parametrize(
+    "layout", ["one route", "one route at half speed", "two routes with a junction"]
+)
 def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
-    if layout == "one route":
+    """With every key explicit (proposals: every reference; hypotheses: every key) the sparse
+    filter is the forward algorithm: the same belief to 1e-9 and the same estimate."""
+    if layout.startswith("one route"):
         rm, junctions = RouteMap.from_metadata(30), {}
-        truth = drive(rm, 0, 2, 1.0, 20)
+        truth = drive(rm, 0, 2, 0.5 if "half" in layout else 1.0, 20)
     else:
         lat, lon = cross_positions(7)  # 2 x 15 references crossing at 7 and 22
         rm = RouteMap.from_metadata(
@@ -814,7 +1152,7 @@ def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
         junctions = {a: js for a, js in junctions.items() if js}
         assert len(junctions) == 6  # 6, 7, 8 <-> 22; 7 <-> 21, 22, 23
         truth = np.concatenate([np.arange(0, 8), np.arange(23, 30), np.arange(29, 24, -1)])
-    p = PARAMS.with_(hypotheses=rm.n * PARAMS.speeds, proposals=rm.n, junction_m=6.0)
+    p = PARAMS.with_(hypotheses=rm.n * 2 * PARAMS.speeds, proposals=rm.n, junction_m=6.0)
     rng = np.random.default_rng(0)
     evs = [evidence(rm.n, int(t), rng, k=rm.n, f=4) for t in truth]
     f = SequenceFilter(rm, p)
@@ -823,10 +1161,14 @@ def test_sparse_filter_matches_dense_forward_algorithm(layout: str) -> None:
     state, worst = f.start(), 0.0
     for i, ev in enumerate(evs):
         state, est = f.update(state, ev)
+        assert len(state.keys) == f.n_keys  # every key explicit
         worst = max(worst, float(np.abs(as_dense(state, f.n_keys) - dense[i]).max()))
-        # the estimate: the reference with the most dense mass within +- window on its route
-        mass = near @ dense[i].reshape(rm.n, p.speeds).sum(1)
+        # the estimate: the reference with the most dense mass within +- window on its route,
+        # its speed the most probable there (half references per frame / 2)
+        by_ref = dense[i].reshape(rm.n, 2 * p.speeds)
+        mass = near @ by_ref.sum(1)
         assert est.ref == int(np.argmax(mass)) and est.mass == pytest.approx(mass.max())
+        assert est.speed == int(np.argmax(by_ref[est.ref])) % p.speeds / 2
     assert hits(rm, [est], truth[-1:])[0]
     assert worst <= 1e-9, worst
 
@@ -847,20 +1189,21 @@ def test_first_frame_matches_dense_with_few_proposals() -> None:
     assert state.background == pytest.approx(dense[rest].sum(), rel=1e-9)
 
 
-@pytest.mark.parametrize(("proposals", "hypotheses"), [(10, 150), (5, 150), (5, 30)])
+@pytest.mark.parametrize(("proposals", "hypotheses"), [(10, 540), (5, 540), (5, 108)])
 def test_sparse_filter_approximates_dense_with_few_proposals(
     proposals: int, hypotheses: int
 ) -> None:
-    """With fewer proposals than references (and pruning), the sparse belief is an
-    approximation of the dense one: the background is spread evenly again after each frame
-    (its likelihood shape forgotten) and is not moved by the motion. Measured on 5 drives of
-    20 frames: total variation <= 0.2 in the first frames while the background holds mass,
-    <= 0.035 from the 6th frame on; the estimate within 1 reference of the dense one in 99
-    of 100 frames."""
+    """With fewer proposals than references (and pruning: 540 and 108 hypotheses are 30 and
+    6 references' worth of keys), the sparse belief is an approximation of the dense one: the
+    background is spread evenly again after each frame (its likelihood shape forgotten) and
+    is not moved by the motion. Measured on 5 drives of 20 frames: total variation <= 0.19 in
+    the first frames while the background holds mass, <= 0.031 from the 6th frame on; the
+    estimate within 1 reference of the dense one in 98 of 100 frames (the others: near-ties,
+    the dense window mass at the sparse estimate at most 0.037 below the dense best)."""
     rm = RouteMap.from_metadata(30)
     p = PARAMS.with_(proposals=proposals, hypotheses=hypotheses)
     near = rm.separation(np.arange(rm.n)[:, None], np.arange(rm.n)[None, :]) <= p.window
-    tv_early, tv_late, agree = 0.0, 0.0, []
+    tv_early, tv_late, agree, deficit = 0.0, 0.0, [], 0.0
     for seed in range(5):
         truth = drive(rm, 0, 2, 1.0, 20)
         rng = np.random.default_rng(seed)
@@ -875,7 +1218,8 @@ def test_sparse_filter_approximates_dense_with_few_proposals(
                 tv_early = max(tv_early, tv)
             else:
                 tv_late = max(tv_late, tv)
-            mass = near @ dense[i].reshape(rm.n, p.speeds).sum(1)
+            mass = near @ dense[i].reshape(rm.n, 2 * p.speeds).sum(1)
             agree.append(rm.separation(est.ref, int(np.argmax(mass))) <= 1)
-    assert tv_early <= 0.25 and tv_late <= 0.05, (tv_early, tv_late)
-    assert np.mean(agree) >= 0.97
+            deficit = max(deficit, float(mass.max() - mass[est.ref]))
+    assert tv_early <= 0.22 and tv_late <= 0.04, (tv_early, tv_late)
+    assert np.mean(agree) >= 0.97 and deficit <= 0.05, (np.mean(agree), deficit)
