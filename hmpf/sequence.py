@@ -182,6 +182,16 @@ class RouteMap:
     def has_junctions(self) -> bool:
         return bool(len(self.junction_ids))
 
+    def ahead(self, refs: np.ndarray, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the references ``steps`` further along each reference's route, whether that is
+        still on the route): a step past the route's end is not (the vehicle has left the
+        mapped route), one before its start stops at the start (broadcasting)."""
+        route = self.route_of[refs]
+        lo, hi = self.route_start[route], self.route_end[route] - 1
+        target = self.rank[refs][..., None] + steps
+        inside = target <= hi[..., None]
+        return self.ordered[np.clip(target, lo[..., None], hi[..., None])], inside
+
     def advance(self, refs: np.ndarray, steps: np.ndarray) -> np.ndarray:
         """The references ``steps`` further along each reference's route (broadcasting),
         stopping at the route's ends."""
@@ -263,11 +273,15 @@ class FilterParams:
             filter starts again from the evidence (a long gap is a jump).
         junction_m: references of two routes this close are one place (needs positions).
         junction: share of a hypothesis's mass that crosses to the other route at a junction.
+        reset: share of the "anywhere" mass (jumps, the start, mass past a route's end) that
+            goes to the frame's proposed references rather than evenly over the map (sensor
+            resetting, Lenser and Veloso 2000): re-locking after a jump then costs the same
+            number of frames on a map of any size. 0: evenly, the plain forward filter.
     """
 
     max_steps: int = 4
     accel: float = 0.02
-    jitter: float = 0.1
+    jitter: float = 0.2
     jump: float = 0.01
     evidence_weight: float = 0.25
     combined_weight: float = 1.0
@@ -278,6 +292,7 @@ class FilterParams:
     max_gap: int = 8
     junction_m: float = 10.0
     junction: float = 0.2
+    reset: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -298,6 +313,8 @@ class FilterParams:
             raise HmpfError("evidence weights must be >= 0")
         if self.proposals < 1 or self.hypotheses < 1 or self.window < 0 or self.max_gap < 1:
             raise HmpfError("proposals, hypotheses and max_gap must be >= 1, window >= 0")
+        if not 0 <= self.reset < 1:
+            raise HmpfError("reset must be in [0, 1)")
         if not 0 <= self.junction < 1 or not 0 < self.lock_mass <= 1:
             raise HmpfError("junction in [0, 1) and lock_mass in (0, 1] are required")
         if self.junction_m < 0:
@@ -563,34 +580,41 @@ class SequenceFilter:
             raise HmpfError("steps must be >= 0")
         if steps > p.max_gap or not len(state.keys):
             return FilterState(background=1.0, frames=state.frames)
-        keys, prob = state.keys, state.prob
+        keys, prob, background = state.keys, state.prob, state.background
         for _ in range(steps):
-            keys, prob = self._move(keys, prob)
+            keys, prob, left = self._move(keys, prob)
+            background += left  # past a route's end: anywhere
         lost = 1.0 - (1.0 - p.jump) ** steps
         return FilterState(
-            keys, prob * (1.0 - lost), state.background * (1.0 - lost) + lost, state.frames
+            keys, prob * (1.0 - lost), background * (1.0 - lost) + lost, state.frames
         )
 
-    def _move(self, keys: np.ndarray, prob: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _move(self, keys: np.ndarray, prob: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """One frame's motion: (keys, probabilities, the mass that left its route's end)."""
         p, routes = self.params, self.routes
         refs, half, v = self._split(keys)
         new_v = self._new_v[v]
         dref, new_half = np.divmod(half[:, None] + self._step[v], 2)
-        to = self._join(routes.advance(refs, dref), new_half, new_v)
+        ahead, inside = routes.ahead(refs, dref)
+        to = [self._join(ahead, new_half, new_v).ravel()]
         w = prob[:, None] * self._w[v]
-        to, w = to.ravel(), w.ravel()
+        ws, ins = [w], [inside]
         if routes.has_junctions and p.junction > 0:
             owner, other = routes.junctions_of(refs)
             if len(owner):
                 n_j = np.bincount(owner, minlength=len(refs))
-                stay = np.where(n_j > 0, 1.0 - p.junction, 1.0)
-                w = w * np.repeat(stay, dref.shape[1])
-                j_to = self._join(routes.advance(other, dref[owner]), new_half[owner], new_v[owner])
+                ws[0] = w * np.where(n_j > 0, 1.0 - p.junction, 1.0)[:, None]
+                j_ahead, j_inside = routes.ahead(other, dref[owner])
+                to.append(self._join(j_ahead, new_half[owner], new_v[owner]).ravel())
                 share = prob[owner] * p.junction / n_j[owner]
-                j_w = share[:, None] * self._w[v[owner]]
-                to, w = np.concatenate([to, j_to.ravel()]), np.concatenate([w, j_w.ravel()])
-        uniq, inv = np.unique(to, return_inverse=True)
-        return uniq, np.bincount(inv, weights=w, minlength=len(uniq))
+                ws.append(share[:, None] * self._w[v[owner]])
+                ins.append(j_inside)
+        all_w = np.concatenate([x.ravel() for x in ws])
+        all_in = np.concatenate([x.ravel() for x in ins])
+        left = float(all_w[~all_in].sum())
+        keep = all_in & (all_w > 0)
+        uniq, inv = np.unique(np.concatenate(to)[keep], return_inverse=True)
+        return uniq, np.bincount(inv, weights=all_w[keep], minlength=len(uniq)), left
 
     def correct(self, predicted: FilterState, evidence: Evidence) -> FilterState:
         """Weigh the predicted belief with one frame's evidence, keep the best hypotheses."""
@@ -598,8 +622,13 @@ class SequenceFilter:
         new_refs = np.concatenate([evidence.proposals, evidence.final])
         new = (new_refs[:, None] * (2 * p.speeds) + np.arange(2 * p.speeds)[None, :]).ravel()
         keys = np.union1d(predicted.keys, new).astype(np.int64)
-        prior = np.full(len(keys), predicted.background / n_keys)
+        # The background: (1 - reset) of it evenly over every key, reset on the new keys.
+        even = predicted.background * (1.0 - p.reset)
+        prior = np.full(len(keys), even / n_keys)
         prior[np.searchsorted(keys, predicted.keys)] += predicted.prob
+        if p.reset and len(new):
+            new_u = np.unique(new)
+            prior[np.searchsorted(keys, new_u)] += predicted.background * p.reset / len(new_u)
         refs = self.refs_of(keys)
         # The tier-1 score as a z-score over the map (mean and spread on the fixed sample):
         # a frame whose scores are all alike says little, a frame with one clear peak a lot.
@@ -634,7 +663,7 @@ class SequenceFilter:
         per_ref = 2 * p.speeds  # keys of one reference: 2 halves x speeds
         bg_sum = float(np.dot(lik_s, per_ref - explicit)) * (self.n / len(sample))
         post = prior * lik
-        bg = predicted.background / n_keys * bg_sum
+        bg = even / n_keys * bg_sum
         total = float(post.sum()) + bg
         if not total > 0 or not math.isfinite(total):
             return FilterState(background=1.0, frames=predicted.frames + 1)

@@ -289,10 +289,10 @@ def format_sequence_report(rep: dict[str, Any]) -> list[str]:
 
 #: The grid :func:`tune_sequence` searches (over the defaults of :class:`FilterParams`).
 TUNING_GRID: dict[str, Sequence[Any]] = {
-    "evidence_weight": (0.05, 0.1, 0.25),
-    "combined_weight": (2.0, 4.0, 8.0),
-    "jump": (0.01, 0.05),
-    "jitter": (0.1, 0.2),
+    "evidence_weight": (0.1, 0.25),
+    "combined_weight": (2.0, 4.0),
+    "jump": (0.05, 0.1),
+    "reset": (0.0, 0.5, 0.9),
 }
 
 
