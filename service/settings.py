@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, SecretStr, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from hmpf.errors import ConfigError
@@ -66,6 +66,21 @@ class Settings(BaseSettings):
         None,
         description="Combined quality (z-score) an answer needs to be accepted; None: the "
         "index config's acceptance.threshold",
+    )
+    # -- sequence mode ----------------------------------------------------------------------
+    sequence_key: SecretStr | None = Field(
+        None,
+        min_length=16,
+        description="key that signs the vehicles' track tokens (every replica the same); "
+        "None: the key in sequence_key_file",
+    )
+    sequence_key_file: Path | None = Field(
+        None,
+        description="file holding the signing key, created (0600) when missing; None: "
+        "INDEX/.sequence-key, shared by every server on the same index folder",
+    )
+    track_max_age_s: float = Field(
+        600.0, gt=0, description="a track token older than this restarts the vehicle's track"
     )
     log_level: str = "info"
 
