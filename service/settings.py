@@ -11,7 +11,8 @@ the same keys without the prefix::
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
-``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) are allowed.
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) and the client's
+(``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
 from __future__ import annotations
@@ -33,8 +34,10 @@ from hmpf.methods.registry import format_validation_error
 __all__ = ["CORE_ENV", "Settings", "load_settings"]
 
 PREFIX = "HMPF_"
-#: ``HMPF_*`` variables that belong to the core (hmpf), not to the service.
-CORE_ENV = frozenset({"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE"})
+#: ``HMPF_*`` variables that belong to the core (hmpf) or its client, not to the service.
+CORE_ENV = frozenset(
+    {"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE", "API_KEY"}
+)
 
 
 class Settings(BaseSettings):
