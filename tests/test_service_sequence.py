@@ -69,8 +69,9 @@ def keys(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
 
 
 def _client(index: Path, keys: dict[str, str], **overrides: Any) -> TestClient:
+    """A TestClient; two workers, so that a batch runs in two lanes."""
     settings = load_settings(
-        None, index=index, keys_file=keys["file"], workers=1, queue=4, max_batch=8, **overrides
+        None, index=index, keys_file=keys["file"], workers=2, queue=4, max_batch=8, **overrides
     )
     return TestClient(create_app(settings))
 
@@ -227,6 +228,24 @@ def test_night_drive_locks_on_and_follows_the_route(client, night_drive) -> None
     token = last["sequence"]["track"]
     assert len(token) <= MAX_TOKEN_CHARS  # measured: 628 characters (471 bytes)
     assert _metric(client, "hmpf_sequence_answers_total", locked="true") >= len(DRIVE) - 3
+
+
+def test_openapi_documents_sequence_mode(client) -> None:
+    doc = client.get("/openapi.json").json()
+    schemas = doc["components"]["schemas"]
+    post = doc["paths"]["/v1/localize"]["post"]
+    query = {p["name"]: p for p in post["parameters"] if p["in"] == "query"}
+    for name in ("vehicle_id", "track", "timestamp"):
+        assert "sequence mode" in query[name]["description"], name
+    answer = schemas["LocalizeResponse"]["properties"]
+    assert {"match", "match_source", "single", "sequence"} <= set(answer)
+    assert "locked" in answer["match"]["description"]
+    report = schemas["SequenceReport"]["properties"]
+    assert set(report) == {
+        "status", "reset_reason", "match", "mass", "locked", "frames", "speed", "steps", "track"
+    }  # fmt: skip
+    assert all(p.get("description") for p in report.values())
+    assert "track" in schemas["BatchResponse"]["properties"]
 
 
 def test_single_frame_answers_without_vehicle(client, keys, night) -> None:
