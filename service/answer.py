@@ -4,9 +4,8 @@
 into a :class:`~service.schemas.LocalizeResponse`: the match (with its position and whether it
 is accepted), the final ranking, each tier's candidates and the GPS prior's report;
 :func:`with_sequence` adds sequence mode's report and makes its estimate the answer when it
-is locked. Numbers
-that are not finite (a method that scored NaN) are reported as ``None``, never as a number
-that looks real, and a match without a finite score is never accepted.
+is locked. Numbers that are not finite (a method that scored NaN) are reported as ``None``,
+never as a number that looks real, and a match without a finite score is never accepted.
 """
 
 from __future__ import annotations
@@ -95,24 +94,24 @@ def with_sequence(
     ``sequence`` report (``track``: the signed token to hand back), and the estimate as the
     ``match`` when it is locked (else the single-frame match stays the answer)."""
     est = step.estimate
-    found = est is not None and est.ref >= 0
+    mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
     estimate = None
-    if est is not None and found:
+    if est is not None and est.ref >= 0:  # -1: the belief holds no hypothesis
         estimate = _reference_match(
-            loaded, est.ref, score=None, confidence=min(1.0, est.mass), accepted=est.locked
+            loaded, est.ref, score=None, confidence=mass, accepted=est.locked
         )
+    use = estimate is not None and estimate.accepted
     report = SequenceReport(
         status=step.status,
         reset_reason=step.reason,
         match=estimate,
-        mass=0.0 if est is None else min(1.0, max(0.0, est.mass)),
-        locked=estimate is not None and estimate.accepted,
+        mass=mass,
+        locked=use,
         frames=0 if est is None else est.frames,
         speed=None if est is None else _finite(est.speed),
         steps=step.steps,
         track=track,
     )
-    use = estimate is not None and estimate.accepted
     return response.model_copy(
         update={
             "match": estimate if use else response.single,

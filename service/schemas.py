@@ -142,7 +142,10 @@ class SequenceReport(BaseModel):
     )
     mass: float = Field(ge=0, le=1, description="posterior probability near the estimate")
     locked: bool = Field(description="mass >= the filter's lock_mass: `match` is this estimate")
-    frames: int = Field(description="frames the track has seen since it (re)started")
+    frames: int = Field(
+        description="frames the track has seen since it (re)started (0 when out of order: "
+        "the filter did not run)"
+    )
     speed: float | None = Field(
         None, description="most probable speed, references per frame (1: the mapping run's)"
     )
