@@ -2,9 +2,10 @@
 
 :func:`localize_response` is the only place that turns a :class:`~hmpf.hierarchy.HierarchyResult`
 into a :class:`~service.schemas.LocalizeResponse`: the match (with its position and whether it
-is accepted), the final ranking, each tier's candidates and the GPS prior's report. Numbers
-that are not finite (a method that scored NaN) are reported as ``None``, never as a number
-that looks real, and a match without a finite score is never accepted.
+is accepted), the final ranking, each tier's candidates and the GPS prior's report;
+:func:`with_sequence` adds sequence mode's report and makes its estimate the answer when it
+is locked. Numbers that are not finite (a method that scored NaN) are reported as ``None``,
+never as a number that looks real, and a match without a finite score is never accepted.
 """
 
 from __future__ import annotations
@@ -23,10 +24,12 @@ from service.schemas import (
     LocalizeResponse,
     Match,
     PriorReport,
+    SequenceReport,
     TierReport,
 )
+from service.track import Step
 
-__all__ = ["localize_response"]
+__all__ = ["localize_response", "with_sequence"]
 
 
 def localize_response(
@@ -47,8 +50,10 @@ def localize_response(
         timing: the query's stage times in ms, reported as they are.
     """
     refs = _References(loaded.reader.refs.names, allowed)
+    match = None if result is None else _match(loaded, result, refs)
     return LocalizeResponse(
-        match=None if result is None else _match(loaded, result, refs),
+        match=match,
+        single=match,
         candidates=[] if result is None else _ranking(result, refs, params.top_k),
         tiers=[] if result is None else _tiers(loaded, result, refs),
         prior=_prior(loaded, params, allowed),
@@ -82,22 +87,68 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def with_sequence(
+    response: LocalizeResponse, loaded: Loaded, step: Step, track: str
+) -> LocalizeResponse:
+    """``response`` in sequence mode: the frame's :class:`~service.track.Step` as its
+    ``sequence`` report (``track``: the signed token to hand back), and the estimate as the
+    ``match`` when it is locked (else the single-frame match stays the answer)."""
+    est = step.estimate
+    mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
+    estimate = None
+    if est is not None and est.ref >= 0:  # -1: the belief holds no hypothesis
+        estimate = _reference_match(
+            loaded, est.ref, score=None, confidence=mass, accepted=est.locked
+        )
+    use = estimate is not None and estimate.accepted
+    report = SequenceReport(
+        status=step.status,
+        reset_reason=step.reason,
+        match=estimate,
+        mass=mass,
+        locked=use,
+        frames=0 if est is None else est.frames,
+        speed=None if est is None else _finite(est.speed),
+        steps=step.steps,
+        track=track,
+    )
+    return response.model_copy(
+        update={
+            "match": estimate if use else response.single,
+            "match_source": "sequence" if use else "single",
+            "sequence": report,
+        }
+    )
+
+
 def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match | None:
     if result.match < 0:
         return None
-    ref_id = refs.id_of(result.match)
-    meta = loaded.reader.refs.meta
-    lat = float(meta["lat"][ref_id]) if "lat" in meta else float("nan")
-    lon = float(meta["lon"][ref_id]) if "lon" in meta else float("nan")
     score = _finite(result.quality)
-    return Match(
-        reference_id=ref_id,
-        name=refs.names[ref_id],
-        lat=_finite(lat),
-        lon=_finite(lon),
+    return _reference_match(
+        loaded,
+        refs.id_of(result.match),
         score=score,
         confidence=confidence(result.quality, len(result.final_candidates)),
         accepted=score is not None and score >= loaded.threshold,
+    )
+
+
+def _reference_match(
+    loaded: Loaded, ref_id: int, *, score: float | None, confidence: float, accepted: bool
+) -> Match:
+    """Reference ``ref_id`` (with its position, when known) as a :class:`Match`."""
+    meta = loaded.reader.refs.meta
+    lat = float(meta["lat"][ref_id]) if "lat" in meta else float("nan")
+    lon = float(meta["lon"][ref_id]) if "lon" in meta else float("nan")
+    return Match(
+        reference_id=ref_id,
+        name=loaded.reader.refs.names[ref_id],
+        lat=_finite(lat),
+        lon=_finite(lon),
+        score=score,
+        confidence=confidence,
+        accepted=accepted,
     )
 
 

@@ -5,7 +5,8 @@
 
 * :mod:`service.routes.localize`: ``POST /v1/localize``: one image (multipart field ``image``
   or the raw body with an image content type); optional ``lat``, ``lon``, ``radius_m``,
-  ``top_k``, ``vehicle_id`` as query parameters or form fields. ``POST /v1/localize/batch``:
+  ``top_k``, ``vehicle_id`` (sequence mode, with ``track`` and ``timestamp``:
+  :mod:`service.vehicle`) as query parameters or form fields. ``POST /v1/localize/batch``:
   multipart, one or more ``images`` fields; one answer each, in order (a bad image gets its
   own error entry, the others are answered).
 * :mod:`service.routes.index`: ``GET /v1/index``; ``POST /v1/index/reload`` (admin).
@@ -32,6 +33,7 @@ from service.limits import BodyLimit
 from service.metrics import Metrics
 from service.routes import health, index, localize
 from service.settings import Settings
+from service.vehicle import Tracker
 
 __all__ = ["create_app"]
 
@@ -61,6 +63,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
     app.state.engine = engine
     app.state.settings = settings
     app.state.metrics = metrics
+    app.state.tracker = Tracker(settings, metrics)
     app.state.keys = keys
     install_handlers(app)
     app.add_middleware(BodyLimit, limit_for=_body_limits(settings))

@@ -1,7 +1,7 @@
 """What the routes take from the app, as ``Annotated`` dependencies.
 
-* :data:`EngineDep`, :data:`SettingsDep`, :data:`MetricsDep`: the objects ``create_app``
-  keeps in ``app.state``.
+* :data:`EngineDep`, :data:`SettingsDep`, :data:`MetricsDep`, :data:`TrackerDep`: the
+  objects ``create_app`` keeps in ``app.state``.
 * :data:`VehicleKey`, :data:`AdminKey`: the caller's API key (header ``X-API-Key``, declared
   with :class:`~fastapi.security.APIKeyHeader` so that ``/docs`` shows the scheme), checked
   against the keys file for the route's role; ``None`` when the service runs without auth.
@@ -23,12 +23,14 @@ from service.engine import Engine
 from service.errors import ApiError
 from service.metrics import Metrics
 from service.settings import Settings
+from service.vehicle import Tracker
 
 __all__ = [
     "AdminKey",
     "EngineDep",
     "MetricsDep",
     "SettingsDep",
+    "TrackerDep",
     "VehicleKey",
     "api_key_header",
     "authorize",
@@ -50,7 +52,13 @@ async def get_metrics(request: Request) -> Metrics:
     return metrics
 
 
+async def get_tracker(request: Request) -> Tracker:
+    tracker: Tracker = request.app.state.tracker
+    return tracker
+
+
 EngineDep = Annotated[Engine, Depends(get_engine)]
+TrackerDep = Annotated[Tracker, Depends(get_tracker)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 

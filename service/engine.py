@@ -34,6 +34,8 @@ import numpy as np
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
+from hmpf.sequence import SequenceFilter
+from service.track import binding_digest, open_filter
 
 __all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"]
 
@@ -70,12 +72,18 @@ class Prior:
 
 @dataclass
 class Loaded:
-    """One opened index version and what the queries need from it."""
+    """One opened index version and what the queries need from it.
+
+    ``sequence`` is the sequence filter over the version's routes and ``binding`` the digest
+    that ties a vehicle's track token to this version (:mod:`service.track`).
+    """
 
     reader: IndexReader
     hierarchy: Hierarchy
     threshold: float
     loaded_at: float
+    sequence: SequenceFilter
+    binding: bytes
     leases: int = 0
     retired: bool = False
     lat: np.ndarray | None = field(default=None, repr=False)
@@ -89,11 +97,14 @@ class Loaded:
         meta = reader.refs.meta
         lat, lon = meta.get("lat"), meta.get("lon")
         has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
+        params = reader.config.sequence_params()
         return cls(
             reader,
             reader.hierarchy(),
             DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen),
             time.time(),
+            open_filter(reader.n, meta, params),
+            binding_digest(reader.manifest, params),
             lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
             lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
         )

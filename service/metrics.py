@@ -5,6 +5,13 @@
 * ``hmpf_stage_seconds{stage}``: queue, decode, extract, hierarchy, total per query
 * ``hmpf_queue_depth``, ``hmpf_running``: admitted queries waiting / computing
 * ``hmpf_index_info{version}``: 1 for the loaded index version
+* sequence mode (requests with a ``vehicle_id``): ``hmpf_sequence_frames_total{status}``
+  (started, tracking, reset, out_of_order), ``hmpf_sequence_resets_total{reason}`` (expired,
+  index_changed), ``hmpf_sequence_refused_total{reason}`` (track tokens answered 422:
+  malformed, signature, vehicle), ``hmpf_sequence_answers_total{locked}`` (whether the answer
+  was the locked sequence estimate) and ``hmpf_sequence_update_seconds`` (the filter's time)
+
+Every label value comes from a fixed set in the code, never from a request.
 """
 
 from __future__ import annotations
@@ -24,10 +31,13 @@ from prometheus_client import (
 from starlette.requests import Request
 from starlette.responses import Response
 
+from service.track import REFUSALS, RESET_REASONS, STATUSES
+
 __all__ = ["Metrics"]
 
 _BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0)
 _STAGES = ("queue", "decode", "extract", "hierarchy", "total")
+_FILTER_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1)
 #: HTTP methods kept as label values; any other is counted as "other" (a client must not be
 #: able to create label values, and so time series, at will).
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
@@ -59,6 +69,45 @@ class Metrics:
             "hmpf_index_info", "loaded index version", ["version"], registry=self.registry
         )
         self._version: str | None = None
+        self.sequence_frames = Counter(
+            "hmpf_sequence_frames",
+            "frames answered in sequence mode, by track status",
+            ["status"],
+            registry=self.registry,
+        )
+        self.sequence_resets = Counter(
+            "hmpf_sequence_resets",
+            "tracks restarted because their token was not trusted",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.sequence_refused = Counter(
+            "hmpf_sequence_refused",
+            "requests refused for their track token (422 invalid_track)",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.sequence_answers = Counter(
+            "hmpf_sequence_answers",
+            "sequence-mode answers, by whether the locked sequence estimate was the answer",
+            ["locked"],
+            registry=self.registry,
+        )
+        self.sequence_update = Histogram(
+            "hmpf_sequence_update_seconds",
+            "sequence filter time per frame (update, token)",
+            buckets=_FILTER_BUCKETS,
+            registry=self.registry,
+        )
+        # Every series from the start (at 0), so that rates and alerts need no special case.
+        for status in STATUSES:
+            self.sequence_frames.labels(status)
+        for reason in RESET_REASONS:
+            self.sequence_resets.labels(reason)
+        for refusal in REFUSALS:
+            self.sequence_refused.labels(refusal)
+        for locked in ("true", "false"):
+            self.sequence_answers.labels(locked)
 
     async def middleware(
         self, request: Request, call_next: Callable[[Request], Awaitable[Response]]

@@ -3,6 +3,8 @@
 An :class:`ImageQuery` is built on the event loop when the request has been read and called
 on a query thread with the request's lease on an index version: it decodes the image, runs
 the hierarchy (restricted to the GPS prior, if any), times each stage and returns the answer.
+In sequence mode it also keeps the frame's evidence for the filter (:attr:`ImageQuery.evidence`,
+with the version it ran on), which the request runs once its frames are answered, in order.
 """
 
 from __future__ import annotations
@@ -13,11 +15,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hmpf.errors import HmpfError
+from hmpf.sequence import Evidence
 from service.answer import localize_response
 from service.engine import Loaded, Prior, run_query
 from service.errors import ApiError
 from service.images import decode_upload
 from service.schemas import LocalizeParams, LocalizeResponse
+from service.track import NO_EVIDENCE
 
 __all__ = ["ImageQuery"]
 
@@ -34,6 +38,9 @@ class ImageQuery:
         max_pixels: the pixel limit, read from the header before decoding.
         compute: the engine's pool for the extraction tasks.
         submitted: when the request handed it over (``perf_counter``), for the queue time.
+        sequence: keep the frame's evidence for the sequence filter.
+        evidence, loaded: after the call, in sequence mode: the evidence and the version it
+            was computed on.
     """
 
     data: bytes
@@ -43,6 +50,9 @@ class ImageQuery:
     max_pixels: int
     compute: Executor
     submitted: float = field(default_factory=time.perf_counter)
+    sequence: bool = False
+    evidence: Evidence | None = field(default=None, init=False)
+    loaded: Loaded | None = field(default=None, init=False, repr=False)
 
     def __call__(self, loaded: Loaded) -> LocalizeResponse:
         """Localise the image against ``loaded`` (on a query thread).
@@ -68,6 +78,18 @@ class ImageQuery:
         else:
             timing["tiers"] = [t.time_ms for t in result.tiers]
             timing["fusion"] = result.fusion_ms
+        if self.sequence:
+            self.loaded = loaded
+            self.evidence = (
+                NO_EVIDENCE
+                if result is None
+                else Evidence.from_result(
+                    result,
+                    loaded.reader.n,
+                    proposals=loaded.sequence.params.proposals,
+                    allowed=allowed,
+                )
+            )
         answer = localize_response(loaded, result, allowed, self.params, timing)
         answer.timing_ms["total"] = _ms_since(self.submitted)
         return answer

@@ -6,7 +6,11 @@ The multipart form models, which hold uploaded files, live with their routes in
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from service.track import MAX_TOKEN_CHARS
 
 __all__ = [
     "BatchItem",
@@ -20,6 +24,7 @@ __all__ = [
     "LocalizeResponse",
     "Match",
     "PriorReport",
+    "SequenceReport",
     "TierReport",
 ]
 
@@ -34,7 +39,28 @@ class LocalizeFields(BaseModel):
     lon: float | None = Field(None, ge=-180, le=180, description="GPS prior: longitude")
     radius_m: float | None = Field(None, gt=0, le=20_000_000, description="GPS prior radius")
     top_k: int = Field(5, ge=1, description="ranked candidates returned")
-    vehicle_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[\w.:@-]+$")
+    vehicle_id: str | None = Field(
+        None,
+        min_length=1,
+        max_length=128,
+        pattern=r"^[\w.:@-]+$",
+        description="the vehicle sending the frame: turns on sequence mode (the answer "
+        "follows the vehicle's frames; see `sequence` in the response)",
+    )
+    track: str | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_TOKEN_CHARS,
+        description="sequence mode: `sequence.track` of this vehicle's previous answer "
+        "(omit on the first frame); a token of another vehicle, or altered, is refused (422 "
+        "invalid_track)",
+    )
+    timestamp: float | None = Field(
+        None,
+        allow_inf_nan=False,
+        description="sequence mode: the frame's capture time in seconds (any epoch, the same "
+        "for every frame of the vehicle); tells the filter how many frames were dropped",
+    )
 
 
 class LocalizeParams(LocalizeFields):
@@ -45,6 +71,8 @@ class LocalizeParams(LocalizeFields):
         given = [v is not None for v in (self.lat, self.lon, self.radius_m)]
         if any(given) and not all(given):
             raise ValueError("a GPS prior needs lat, lon and radius_m together")
+        if self.vehicle_id is None and (self.track is not None or self.timestamp is not None):
+            raise ValueError("track and timestamp belong to sequence mode: give vehicle_id too")
         return self
 
 
@@ -55,10 +83,16 @@ class Match(BaseModel):
     lon: float | None = None
     score: float | None = Field(
         description="Combined score: z-score over the final candidates (None: not a number, "
-        "e.g. a method scored NaN; such a match is never accepted)"
+        "e.g. a method scored NaN, such a match is never accepted; or a sequence estimate)"
     )
-    confidence: float = Field(ge=0, le=1, description="score / largest possible z-score")
-    accepted: bool = Field(description="score >= the acceptance threshold")
+    confidence: float = Field(
+        ge=0,
+        le=1,
+        description="score / largest possible z-score (a sequence estimate: its posterior mass)",
+    )
+    accepted: bool = Field(
+        description="score >= the acceptance threshold (a sequence estimate: locked)"
+    )
 
 
 class Candidate(BaseModel):
@@ -88,8 +122,51 @@ class PriorReport(BaseModel):
     reason: str | None = None
 
 
+class SequenceReport(BaseModel):
+    """Sequence mode's part of an answer (requests with a ``vehicle_id``)."""
+
+    status: Literal["started", "tracking", "reset", "out_of_order"] = Field(
+        description="started: no track given; tracking: the track continued; reset: the "
+        "track was not trusted (see reset_reason) and restarted from this frame; "
+        "out_of_order: the frame is older than the track: answered single-frame, the "
+        "track is returned unchanged"
+    )
+    reset_reason: Literal["expired", "index_changed"] | None = Field(
+        None,
+        description="expired: the track is older than the service's track_max_age_s; "
+        "index_changed: it was made on another index version",
+    )
+    match: Match | None = Field(
+        description="the filter's estimate (score null, confidence = posterior mass, "
+        "accepted = locked); None when out of order"
+    )
+    mass: float = Field(ge=0, le=1, description="posterior probability near the estimate")
+    locked: bool = Field(description="mass >= the filter's lock_mass: `match` is this estimate")
+    frames: int = Field(
+        description="frames the track has seen since it (re)started (0 when out of order: "
+        "the filter did not run)"
+    )
+    speed: float | None = Field(
+        None, description="most probable speed, references per frame (1: the mapping run's)"
+    )
+    steps: int | None = Field(
+        None, description="frames moved since the previous one (more than 1: frames dropped)"
+    )
+    track: str = Field(description="send this as `track` with the vehicle's next frame")
+
+
 class LocalizeResponse(BaseModel):
-    match: Match | None = Field(description="None when the GPS prior leaves no reference")
+    match: Match | None = Field(
+        description="THE answer: the sequence estimate when it is locked, else the "
+        "single-frame match; None when the GPS prior leaves no reference"
+    )
+    match_source: Literal["single", "sequence"] = Field(
+        default="single", description="where `match` comes from"
+    )
+    single: Match | None = Field(None, description="the single-frame match, on its own")
+    sequence: SequenceReport | None = Field(
+        default=None, description="sequence mode (requests with a vehicle_id), else None"
+    )
     candidates: list[Candidate] = Field(description="final ranking by Combined score, top_k")
     tiers: list[TierReport]
     prior: PriorReport | None = None
@@ -108,6 +185,11 @@ class BatchItem(BaseModel):
 class BatchResponse(BaseModel):
     results: list[BatchItem]
     index_version: str
+    track: str | None = Field(
+        None,
+        description="sequence mode: the track after the batch's last answered frame, for "
+        "the vehicle's next request",
+    )
 
 
 class IndexInfo(BaseModel):

@@ -11,7 +11,8 @@ the same keys without the prefix::
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
-``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) are allowed.
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) and the client's
+(``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, SecretStr, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from hmpf.errors import ConfigError
@@ -33,8 +34,10 @@ from hmpf.methods.registry import format_validation_error
 __all__ = ["CORE_ENV", "Settings", "load_settings"]
 
 PREFIX = "HMPF_"
-#: ``HMPF_*`` variables that belong to the core (hmpf), not to the service.
-CORE_ENV = frozenset({"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE"})
+#: ``HMPF_*`` variables that belong to the core (hmpf) or its client, not to the service.
+CORE_ENV = frozenset(
+    {"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE", "API_KEY"}
+)
 
 
 class Settings(BaseSettings):
@@ -66,6 +69,21 @@ class Settings(BaseSettings):
         None,
         description="Combined quality (z-score) an answer needs to be accepted; None: the "
         "index config's acceptance.threshold",
+    )
+    # -- sequence mode ----------------------------------------------------------------------
+    sequence_key: SecretStr | None = Field(
+        None,
+        min_length=16,
+        description="key that signs the vehicles' track tokens (every replica the same); "
+        "None: the key in sequence_key_file",
+    )
+    sequence_key_file: Path | None = Field(
+        None,
+        description="file holding the signing key, created (0600) when missing; None: "
+        "INDEX/.sequence-key, shared by every server on the same index folder",
+    )
+    track_max_age_s: float = Field(
+        600.0, gt=0, description="a track token older than this restarts the vehicle's track"
     )
     log_level: str = "info"
 

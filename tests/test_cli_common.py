@@ -49,7 +49,14 @@ def test_closed_pipe_is_a_quiet_exit_not_a_traceback() -> None:
 
 @pytest.mark.parametrize(
     "module",
-    ["hmpf.cli.eval", "hmpf.cli.calibrate", "hmpf.cli.experiments", "indexer.cli", "service.cli"],
+    [
+        "hmpf.cli.eval",
+        "hmpf.cli.calibrate",
+        "hmpf.cli.experiments",
+        "hmpf.cli.replay",
+        "indexer.cli",
+        "service.cli",
+    ],
 )
 def test_command_modules_import_no_heavy_modules(module: str) -> None:
     """Ctrl-C while numpy/OpenCV/h5py/FAISS/torch/scipy load must also be one line and exit

@@ -10,11 +10,8 @@ built from Gardens Point, real night images posted with httpx.
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections import Counter
@@ -24,85 +21,17 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import copy_gp, default_sigint
+from service_helpers import BUILD_OPTIONS, Server, build_gp_index
 
-from hmpf.config import parse_config
-from indexer.build import BuildOptions, build, remove
+from indexer.build import remove
 from service.auth import add_key
 
-ROOT = Path(__file__).resolve().parent.parent
-#: GeM (a CNN on the bundled backbone) + Gist narrow, Gist + HOG + SAD decide.
-CONFIG = {
-    "name": "e2e",
-    "tiers": [{"methods": ["gem", "gist"], "k": 5}, {"methods": ["gem", "gist", "hog"], "k": 1}],
-}
 N_REFS = 40
-OPTS = BuildOptions(workers=1, progress=False)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Server:
-    """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
-
-    def __init__(self, index: Path, log: Path, **env: str) -> None:
-        self.port = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = log
-        full_env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
-        for k in ("HMPF_DATASETS", "HMPF_CACHE_DIR"):
-            if k in os.environ:
-                full_env[k] = os.environ[k]
-        full_env.update({f"HMPF_{k.upper()}": v for k, v in env.items()})
-        self._out = log.open("wb")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "--index", str(index), "--port", str(self.port)],
-            cwd=ROOT,
-            env=full_env,
-            stdout=self._out,
-            stderr=subprocess.STDOUT,
-            preexec_fn=default_sigint,
-        )
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"hmpf-serve exited {self.proc.returncode}: {self.output()}")
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.25)
-        self.stop()
-        raise AssertionError(f"hmpf-serve not ready after 180 s: {self.output()}")
-
-    def output(self) -> str:
-        if not self._out.closed:
-            self._out.flush()
-        return self.log.read_text(errors="replace")[-4000:]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._out.close()
 
 
 @pytest.fixture(scope="module")
 def index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    base = tmp_path_factory.mktemp("e2e")
-    refs = copy_gp(gardens_point, "day_right", base / "refs", N_REFS)
-    out = base / "index"
-    build(parse_config(CONFIG), refs, out, options=OPTS)
-    return out
+    return build_gp_index(gardens_point, tmp_path_factory.mktemp("e2e"), N_REFS)
 
 
 @pytest.fixture(scope="module")
@@ -201,7 +130,7 @@ def test_reload_while_clients_query_has_zero_failures(server, index, keys, garde
     with ThreadPoolExecutor(4) as pool:
         futures = [pool.submit(client_loop, s) for s in range(4)]
         time.sleep(1.0)
-        remove(index, ["Image000.jpg"], options=OPTS)  # publishes v0002 while queries run
+        remove(index, ["Image000.jpg"], options=BUILD_OPTIONS)  # publishes v0002 while queries run
         with httpx.Client(base_url=server.url) as admin:
             r = admin.post("/v1/index/reload", headers={"X-API-Key": keys["admin"]}, timeout=120)
         assert r.status_code == 200, r.text

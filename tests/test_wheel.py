@@ -116,7 +116,7 @@ def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
 
 def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> None:
     bindir, work, env = wheel_env
-    for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve"):
+    for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve", "hmpf-replay"):
         assert (bindir / command).is_file(), command
         assert "usage:" in _run([str(bindir / command), "--help"], work, env)
         assert _run([str(bindir / command), "--version"], work, env).startswith(command)

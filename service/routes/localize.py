@@ -11,6 +11,10 @@ The optional fields (:class:`~service.schemas.LocalizeFields`) may come as query
 or, with multipart, as form fields; a field given twice is refused. A batch runs its images
 in up to ``workers`` lanes, one admission slot each, and answers a bad image with its own
 error entry while the others are answered.
+
+With a ``vehicle_id`` a request is in sequence mode (:mod:`service.vehicle`): its ``track``
+token is checked before the images run, and the sequence filter runs over the answers, in
+order, after them.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from service.deps import (
     EngineDep,
     MetricsDep,
     SettingsDep,
+    TrackerDep,
     VehicleKey,
     authorize,
 )
@@ -58,6 +63,7 @@ from service.schemas import (
     LocalizeResponse,
 )
 from service.settings import Settings
+from service.vehicle import Tracker
 
 __all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
 
@@ -159,10 +165,13 @@ class Upload(NamedTuple):
 class Localizer:
     """What the localisation routes use of the app: admit, run and answer images."""
 
-    def __init__(self, engine: Engine, settings: Settings, metrics: Metrics) -> None:
+    def __init__(
+        self, engine: Engine, settings: Settings, metrics: Metrics, tracker: Tracker
+    ) -> None:
         self.engine = engine
         self.settings = settings
         self.metrics = metrics
+        self.tracker = tracker
 
     def check(self, params: LocalizeParams) -> None:
         """422 for a ``top_k`` over the service's limit."""
@@ -175,9 +184,12 @@ class Localizer:
         if upload.size is not None and upload.size > self.settings.max_upload_bytes:
             raise upload_too_large(self.settings.max_upload_bytes, what)
 
-    def queries(self, params: LocalizeParams, uploads: list[Upload]) -> list[ImageQuery]:
+    def queries(
+        self, params: LocalizeParams, uploads: list[Upload], sequence: bool = False
+    ) -> list[ImageQuery]:
         """Admitted work for each upload: 413 over the size limit, 503 when the slots are
-        taken (a batch takes one per lane, at most ``workers``)."""
+        taken (a batch takes one per lane, at most ``workers``); ``sequence``: keep each
+        frame's evidence for the sequence filter."""
         limit = self.settings.max_upload_bytes
         for upload in uploads:
             if len(upload.data) > limit:
@@ -186,7 +198,8 @@ class Localizer:
             raise overloaded(self.settings.retry_after_s)
         pixels, compute = self.settings.max_pixels, self.engine.compute
         return [
-            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute) for u in uploads
+            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute, sequence=sequence)
+            for u in uploads
         ]
 
     def lanes(self, images: int) -> int:
@@ -194,29 +207,50 @@ class Localizer:
         # size fits the admission limit and a batch cannot take the queue's slots.
         return min(images, self.engine.workers)
 
-    async def answer(self, params: LocalizeParams, upload: Upload) -> Any:
+    async def answer(self, params: LocalizeParams, upload: Upload) -> LocalizeResponse:
         """One image's answer (its error raised as the request's)."""
-        ((ok, value),) = await self.engine.run(self.queries(params, [upload]))
+        vehicle = self.tracker.open(params)
+        queries = self.queries(params, [upload], vehicle is not None)
+        ((ok, value),) = await self.engine.run(queries)
         if not ok:
             raise value
         self.metrics.observe_stages(value.timing_ms)
-        return value
+        if vehicle is not None:
+            (value,), _ = self.tracker.follow(vehicle, [value], queries)
+        answer: LocalizeResponse = value
+        return answer
 
     async def answer_batch(self, params: LocalizeParams, uploads: list[Upload]) -> BatchResponse:
-        """Every image's answer or error, in order."""
-        queries = self.queries(params, uploads)
+        """Every image's answer or error, in order (in sequence mode the frames of one
+        vehicle, consecutive: a failed image counts as a dropped frame)."""
+        if params.timestamp is not None:
+            raise invalid_request(
+                "timestamp: a batch's frames count as consecutive; send timed frames one by one"
+            )
+        vehicle = self.tracker.open(params)
+        queries = self.queries(params, uploads, vehicle is not None)
         version = self.engine.current.version
-        items = []
-        for i, (ok, value) in enumerate(await self.engine.run(queries, self.lanes(len(uploads)))):
+        outcomes = await self.engine.run(queries, self.lanes(len(uploads)))
+        for ok, value in outcomes:
             if ok:
                 self.metrics.observe_stages(value.timing_ms)
                 version = value.index_version
-            items.append(_batch_item(i, ok, value))
-        return BatchResponse(results=items, index_version=version)
+        track = None
+        if vehicle is not None:
+            answers = [value if ok else None for ok, value in outcomes]
+            followed, track = self.tracker.follow(vehicle, answers, queries)
+            outcomes = [
+                (ok, new if ok else value)
+                for (ok, value), new in zip(outcomes, followed, strict=True)
+            ]
+        items = [_batch_item(i, ok, value) for i, (ok, value) in enumerate(outcomes)]
+        return BatchResponse(results=items, index_version=version, track=track)
 
 
-async def _localizer(engine: EngineDep, settings: SettingsDep, metrics: MetricsDep) -> Localizer:
-    return Localizer(engine, settings, metrics)
+async def _localizer(
+    engine: EngineDep, settings: SettingsDep, metrics: MetricsDep, tracker: TrackerDep
+) -> Localizer:
+    return Localizer(engine, settings, metrics, tracker)
 
 
 LocalizerDep = Annotated[Localizer, Depends(_localizer)]

@@ -1,0 +1,98 @@
+"""Helpers of the service tests that run real servers and real indexes (no fixtures here:
+each test module scopes its own).
+
+* :class:`Server`: ``hmpf-serve`` in a subprocess on a free loopback port.
+* :data:`GP_CONFIG` and :func:`build_gp_index`: an index over Gardens Point day_right with a
+  CNN (GeM on the bundled backbone) and Gist in tier 1, the configuration night frames are
+  matched with.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+from conftest import copy_gp, default_sigint
+
+from hmpf.config import parse_config
+from indexer.build import BuildOptions, build
+
+__all__ = ["BUILD_OPTIONS", "GP_CONFIG", "ROOT", "Server", "build_gp_index", "free_port"]
+
+ROOT = Path(__file__).resolve().parent.parent
+#: GeM (a CNN on the bundled backbone) + Gist narrow, Gist + HOG + SAD decide.
+GP_CONFIG = {
+    "name": "e2e",
+    "tiers": [{"methods": ["gem", "gist"], "k": 5}, {"methods": ["gem", "gist", "hog"], "k": 1}],
+}
+BUILD_OPTIONS = BuildOptions(workers=1, progress=False)
+
+
+def build_gp_index(gardens_point: Path, base: Path, n: int) -> Path:
+    """An index (``base/index``) over the first ``n`` day_right images (copied to
+    ``base/refs``)."""
+    refs = copy_gp(gardens_point, "day_right", base / "refs", n)
+    out = base / "index"
+    build(parse_config(GP_CONFIG), refs, out, options=BUILD_OPTIONS)
+    return out
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Server:
+    """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
+
+    def __init__(self, index: Path, log: Path, **env: str) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = log
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+        for k in ("HMPF_DATASETS", "HMPF_CACHE_DIR"):
+            if k in os.environ:
+                full_env[k] = os.environ[k]
+        full_env.update({f"HMPF_{k.upper()}": v for k, v in env.items()})
+        self._out = log.open("wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "--index", str(index), "--port", str(self.port)],
+            cwd=ROOT,
+            env=full_env,
+            stdout=self._out,
+            stderr=subprocess.STDOUT,
+            preexec_fn=default_sigint,
+        )
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"hmpf-serve exited {self.proc.returncode}: {self.output()}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.25)
+        self.stop()
+        raise AssertionError(f"hmpf-serve not ready after 180 s: {self.output()}")
+
+    def output(self) -> str:
+        if not self._out.closed:
+            self._out.flush()
+        return self.log.read_text(errors="replace")[-4000:]
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._out.close()
