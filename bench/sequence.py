@@ -81,7 +81,11 @@ def tune(parts: dict[str, dict[str, Any]]) -> tuple[FilterParams, dict[str, Any]
         pairs = zip(names, row["recall"], row["jump_recall"], row["relock_10"], strict=True)
         per_route = ", ".join(f"{n} {r:.3f}/{j:.3f}/{w:.2f}" for n, r, j, w in pairs)
         setting = {k: row[k] for k in TUNING_GRID}
-        print(f"{setting}: score {row['score']:.4f} ({per_route})", flush=True)
+        print(
+            f"{setting}: score {row['score']:.4f}, accepted {row['accepted']:.3f} at mass "
+            f"{row['lock_mass']:.4f} ({per_route})",
+            flush=True,
+        )
 
     return tune_sequence(training, progress=show)
 

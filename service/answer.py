@@ -3,8 +3,8 @@
 :func:`localize_response` is the only place that turns a :class:`~hmpf.hierarchy.HierarchyResult`
 into a :class:`~service.schemas.LocalizeResponse`: the match (with its position and whether it
 is accepted), the final ranking, each tier's candidates and the GPS prior's report;
-:func:`with_sequence` adds sequence mode's report and makes its estimate the answer when it
-is locked. Numbers that are not finite (a method that scored NaN) are reported as ``None``,
+:func:`with_sequence` adds sequence mode's report and makes its estimate the answer (accepted
+when locked). Numbers that are not finite (a method that scored NaN) are reported as ``None``,
 never as a number that looks real, and a match without a finite score is never accepted.
 """
 
@@ -92,7 +92,8 @@ def with_sequence(
 ) -> LocalizeResponse:
     """``response`` in sequence mode: the frame's :class:`~service.track.Step` as its
     ``sequence`` report (``track``: the signed token to hand back), and the estimate as the
-    ``match`` when it is locked (else the single-frame match stays the answer)."""
+    ``match`` (accepted when locked); the single-frame match stays the answer only when the
+    filter has no estimate (a frame out of order, an empty belief)."""
     est = step.estimate
     mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
     estimate = None
@@ -100,13 +101,13 @@ def with_sequence(
         estimate = _reference_match(
             loaded, est.ref, score=None, confidence=mass, accepted=est.locked
         )
-    use = estimate is not None and estimate.accepted
+    use = estimate is not None
     report = SequenceReport(
         status=step.status,
         reset_reason=step.reason,
         match=estimate,
         mass=mass,
-        locked=use,
+        locked=estimate is not None and estimate.accepted,
         frames=0 if est is None else est.frames,
         speed=None if est is None else _finite(est.speed),
         steps=step.steps,

@@ -35,7 +35,7 @@ from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
 from hmpf.sequence import SequenceFilter
-from service.track import binding_digest, open_filter
+from service.track import binding_digest
 
 __all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"]
 
@@ -103,7 +103,7 @@ class Loaded:
             reader.hierarchy(),
             DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen),
             time.time(),
-            open_filter(reader.n, meta, params),
+            SequenceFilter(reader.route_map(), params),
             binding_digest(reader.manifest, params),
             lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
             lon=np.asarray(lon, dtype=np.float64) if has_pos else None,

@@ -9,7 +9,7 @@
   (started, tracking, reset, out_of_order), ``hmpf_sequence_resets_total{reason}`` (expired,
   index_changed), ``hmpf_sequence_refused_total{reason}`` (track tokens answered 422:
   malformed, signature, vehicle), ``hmpf_sequence_answers_total{locked}`` (whether the answer
-  was the locked sequence estimate) and ``hmpf_sequence_update_seconds`` (the filter's time)
+  was locked: accepted) and ``hmpf_sequence_update_seconds`` (the filter's time)
 
 Every label value comes from a fixed set in the code, never from a request.
 """
@@ -89,7 +89,7 @@ class Metrics:
         )
         self.sequence_answers = Counter(
             "hmpf_sequence_answers",
-            "sequence-mode answers, by whether the locked sequence estimate was the answer",
+            "sequence-mode answers, by whether the estimate was locked (accepted)",
             ["locked"],
             registry=self.registry,
         )

@@ -141,7 +141,7 @@ class SequenceReport(BaseModel):
         "accepted = locked); None when out of order"
     )
     mass: float = Field(ge=0, le=1, description="posterior probability near the estimate")
-    locked: bool = Field(description="mass >= the filter's lock_mass: `match` is this estimate")
+    locked: bool = Field(description="mass >= the filter's lock_mass: the estimate is accepted")
     frames: int = Field(
         description="frames the track has seen since it (re)started (0 when out of order: "
         "the filter did not run)"
@@ -157,8 +157,8 @@ class SequenceReport(BaseModel):
 
 class LocalizeResponse(BaseModel):
     match: Match | None = Field(
-        description="THE answer: the sequence estimate when it is locked, else the "
-        "single-frame match; None when the GPS prior leaves no reference"
+        description="THE answer: in sequence mode the sequence estimate (accepted when "
+        "locked), else the single-frame match; None when the GPS prior leaves no reference"
     )
     match_source: Literal["single", "sequence"] = Field(
         default="single", description="where `match` comes from"

@@ -13,7 +13,7 @@ vehicle      8      sha256 of the ``vehicle_id`` (a token is valid for one vehic
 issued_at    8      server time (epoch seconds) it was issued
 timestamp    8      the frame's capture time (NaN: not given)
 interval     8      the estimated time between two frames (NaN: not known yet)
-state        ...    :meth:`hmpf.sequence.FilterState.to_bytes` (at most 64 hypotheses)
+state        ...    :meth:`hmpf.sequence.SequenceFilter.pack` (at most 64 hypotheses)
 mac          32     HMAC-SHA256 of the payload with the service's sequence key
 ===========  =====  ========================================================================
 
@@ -48,8 +48,6 @@ from hmpf.sequence import (
     Estimate,
     Evidence,
     FilterParams,
-    FilterState,
-    RouteMap,
     SequenceFilter,
     StateError,
 )
@@ -70,7 +68,6 @@ __all__ = [
     "follow",
     "frame_steps",
     "load_or_create_key",
-    "open_filter",
     "vehicle_digest",
 ]
 
@@ -224,19 +221,6 @@ def _b64decode(token: str) -> bytes | None:
 
 
 # -- one index version's filter ------------------------------------------------------------------
-def open_filter(n: int, meta: dict[str, np.ndarray], params: FilterParams) -> SequenceFilter:
-    """The sequence filter over an index version's routes (from its metadata columns)."""
-    routes = RouteMap.from_metadata(
-        n,
-        sequence=meta.get("sequence"),
-        timestamp=meta.get("timestamp"),
-        lat=meta.get("lat"),
-        lon=meta.get("lon"),
-        junction_m=params.junction_m,
-    )
-    return SequenceFilter(routes, params)
-
-
 def binding_digest(manifest: dict[str, Any], params: FilterParams) -> bytes:
     """8 bytes naming an index version and the filter settings a state is valid for."""
     text = json.dumps({"manifest": manifest, "sequence": asdict(params)}, sort_keys=True)
@@ -331,7 +315,7 @@ def follow(
         if ts < prev.timestamp:  # False when either is NaN
             return Step("out_of_order", None, None, None, prev)
         try:
-            state = FilterState.from_bytes(prev.state, filt.n_keys)
+            state = filt.unpack(prev.state)
         except StateError as exc:  # signed by us for this binding: cannot happen but by a bug
             raise TrackRefused("malformed", f"track: {exc}") from None
         steps, interval = frame_steps(ts - prev.timestamp, prev.interval)
@@ -339,5 +323,5 @@ def follow(
     else:
         state, steps, interval = filt.start(), 1, float("nan")
     state, est = filt.update(state, evidence, steps)
-    track = Track(binding, vehicle, now, ts, interval, state.to_bytes(KEEP))
+    track = Track(binding, vehicle, now, ts, interval, filt.pack(state, KEEP))
     return Step(status, reason, est, steps, track)

@@ -166,7 +166,8 @@ class Tracker:
             answer = with_sequence(answer, loaded, step, token)
             seconds = time.perf_counter() - t
             answer.timing_ms["sequence"] = seconds * 1e3
-            self._count(step.status, step.reason, answer.match_source == "sequence", seconds)
+            locked = answer.sequence is not None and answer.sequence.locked
+            self._count(step.status, step.reason, locked, seconds)
             out.append(answer)
         return out, token
 

@@ -334,10 +334,12 @@ def tune_sequence(
         parts: per route, (hierarchy results in query order, ground truth, routes).
 
     Each setting of ``grid`` (over ``base``) drives each part's traverse at speeds 1, 2 and 3
-    and 40 spliced drives; its score is the mean of the recall@1 over the speed drives and
-    over every frame of the spliced drives (so a slow re-lock costs what it costs a vehicle),
-    averaged over the parts (ties: the earlier grid point). ``lock_mass`` is then the lowest
-    posterior mass whose answers reach ``target_precision`` on all the training drives pooled.
+    and 40 spliced drives. Its ``lock_mass`` is the lowest posterior mass whose answers reach
+    ``target_precision`` on all its training drives pooled, and its score the mean of three
+    shares, each averaged over the parts where it applies: recall@1 over the speed drives,
+    recall@1 over every frame of the spliced drives (so a slow re-lock costs what it costs a
+    vehicle) and the answers accepted at ``lock_mass`` (an answer a vehicle cannot rely on is
+    worth less). Ties: the earlier grid point.
     """
     base = base or FilterParams()
     grid = grid or TUNING_GRID
@@ -370,16 +372,19 @@ def tune_sequence(
                 float(np.mean([x is not None and x <= 10 for x in relock])) if relock else 1.0
             )
             runs += s_runs + j_runs
-        row["score"] = float(np.mean(row["recall"]) + np.mean(row["jump_recall"])) / 2
+        mass = np.concatenate([[e.mass for e in r.estimates] for r in runs])
+        correct = np.concatenate([r.correct for r in runs])
+        row["lock_mass"] = lock_threshold(mass, correct, target_precision)
+        row["accepted"] = float(np.mean(mass >= row["lock_mass"]))
+        row["score"] = (
+            float(np.mean(row["recall"]) + np.mean(row["jump_recall"]) + row["accepted"]) / 3
+        )
         rows.append(row)
         if progress is not None:
             progress(row)
         if best is None or row["score"] > best[0] + 1e-12:
-            best = (row["score"], params, runs)
+            best = (row["score"], params, row["lock_mass"])
     assert best is not None
-    _, params, runs = best
-    mass = np.concatenate([[e.mass for e in r.estimates] for r in runs])
-    correct = np.concatenate([r.correct for r in runs])
-    lock = lock_threshold(mass, correct, target_precision)
+    _, params, lock = best
     chosen = params.with_(lock_mass=max(lock, 1e-6))
     return chosen, {"grid": rows, "lock_mass": lock, "target_precision": target_precision}
