@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 from conftest import copy_gp, default_sigint
@@ -33,12 +34,14 @@ GP_CONFIG = {
 BUILD_OPTIONS = BuildOptions(workers=1, progress=False)
 
 
-def build_gp_index(gardens_point: Path, base: Path, n: int) -> Path:
+def build_gp_index(
+    gardens_point: Path, base: Path, n: int, config: dict[str, Any] | None = None
+) -> Path:
     """An index (``base/index``) over the first ``n`` day_right images (copied to
-    ``base/refs``)."""
+    ``base/refs``), for ``config`` (default :data:`GP_CONFIG`)."""
     refs = copy_gp(gardens_point, "day_right", base / "refs", n)
     out = base / "index"
-    build(parse_config(GP_CONFIG), refs, out, options=BUILD_OPTIONS)
+    build(parse_config(config or GP_CONFIG), refs, out, options=BUILD_OPTIONS)
     return out
 
 
