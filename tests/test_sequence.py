@@ -500,6 +500,29 @@ def test_reset_relocks_after_a_jump_as_fast_on_a_large_map() -> None:
     assert (rl < pl).all() and rl.max() <= 5, (rl, pl)
 
 
+def test_reset_without_new_keys_keeps_the_mass_even() -> None:
+    """A frame without proposals or final candidates has no new keys to reset to: the whole
+    background stays even, as with reset 0 (before, the reset share vanished: a background of
+    0.034 instead of 0.065 after such a frame, the hypotheses' mass inflated)."""
+    rm = routes_map(2, 200)
+    rng = np.random.default_rng(0)
+    p = PARAMS.with_(reset=0.5, jump=0.2)
+    f, f0 = SequenceFilter(rm, p), SequenceFilter(rm, p.with_(reset=0.0))
+    state = f.start()
+    for t in drive(rm, 0, 10, 1.0, 10):
+        state, _ = f.update(state, evidence(rm.n, int(t), rng))
+    ev = evidence(rm.n, int(rm.ordered[20]), rng)
+    none = np.zeros(0, np.int64)
+    empty = Evidence(ev.tier1, none, none, np.zeros(0))
+    pred = f.predict(state)
+    assert pred.background > 0.15
+    a, b = f.correct(pred, empty), f0.correct(pred, empty)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.prob, b.prob, rtol=1e-12)
+    assert a.background == pytest.approx(b.background, rel=1e-12)
+    assert a.prob.sum() + a.background == pytest.approx(1.0)
+
+
 def test_reset_start_of_a_drive_locks_at_least_as_fast() -> None:
     """From a drive's start (the whole mass anywhere), reset 0.5 puts half of it on the first
     frame's proposals. Measured with the default synthetic evidence, frames to the first right
