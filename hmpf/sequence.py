@@ -630,13 +630,15 @@ class SequenceFilter:
         new_refs = np.concatenate([evidence.proposals, evidence.final])
         new = (new_refs[:, None] * (2 * p.speeds) + np.arange(2 * p.speeds)[None, :]).ravel()
         keys = np.union1d(predicted.keys, new).astype(np.int64)
-        # The background: (1 - reset) of it evenly over every key, reset on the new keys.
-        even = predicted.background * (1.0 - p.reset)
+        # The background: (1 - reset) of it evenly over every key, reset on the new keys (a
+        # frame without new keys: all of it evenly, else the reset share would vanish).
+        reset = p.reset if len(new) else 0.0
+        even = predicted.background * (1.0 - reset)
         prior = np.full(len(keys), even / n_keys)
         prior[np.searchsorted(keys, predicted.keys)] += predicted.prob
-        if p.reset and len(new):
+        if reset:
             new_u = np.unique(new)
-            prior[np.searchsorted(keys, new_u)] += predicted.background * p.reset / len(new_u)
+            prior[np.searchsorted(keys, new_u)] += predicted.background * reset / len(new_u)
         refs = self.refs_of(keys)
         # The tier-1 score as a z-score over the map (mean and spread on the fixed sample):
         # a frame whose scores are all alike says little, a frame with one clear peak a lot.
