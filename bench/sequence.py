@@ -1,6 +1,6 @@
 """Sequence mode on the shared routes: filter tuned on training parts, reported on test parts.
 
-    python bench/sequence.py [--tune] [--out results/sequence.json] [--plots DIR]
+    python bench/sequence.py [--tune | --per-route] [--out results/sequence.json] [--plots DIR]
 
 Each route is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames);
 the hierarchy is the default config on Gardens Point and ``calibrated/nordland_handcrafted``
@@ -9,11 +9,13 @@ driven in order as one vehicle along the test part's references (every frame cou
 first ones included), from random starts, over spliced jumps, at speed ratios 0.5-4 and with
 25 % of the frames dropped (:func:`hmpf.evaluation.sequence.sequence_report`).
 
-``--tune`` first searches the filter's settings jointly on the four training parts (the
-same score as ``hmpf-calibrate --sequence``, averaged over routes, so one default serves
-every route) and the lock threshold for 99 % precision on the pooled training drives; it
-prints the settings to make the defaults of :class:`hmpf.sequence.FilterParams`. Without it
-the report uses the current defaults. Plots: recall@1 by frames of history per speed ratio.
+``--per-route`` instead tunes each route on its own training part (what ``hmpf-calibrate
+--sequence`` does for one route). ``--tune`` first searches the filter's settings jointly on
+the four training parts (the same score as ``hmpf-calibrate --sequence``, averaged over
+routes, so one default serves every route) and the lock threshold for 99 % precision on the
+pooled training drives; it prints the settings to make the defaults of
+:class:`hmpf.sequence.FilterParams`. Without either the report uses the current defaults.
+Plots: recall@1 by frames of history per speed ratio.
 """
 
 from __future__ import annotations
@@ -144,6 +146,11 @@ def main() -> int:
     ap.add_argument("--datasets", default=str(dataset_root()))
     ap.add_argument("--cache-dir", default=str(default_cache_dir()))
     ap.add_argument("--tune", action="store_true", help="search the settings first")
+    ap.add_argument(
+        "--per-route",
+        action="store_true",
+        help="tune on each route's own training part (as hmpf-calibrate --sequence does)",
+    )
     ap.add_argument("--out", default=str(ROOT / "results" / "sequence.json"))
     ap.add_argument("--plots", default=str(ROOT / "docs" / "experiments" / "sequence"))
     args = ap.parse_args()
@@ -157,7 +164,13 @@ def main() -> int:
     reports = {}
     for name, p in parts.items():
         results, gt = p["test"]
-        rep = sequence_report(results, gt, RouteMap.from_metadata(gt.shape[1]), params)
+        route_params = params
+        if args.per_route:
+            train_results, train_gt = p["train"]
+            routes = RouteMap.from_metadata(train_gt.shape[1])
+            route_params, _ = tune_sequence([(train_results, train_gt, routes)])
+            print(f"{name}: tuned on its training part: {sequence_settings(route_params)}")
+        rep = sequence_report(results, gt, RouteMap.from_metadata(gt.shape[1]), route_params)
         reports[name] = rep
         print(f"\n{name} ({p['config']}), test part:")
         print("\n".join(format_sequence_report(rep)))

@@ -239,11 +239,14 @@ def sequence_report(
         for d in jump_drives(nq, jumps, before, after, max(10, nq // 5), rng)
     ]
     drop_run = drive(filt, evs, dropped_drive(nq, dropped, rng), gt)
+    from hmpf.evaluation.calibrate import paired_test  # (calibrate imports this module)
+
     return {
         "params": asdict(params),
         "n_query": nq,
         "single_recall_at_1": float(single.mean()) if nq else 0.0,
         "recall_at_1": float(full.correct.mean()) if nq else 0.0,
+        "vs_single": paired_test(full.correct, single),
         "accepted": _precision_recall([full]),
         "lock_after_start": _summary([lock_frames(r.correct) for r in start_runs], start_length),
         "lock_after_jump": _summary(
@@ -275,7 +278,8 @@ def format_sequence_report(rep: dict[str, Any]) -> list[str]:
     speeds = "  ".join(f"x{k}: {v:.3f}" for k, v in rep["recall_by_speed"].items())
     return [
         f"sequence recall@1   {rep['recall_at_1']:.3f}   (single frame "
-        f"{rep['single_recall_at_1']:.3f})",
+        f"{rep['single_recall_at_1']:.3f}; frames won/lost {rep['vs_single']['wins']}/"
+        f"{rep['vs_single']['losses']}, sign test p = {rep['vs_single']['p']:.2g})",
         f"accepted (locked)   {acc['accepted']:.3f} of frames, precision "
         f"{acc['precision']:.3f}, recall {acc['recall']:.3f}",
         f"lock after start    {lock(rep['lock_after_start'])}",
