@@ -66,3 +66,7 @@ def test_compose_indexer_job_and_service_share_the_index_volume() -> None:
     assert "index" in COMPOSE["volumes"]
     assert all(p.startswith("127.0.0.1:") for p in service["ports"])
     assert service["environment"]["HMPF_KEYS_FILE"].startswith("/run/secrets/")
+    # Sequence mode signs track tokens with a key in a writable volume (the index is ro).
+    key_file = service["environment"]["HMPF_SEQUENCE_KEY_FILE"]
+    assert "state:/state" in service["volumes"] and key_file.startswith("/state/")
+    assert "state" in COMPOSE["volumes"] and "/state" in DOCKERFILE
