@@ -1,0 +1,475 @@
+"""Confidence of an answer: its evidence, and a calibrated probability that it is right.
+
+A vehicle that receives a place must know whether to use it. The Combined z of the answer
+(its *quality*) separates right from wrong answers poorly, so this module gathers more of
+the evidence a :class:`~hmpf.hierarchy.HierarchyResult` already holds
+(:func:`answer_features`) and maps it to the probability that the answer is right with a
+small logistic regression (:class:`ConfidenceModel`), fitted on a training part of a route.
+
+Around it: :func:`threshold_for_precision` (the lowest probability whose accepted answers
+reach a target precision), :func:`expected_calibration_error` and :func:`reliability` (how
+well the probabilities match the observed shares of right answers).
+
+*Neighbourhood.* Two references within ``window`` route steps of each other
+(:meth:`~hmpf.sequence.RouteMap.separation`) show nearly the same place: a rival next door is
+not a rival, and a method whose best candidate is next door agrees with the answer.
+
+Everything here is pure and deterministic (numpy only).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hmpf.errors import HmpfError
+from hmpf.hierarchy import HierarchyResult
+from hmpf.sequence import Estimate, RouteMap
+
+__all__ = [
+    "FEATURES",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "SEQUENCE_FEATURES",
+    "ConfidenceModel",
+    "ModelError",
+    "Reliability",
+    "answer_features",
+    "expected_calibration_error",
+    "feature_matrix",
+    "reliability",
+    "threshold_for_precision",
+]
+
+#: Features of a single-frame answer, in the order :func:`answer_features` returns them.
+FEATURES = (
+    "quality",
+    "margin",
+    "agreement",
+    "tier1_rank",
+    "tier1_margin",
+    "tier1_z",
+    "n_final",
+)
+#: Features added when a sequence :class:`~hmpf.sequence.Estimate` is given.
+SEQUENCE_FEATURES = ("sequence_mass", "sequence_agrees")
+
+#: ``format`` and ``version`` of :meth:`ConfidenceModel.to_dict`.
+FORMAT = "hmpf-confidence"
+FORMAT_VERSION = 1
+
+#: Predictions are kept this far from 0 and 1: a model of a few coefficients is never
+#: certain, and a threshold of 1.0 then accepts nothing.
+_EPS = 1e-12
+
+
+class ModelError(HmpfError):
+    """A confidence model that cannot be used (another version, wrong features, corrupt)."""
+
+
+# -- evidence of one answer ---------------------------------------------------------------------
+
+
+def _finite(x: float, default: float) -> float:
+    return float(x) if math.isfinite(x) else default
+
+
+def _best_outside(
+    values: np.ndarray, ids: np.ndarray, answer: int, routes: RouteMap, window: int
+) -> float | None:
+    """Highest finite value among ``ids`` more than ``window`` route steps from ``answer``
+    (None: no such entry)."""
+    if not len(ids):
+        return None
+    far = routes.separation(ids, answer) > window
+    v = values[far]
+    v = v[np.isfinite(v)]
+    return float(v.max()) if v.size else None
+
+
+def answer_features(
+    result: HierarchyResult,
+    routes: RouteMap,
+    *,
+    window: int = 2,
+    estimate: Estimate | None = None,
+) -> dict[str, float]:
+    """The evidence of one answer (``result.match``), every value finite.
+
+    Features (:data:`FEATURES`):
+
+    * ``quality``: the answer's Combined z (NaN: 0, the candidates' mean).
+    * ``margin``: ``quality`` minus the best Combined z among the final candidates more than
+      ``window`` route steps from the answer (a rival next door is not a rival). No rival
+      (every candidate in the neighbourhood, or only NaN scores there): the rival is taken
+      at z = 0, the candidates' mean, so the margin is ``quality``.
+    * ``agreement``: share of the final tier's methods whose own best reference (highest
+      normalised score, NaN skipped) lies within ``window`` of the answer; a method with no
+      finite score does not agree.
+    * ``tier1_rank``: ``log1p`` of the answer's rank in tier 1's mean score (0: ranked
+      first; the number of references scoring strictly higher, NaN read as the lowest; an
+      answer without a finite score ranks last).
+    * ``tier1_margin``: tier-1 mean score at the answer minus the best one more than
+      ``window`` from it (scores in [0, 1], NaN read as 0; no rival: the rival scores 0).
+    * ``tier1_z``: the answer's tier-1 mean score as a z-score over the finite scores of
+      tier 1 (constant scores or NaN at the answer: 0).
+    * ``n_final``: ``log1p`` of the number of distinct candidates entering the final tier
+      (few: the earlier tiers' methods agreed).
+
+    With an ``estimate`` (:data:`SEQUENCE_FEATURES`): ``sequence_mass``, the estimate's
+    posterior mass (NaN or before the first frame: 0), and ``sequence_agrees``, 1.0 when the
+    estimate lies within ``window`` of the single-frame answer, else 0.0.
+
+    Without an answer (``match`` < 0, no candidates) every feature takes its "no evidence"
+    value: 0, and ``tier1_rank`` the database's size (as log1p).
+    """
+    if window < 0:
+        raise HmpfError("window must be >= 0")
+    n_db = routes.n
+    match = int(result.match)
+    out: dict[str, float] = {}
+    answered = 0 <= match < n_db
+    # Final tier: Combined z over the candidates entering it.
+    cands = np.asarray(result.final_candidates, dtype=np.int64)
+    z = np.asarray(result.combined, dtype=np.float64)
+    quality = _finite(float(result.quality), 0.0) if answered else 0.0
+    out["quality"] = quality
+    rival = _best_outside(z, cands, match, routes, window) if answered else None
+    out["margin"] = quality - (0.0 if rival is None else rival)
+    tiers = result.tiers
+    agree = 0
+    final_methods = tiers[-1].methods if tiers else []
+    if answered:
+        for mid in final_methods:
+            s = np.asarray(tiers[-1].scores[mid], dtype=np.float64)
+            if np.isfinite(s).any():
+                best = int(np.nanargmax(np.where(np.isfinite(s), s, np.nan)))
+                agree += bool(routes.separation(best, match) <= window)
+    out["agreement"] = agree / len(final_methods) if final_methods else 0.0
+    # Tier 1: the whole database.
+    if tiers and answered:
+        mean = np.asarray(tiers[0].mean_score(), dtype=np.float64)
+        at = float(mean[match])
+        if math.isfinite(at):
+            rank = int(np.sum(np.where(np.isfinite(mean), mean, -np.inf) > at))
+        else:
+            rank = n_db
+        out["tier1_rank"] = math.log1p(rank)
+        score0 = np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
+        rival1 = _best_outside(score0, np.arange(n_db), match, routes, window)
+        out["tier1_margin"] = float(score0[match]) - (0.0 if rival1 is None else rival1)
+        fin = mean[np.isfinite(mean)]
+        sd = float(fin.std()) if fin.size > 1 else 0.0
+        out["tier1_z"] = (at - float(fin.mean())) / sd if sd > 0 and math.isfinite(at) else 0.0
+    else:
+        out["tier1_rank"] = math.log1p(n_db)
+        out["tier1_margin"] = 0.0
+        out["tier1_z"] = 0.0
+    out["n_final"] = math.log1p(len(np.unique(cands))) if answered else 0.0
+    if estimate is not None:
+        ref = int(estimate.ref)
+        valid = 0 <= ref < n_db
+        out["sequence_mass"] = _finite(float(estimate.mass), 0.0) if valid else 0.0
+        out["sequence_agrees"] = float(
+            valid and answered and bool(routes.separation(ref, match) <= window)
+        )
+    return out
+
+
+def feature_matrix(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> np.ndarray:
+    """(n, len(names)) matrix of feature dicts, columns in ``names`` order."""
+    missing = sorted({n for r in rows for n in names if n not in r})
+    if missing:
+        raise ModelError(f"features missing from the answers: {', '.join(missing)}")
+    return np.array([[float(r[n]) for n in names] for r in rows], dtype=np.float64).reshape(
+        len(rows), len(names)
+    )
+
+
+# -- the model ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """Logistic regression from an answer's features to the probability it is right.
+
+    ``p = 1 / (1 + exp(-(intercept + coef . (x - mean) / scale)))``: the features are
+    standardised with the training part's means and standard deviations, and the
+    coefficients minimise the log-loss plus ``l2 / 2 * |coef|^2`` (the intercept is not
+    penalised), found by Newton's method (iteratively reweighted least squares) from zero:
+    deterministic, a handful of iterations, and finite even when the training answers are
+    perfectly separable.
+
+    Why not scikit-learn: the service would gain a large dependency for a model of a
+    handful of coefficients; our own fit gives the same numbers on every machine (no solver
+    defaults that change between versions), and the model is stored as plain numbers in
+    JSON (:meth:`to_dict`), readable and versioned, not a pickle.
+
+    Attributes:
+        features: feature names, in column order.
+        mean, scale: per feature, the training mean and standard deviation (1 where the
+            feature was constant).
+        coef: per feature, the coefficient on the standardised feature.
+        intercept: the intercept.
+        l2: the regularisation strength it was fitted with.
+    """
+
+    features: tuple[str, ...]
+    mean: tuple[float, ...]
+    scale: tuple[float, ...]
+    coef: tuple[float, ...]
+    intercept: float
+    l2: float = 1.0
+
+    @classmethod
+    def fit(
+        cls,
+        X: np.ndarray,
+        y: np.ndarray,
+        feature_names: Sequence[str],
+        *,
+        l2: float = 1.0,
+        max_iter: int = 100,
+        tol: float = 1e-10,
+    ) -> ConfidenceModel:
+        """Fit on ``X`` (n, d) and right/wrong labels ``y`` (n,).
+
+        Raises:
+            ModelError: shapes disagree, non-finite features, fewer than 2 answers, or
+                ``l2`` < 0.
+        """
+        X = np.asarray(X, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64).ravel()
+        names = tuple(str(n) for n in feature_names)
+        if X.ndim != 2 or X.shape[1] != len(names) or X.shape[0] != len(y):
+            raise ModelError(
+                f"X must be (n, {len(names)}) for {len(y)} labels, got shape {X.shape}"
+            )
+        if len(set(names)) != len(names):
+            raise ModelError("duplicate feature names")
+        if len(y) < 2:
+            raise ModelError("at least 2 answers are needed to fit")
+        if not np.isfinite(X).all():
+            raise ModelError("non-finite feature values")
+        if not np.isin(y, (0.0, 1.0)).all():
+            raise ModelError("labels must be 0 or 1")
+        if not (math.isfinite(l2) and l2 >= 0):
+            raise ModelError("l2 must be a finite number >= 0")
+        mean = X.mean(axis=0)
+        scale = X.std(axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        Z = np.hstack([np.ones((len(y), 1)), (X - mean) / scale])
+        penalty = np.full(Z.shape[1], float(l2))
+        penalty[0] = 0.0
+        w = np.zeros(Z.shape[1])
+        for _ in range(max_iter):
+            p = _sigmoid(Z @ w)
+            grad = Z.T @ (p - y) + penalty * w
+            hess = (Z * (p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
+            # A tiny ridge keeps the step defined when l2 = 0 and a column is constant.
+            step = np.linalg.solve(hess + 1e-12 * np.eye(len(w)), grad)
+            w = w - step
+            if np.max(np.abs(step)) < tol:
+                break
+        return cls(
+            names,
+            tuple(float(v) for v in mean),
+            tuple(float(v) for v in scale),
+            tuple(float(v) for v in w[1:]),
+            float(w[0]),
+            float(l2),
+        )
+
+    def logit(self, X: np.ndarray) -> np.ndarray:
+        """(n,) log-odds of (n, d) features (columns in :attr:`features` order)."""
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim == 1:
+            X = X[None, :]
+        if X.ndim != 2 or X.shape[1] != len(self.features):
+            raise ModelError(
+                f"expected {len(self.features)} features ({', '.join(self.features)}), "
+                f"got shape {X.shape}"
+            )
+        if not np.isfinite(X).all():
+            raise ModelError("non-finite feature values: no probability can be given")
+        Z = (X - np.asarray(self.mean)) / np.asarray(self.scale)
+        return np.asarray(Z @ np.asarray(self.coef) + self.intercept, dtype=np.float64)
+
+    def predict(self, x: Mapping[str, float] | np.ndarray) -> float | np.ndarray:
+        """Probability that the answer is right, in [1e-12, 1 - 1e-12].
+
+        Args:
+            x: one answer's feature dict (:func:`answer_features`; extra keys ignored, a
+                missing one refused), or an (n, d) matrix (columns in :attr:`features`
+                order) for an (n,) array.
+        """
+        if isinstance(x, Mapping):
+            missing = [n for n in self.features if n not in x]
+            if missing:
+                raise ModelError(f"features missing: {', '.join(missing)}")
+            row = np.array([[float(x[n]) for n in self.features]])
+            return float(np.clip(_sigmoid(self.logit(row)), _EPS, 1 - _EPS)[0])
+        return np.clip(_sigmoid(self.logit(np.asarray(x))), _EPS, 1 - _EPS)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able numbers, with the format and its version."""
+        return {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "features": list(self.features),
+            "mean": list(self.mean),
+            "scale": list(self.scale),
+            "coef": list(self.coef),
+            "intercept": self.intercept,
+            "l2": self.l2,
+        }
+
+    @classmethod
+    def from_dict(
+        cls, data: Mapping[str, Any], *, expected: Sequence[str] | None = None
+    ) -> ConfidenceModel:
+        """Inverse of :meth:`to_dict`.
+
+        Args:
+            expected: the feature names the caller will supply (e.g. :data:`FEATURES`):
+                a model over other features is refused.
+
+        Raises:
+            ModelError: another format or version, a missing key, unknown, duplicate,
+                missing or extra features, lists of the wrong length, non-finite numbers
+                or a scale that is not positive.
+        """
+        if not isinstance(data, Mapping):
+            raise ModelError("a confidence model must be a mapping")
+        if data.get("format") != FORMAT:
+            raise ModelError(f"not a confidence model (format {data.get('format')!r})")
+        version = data.get("version")
+        if version != FORMAT_VERSION:
+            raise ModelError(
+                f"confidence model version {version!r} is not supported (this hmpf reads "
+                f"version {FORMAT_VERSION}); recalibrate"
+            )
+        keys = ("features", "mean", "scale", "coef", "intercept")
+        missing_keys = [k for k in keys if k not in data]
+        if missing_keys:
+            raise ModelError(f"confidence model lacks {', '.join(missing_keys)}")
+        raw = data["features"]
+        if not isinstance(raw, list | tuple) or not all(isinstance(n, str) for n in raw):
+            raise ModelError("'features' must be a list of names")
+        names = tuple(raw)
+        known = set(FEATURES) | set(SEQUENCE_FEATURES)
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise ModelError(f"unknown features in the model: {', '.join(unknown)}")
+        if len(set(names)) != len(names) or not names:
+            raise ModelError("the model's features must be distinct and not empty")
+        if expected is not None:
+            extra = [n for n in names if n not in expected]
+            absent = [n for n in expected if n not in names]
+            if extra or absent:
+                raise ModelError(
+                    "the model's features differ from the expected ones: "
+                    f"extra {extra or 'none'}, missing {absent or 'none'}"
+                )
+
+        def numbers(key: str) -> tuple[float, ...]:
+            v = data[key]
+            if not isinstance(v, list | tuple) or len(v) != len(names):
+                raise ModelError(f"'{key}' must hold {len(names)} numbers, one per feature")
+            return tuple(_number(x, key) for x in v)
+
+        mean, scale, coef = numbers("mean"), numbers("scale"), numbers("coef")
+        if any(s <= 0 for s in scale):
+            raise ModelError("'scale' must be positive")
+        l2 = _number(data.get("l2", 1.0), "l2")
+        return cls(names, mean, scale, coef, _number(data["intercept"], "intercept"), l2)
+
+
+def _number(x: Any, key: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise ModelError(f"'{key}' holds a non-number {x!r}")
+    if not math.isfinite(x):
+        raise ModelError(f"'{key}' holds a non-finite number {x!r}")
+    return float(x)
+
+
+def _sigmoid(t: np.ndarray) -> np.ndarray:
+    """Logistic function without overflow."""
+    t = np.asarray(t, dtype=np.float64)
+    e = np.exp(-np.abs(t))
+    return np.where(t >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+# -- thresholds and calibration -----------------------------------------------------------------
+
+
+def threshold_for_precision(p: np.ndarray, correct: np.ndarray, target: float = 0.99) -> float:
+    """The lowest probability whose accepted answers (``p >= threshold``) reach ``target``
+    precision on the given answers (ties accepted together). Unreachable (even the most
+    confident answers fall short, or there are none): 1.0, which accepts nothing
+    (:meth:`ConfidenceModel.predict` stays below 1)."""
+    p = np.asarray(p, dtype=np.float64)
+    c = np.asarray(correct, dtype=bool)
+    if p.shape != c.shape:
+        raise HmpfError("p and correct must have the same shape")
+    keep = np.isfinite(p)
+    p, c = p[keep], c[keep]
+    order = np.argsort(-p, kind="stable")
+    ps, cs = p[order], c[order].astype(np.float64)
+    precision = np.cumsum(cs) / np.arange(1, len(cs) + 1)
+    last_of_tie = np.append(ps[1:] != ps[:-1], True)  # accepting ps[i] accepts its ties
+    ok = np.flatnonzero(last_of_tie & (precision >= target))
+    return float(ps[ok[-1]]) if len(ok) else 1.0
+
+
+@dataclass(frozen=True)
+class Reliability:
+    """A reliability diagram's bins (equal width over [0, 1]).
+
+    Attributes:
+        lower, upper: (bins,) the bin edges.
+        predicted: (bins,) mean predicted probability in the bin (NaN: empty).
+        observed: (bins,) share of right answers in the bin (NaN: empty).
+        count: (bins,) answers in the bin.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    predicted: np.ndarray
+    observed: np.ndarray
+    count: np.ndarray
+
+
+def reliability(p: np.ndarray, correct: np.ndarray, bins: int = 10) -> Reliability:
+    """Per bin of predicted probability (``[i/bins, (i+1)/bins)``, the last one closed):
+    mean predicted, observed share right and count."""
+    p = np.asarray(p, dtype=np.float64).ravel()
+    c = np.asarray(correct, dtype=np.float64).ravel()
+    if p.shape != c.shape:
+        raise HmpfError("p and correct must have the same shape")
+    if bins < 1:
+        raise HmpfError("bins must be >= 1")
+    if p.size and not (np.isfinite(p).all() and p.min() >= 0 and p.max() <= 1):
+        raise HmpfError("probabilities must be finite and in [0, 1]")
+    idx = np.minimum((p * bins).astype(np.int64), bins - 1)
+    count = np.bincount(idx, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        predicted = np.bincount(idx, weights=p, minlength=bins) / count
+        observed = np.bincount(idx, weights=c, minlength=bins) / count
+    edges = np.arange(bins + 1) / bins
+    return Reliability(edges[:-1], edges[1:], predicted, observed, count)
+
+
+def expected_calibration_error(p: np.ndarray, correct: np.ndarray, bins: int = 10) -> float:
+    """Sum over bins of (share of answers in the bin) x |mean predicted - observed|
+    (bins as :func:`reliability`); 0.0 without answers."""
+    r = reliability(p, correct, bins)
+    n = int(r.count.sum())
+    if n == 0:
+        return 0.0
+    used = r.count > 0
+    return float(np.sum(r.count[used] / n * np.abs(r.predicted[used] - r.observed[used])))
