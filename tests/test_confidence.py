@@ -1,0 +1,327 @@
+"""hmpf.confidence: the evidence of an answer, the logistic model, thresholds, calibration."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from hmpf.confidence import (
+    FEATURES,
+    FORMAT_VERSION,
+    SEQUENCE_FEATURES,
+    ConfidenceModel,
+    ModelError,
+    answer_features,
+    expected_calibration_error,
+    feature_matrix,
+    reliability,
+    threshold_for_precision,
+)
+from hmpf.errors import HmpfError
+from hmpf.hierarchy import HierarchyResult, TierResult
+from hmpf.sequence import Estimate, RouteMap
+
+NAN = float("nan")
+#: Tier 1's mean score (both methods the same): the answer 3 scores 0.9, beaten by 4 and 5.
+TIER1 = np.array([0.2, 0.1, 0.0, 0.9, 1.0, 0.95, 0.3, 0.4, 0.6, 0.5])
+
+
+def make_result(
+    *,
+    match: int = 3,
+    quality: float = 2.0,
+    final: tuple[int, ...] = (3, 4, 8, 0),
+    combined: tuple[float, ...] = (2.0, 1.5, 0.5, -1.0),
+    tier1: np.ndarray = TIER1,
+    final_scores: dict[str, np.ndarray] | None = None,
+) -> HierarchyResult:
+    """A two-tier result over 10 references on one route (file order)."""
+    n = len(tier1)
+    F = np.array(final, dtype=np.int64)
+    if final_scores is None:
+        c, d = np.full(n, NAN), np.full(n, NAN)
+        c[F], d[F] = [0.9, 1.0, 0.2, 0.0], [0.5, 0.4, 1.0, 0.0]  # c: best 4, d: best 8
+        final_scores = {"c": c, "d": d}
+    t1 = TierResult(["a", "b"], None, {"a": tier1.copy(), "b": tier1.copy()}, F, 0.0)
+    t2 = TierResult(list(final_scores), F, final_scores, F[:1], 0.0)
+    return HierarchyResult(match, quality, F, np.array(combined, dtype=float), [t1, t2])
+
+
+ROUTES = RouteMap.from_metadata(10)
+
+
+# -- features -------------------------------------------------------------------------------------
+
+
+def test_features_hand_checked() -> None:
+    f = answer_features(make_result(), ROUTES, window=2)
+    assert list(f) == list(FEATURES)
+    assert f["quality"] == 2.0
+    # 4 (z 1.5) is next door; the best rival outside +-2 is 8 (z 0.5).
+    assert f["margin"] == pytest.approx(1.5)
+    # c's best (4) is within 2 of 3, d's best (8) is not.
+    assert f["agreement"] == 0.5
+    # 4 and 5 score higher in tier 1.
+    assert f["tier1_rank"] == pytest.approx(math.log1p(2))
+    # Outside 1..5: the best is 8 (0.6).
+    assert f["tier1_margin"] == pytest.approx(0.9 - 0.6)
+    assert f["tier1_z"] == pytest.approx((0.9 - TIER1.mean()) / TIER1.std())
+    assert f["n_final"] == pytest.approx(math.log1p(4))
+
+
+def test_window_decides_what_is_a_rival() -> None:
+    # window 0: 4 is a rival (margin 0.5) and c no longer agrees.
+    f = answer_features(make_result(), ROUTES, window=0)
+    assert f["margin"] == pytest.approx(0.5)
+    assert f["agreement"] == 0.0
+    assert f["tier1_margin"] == pytest.approx(0.9 - 1.0)
+    # window 5: 8 (5 steps away) is next door, 0 too (3 steps): no rival left.
+    f = answer_features(make_result(), ROUTES, window=5)
+    assert f["margin"] == pytest.approx(2.0)  # no rival: the rival at z = 0
+    assert f["agreement"] == 1.0
+
+
+def test_nan_scores_give_finite_defaults() -> None:
+    c = np.full(10, NAN)
+    c[[3, 4, 8, 0]] = [1.0, 0.5, 0.2, 0.0]
+    tier1 = TIER1.copy()
+    tier1[3] = NAN  # the answer unscored in tier 1
+    res = make_result(
+        quality=NAN,
+        combined=(NAN, NAN, NAN, NAN),
+        tier1=tier1,
+        final_scores={"c": c, "d": np.full(10, NAN)},
+    )
+    f = answer_features(res, ROUTES)
+    assert all(math.isfinite(v) for v in f.values())
+    assert f["quality"] == 0.0 and f["margin"] == 0.0
+    assert f["agreement"] == 0.5  # d has no finite score: does not agree
+    assert f["tier1_rank"] == pytest.approx(math.log1p(10))
+    assert f["tier1_z"] == 0.0
+    assert f["tier1_margin"] == pytest.approx(0.0 - 0.6)  # NaN reads as 0
+
+
+def test_nan_rival_is_ignored() -> None:
+    f = answer_features(make_result(combined=(2.0, 1.5, NAN, -1.0)), ROUTES)
+    assert f["margin"] == pytest.approx(3.0)  # 8 is NaN: the rival is 0 (z -1)
+
+
+def test_no_answer_and_estimates() -> None:
+    empty = HierarchyResult(-1, NAN, np.zeros(0, np.int64), np.zeros(0), [])
+    f = answer_features(empty, ROUTES, estimate=Estimate(-1, NAN, False, 0))
+    assert f == {
+        "quality": 0.0,
+        "margin": 0.0,
+        "agreement": 0.0,
+        "tier1_rank": pytest.approx(math.log1p(10)),
+        "tier1_margin": 0.0,
+        "tier1_z": 0.0,
+        "n_final": 0.0,
+        "sequence_mass": 0.0,
+        "sequence_agrees": 0.0,
+    }
+    f = answer_features(make_result(), ROUTES, estimate=Estimate(5, 0.8, False, 3))
+    assert list(f) == list(FEATURES + SEQUENCE_FEATURES)
+    assert f["sequence_mass"] == 0.8 and f["sequence_agrees"] == 1.0
+    f = answer_features(make_result(), ROUTES, estimate=Estimate(6, NAN, False, 3))
+    assert f["sequence_mass"] == 0.0 and f["sequence_agrees"] == 0.0
+    with pytest.raises(HmpfError):
+        answer_features(make_result(), ROUTES, window=-1)
+
+
+def test_feature_matrix_orders_and_refuses_missing() -> None:
+    rows = [{"a": 1.0, "b": 2.0}, {"b": 4.0, "a": 3.0}]
+    assert feature_matrix(rows, ["b", "a"]).tolist() == [[2.0, 1.0], [4.0, 3.0]]
+    assert feature_matrix([], ["a"]).shape == (0, 1)
+    with pytest.raises(ModelError, match="c"):
+        feature_matrix(rows, ["a", "c"])
+
+
+# -- the logistic model -------------------------------------------------------------------------
+
+
+def synthetic(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 3)) * [1.0, 2.0, 1.5] + [0.0, 1.0, -2.0]
+    beta, b0 = np.array([1.5, -1.0, 2.0]), 0.3
+    y = rng.random(n) < 1 / (1 + np.exp(-(X @ beta + b0)))
+    return X, y, beta, b0
+
+
+def raw_coefficients(m: ConfidenceModel) -> tuple[np.ndarray, float]:
+    coef = np.array(m.coef) / np.array(m.scale)
+    return coef, m.intercept - float(coef @ np.array(m.mean))
+
+
+def test_fit_recovers_known_coefficients() -> None:
+    X, y, beta, b0 = synthetic(20000)
+    m = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"], l2=1.0)
+    coef, intercept = raw_coefficients(m)
+    np.testing.assert_allclose(coef, beta, rtol=0.08)
+    assert intercept == pytest.approx(b0, abs=0.1)
+    again = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"], l2=1.0)
+    assert again == m  # deterministic, bit for bit
+
+
+@pytest.mark.parametrize("l2", [0.0, 1.0, 10.0])
+def test_fit_is_the_maximum_of_the_regularised_likelihood(l2: float) -> None:
+    X, y, _, _ = synthetic(300, seed=1)
+    m = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"], l2=l2)
+    Z = np.hstack([np.ones((len(y), 1)), (X - X.mean(0)) / X.std(0)])
+    t = y.astype(float)
+
+    def objective(w: np.ndarray) -> tuple[float, np.ndarray]:
+        s = Z @ w
+        loss = np.sum(np.logaddexp(0, s) - t * s) + l2 / 2 * np.sum(w[1:] ** 2)
+        grad = Z.T @ (1 / (1 + np.exp(-s)) - t) + l2 * np.r_[0.0, w[1:]]
+        return float(loss), grad
+
+    best = minimize(objective, np.zeros(4), jac=True, method="BFGS", options={"gtol": 1e-10})
+    np.testing.assert_allclose([m.intercept, *m.coef], best.x, atol=1e-6)
+
+
+def test_separable_data_gives_finite_coefficients() -> None:
+    X = np.array([[0.0], [1.0], [2.0], [3.0]])
+    m = ConfidenceModel.fit(X, np.array([0, 0, 1, 1]), ["quality"], l2=1.0)
+    assert all(math.isfinite(v) for v in (*m.coef, m.intercept))
+    assert m.predict(np.array([[3.0]]))[0] > 0.5 > m.predict(np.array([[0.0]]))[0]
+
+
+def test_fit_refuses_bad_input() -> None:
+    X, y = np.zeros((4, 2)), np.array([0, 1, 0, 1])
+    for args in (
+        (X, y[:3], ["a", "b"]),  # shapes
+        (X, y, ["a"]),  # names
+        (X, y, ["a", "a"]),  # duplicates
+        (np.where(np.eye(4, 2) > 0, np.nan, 0.0), y, ["a", "b"]),  # NaN
+        (X, np.array([0, 1, 2, 1]), ["a", "b"]),  # labels
+        (X[:1], y[:1], ["a", "b"]),  # too few
+    ):
+        with pytest.raises(ModelError):
+            ConfidenceModel.fit(*args)
+    with pytest.raises(ModelError):
+        ConfidenceModel.fit(X, y, ["a", "b"], l2=-1.0)
+
+
+def fitted() -> ConfidenceModel:
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(200, 3))
+    y = rng.random(200) < 1 / (1 + np.exp(-3 * X[:, 0]))
+    return ConfidenceModel.fit(X, y, ["quality", "margin", "agreement"])
+
+
+def test_predict_is_a_probability() -> None:
+    m = fitted()
+    X = np.array([[1e6, 0.0, 0.0], [-1e6, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    p = m.predict(X)
+    assert isinstance(p, np.ndarray) and p.shape == (3,)
+    assert np.all((p > 0) & (p < 1)) and p[0] > 0.99 and p[1] < 0.01
+    one = m.predict({"quality": 0.5, "margin": 0.1, "agreement": 1.0, "other": 7.0})
+    assert isinstance(one, float)
+    assert one == pytest.approx(float(m.predict(np.array([[0.5, 0.1, 1.0]]))[0]))
+    with pytest.raises(ModelError, match="margin"):
+        m.predict({"quality": 0.5, "agreement": 1.0})
+    with pytest.raises(ModelError, match="non-finite"):
+        m.predict(np.array([[NAN, 0.0, 0.0]]))
+    with pytest.raises(ModelError):
+        m.predict(np.zeros((2, 4)))
+
+
+def test_round_trip_through_json() -> None:
+    m = fitted()
+    data = json.loads(json.dumps(m.to_dict()))
+    assert data["version"] == FORMAT_VERSION and data["features"] == list(m.features)
+    back = ConfidenceModel.from_dict(data, expected=["agreement", "margin", "quality"])
+    assert back == m
+    X = np.random.default_rng(0).normal(size=(5, 3))
+    np.testing.assert_array_equal(back.predict(X), m.predict(X))
+
+
+def _broken(**changes: object) -> dict[str, object]:
+    data = fitted().to_dict()
+    for k, v in changes.items():
+        if v is KeyError:
+            del data[k]
+        else:
+            data[k] = v
+    return data
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (_broken(version=2), "version 2"),
+        (_broken(version=KeyError), "version None"),
+        (_broken(format="something else"), "not a confidence model"),
+        (_broken(coef=KeyError), "lacks coef"),
+        (_broken(features=["quality", "margin", "speed"]), "unknown features.*speed"),
+        (_broken(features=["quality", "margin", "margin"]), "distinct"),
+        (_broken(features="quality"), "list of names"),
+        (_broken(mean=[0.0, 0.0]), "'mean' must hold 3"),
+        (_broken(coef=[1.0, NAN, 0.0]), "non-finite"),
+        (_broken(scale=[1.0, math.inf, 1.0]), "non-finite"),
+        (_broken(scale=[1.0, 0.0, 1.0]), "positive"),
+        (_broken(intercept="0.5"), "non-number"),
+        (_broken(intercept=True), "non-number"),
+        (_broken(l2=NAN), "non-finite"),
+    ],
+)
+def test_from_dict_refuses(data: dict[str, object], message: str) -> None:
+    with pytest.raises(ModelError, match=message):
+        ConfidenceModel.from_dict(data)
+
+
+def test_from_dict_refuses_other_features_than_expected() -> None:
+    data = fitted().to_dict()
+    with pytest.raises(ModelError, match=r"missing \['tier1_rank'\]"):
+        ConfidenceModel.from_dict(data, expected=["quality", "margin", "agreement", "tier1_rank"])
+    with pytest.raises(ModelError, match=r"extra \['agreement'\]"):
+        ConfidenceModel.from_dict(data, expected=["quality", "margin"])
+    with pytest.raises(ModelError):
+        ConfidenceModel.from_dict(["not", "a", "mapping"])  # type: ignore[arg-type]
+    assert issubclass(ModelError, HmpfError)
+
+
+# -- thresholds and calibration -----------------------------------------------------------------
+
+
+def test_threshold_for_precision_hand_computed() -> None:
+    p = np.array([0.9, 0.8, 0.7, 0.6, 0.5])
+    c = np.array([1, 1, 0, 1, 1], dtype=bool)
+    assert threshold_for_precision(p, c, 0.99) == 0.8
+    assert threshold_for_precision(p, c, 0.85) == 0.8  # 0.6 gives 3/4, 0.7 gives 2/3
+    assert threshold_for_precision(p, c, 0.8) == 0.5  # 4/5
+    assert threshold_for_precision(p[::-1], c[::-1], 0.8) == 0.5  # order does not matter
+    # Ties are accepted together: 0.8 would bring in a wrong answer with it.
+    assert threshold_for_precision(np.array([0.9, 0.8, 0.8]), np.array([1, 1, 0]), 0.99) == 0.9
+    # Unreachable, or nothing to accept: 1.0.
+    assert threshold_for_precision(np.array([0.9, 0.8]), np.array([0, 1]), 0.99) == 1.0
+    assert threshold_for_precision(np.zeros(0), np.zeros(0, bool), 0.99) == 1.0
+    with pytest.raises(HmpfError):
+        threshold_for_precision(p, c[:3])
+
+
+def test_ece_and_reliability_hand_computed() -> None:
+    p = np.array([0.1, 0.15, 0.9, 0.95, 1.0])
+    c = np.array([0, 1, 1, 1, 1])
+    rel = reliability(p, c, bins=10)
+    assert rel.count.tolist() == [0, 2, 0, 0, 0, 0, 0, 0, 0, 3]  # 1.0 in the last bin
+    assert rel.predicted[1] == pytest.approx(0.125) and rel.observed[1] == 0.5
+    assert rel.predicted[9] == pytest.approx(0.95) and rel.observed[9] == 1.0
+    assert np.isnan(rel.predicted[0]) and np.isnan(rel.observed[0])
+    assert rel.lower[1] == pytest.approx(0.1) and rel.upper[9] == 1.0
+    # 2/5 * |0.125 - 0.5| + 3/5 * |0.95 - 1|
+    assert expected_calibration_error(p, c) == pytest.approx(0.4 * 0.375 + 0.6 * 0.05)
+    assert expected_calibration_error(np.array([0.3, 0.3]), np.array([0, 1]), bins=1) == (
+        pytest.approx(0.2)
+    )
+    assert expected_calibration_error(np.zeros(0), np.zeros(0)) == 0.0
+    for bad in (np.array([1.2]), np.array([NAN])):
+        with pytest.raises(HmpfError):
+            reliability(bad, np.array([1]))
+    with pytest.raises(HmpfError):
+        reliability(p, c, bins=0)
