@@ -199,10 +199,10 @@ class ConfidenceModel:
 
     ``p = 1 / (1 + exp(-(intercept + coef . (x - mean) / scale)))``: the features are
     standardised with the training part's means and standard deviations, and the
-    coefficients minimise the log-loss plus ``l2 / 2 * |coef|^2`` (the intercept is not
-    penalised), found by Newton's method (iteratively reweighted least squares) from zero:
-    deterministic, a handful of iterations, and finite even when the training answers are
-    perfectly separable.
+    coefficients minimise the (optionally weighted) log-loss plus ``l2 / 2 * |coef|^2``
+    (the intercept is not penalised), found by Newton's method (iteratively reweighted least
+    squares) from zero: deterministic, a handful of iterations, and finite even when the
+    training answers are perfectly separable.
 
     Why not scikit-learn: the service would gain a large dependency for a model of a
     handful of coefficients; our own fit gives the same numbers on every machine (no solver
@@ -233,14 +233,20 @@ class ConfidenceModel:
         feature_names: Sequence[str],
         *,
         l2: float = 1.0,
+        sample_weight: np.ndarray | None = None,
         max_iter: int = 100,
         tol: float = 1e-10,
     ) -> ConfidenceModel:
         """Fit on ``X`` (n, d) and right/wrong labels ``y`` (n,).
 
+        Args:
+            sample_weight: (n,) weight of each answer's log-loss (e.g. so that routes of
+                different lengths pooled count alike); the means and scales are weighted
+                too. None: all 1.
+
         Raises:
-            ModelError: shapes disagree, non-finite features, fewer than 2 answers, or
-                ``l2`` < 0.
+            ModelError: shapes disagree, non-finite features or weights, fewer than 2
+                answers, or ``l2`` < 0.
         """
         X = np.asarray(X, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64).ravel()
@@ -259,17 +265,25 @@ class ConfidenceModel:
             raise ModelError("labels must be 0 or 1")
         if not (math.isfinite(l2) and l2 >= 0):
             raise ModelError("l2 must be a finite number >= 0")
-        mean = X.mean(axis=0)
-        scale = X.std(axis=0)
-        scale = np.where(scale > 0, scale, 1.0)
+        if sample_weight is None:
+            sw = np.ones(len(y))
+        else:
+            sw = np.asarray(sample_weight, dtype=np.float64).ravel()
+            if sw.shape != y.shape or not np.isfinite(sw).all() or (sw < 0).any():
+                raise ModelError("sample_weight must be (n,) finite numbers >= 0")
+            if not sw.sum() > 0:
+                raise ModelError("sample_weight must not be all zero")
+        mean = np.average(X, axis=0, weights=sw)
+        scale = np.sqrt(np.average((X - mean) ** 2, axis=0, weights=sw))
+        scale = np.where(scale > 1e-12 * (1 + np.abs(mean)), scale, 1.0)
         Z = np.hstack([np.ones((len(y), 1)), (X - mean) / scale])
         penalty = np.full(Z.shape[1], float(l2))
         penalty[0] = 0.0
         w = np.zeros(Z.shape[1])
         for _ in range(max_iter):
             p = _sigmoid(Z @ w)
-            grad = Z.T @ (p - y) + penalty * w
-            hess = (Z * (p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
+            grad = Z.T @ (sw * (p - y)) + penalty * w
+            hess = (Z * (sw * p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
             # A tiny ridge keeps the step defined when l2 = 0 and a column is constant.
             step = np.linalg.solve(hess + 1e-12 * np.eye(len(w)), grad)
             w = w - step

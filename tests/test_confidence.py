@@ -167,17 +167,21 @@ def test_fit_recovers_known_coefficients() -> None:
     assert again == m  # deterministic, bit for bit
 
 
-@pytest.mark.parametrize("l2", [0.0, 1.0, 10.0])
-def test_fit_is_the_maximum_of_the_regularised_likelihood(l2: float) -> None:
+@pytest.mark.parametrize(
+    ("l2", "weighted"), [(0.0, False), (1.0, False), (10.0, False), (1.0, True)]
+)
+def test_fit_is_the_maximum_of_the_regularised_likelihood(l2: float, weighted: bool) -> None:
     X, y, _, _ = synthetic(300, seed=1)
-    m = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"], l2=l2)
-    Z = np.hstack([np.ones((len(y), 1)), (X - X.mean(0)) / X.std(0)])
+    sw = np.random.default_rng(2).uniform(0.2, 3.0, len(y)) if weighted else np.ones(len(y))
+    m = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"], l2=l2, sample_weight=sw if weighted else None)
+    mean = np.average(X, axis=0, weights=sw)
+    Z = np.hstack([np.ones((len(y), 1)), (X - mean) / np.sqrt(np.average((X - mean) ** 2, 0, sw))])
     t = y.astype(float)
 
     def objective(w: np.ndarray) -> tuple[float, np.ndarray]:
         s = Z @ w
-        loss = np.sum(np.logaddexp(0, s) - t * s) + l2 / 2 * np.sum(w[1:] ** 2)
-        grad = Z.T @ (1 / (1 + np.exp(-s)) - t) + l2 * np.r_[0.0, w[1:]]
+        loss = np.sum(sw * (np.logaddexp(0, s) - t * s)) + l2 / 2 * np.sum(w[1:] ** 2)
+        grad = Z.T @ (sw * (1 / (1 + np.exp(-s)) - t)) + l2 * np.r_[0.0, w[1:]]
         return float(loss), grad
 
     best = minimize(objective, np.zeros(4), jac=True, method="BFGS", options={"gtol": 1e-10})
@@ -205,6 +209,19 @@ def test_fit_refuses_bad_input() -> None:
             ConfidenceModel.fit(*args)
     with pytest.raises(ModelError):
         ConfidenceModel.fit(X, y, ["a", "b"], l2=-1.0)
+    for sw in (np.ones(3), np.array([1.0, -1.0, 1.0, 1.0]), np.zeros(4), np.full(4, np.nan)):
+        with pytest.raises(ModelError, match="sample_weight"):
+            ConfidenceModel.fit(X, y, ["a", "b"], sample_weight=sw)
+
+
+def test_weights_count_like_repeated_answers() -> None:
+    X, y, _, _ = synthetic(200, seed=4)
+    twice = ConfidenceModel.fit(np.vstack([X, X[:50]]), np.r_[y, y[:50]], ["a", "b", "c"])
+    weighted = ConfidenceModel.fit(
+        X, y, ["a", "b", "c"], sample_weight=np.r_[np.full(50, 2.0), np.ones(150)]
+    )
+    np.testing.assert_allclose(weighted.coef, twice.coef, atol=1e-9)
+    np.testing.assert_allclose(weighted.mean, twice.mean, atol=1e-12)
 
 
 def fitted() -> ConfidenceModel:
