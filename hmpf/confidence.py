@@ -34,6 +34,7 @@ __all__ = [
     "FEATURES",
     "FORMAT",
     "FORMAT_VERSION",
+    "LOGIT_CLIP",
     "SEQUENCE_FEATURES",
     "ConfidenceModel",
     "ModelError",
@@ -56,7 +57,9 @@ FEATURES = (
     "n_final",
 )
 #: Features added when a sequence :class:`~hmpf.sequence.Estimate` is given.
-SEQUENCE_FEATURES = ("sequence_mass", "sequence_agrees")
+SEQUENCE_FEATURES = ("sequence_mass", "sequence_logit", "sequence_agrees")
+#: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
+LOGIT_CLIP = 20.0
 
 #: ``format`` and ``version`` of :meth:`ConfidenceModel.to_dict`.
 FORMAT = "hmpf-confidence"
@@ -121,8 +124,11 @@ def answer_features(
       (few: the earlier tiers' methods agreed).
 
     With an ``estimate`` (:data:`SEQUENCE_FEATURES`): ``sequence_mass``, the estimate's
-    posterior mass (NaN or before the first frame: 0), and ``sequence_agrees``, 1.0 when the
-    estimate lies within ``window`` of the single-frame answer, else 0.0.
+    posterior mass (NaN or before the first frame: 0); ``sequence_logit``, the same mass as
+    log-odds ``log(m / (1 - m))`` clipped to +-:data:`LOGIT_CLIP` (what separates a good
+    lock from a poor one is 0.99 against 0.9999, which a linear term in the mass cannot
+    express); and ``sequence_agrees``, 1.0 when the estimate lies within ``window`` of the
+    single-frame answer, else 0.0.
 
     Without an answer (``match`` < 0, no candidates) every feature takes its "no evidence"
     value: 0, and ``tier1_rank`` the database's size (as log1p).
@@ -173,7 +179,11 @@ def answer_features(
     if estimate is not None:
         ref = int(estimate.ref)
         valid = 0 <= ref < n_db
-        out["sequence_mass"] = _finite(float(estimate.mass), 0.0) if valid else 0.0
+        mass = min(max(_finite(float(estimate.mass), 0.0), 0.0), 1.0) if valid else 0.0
+        out["sequence_mass"] = mass
+        with np.errstate(divide="ignore"):
+            logit = float(np.log(mass) - np.log1p(-mass))
+        out["sequence_logit"] = min(max(logit, -LOGIT_CLIP), LOGIT_CLIP)
         out["sequence_agrees"] = float(
             valid and answered and bool(routes.separation(ref, match) <= window)
         )

@@ -12,6 +12,7 @@ from scipy.optimize import minimize
 from hmpf.confidence import (
     FEATURES,
     FORMAT_VERSION,
+    LOGIT_CLIP,
     SEQUENCE_FEATURES,
     ConfidenceModel,
     ModelError,
@@ -122,13 +123,17 @@ def test_no_answer_and_estimates() -> None:
         "tier1_z": 0.0,
         "n_final": 0.0,
         "sequence_mass": 0.0,
+        "sequence_logit": -LOGIT_CLIP,
         "sequence_agrees": 0.0,
     }
     f = answer_features(make_result(), ROUTES, estimate=Estimate(5, 0.8, False, 3))
     assert list(f) == list(FEATURES + SEQUENCE_FEATURES)
     assert f["sequence_mass"] == 0.8 and f["sequence_agrees"] == 1.0
+    assert f["sequence_logit"] == pytest.approx(math.log(0.8 / 0.2))
     f = answer_features(make_result(), ROUTES, estimate=Estimate(6, NAN, False, 3))
     assert f["sequence_mass"] == 0.0 and f["sequence_agrees"] == 0.0
+    f = answer_features(make_result(), ROUTES, estimate=Estimate(1, 1.0, True, 3))
+    assert f["sequence_logit"] == LOGIT_CLIP and f["sequence_agrees"] == 1.0
     with pytest.raises(HmpfError):
         answer_features(make_result(), ROUTES, window=-1)
 
