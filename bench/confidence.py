@@ -19,11 +19,19 @@ Reported, everything chosen on the training parts only:
   chosen on *out-of-fold* predictions of the training part (5 folds of consecutive queries
   per route, each predicted by a model fitted on the other folds), so the threshold does
   not trust the model's in-sample fit;
-* on the test parts: expected calibration error (10 bins), the share of answers accepted
+* a compact feature set chosen on the training parts (greedy forward selection by the
+  route-balanced out-of-fold log-loss, :func:`select_features`), evaluated beside all
+  features;
+* on the test parts: expected calibration error (10 bins; beside it the ECE a perfectly
+  calibrated model would show on that many answers), the share of answers accepted
   at each threshold and the precision reached, against today's rule (Combined z >= the
   lowest threshold reaching the target on the training part; in sequence mode posterior
   mass >= the threshold chosen the same way);
-* reliability diagrams (PNG) of the test parts.
+* reliability diagrams (PNG) of the test parts;
+* the issue's goals, judged on one rule fixed in advance (:data:`PRIMARY_RULE`, selected
+  features), beside today's rule.
+
+Runs in about 2 minutes on 2 cores with a warm descriptor cache.
 """
 
 from __future__ import annotations
