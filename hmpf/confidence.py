@@ -136,6 +136,12 @@ def answer_features(
     if window < 0:
         raise HmpfError("window must be >= 0")
     n_db = routes.n
+    for tier in result.tiers:
+        for mid, score in tier.scores.items():
+            if len(score) != n_db:
+                raise HmpfError(
+                    f"method {mid!r} scored {len(score)} references; the route map has {n_db}"
+                )
     match = int(result.match)
     out: dict[str, float] = {}
     answered = 0 <= match < n_db
@@ -435,7 +441,7 @@ def threshold_for_precision(p: np.ndarray, correct: np.ndarray, target: float = 
     """The lowest probability whose accepted answers (``p >= threshold``) reach ``target``
     precision on the given answers (ties accepted together). Unreachable (even the most
     confident answers fall short, or there are none): 1.0, which accepts nothing
-    (:meth:`ConfidenceModel.predict` stays below 1)."""
+    (:meth:`ConfidenceModel.predict` stays below 1). Non-finite ``p`` are left out."""
     p = np.asarray(p, dtype=np.float64)
     c = np.asarray(correct, dtype=bool)
     if p.shape != c.shape:

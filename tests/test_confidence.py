@@ -136,6 +136,8 @@ def test_no_answer_and_estimates() -> None:
     assert f["sequence_logit"] == LOGIT_CLIP and f["sequence_agrees"] == 1.0
     with pytest.raises(HmpfError):
         answer_features(make_result(), ROUTES, window=-1)
+    with pytest.raises(HmpfError, match="route map has 12"):
+        answer_features(make_result(), RouteMap.from_metadata(12))
 
 
 def test_feature_matrix_orders_and_refuses_missing() -> None:
