@@ -404,14 +404,24 @@ def plot(modes: dict[str, dict[str, Any]], out: Path) -> list[Path]:
         fig, axes = plt.subplots(1, len(rows), figsize=(3.6 * len(rows), 3.8), sharey=True)
         for ax, (r, row) in zip(np.atleast_1d(axes), rows.items(), strict=True):
             ax.plot([0, 1], [0, 1], color="grey", ls="--", lw=1)
-            for key, style in (("pooled", "o-"), ("per_route", "s:")):
+            for key, style, colour in (("pooled", "-", "C0"), ("per_route", ":", "C1")):
                 rel = reliability(row["_p"][key], row["_p"]["correct"])
                 used = rel.count > 0
                 ax.plot(
                     rel.predicted[used],
                     rel.observed[used],
                     style,
+                    color=colour,
                     label=f"{key.replace('_', ' ')} (ECE {row['ece'][key]:.3f})",
+                )
+                # Marker area in proportion to the bin's answers (a sparse bin says little).
+                ax.scatter(
+                    rel.predicted[used],
+                    rel.observed[used],
+                    s=6 + 300 * rel.count[used] / rel.count.sum(),
+                    color=colour,
+                    alpha=0.7,
+                    zorder=3,
                 )
             ax.set_title(f"{r} ({row['n_test']} answers)", fontsize=9)
             ax.set_xlabel("predicted p_correct")
@@ -420,7 +430,10 @@ def plot(modes: dict[str, dict[str, Any]], out: Path) -> list[Path]:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7, loc="upper left")
         np.atleast_1d(axes)[0].set_ylabel("observed share right (test part)")
-        fig.suptitle(f"Reliability, {mode_name} (test parts; 10 bins)", fontsize=10)
+        fig.suptitle(
+            f"Reliability, {mode_name} (test parts; 10 bins, marker area ~ answers in the bin)",
+            fontsize=10,
+        )
         fig.tight_layout()
         slug = mode_name.replace(",", "").replace(" ", "_")
         path = out / f"reliability_{slug}.png"
