@@ -75,10 +75,18 @@ class IndexSettings(BaseModel):
 
 
 class AcceptanceSettings(BaseModel):
-    """When an answer is trusted: its Combined quality (z-score) must reach ``threshold``.
+    """When an answer is trusted.
 
-    Written by ``hmpf-calibrate`` (the threshold that gave ``precision`` on its training
-    split); not part of the index's identity (:meth:`HierarchyConfig.digest` ignores it).
+    Without a model: its Combined quality (z-score) must reach ``threshold`` (the paper's
+    score). With ``model`` (a :class:`hmpf.confidence.ConfidenceModel` as
+    :meth:`~hmpf.confidence.ConfidenceModel.to_dict`), an answer gets ``p_correct``, the
+    calibrated probability that it is right, and is accepted when ``p_correct >=
+    model_threshold``; ``sequence_model`` / ``sequence_threshold`` do the same for the
+    sequence filter's estimates (sequence features). Written by ``hmpf-calibrate`` (the
+    thresholds that gave ``precision`` on its training split); not part of the index's
+    identity (:meth:`HierarchyConfig.digest` ignores it). A model that does not load
+    (another format version, missing or extra features, non-finite numbers) makes the
+    config invalid: a clear error, never a silent wrong probability.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -86,6 +94,36 @@ class AcceptanceSettings(BaseModel):
     threshold: float
     precision: float | None = Field(None, gt=0, le=1)
     note: str = ""
+    model: dict[str, Any] | None = None
+    model_threshold: float | None = Field(None, ge=0, le=1)
+    sequence_model: dict[str, Any] | None = None
+    sequence_threshold: float | None = Field(None, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _models(self) -> AcceptanceSettings:
+        from hmpf.confidence import ConfidenceModel
+
+        for name, model, threshold in (
+            ("model", self.model, self.model_threshold),
+            ("sequence_model", self.sequence_model, self.sequence_threshold),
+        ):
+            if model is None:
+                continue
+            if threshold is None:
+                raise ValueError(f"acceptance.{name} needs its threshold")
+            try:
+                ConfidenceModel.from_dict(model)
+            except HmpfError as exc:
+                raise ValueError(f"acceptance.{name}: {exc}") from None
+        return self
+
+    def confidence_model(self, sequence: bool = False) -> Any:
+        """The :class:`~hmpf.confidence.ConfidenceModel` (single frame, or ``sequence``), or
+        None when the config has none."""
+        from hmpf.confidence import ConfidenceModel
+
+        model = self.sequence_model if sequence else self.model
+        return None if model is None else ConfidenceModel.from_dict(model)
 
 
 class HierarchyConfig(BaseModel):
