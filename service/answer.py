@@ -6,6 +6,14 @@ is accepted), the final ranking, each tier's candidates and the GPS prior's repo
 :func:`with_sequence` adds sequence mode's report and makes its estimate the answer (accepted
 when locked). Numbers that are not finite (a method that scored NaN) are reported as ``None``,
 never as a number that looks real, and a match without a finite score is never accepted.
+
+*Acceptance* (:class:`~service.engine.Acceptance`): with a confidence model in the index's
+config, a match gets ``p_correct`` (:meth:`hmpf.confidence.ConfidenceModel.predict` of
+:func:`hmpf.confidence.answer_features`) and ``accepted = p_correct >= threshold``
+(``accepted_by = "p_correct"``); without one ``p_correct`` is None and the z rule decides
+(``"quality"``; a sequence estimate: ``"lock"``). The features need reference ids along the
+routes, so a result run under a GPS prior (its indices are positions in the allowed ids) is
+first put back on the whole map (:func:`on_references`).
 """
 
 from __future__ import annotations
@@ -16,9 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from hmpf.hierarchy import HierarchyResult
+from hmpf.confidence import answer_features
+from hmpf.hierarchy import HierarchyResult, TierResult
 from service.engine import Loaded, confidence
 from service.schemas import (
+    AcceptedBy,
     Candidate,
     LocalizeParams,
     LocalizeResponse,
@@ -29,7 +39,7 @@ from service.schemas import (
 )
 from service.track import Step
 
-__all__ = ["localize_response", "with_sequence"]
+__all__ = ["localize_response", "on_references", "with_sequence"]
 
 
 def localize_response(
@@ -87,27 +97,102 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def on_references(result: HierarchyResult, allowed: np.ndarray | None, n: int) -> HierarchyResult:
+    """``result`` with reference ids for indices, over all ``n`` references of the map.
+
+    Without a prior (``allowed`` None) the result itself. With one, its indices are
+    positions in ``allowed``: they are mapped to the ids, and each tier's scores are spread
+    over the whole map, NaN outside the prior (a reference the prior left out was not
+    scored), so that :func:`~hmpf.confidence.answer_features` measures route distances
+    between the right references and reads the same scores as the hierarchy did.
+    """
+    if allowed is None:
+        return result
+    ids = np.asarray(allowed, dtype=np.int64)
+
+    def spread(x: np.ndarray) -> np.ndarray:
+        full = np.full(n, np.nan)
+        full[ids] = np.asarray(x, dtype=np.float64)
+        return full
+
+    tiers = [
+        TierResult(
+            list(t.methods),
+            ids if t.inputs is None else ids[np.asarray(t.inputs, dtype=np.int64)],
+            {m: spread(s) for m, s in t.scores.items()},
+            ids[np.asarray(t.candidates, dtype=np.int64)],
+            t.time_ms,
+        )
+        for t in result.tiers
+    ]
+    return HierarchyResult(
+        match=int(ids[result.match]) if result.match >= 0 else -1,
+        quality=result.quality,
+        final_candidates=ids[np.asarray(result.final_candidates, dtype=np.int64)],
+        combined=result.combined,
+        tiers=tiers,
+        fusion_ms=result.fusion_ms,
+    )
+
+
+#: The features of a frame without a result (the GPS prior left no reference): no evidence.
+_NO_RESULT = HierarchyResult(-1, float("nan"), np.zeros(0, np.int64), np.zeros(0))
+
+
 def with_sequence(
-    response: LocalizeResponse, loaded: Loaded, step: Step, track: str
+    response: LocalizeResponse,
+    loaded: Loaded,
+    step: Step,
+    track: str,
+    result: HierarchyResult | None = None,
 ) -> LocalizeResponse:
     """``response`` in sequence mode: the frame's :class:`~service.track.Step` as its
     ``sequence`` report (``track``: the signed token to hand back), and the estimate as the
-    ``match`` (accepted when locked); the single-frame match stays the answer only when the
-    filter has no estimate (a frame out of order, an empty belief)."""
+    ``match``; the single-frame match stays the answer only when the filter has no estimate
+    (a frame out of order, an empty belief).
+
+    The estimate is accepted when ``p_correct`` of the version's sequence model (over the
+    frame's features with the estimate's, ``result``: the frame's result on reference ids,
+    :func:`on_references`; None: no result) reaches its threshold, else, without a sequence
+    model, when the filter is locked.
+    """
     est = step.estimate
     mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
     estimate = None
     if est is not None and est.ref >= 0:  # -1: the belief holds no hypothesis
-        estimate = _reference_match(
-            loaded, est.ref, score=None, confidence=mass, accepted=est.locked
-        )
+        acc = loaded.acceptance
+        if acc.sequence_model is not None and acc.sequence_threshold is not None:
+            feats = answer_features(
+                _NO_RESULT if result is None else result,
+                loaded.sequence.routes,
+                estimate=est,
+            )
+            p = _probability(acc.sequence_model.predict(feats))
+            estimate = _reference_match(
+                loaded,
+                est.ref,
+                score=None,
+                confidence=mass,
+                accepted=p is not None and p >= acc.sequence_threshold,
+                p_correct=p,
+                accepted_by="p_correct",
+            )
+        else:
+            estimate = _reference_match(
+                loaded,
+                est.ref,
+                score=None,
+                confidence=mass,
+                accepted=est.locked,
+                accepted_by="lock",
+            )
     use = estimate is not None
     report = SequenceReport(
         status=step.status,
         reset_reason=step.reason,
         match=estimate,
         mass=mass,
-        locked=estimate is not None and estimate.accepted,
+        locked=est is not None and est.ref >= 0 and est.locked,
         frames=0 if est is None else est.frames,
         speed=None if est is None else _finite(est.speed),
         steps=step.steps,
@@ -122,21 +207,52 @@ def with_sequence(
     )
 
 
+def _probability(p: float | np.ndarray) -> float | None:
+    """A model's prediction as ``p_correct`` (None unless finite and in [0, 1])."""
+    v = float(p)
+    return v if math.isfinite(v) and 0.0 <= v <= 1.0 else None
+
+
 def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match | None:
     if result.match < 0:
         return None
     score = _finite(result.quality)
+    acc = loaded.acceptance
+    if acc.model is None or acc.model_threshold is None:
+        return _reference_match(
+            loaded,
+            refs.id_of(result.match),
+            score=score,
+            confidence=confidence(result.quality, len(result.final_candidates)),
+            accepted=score is not None and score >= acc.threshold,
+            accepted_by="quality",
+        )
+    p = None
+    if score is not None:  # a match without a finite score gets no probability
+        feats = answer_features(
+            on_references(result, refs.allowed, len(refs.names)), loaded.sequence.routes
+        )
+        p = _probability(acc.model.predict(feats))
     return _reference_match(
         loaded,
         refs.id_of(result.match),
         score=score,
         confidence=confidence(result.quality, len(result.final_candidates)),
-        accepted=score is not None and score >= loaded.threshold,
+        accepted=p is not None and p >= acc.model_threshold,
+        p_correct=p,
+        accepted_by="p_correct",
     )
 
 
 def _reference_match(
-    loaded: Loaded, ref_id: int, *, score: float | None, confidence: float, accepted: bool
+    loaded: Loaded,
+    ref_id: int,
+    *,
+    score: float | None,
+    confidence: float,
+    accepted: bool,
+    accepted_by: AcceptedBy,
+    p_correct: float | None = None,
 ) -> Match:
     """Reference ``ref_id`` (with its position, when known) as a :class:`Match`."""
     meta = loaded.reader.refs.meta
@@ -149,7 +265,9 @@ def _reference_match(
         lon=_finite(lon),
         score=score,
         confidence=confidence,
+        p_correct=p_correct,
         accepted=accepted,
+        accepted_by=accepted_by,
     )
 
 

@@ -31,13 +31,14 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from hmpf.confidence import FEATURES, SEQUENCE_FEATURES, ConfidenceModel, ModelError
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
 from hmpf.sequence import SequenceFilter
 from service.track import binding_digest
 
-__all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Engine", "Loaded", "Prior", "confidence"]
+__all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Acceptance", "Engine", "Loaded", "Prior", "confidence"]
 
 log = logging.getLogger("hmpf.service")
 T = TypeVar("T")
@@ -70,12 +71,52 @@ class Prior:
     radius_m: float
 
 
+@dataclass(frozen=True)
+class Acceptance:
+    """How a version's answers are accepted: the z rule's ``threshold`` (Combined quality),
+    and, when the index's config has them, the calibrated confidence models with their
+    thresholds (``p_correct >= threshold``; :mod:`hmpf.confidence`)."""
+
+    threshold: float
+    model: ConfidenceModel | None = None
+    model_threshold: float | None = None
+    sequence_model: ConfidenceModel | None = None
+    sequence_threshold: float | None = None
+
+    @classmethod
+    def of(cls, reader: IndexReader, threshold: float | None) -> Acceptance:
+        """The version's rules; ``threshold`` (the settings') overrides the config's z one.
+
+        Raises:
+            ModelError: a model over features the service cannot give it (a single-frame
+                model that needs sequence features, unknown ones).
+        """
+        acc = reader.config.acceptance
+        chosen = threshold if threshold is not None else (acc.threshold if acc else None)
+        z = DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen)
+        if acc is None:
+            return cls(z)
+        model, seq = acc.confidence_model(), acc.confidence_model(sequence=True)
+        for name, m, known in (
+            ("model", model, FEATURES),
+            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES),
+        ):
+            extra = [] if m is None else [f for f in m.features if f not in known]
+            if extra:
+                raise ModelError(
+                    f"{reader.path}: acceptance.{name} needs features an answer of its kind "
+                    f"does not have ({', '.join(extra)}); recalibrate"
+                )
+        return cls(z, model, acc.model_threshold, seq, acc.sequence_threshold)
+
+
 @dataclass
 class Loaded:
     """One opened index version and what the queries need from it.
 
     ``sequence`` is the sequence filter over the version's routes and ``binding`` the digest
-    that ties a vehicle's track token to this version (:mod:`service.track`).
+    that ties a vehicle's track token to this version (:mod:`service.track`); ``acceptance``
+    the rules that decide ``accepted`` (the z threshold, the confidence models).
     """
 
     reader: IndexReader
@@ -84,6 +125,7 @@ class Loaded:
     loaded_at: float
     sequence: SequenceFilter
     binding: bytes
+    acceptance: Acceptance
     leases: int = 0
     retired: bool = False
     lat: np.ndarray | None = field(default=None, repr=False)
@@ -92,8 +134,11 @@ class Loaded:
     @classmethod
     def open(cls, root: Path, threshold: float | None) -> Loaded:
         reader = IndexReader(root)
-        cfg_threshold = reader.config.acceptance.threshold if reader.config.acceptance else None
-        chosen = threshold if threshold is not None else cfg_threshold
+        try:
+            acceptance = Acceptance.of(reader, threshold)
+        except BaseException:
+            reader.close()
+            raise
         meta = reader.refs.meta
         lat, lon = meta.get("lat"), meta.get("lon")
         has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
@@ -101,10 +146,11 @@ class Loaded:
         return cls(
             reader,
             reader.hierarchy(),
-            DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen),
+            acceptance.threshold,
             time.time(),
             SequenceFilter(reader.route_map(), params),
             binding_digest(reader.manifest, params),
+            acceptance,
             lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
             lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
         )

@@ -15,8 +15,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hmpf.errors import HmpfError
+from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Evidence
-from service.answer import localize_response
+from service.answer import localize_response, on_references
 from service.engine import Loaded, Prior, run_query
 from service.errors import ApiError
 from service.images import decode_upload
@@ -41,6 +42,9 @@ class ImageQuery:
         sequence: keep the frame's evidence for the sequence filter.
         evidence, loaded: after the call, in sequence mode: the evidence and the version it
             was computed on.
+        result: after the call, in sequence mode with a sequence confidence model: the
+            frame's result on reference ids (:func:`~service.answer.on_references`; None
+            when the prior left no reference), for the estimate's features.
     """
 
     data: bytes
@@ -53,6 +57,7 @@ class ImageQuery:
     sequence: bool = False
     evidence: Evidence | None = field(default=None, init=False)
     loaded: Loaded | None = field(default=None, init=False, repr=False)
+    result: HierarchyResult | None = field(default=None, init=False, repr=False)
 
     def __call__(self, loaded: Loaded) -> LocalizeResponse:
         """Localise the image against ``loaded`` (on a query thread).
@@ -90,6 +95,8 @@ class ImageQuery:
                     allowed=allowed,
                 )
             )
+            if result is not None and loaded.acceptance.sequence_model is not None:
+                self.result = on_references(result, allowed, loaded.reader.n)
         answer = localize_response(loaded, result, allowed, self.params, timing)
         answer.timing_ms["total"] = _ms_since(self.submitted)
         return answer

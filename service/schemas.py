@@ -13,6 +13,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from service.track import MAX_TOKEN_CHARS
 
 __all__ = [
+    "AcceptanceInfo",
+    "AcceptedBy",
     "BatchItem",
     "BatchResponse",
     "Candidate",
@@ -23,6 +25,7 @@ __all__ = [
     "LocalizeParams",
     "LocalizeResponse",
     "Match",
+    "ModelInfo",
     "PriorReport",
     "SequenceReport",
     "TierReport",
@@ -76,6 +79,10 @@ class LocalizeParams(LocalizeFields):
         return self
 
 
+#: The rule that decided a match's ``accepted``.
+AcceptedBy = Literal["p_correct", "quality", "lock"]
+
+
 class Match(BaseModel):
     reference_id: int = Field(description="row of the reference in the index version")
     name: str
@@ -90,8 +97,24 @@ class Match(BaseModel):
         le=1,
         description="score / largest possible z-score (a sequence estimate: its posterior mass)",
     )
+    p_correct: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="calibrated probability that this match is right (the place is within "
+        "a couple of references of the true one), from the confidence model that "
+        "hmpf-calibrate stored in the index's config (`acceptance.model`; a sequence "
+        "estimate: `acceptance.sequence_model`). null when the index has no such model "
+        "(never a made-up number) or the match has no finite score",
+    )
     accepted: bool = Field(
-        description="score >= the acceptance threshold (a sequence estimate: locked)"
+        description="whether to act on this match, decided by the rule in `accepted_by`"
+    )
+    accepted_by: AcceptedBy = Field(
+        description="the rule that decided `accepted`: `p_correct`: p_correct >= the "
+        "model's threshold (null p_correct: not accepted); `quality`: no model, score >= the "
+        "z threshold (`threshold` of the response); `lock`: a sequence estimate without a "
+        "sequence model, accepted when the filter is locked"
     )
 
 
@@ -137,11 +160,15 @@ class SequenceReport(BaseModel):
         "index_changed: it was made on another index version",
     )
     match: Match | None = Field(
-        description="the filter's estimate (score null, confidence = posterior mass, "
-        "accepted = locked); None when out of order"
+        description="the filter's estimate (score null, confidence = posterior mass; "
+        "accepted: p_correct >= the sequence model's threshold when the index has one, else "
+        "locked); None when out of order"
     )
     mass: float = Field(ge=0, le=1, description="posterior probability near the estimate")
-    locked: bool = Field(description="mass >= the filter's lock_mass: the estimate is accepted")
+    locked: bool = Field(
+        description="mass >= the filter's lock_mass (without a sequence model: the estimate "
+        "is accepted)"
+    )
     frames: int = Field(
         description="frames the track has seen since it (re)started (0 when out of order: "
         "the filter did not run)"
@@ -157,8 +184,10 @@ class SequenceReport(BaseModel):
 
 class LocalizeResponse(BaseModel):
     match: Match | None = Field(
-        description="THE answer: in sequence mode the sequence estimate (accepted when "
-        "locked), else the single-frame match; None when the GPS prior leaves no reference"
+        description="THE answer: in sequence mode the sequence estimate (accepted by its "
+        "p_correct with a sequence model, else when locked), else the single-frame match; "
+        "None when the GPS prior leaves no reference. Act on it only when `match.accepted` "
+        "(see `match.accepted_by`)"
     )
     match_source: Literal["single", "sequence"] = Field(
         default="single", description="where `match` comes from"
@@ -173,7 +202,9 @@ class LocalizeResponse(BaseModel):
     timing_ms: dict[str, float | dict[str, float] | list[float]]
     index_version: str
     vehicle_id: str | None = None
-    threshold: float
+    threshold: float = Field(
+        description="the z threshold of the `quality` rule (used where no model decides)"
+    )
 
 
 class BatchItem(BaseModel):
@@ -192,6 +223,29 @@ class BatchResponse(BaseModel):
     )
 
 
+class ModelInfo(BaseModel):
+    """A confidence model the loaded version applies."""
+
+    features: list[str] = Field(description="the answer features it reads, in order")
+    threshold: float = Field(ge=0, le=1, description="accepted when p_correct >= this")
+
+
+class AcceptanceInfo(BaseModel):
+    """How the loaded version decides `accepted`."""
+
+    rule: Literal["p_correct", "quality"] = Field(
+        description="the single-frame rule: `p_correct` with a model, else `quality`"
+    )
+    threshold: float = Field(description="the z threshold of the `quality` rule")
+    model: ModelInfo | None = Field(
+        None, description="single-frame confidence model (null: none, the quality rule)"
+    )
+    sequence_model: ModelInfo | None = Field(
+        None,
+        description="sequence-mode confidence model (null: none, estimates accepted when locked)",
+    )
+
+
 class IndexInfo(BaseModel):
     root: str
     version: str
@@ -202,6 +256,7 @@ class IndexInfo(BaseModel):
     built: dict[str, object]
     has_positions: bool
     threshold: float
+    acceptance: AcceptanceInfo
     loaded_at: float
 
 

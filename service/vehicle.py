@@ -163,7 +163,7 @@ class Tracker:
                 prev, token = step.track, codec.encode(step.track)
             dropped = 0
             assert token is not None  # issued above unless out of order (which had one)
-            answer = with_sequence(answer, loaded, step, token)
+            answer = with_sequence(answer, loaded, step, token, query.result)
             seconds = time.perf_counter() - t
             answer.timing_ms["sequence"] = seconds * 1e3
             locked = answer.sequence is not None and answer.sequence.locked

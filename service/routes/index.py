@@ -10,7 +10,7 @@ from fastapi import APIRouter
 from hmpf.errors import HmpfError
 from hmpf.index import layout
 from service.deps import AdminKey, EngineDep, MetricsDep, VehicleKey
-from service.engine import Engine
+from service.engine import Acceptance, Engine
 from service.errors import ERROR_RESPONSES, ApiError
 from service.schemas import IndexInfo
 
@@ -73,5 +73,21 @@ def _index_info(engine: Engine) -> dict[str, Any]:
         },
         "has_positions": loaded.has_positions,
         "threshold": loaded.threshold,
+        "acceptance": _acceptance(loaded.acceptance),
         "loaded_at": loaded.loaded_at,
+    }
+
+
+def _acceptance(acc: Acceptance) -> dict[str, Any]:
+    def model(m: Any, threshold: float | None) -> dict[str, Any] | None:
+        if m is None or threshold is None:
+            return None
+        return {"features": list(m.features), "threshold": threshold}
+
+    single = model(acc.model, acc.model_threshold)
+    return {
+        "rule": "quality" if single is None else "p_correct",
+        "threshold": acc.threshold,
+        "model": single,
+        "sequence_model": model(acc.sequence_model, acc.sequence_threshold),
     }
