@@ -411,3 +411,46 @@ def test_a_match_without_a_finite_score_gets_no_probability(model_index: Path, n
     assert answer.match is not None and answer.match.score is None
     assert answer.match.p_correct is None and answer.match.accepted is False
     assert answer.match.accepted_by == "p_correct"
+
+
+def test_on_references_puts_a_prior_result_on_the_whole_map() -> None:
+    """Positions 0 and 1 of a prior that allowed references 3 and 9: next to each other in
+    the sub-database, six route steps apart on the map. The rival is a rival only on the
+    map's ids, which is what the service's features must see."""
+    from hmpf.hierarchy import HierarchyResult, TierResult
+
+    allowed = np.array([3, 9, 10])
+    s = {"a": np.array([1.0, 0.8, 0.0]), "b": np.array([1.0, 0.9, np.nan])}
+    tier = TierResult(["a", "b"], None, s, np.array([0, 1]), 0.1)
+    sub = HierarchyResult(0, 0.7, np.array([0, 1]), np.array([0.7, -0.7]), [tier])
+    full = on_references(sub, allowed, 12)
+    assert full.match == 3 and full.final_candidates.tolist() == [3, 9]
+    t = full.tiers[0]
+    assert t.candidates.tolist() == [3, 9] and t.inputs is not None
+    assert t.inputs.tolist() == [3, 9, 10]
+    assert np.isnan(t.scores["a"][[0, 1, 2, 4, 11]]).all()
+    assert t.scores["a"][[3, 9, 10]].tolist() == [1.0, 0.8, 0.0]
+    routes = RouteMap.from_metadata(12)
+    on_map = answer_features(full, routes)
+    assert on_map["margin"] == pytest.approx(0.7 - -0.7)  # reference 9 is a real rival
+    naive = answer_features(sub, RouteMap.from_metadata(3))  # positions read as ids
+    assert naive["margin"] == pytest.approx(0.7)  # "next door": no rival
+    assert on_references(sub, None, 12) is sub
+
+
+def test_batch_answers_carry_p_correct(
+    client: TestClient, keys: dict[str, str], night: list[Path], models: dict[str, Any]
+) -> None:
+    files = [("images", (night[i].name, night[i].read_bytes(), "image/jpeg")) for i in TEST[:2]]
+    for data in ({}, {"vehicle_id": "car-9"}):
+        r = client.post(
+            "/v1/localize/batch", files=files, data=data, headers={"X-API-Key": keys["vehicle"]}
+        )
+        assert r.status_code == 200, r.text
+        for item in r.json()["results"]:
+            m, single = item["result"]["match"], item["result"]["single"]
+            assert m["accepted_by"] == "p_correct" and 0 <= m["p_correct"] <= 1
+            assert item["result"]["match_source"] == ("sequence" if data else "single")
+            thr = models["sequence_threshold" if data else "threshold"]
+            assert m["accepted"] == (m["p_correct"] >= thr)
+            assert single["accepted"] == (single["p_correct"] >= models["threshold"])
