@@ -442,3 +442,49 @@ def test_calibrate_cli_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Path):
     assert cli.main(argv) == 130
     err = capsys.readouterr().err
     assert err == "hmpf-calibrate: interrupted\n"
+
+
+def test_calibrate_fits_confidence_models_that_load_and_round_trip(banks, tmp_path: Path):
+    """With sequence mode: both models and thresholds are written into ``acceptance``, the
+    z threshold stays, the config round-trips through YAML and the report has the test
+    part's figures for the model and the z / mass rules."""
+    from hmpf.cli.calibrate import write_config
+    from hmpf.confidence import ConfidenceModel
+    from hmpf.evaluation.acceptance import SEQUENCE_MODEL_FEATURES, SINGLE_FEATURES
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
+    pool, train, test, _, _ = banks
+    # One weak method alone: its training answers are right and wrong, so a model can be fit.
+    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
+    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
+    config, rep = calibrate(
+        pool, train, test, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
+    )
+    acc = config.acceptance
+    assert acc is not None and math.isfinite(acc.threshold)
+    tr = rep["train"]["confidence"]
+    for mode, names, key, thr in (
+        ("single", SINGLE_FEATURES, "model", acc.model_threshold),
+        ("sequence", SEQUENCE_MODEL_FEATURES, "sequence_model", acc.sequence_threshold),
+    ):
+        if "skipped" in tr[mode]:  # one class only on this small part: no model, said why
+            assert getattr(acc, key) is None
+            continue
+        model = ConfidenceModel.from_dict(getattr(acc, key), expected=names)
+        assert model.features == names and thr is not None and 0 <= thr <= 1
+        assert tr[mode]["threshold"] == thr
+        te = rep["test"]["confidence"][mode]
+        assert te["model"]["rule"] == "model" and 0 <= te["model"]["accepted"] <= 1
+        assert te["model"]["ece"] is not None and 0 <= te["model"]["ece"] <= 1
+        base = te["z" if mode == "single" else "mass"]
+        assert base["n"] == te["model"]["n"] and "ece" not in base
+    assert tr["single"].get("skipped") is None  # the weak hierarchy errs on training
+    write_config(config, tmp_path / "c.yaml", "test")
+    again = load_config(tmp_path / "c.yaml")
+    assert again == config and again.acceptance is not None
+    assert again.acceptance.confidence_model() == acc.confidence_model()
+    assert "Confidence models" in leaderboard_markdown(rep)
+    # --no-model: the z threshold only.
+    plain, rep2 = calibrate(pool, train, None, space, budget_ms=None, seed=0, model=False)
+    assert plain.acceptance is not None and plain.acceptance.model is None
+    assert "confidence" not in rep2["train"]
