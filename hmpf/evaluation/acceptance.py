@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from hmpf.config import AcceptanceSettings
 from hmpf.confidence import (
     ConfidenceModel,
     ModelError,
@@ -35,6 +34,7 @@ from hmpf.confidence import (
     feature_matrix,
     threshold_for_precision,
 )
+from hmpf.config import AcceptanceSettings
 from hmpf.evaluation.sequence import Drive, drive, evidences_of, speed_drive
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import FilterParams, RouteMap, SequenceFilter

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from hmpf.config import AcceptanceSettings, HierarchyConfig
 from hmpf.confidence import ModelError
+from hmpf.config import AcceptanceSettings, HierarchyConfig
 from hmpf.errors import ConfigError
 from hmpf.evaluation.acceptance import (
     SEQUENCE_MODEL_FEATURES,
