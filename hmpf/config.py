@@ -95,9 +95,9 @@ class AcceptanceSettings(BaseModel):
     precision: float | None = Field(None, gt=0, le=1)
     note: str = ""
     model: dict[str, Any] | None = None
-    model_threshold: float | None = Field(None, ge=0, le=1)
+    model_threshold: float | None = Field(default=None, ge=0, le=1)
     sequence_model: dict[str, Any] | None = None
-    sequence_threshold: float | None = Field(None, ge=0, le=1)
+    sequence_threshold: float | None = Field(default=None, ge=0, le=1)
 
     @model_validator(mode="after")
     def _models(self) -> AcceptanceSettings:

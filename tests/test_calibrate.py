@@ -442,3 +442,114 @@ def test_calibrate_cli_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Path):
     assert cli.main(argv) == 130
     err = capsys.readouterr().err
     assert err == "hmpf-calibrate: interrupted\n"
+
+
+def test_calibrate_fits_confidence_models_that_load_and_round_trip(banks, tmp_path: Path):
+    """With sequence mode: both models and thresholds are written into ``acceptance``, the
+    z threshold stays, the config round-trips through YAML and the report has the test
+    part's figures for the model and the z / mass rules."""
+    from hmpf.cli.calibrate import write_config
+    from hmpf.confidence import ConfidenceModel
+    from hmpf.evaluation.acceptance import SEQUENCE_MODEL_FEATURES, SINGLE_FEATURES
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
+    pool, train, test, _, _ = banks
+    # One weak method alone: its training answers are right and wrong, so a model can be fit.
+    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
+    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
+    config, rep = calibrate(
+        pool, train, test, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
+    )
+    acc = config.acceptance
+    assert acc is not None and math.isfinite(acc.threshold)
+    tr = rep["train"]["confidence"]
+    for mode, names, key, thr in (
+        ("single", SINGLE_FEATURES, "model", acc.model_threshold),
+        ("sequence", SEQUENCE_MODEL_FEATURES, "sequence_model", acc.sequence_threshold),
+    ):
+        if "skipped" in tr[mode]:  # one class only on this small part: no model, said why
+            assert getattr(acc, key) is None
+            continue
+        model = ConfidenceModel.from_dict(getattr(acc, key), expected=names)
+        assert model.features == names and thr is not None and 0 <= thr <= 1
+        assert tr[mode]["threshold"] == thr
+        te = rep["test"]["confidence"][mode]
+        assert te["model"]["rule"] == "model" and 0 <= te["model"]["accepted"] <= 1
+        assert te["model"]["ece"] is not None and 0 <= te["model"]["ece"] <= 1
+        base = te["z" if mode == "single" else "mass"]
+        assert base["n"] == te["model"]["n"] and "ece" not in base
+    assert tr["single"].get("skipped") is None  # the weak hierarchy errs on training
+    write_config(config, tmp_path / "c.yaml", "test")
+    again = load_config(tmp_path / "c.yaml")
+    assert again == config and again.acceptance is not None
+    assert again.acceptance.confidence_model() == acc.confidence_model()
+    assert "Confidence models" in leaderboard_markdown(rep)
+    # --no-model: the z threshold only.
+    plain, rep2 = calibrate(pool, train, None, space, budget_ms=None, seed=0, model=False)
+    assert plain.acceptance is not None and plain.acceptance.model is None
+    assert "confidence" not in rep2["train"]
+
+
+def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks):
+    """hmpf-eval's report: p_correct per answer from the config's model (null without one),
+    the accepted share / precision / ECE at the config's threshold and the rule that
+    decided, single frame and sequence mode."""
+    from hmpf.evaluation.acceptance import SINGLE_FEATURES
+    from hmpf.evaluation.evaluate import format_report
+
+    pool, train, _, train_data, cache = banks
+    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
+    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
+    config, _ = calibrate(
+        pool, train, None, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
+    )
+    acc = config.acceptance
+    assert acc is not None and acc.model is not None
+    rep = evaluate(config, train_data, cache=cache, skip_curves=[weak], sequence=True)
+    single = rep["acceptance"]["single"]
+    assert single["rule"] == "model" and single["threshold"] == acc.model_threshold
+    p = np.array(single["p_correct"])
+    assert p.shape == (train.n_query,) and ((p > 0) & (p < 1)).all()
+    assert single["accepted_answers"] == (p >= acc.model_threshold).tolist()
+    assert single["accepted"] == pytest.approx(np.mean(p >= acc.model_threshold))
+    # The model's predictions are those of the stored model on the answers' features.
+    from hmpf.confidence import answer_features
+    from hmpf.sequence import RouteMap
+
+    routes = RouteMap.from_metadata(train.n_db)
+    res = train.results(config)
+    f0 = answer_features(res[0], routes)
+    assert p[0] == pytest.approx(acc.confidence_model().predict(f0))
+    assert set(acc.confidence_model().features) == set(SINGLE_FEATURES)
+    seq = rep["acceptance"]["sequence"]
+    expected = "model" if acc.sequence_model is not None else "mass"
+    assert seq["rule"] == expected and len(seq["p_correct"]) == train.n_query
+    text = format_report(rep)
+    assert "acceptance (single, rule model: p_correct >=" in text
+    # Without a model: the z rule decides, p_correct is null (never a made-up number).
+    plain = config.model_copy(
+        update={
+            "acceptance": acc.model_copy(
+                update={
+                    "model": None,
+                    "model_threshold": None,
+                    "sequence_model": None,
+                    "sequence_threshold": None,
+                }
+            )
+        }
+    )
+    rep2 = evaluate(plain, train_data, cache=cache, skip_curves=[weak], sequence=True)
+    s2, q2 = rep2["acceptance"]["single"], rep2["acceptance"]["sequence"]
+    assert s2["rule"] == "z" and s2["p_correct"] == [None] * train.n_query
+    assert s2["threshold"] == acc.threshold and "ece" not in s2
+    quality = np.nan_to_num(np.array(rep2["hierarchy"]["quality"], dtype=float), nan=-np.inf)
+    assert s2["accepted_answers"] == (quality >= acc.threshold).tolist()
+    assert q2["rule"] == "mass" and q2["threshold"] == plain.sequence_params().lock_mass
+    assert "rule z: Combined z >=" in format_report(rep2)
+    # No acceptance settings at all: rule "none".
+    bare = evaluate(
+        config.model_copy(update={"acceptance": None}), train_data, cache=cache, skip_curves=[weak]
+    )
+    assert bare["acceptance"]["single"]["rule"] == "none"
+    assert "sequence" not in bare["acceptance"]

@@ -214,4 +214,8 @@ def test_hmpf_eval_index(gp_subset, built, tmp_path, capsys):
     args = ["--index", str(built), "--query", str(queries), "--no-cache", "--quiet"]
     assert eval_main([*args, "--workers", "1", "--json", str(out)]) == 0
     assert "Combined recall@1" in capsys.readouterr().out
-    assert len(json.loads(out.read_text())["hierarchy"]["matches"]) == 4
+    rep = json.loads(out.read_text())
+    assert len(rep["hierarchy"]["matches"]) == 4
+    # The index's config has no confidence model: no made-up probability, the rule is named.
+    single = rep["acceptance"]["single"]
+    assert single["p_correct"] == [None] * 4 and single["rule"] in ("z", "none")

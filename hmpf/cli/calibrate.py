@@ -14,6 +14,13 @@ Descriptors come through the feature cache, so a second run extracts nothing. Wi
 the training part too (written as ``sequence:`` in calibrated.yaml) and its sequence-mode
 figures measured on the test part.
 
+The confidence models (:mod:`hmpf.evaluation.acceptance`) are fitted on the training part
+too: ``acceptance.model`` / ``model_threshold`` (the probability threshold for
+``--target-precision``, chosen on out-of-fold training predictions) and, with
+``--sequence``, ``sequence_model`` / ``sequence_threshold``; the z threshold stays as the
+fallback. ``--no-model`` writes the z threshold only. The test part's ECE, accepted share and
+precision of the model and of the z rule are in leaderboard.md and calibration.json.
+
 The time budget is enforced on a cost model measured on this machine, so the winner may differ
 between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
 with it the choice, on any machine.
@@ -131,6 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", type=int, default=25, help="structures searched in full")
     p.add_argument("--top", type=int, default=20, help="leaderboard length")
     add_sequence_arg(p)
+    p.add_argument(
+        "--no-model",
+        action="store_true",
+        help="do not fit the confidence models (acceptance by the z threshold only)",
+    )
     return p
 
 
@@ -232,6 +244,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             progress=_bar_update(bar),
             costs=costs,
             sequence=args.sequence,
+            model=not args.no_model,
         )
     report["protocol"] = {
         "reference": args.reference,

@@ -14,6 +14,13 @@ optional; a given ``--config`` must match the index's).
 With ``--sequence`` the queries are also driven in order as one vehicle through the sequence
 filter (:mod:`hmpf.evaluation.sequence`); the config's ``sequence:`` settings apply.
 
+The config's acceptance is applied to every answer (report ``acceptance``): with a
+confidence model (``acceptance.model``, written by ``hmpf-calibrate``) each answer gets
+``p_correct`` and is accepted when ``p_correct >= model_threshold``; without one
+``p_correct`` is null and the Combined z rule decides (sequence mode: the sequence model, or
+the posterior mass >= the filter's lock threshold). The report says which rule decided, and
+its accepted share, precision and (for a model) expected calibration error.
+
 Ground truth: frame alignment (``--tolerance T``, the default form), ``--gt-csv FILE``
 (query,reference[,tolerance] rows) or ``--gps-csv FILE --radius-m R`` (role,name,lat,lon).
 """

@@ -30,8 +30,19 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
+from hmpf.confidence import ModelError
 from hmpf.config import AcceptanceSettings, HierarchyConfig
 from hmpf.errors import ConfigError
+from hmpf.evaluation.acceptance import (
+    SEQUENCE_MODEL_FEATURES,
+    SINGLE_FEATURES,
+    acceptance_figures,
+    apply_acceptance,
+    fit_acceptance,
+    sequence_answers,
+    single_answers,
+    training_drives,
+)
 from hmpf.evaluation.evaluate import HierarchyOutcome
 from hmpf.evaluation.sequence import format_sequence_report, sequence_settings
 from hmpf.evaluation.study import (
@@ -44,6 +55,7 @@ from hmpf.evaluation.study import (
 )
 from hmpf.fusion import default_weights
 from hmpf.runtime import machine_description
+from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = [
     "SearchSpace",
@@ -440,8 +452,15 @@ def calibrate(
     progress: Callable[[int, int], Any] | None = None,
     costs: CostModel | None = None,
     sequence: bool = False,
+    model: bool = True,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """Search, pick the threshold, check on the test part; returns (config, report).
+
+    With ``model`` (default), the confidence models are fitted on the training part too
+    (:func:`_fit_models`): ``acceptance.model`` / ``model_threshold`` and, with
+    ``sequence``, ``sequence_model`` / ``sequence_threshold``; the z threshold stays (the
+    fallback for a reader without a model). The report's ``confidence`` entries (training
+    and test) give the ECE, accepted share and precision of the model and of the z rule.
 
     With ``sequence``, the sequence filter's settings and lock threshold are chosen for the
     winner on the training part too (written as the config's ``sequence:``) and its
@@ -473,6 +492,9 @@ def calibrate(
             config, target_precision=target_precision, seed=seed
         )
         config = config.model_copy(update={"sequence": sequence_settings(seq_params)})
+    confidence_train: dict[str, Any] | None = None
+    if model:
+        config, confidence_train = _fit_models(config, train, target_precision, seq_params)
     report: dict[str, Any] = {
         "machine": machine_description(),
         "seed": seed,
@@ -492,6 +514,8 @@ def calibrate(
     }
     if seq_train is not None:
         report["train"]["sequence"] = seq_train
+    if confidence_train is not None:
+        report["train"]["confidence"] = confidence_train
     if test is not None:
         cmp = compare_on(test, pool, config)
         out = cmp.pop("outcome")
@@ -505,7 +529,81 @@ def calibrate(
         }
         if seq_params is not None:
             report["test"]["sequence"] = test.sequence(config, seq_params, seed=seed)
+        if confidence_train is not None:
+            report["test"]["confidence"] = _test_models(config, test, seq_params)
     return config, report
+
+
+def _fit_models(
+    config: HierarchyConfig,
+    train: ScoreBank,
+    target_precision: float,
+    seq_params: FilterParams | None,
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """``config`` with its confidence models fitted on the training part, and their
+    training figures (:mod:`hmpf.evaluation.acceptance`)."""
+    assert config.acceptance is not None
+    routes = RouteMap.from_metadata(train.n_db)
+    results = train.results(config)
+    update: dict[str, Any] = {}
+    out: dict[str, Any] = {}
+    modes = [("single", SINGLE_FEATURES, single_answers(results, train.gt, routes))]
+    if seq_params is not None:
+        drives = training_drives(train.n_query)
+        seq = sequence_answers(results, train.gt, routes, seq_params, drives)
+        modes.append(("sequence", SEQUENCE_MODEL_FEATURES, seq))
+    for mode, names, answers in modes:
+        try:
+            m, thr, figs = fit_acceptance(answers, names, target_precision)
+        except ModelError as e:
+            # No model for this mode: the z (or mass) rule decides, and the report says why.
+            out[mode] = {"features": list(names), "skipped": str(e)}
+            continue
+        key, thr_key = (
+            ("model", "model_threshold")
+            if mode == "single"
+            else ("sequence_model", "sequence_threshold")
+        )
+        update |= {key: m.to_dict(), thr_key: thr}
+        out[mode] = {"features": list(names), **figs}
+    acceptance = config.acceptance.model_copy(update=update)
+    # Validate as a config read from disk would be.
+    acceptance = AcceptanceSettings.model_validate(acceptance.model_dump())
+    return config.model_copy(update={"acceptance": acceptance}), out
+
+
+def _test_models(
+    config: HierarchyConfig, test: ScoreBank, seq_params: FilterParams | None
+) -> dict[str, Any]:
+    """The model's and the z rule's figures on the test part at the training thresholds
+    (sequence mode: the test part's queries driven once, in order; model against the
+    posterior mass >= the lock threshold)."""
+    routes = RouteMap.from_metadata(test.n_db)
+    results = test.results(config)
+    single = single_answers(results, test.gt, routes)
+    out: dict[str, Any] = {
+        "single": {
+            "model": _figures(apply_acceptance(config.acceptance, single)),
+            "z": acceptance_figures(
+                single.score, single.correct, config.acceptance.threshold, probability=False
+            )
+            if config.acceptance is not None
+            else None,
+        }
+    }
+    if seq_params is not None:
+        seq = sequence_answers(results, test.gt, routes, seq_params)
+        out["sequence"] = {
+            "model": _figures(apply_acceptance(config.acceptance, seq, sequence=True)),
+            "mass": acceptance_figures(
+                seq.score, seq.correct, seq_params.lock_mass, probability=False
+            ),
+        }
+    return out
+
+
+def _figures(applied: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in applied.items() if k not in ("p_correct", "accepted_answers")}
 
 
 def leaderboard_markdown(report: dict[str, Any]) -> str:
@@ -538,6 +636,7 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
             f"settings): lock threshold {tr['sequence']['lock_mass']:.3f} for "
             f"{tr['sequence']['target_precision']:.0%} precision.",
         ]
+    lines += _confidence_lines(report)
     te = report.get("test")
     if te and te.get("sequence"):
         lines += ["", "Sequence mode on the test split:", "", "```"]
@@ -556,6 +655,39 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
             f"(modelled {te['model_ms']:.1f}).",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _confidence_lines(report: dict[str, Any]) -> list[str]:
+    """The confidence models' thresholds and their test figures beside the z rule's."""
+    tr = report["train"].get("confidence")
+    if not tr:
+        return []
+    te = (report.get("test") or {}).get("confidence") or {}
+    lines = [
+        "",
+        "Confidence models (fitted on the training part; thresholds from out-of-fold "
+        "training predictions):",
+        "",
+        "| mode | rule | threshold | test ECE | test accepted | test precision |",
+        "|---|---|---|---|---|---|",
+    ]
+    for mode, base in (("single", "z"), ("sequence", "mass")):
+        if mode not in tr:
+            continue
+        if "skipped" in tr[mode]:
+            lines.append(f"| {mode} | model not fitted: {tr[mode]['skipped']} | | | | |")
+        t = te.get(mode) or {}
+        for rule in ("model", base):
+            f = t.get(rule)
+            if f is None:
+                thr = tr[mode]["threshold"] if rule == "model" else None
+                lines.append(f"| {mode} | {rule} | {_fmt(thr)} | n/a | n/a | n/a |")
+                continue
+            lines.append(
+                f"| {mode} | {rule} | {f['threshold']:.4g} | {_fmt(f.get('ece'))} | "
+                f"{f['accepted']:.3f} | {_fmt(f['precision'])} |"
+            )
+    return lines
 
 
 def _wl(t: dict[str, Any]) -> str:

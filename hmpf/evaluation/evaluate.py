@@ -413,9 +413,10 @@ def evaluate(
         "cache": {"reference_cached": prep.ref.cached, "query_cached": prep.qry.cached},
         "fitted_methods": prep.fitted,
     }
+    routes = RouteMap.from_metadata(n_db)
     if sequence:
-        routes = RouteMap.from_metadata(n_db)
         report["sequence"] = _sequence(results, gt, routes, config)
+    report["acceptance"] = acceptance_report(results, gt, routes, config, sequence=sequence)
     return report
 
 
@@ -428,6 +429,32 @@ def _sequence(
     rep = sequence_report(results, gt, routes, config.sequence_params())
     rep["wall_s"] = time.perf_counter() - t0
     return rep
+
+
+def acceptance_report(
+    results: Sequence[HierarchyResult],
+    gt: np.ndarray,
+    routes: RouteMap,
+    config: HierarchyConfig,
+    *,
+    sequence: bool = False,
+) -> dict[str, Any]:
+    """The config's acceptance applied to every answer (:mod:`hmpf.evaluation.acceptance`).
+
+    ``single`` (and with ``sequence`` ``sequence``: the queries driven once, in order):
+    ``rule`` (``model``, ``z``, ``mass`` or ``none``), per answer ``p_correct`` (None without
+    a model) and ``accepted_answers``, and at the rule's threshold ``accepted`` (share),
+    ``precision`` and, for the model, ``ece``.
+    """
+    from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
+
+    acc = config.acceptance
+    out = {"single": apply_acceptance(acc, single_answers(results, gt, routes))}
+    if sequence:
+        params = config.sequence_params()
+        seq = sequence_answers(results, gt, routes, params)
+        out["sequence"] = apply_acceptance(acc, seq, sequence=True, lock_mass=params.lock_mass)
+    return out
 
 
 def evaluate_index(
@@ -478,6 +505,9 @@ def evaluate_index(
     }
     if sequence:
         report["sequence"] = _sequence(results, gt, reader.route_map(), reader.config)
+    report["acceptance"] = acceptance_report(
+        results, gt, reader.route_map(), reader.config, sequence=sequence
+    )
     return report
 
 
@@ -517,6 +547,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"recall@100%P {pr['recall_at_100_precision']:.3f}"
     )
     lines.extend(_sequence_lines(report))
+    lines.extend(_acceptance_lines(report))
     w = report["wall_s"]
     tm = report["timing_ms"]
     lines.append(
@@ -541,11 +572,29 @@ def format_index_report(report: dict[str, Any]) -> str:
         f"PR (quality): AUC {pr['auc']:.3f}  max F1 {pr['max_f1']:.3f}  "
         f"recall@100%P {pr['recall_at_100_precision']:.3f}",
         *_sequence_lines(report),
+        *_acceptance_lines(report),
         f"time: query extraction {report['wall_s']['extraction']:.1f} s, hierarchy "
         f"{report['wall_s']['hierarchy']:.1f} s "
         f"({report['timing_ms']['hierarchy_per_query']:.1f} ms/query)",
     ]
     return "\n".join(lines)
+
+
+def _acceptance_lines(report: dict[str, Any]) -> list[str]:
+    """One line per mode: the rule that decided and its figures."""
+    lines = []
+    for mode, a in report.get("acceptance", {}).items():
+        if a["rule"] == "none":
+            lines.append(f"acceptance ({mode}): none (the config has no acceptance settings)")
+            continue
+        prec = "n/a" if a["precision"] is None else f"{a['precision']:.3f}"
+        ece = f", ECE {a['ece']:.3f}" if a.get("ece") is not None else ""
+        what = {"model": "p_correct", "z": "Combined z", "mass": "posterior mass"}[a["rule"]]
+        lines.append(
+            f"acceptance ({mode}, rule {a['rule']}: {what} >= {a['threshold']:.4g}): "
+            f"accepted {a['accepted']:.3f}, precision {prec}{ece}"
+        )
+    return lines
 
 
 def _sequence_lines(report: dict[str, Any]) -> list[str]:
