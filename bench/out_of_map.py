@@ -54,10 +54,10 @@ from hmpf.evaluation.acceptance import (  # noqa: E402
     fit_acceptance,
     sequence_answers,
     single_answers,
-    training_drives,
 )
 from hmpf.evaluation.calibrate import acceptance_threshold  # noqa: E402
 from hmpf.evaluation.evaluate import EvalData  # noqa: E402
+from hmpf.evaluation.sequence import training_drives  # noqa: E402
 from hmpf.evaluation.study import ScoreBank, split_data  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402

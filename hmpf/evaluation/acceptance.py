@@ -35,7 +35,7 @@ from hmpf.confidence import (
     threshold_for_precision,
 )
 from hmpf.config import AcceptanceSettings
-from hmpf.evaluation.sequence import Drive, drive, evidences_of, speed_drive
+from hmpf.evaluation.sequence import Drive, drive, evidences_of
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import FilterParams, RouteMap, SequenceFilter
 
@@ -50,7 +50,6 @@ __all__ = [
     "fit_acceptance",
     "sequence_answers",
     "single_answers",
-    "training_drives",
 ]
 
 #: Single-frame model features (chosen by ``bench/confidence.py`` on the training parts).
@@ -92,11 +91,6 @@ def single_answers(
         correct = np.array([r.match >= 0 and bool(gt[q, r.match]) for q, r in enumerate(results)])
     quality = np.array([r.quality for r in results], dtype=np.float64)
     return Answers(feats, correct, quality, np.arange(len(results)))
-
-
-def training_drives(nq: int) -> list[Drive]:
-    """The training part's traverse at speeds 1, 2 and 3, every offset."""
-    return [speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
 
 
 def sequence_answers(

@@ -41,10 +41,9 @@ from hmpf.evaluation.acceptance import (
     fit_acceptance,
     sequence_answers,
     single_answers,
-    training_drives,
 )
 from hmpf.evaluation.evaluate import HierarchyOutcome
-from hmpf.evaluation.sequence import format_sequence_report, sequence_settings
+from hmpf.evaluation.sequence import format_sequence_report, sequence_settings, training_drives
 from hmpf.evaluation.study import (
     CostModel,
     ScoreBank,

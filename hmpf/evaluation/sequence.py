@@ -44,6 +44,7 @@ __all__ = [
     "sequence_report",
     "sequence_settings",
     "speed_drive",
+    "training_drives",
     "tune_sequence",
 ]
 
@@ -127,6 +128,12 @@ def speed_drive(nq: int, ratio: float, offset: int = 0) -> Drive:
     """The traverse at ``ratio`` times the mapping run's speed (each step one frame of the
     vehicle: at half speed it sends every place twice)."""
     return Drive.along(_speed_frames(nq, ratio, offset))
+
+
+def training_drives(nq: int) -> list[Drive]:
+    """A training part's traverse at speeds 1, 2 and 3, every offset (what the tuning and the
+    confidence models learn from)."""
+    return [speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
 
 
 def start_drives(
@@ -352,18 +359,22 @@ def tune_sequence(
     for results, gt, routes in parts:
         nq = len(results)
         before, after = min(20, nq // 4), min(30, nq // 3)
-        drives = [speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
+        drives = training_drives(nq)
         jumps = jump_drives(nq, 40, before, after, max(10, nq // 5), rng)
         prepared.append((results, np.asarray(gt, dtype=bool), routes, drives, jumps))
     rows = []
-    best: tuple[float, FilterParams, list[DriveResult]] | None = None
+    evidence: dict[tuple[int, int], list[Evidence]] = {}
+    best: tuple[float, FilterParams, float] | None = None
     for values in itertools.product(*grid.values()):
         setting = dict(zip(grid, values, strict=True))
         params = base.with_(**setting)
         row: dict[str, Any] = {**setting, "recall": [], "jump_recall": [], "relock_10": []}
         runs: list[DriveResult] = []
-        for results, gt, routes, drives, jumps in prepared:
-            evs = evidences_of(results, routes.n, params.proposals)
+        for i, (results, gt, routes, drives, jumps) in enumerate(prepared):
+            key = (i, params.proposals)  # the evidence depends on the grid only through this
+            if key not in evidence:
+                evidence[key] = evidences_of(results, routes.n, params.proposals)
+            evs = evidence[key]
             filt = SequenceFilter(routes, params)
             s_runs = [drive(filt, evs, d, gt) for d in drives]
             j_runs = [drive(filt, evs, d, gt) for d in jumps]
