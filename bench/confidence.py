@@ -50,24 +50,24 @@ from scipy.stats import rankdata
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from sequence import ROUTES, load_parts  # noqa: E402
+from sequence import ROUTES, load_parts, pyplot  # noqa: E402
 
 from hmpf.confidence import (  # noqa: E402
     FEATURES,
     SEQUENCE_FEATURES,
     ConfidenceModel,
-    answer_features,
     expected_calibration_error,
     feature_matrix,
     reliability,
     threshold_for_precision,
 )
 from hmpf.datasets import dataset_root  # noqa: E402
+from hmpf.evaluation.acceptance import Answers, sequence_answers, single_answers  # noqa: E402
 from hmpf.evaluation.calibrate import acceptance_threshold  # noqa: E402
-from hmpf.evaluation.sequence import Drive, drive, evidences_of, speed_drive  # noqa: E402
+from hmpf.evaluation.sequence import Drive, training_drives  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
-from hmpf.sequence import FilterParams, RouteMap, SequenceFilter  # noqa: E402
+from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
 
 TARGETS = (0.99, 0.95)
 FOLDS = 5
@@ -84,13 +84,19 @@ PRIMARY_RULE = "pooled model, route threshold"
 # -- the answers and their features -------------------------------------------------------------
 
 
+def _rows(answers: Answers) -> dict[str, Any]:
+    """A part's answers as the tables below read them."""
+    return {
+        "features": answers.features,
+        "correct": answers.correct,
+        "score": answers.score,
+        "query": answers.query,
+    }
+
+
 def single_rows(results: Sequence[Any], gt: np.ndarray) -> dict[str, Any]:
     """Features, correctness and quality of every single-frame answer of one part."""
-    routes = RouteMap.from_metadata(gt.shape[1])
-    feats = [answer_features(r, routes) for r in results]
-    correct = np.array([r.match >= 0 and bool(gt[q, r.match]) for q, r in enumerate(results)])
-    quality = np.array([r.quality for r in results], dtype=np.float64)
-    return {"features": feats, "correct": correct, "score": quality, "query": np.arange(len(gt))}
+    return _rows(single_answers(results, gt, RouteMap.from_metadata(gt.shape[1])))
 
 
 def sequence_rows(
@@ -98,26 +104,7 @@ def sequence_rows(
 ) -> dict[str, Any]:
     """Features (with the estimate), correctness and mass of every answer of ``drives``."""
     routes = RouteMap.from_metadata(gt.shape[1])
-    filt = SequenceFilter(routes, params)
-    evs = evidences_of(results, routes.n, params.proposals)
-    feats, correct, mass, query = [], [], [], []
-    for d in drives:
-        run = drive(filt, evs, d, gt)
-        for q, est, ok in zip(d.frames, run.estimates, run.correct, strict=True):
-            feats.append(answer_features(results[int(q)], routes, estimate=est))
-            correct.append(bool(ok))
-            mass.append(est.mass)
-            query.append(int(q))
-    return {
-        "features": feats,
-        "correct": np.array(correct, dtype=bool),
-        "score": np.array(mass, dtype=np.float64),
-        "query": np.array(query, dtype=np.int64),
-    }
-
-
-def training_drives(nq: int) -> list[Drive]:
-    return [speed_drive(nq, r, o) for r in (1.0, 2.0, 3.0) for o in range(int(r))]
+    return _rows(sequence_answers(results, gt, routes, params, drives))
 
 
 # -- measures -----------------------------------------------------------------------------------
@@ -389,13 +376,8 @@ def goals_table(modes: dict[str, dict[str, Any]]) -> str:
 
 def plot(modes: dict[str, dict[str, Any]], out: Path) -> list[Path]:
     """One reliability diagram per mode: a panel per route, pooled and per-route models."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib missing (pip install 'hmpf[report]'): no plots")
+    plt = pyplot()
+    if plt is None:
         return []
     out.mkdir(parents=True, exist_ok=True)
     paths = []

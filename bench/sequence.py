@@ -92,8 +92,8 @@ def tune(parts: dict[str, dict[str, Any]]) -> tuple[FilterParams, dict[str, Any]
     return tune_sequence(training, progress=show)
 
 
-def plot(reports: dict[str, dict[str, Any]], out: Path) -> list[Path]:
-    """Recall@1 by frames of history, one line per speed ratio, one panel per route."""
+def pyplot() -> Any:
+    """matplotlib's pyplot on the file backend, or None (said) when it is not installed."""
     try:
         import matplotlib
 
@@ -101,6 +101,14 @@ def plot(reports: dict[str, dict[str, Any]], out: Path) -> list[Path]:
         import matplotlib.pyplot as plt
     except ImportError:
         print("matplotlib missing (pip install 'hmpf[report]'): no plots")
+        return None
+    return plt
+
+
+def plot(reports: dict[str, dict[str, Any]], out: Path) -> list[Path]:
+    """Recall@1 by frames of history, one line per speed ratio, one panel per route."""
+    plt = pyplot()
+    if plt is None:
         return []
     out.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, len(reports), figsize=(4.2 * len(reports), 3.6), sharey=True)
