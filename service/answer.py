@@ -218,29 +218,25 @@ def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match 
         return None
     score = _finite(result.quality)
     acc = loaded.acceptance
-    if acc.model is None or acc.model_threshold is None:
-        return _reference_match(
-            loaded,
-            refs.id_of(result.match),
-            score=score,
-            confidence=confidence(result.quality, len(result.final_candidates)),
-            accepted=score is not None and score >= acc.threshold,
-            accepted_by="quality",
-        )
     p = None
-    if score is not None:  # a match without a finite score gets no probability
-        feats = answer_features(
-            on_references(result, refs.allowed, len(refs.names)), loaded.sequence.routes
-        )
-        p = _probability(acc.model.predict(feats))
+    rule: AcceptedBy
+    if acc.model is None or acc.model_threshold is None:
+        accepted, rule = score is not None and score >= acc.threshold, "quality"
+    else:
+        if score is not None:  # a match without a finite score gets no probability
+            feats = answer_features(
+                on_references(result, refs.allowed, len(refs.names)), loaded.sequence.routes
+            )
+            p = _probability(acc.model.predict(feats))
+        accepted, rule = p is not None and p >= acc.model_threshold, "p_correct"
     return _reference_match(
         loaded,
         refs.id_of(result.match),
         score=score,
         confidence=confidence(result.quality, len(result.final_candidates)),
-        accepted=p is not None and p >= acc.model_threshold,
+        accepted=accepted,
         p_correct=p,
-        accepted_by="p_correct",
+        accepted_by=rule,
     )
 
 
