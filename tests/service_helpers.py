@@ -18,12 +18,22 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 from conftest import copy_gp, default_sigint
 
 from hmpf.config import parse_config
+from hmpf.hierarchy import ScoreFn
 from indexer.build import BuildOptions, build
 
-__all__ = ["BUILD_OPTIONS", "GP_CONFIG", "ROOT", "Server", "build_gp_index", "free_port"]
+__all__ = [
+    "BUILD_OPTIONS",
+    "GP_CONFIG",
+    "ROOT",
+    "Server",
+    "build_gp_index",
+    "free_port",
+    "nan_in_final_tier",
+]
 
 ROOT = Path(__file__).resolve().parent.parent
 #: GeM (a CNN on the bundled backbone) + Gist narrow, Gist + HOG + SAD decide.
@@ -99,3 +109,17 @@ class Server:
                 self.proc.kill()
                 self.proc.wait()
         self._out.close()
+
+
+def nan_in_final_tier(real: ScoreFn, method: str = "sad") -> ScoreFn:
+    """``real`` with ``method`` scoring NaN for the first candidate it gets in a later tier
+    (a method that fails on one reference: the match's score is then not a number)."""
+
+    def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        scores = np.asarray(real(mid, subset), dtype=np.float64)
+        if mid == method and subset is not None:
+            scores = scores.copy()
+            scores[0] = np.nan
+        return scores
+
+    return score_fn

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from conftest import BASE_LAT, BASE_LON, STEP_LAT
 from fastapi.testclient import TestClient
+from service_helpers import nan_in_final_tier
 
 from hmpf.datasets import haversine_m
 from service.app import create_app
@@ -175,15 +176,7 @@ def test_nan_quality_is_reported_as_null_and_never_accepted(service_index, garde
     try:
         image = cv2.cvtColor(cv2.imread(str(_ref(gardens_point, 4))), cv2.COLOR_BGR2RGB)
         real = loaded.reader.scorer(loaded.reader.extract_query(image))
-
-        def sad_fails_on_one(mid: str, subset: np.ndarray | None) -> np.ndarray:
-            scores = np.asarray(real(mid, subset), dtype=np.float64)
-            if mid == "sad" and subset is not None:  # the final tier's method
-                scores = scores.copy()
-                scores[0] = np.nan
-            return scores
-
-        result = loaded.hierarchy.run(sad_fails_on_one, loaded.reader.n)
+        result = loaded.hierarchy.run(nan_in_final_tier(real), loaded.reader.n)
         assert np.isnan(result.quality) and result.match >= 0
         answer = localize_response(loaded, result, None, LocalizeParams(), {"total": 1.0})
     finally:

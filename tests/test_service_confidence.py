@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 from conftest import SERVICE_CONFIG
 from fastapi.testclient import TestClient
-from service_helpers import BUILD_OPTIONS, ROOT
+from service_helpers import BUILD_OPTIONS, ROOT, nan_in_final_tier
 
 from hmpf.confidence import FEATURES, SEQUENCE_FEATURES, ConfidenceModel, answer_features
 from hmpf.config import parse_config
@@ -395,15 +395,7 @@ def test_a_match_without_a_finite_score_gets_no_probability(model_index: Path, n
     loaded = Loaded.open(model_index, threshold=None)
     try:
         real = loaded.reader.scorer(loaded.reader.extract_query(_rgb(night[TEST[0]])))
-
-        def sad_fails_on_one(mid: str, subset: np.ndarray | None) -> np.ndarray:
-            scores = np.asarray(real(mid, subset), dtype=np.float64)
-            if mid == "sad" and subset is not None:  # the final tier's method
-                scores = scores.copy()
-                scores[0] = np.nan
-            return scores
-
-        result = loaded.hierarchy.run(sad_fails_on_one, loaded.reader.n)
+        result = loaded.hierarchy.run(nan_in_final_tier(real), loaded.reader.n)
         assert np.isnan(result.quality) and result.match >= 0
         answer = localize_response(loaded, result, None, LocalizeParams(), {"total": 1.0})
     finally:
