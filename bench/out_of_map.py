@@ -1,32 +1,38 @@
-"""Places that are not in the map: how often are queries from elsewhere accepted?
+"""Places that are not in the map: how often are queries from elsewhere accepted, and what
+does refusing them cost on the map's own queries?
 
-    python bench/out_of_map.py [--nordland 200] [--out results/out_of_map.json]
+    python bench/out_of_map.py [--foreign 200] [--maps gp_dr_nr,...] [--out results/out_of_map.json]
 
-Each map is the *training part* of a Gardens Point night protocol (``gp_dr_nr``: day_right
-references, ``gp_dl_nr``: day_left), split as ``hmpf-calibrate`` splits it (alternating
-stretches of 20 frames), with the default hierarchy. On that training part, as
-``hmpf-calibrate --sequence`` does (:mod:`hmpf.evaluation.acceptance`): the single-frame
-confidence model and its threshold for 99 % precision (out-of-fold), the z threshold
-(Combined z, lowest value giving 99 % on the training answers); the sequence model on the
-training drives (speeds 1, 2, 3) with the default :class:`~hmpf.sequence.FilterParams`, its
-threshold, and the posterior-mass threshold chosen the same way as the z threshold.
+Each map is the *training part* of a route (the three Gardens Point protocols with the
+default hierarchy, Nordland summer -> winter with ``calibrated/nordland_handcrafted``),
+split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames). On that training
+part, as ``hmpf-calibrate --sequence`` does (:mod:`hmpf.evaluation.acceptance`), for each of
+:data:`VARIANTS` the single-frame confidence model and its threshold for 99 % precision
+(out-of-fold) and the sequence model on the training drives (speeds 1, 2, 3, default
+:class:`~hmpf.sequence.FilterParams`) with its threshold; beside them today's rules, the z
+threshold (Combined z) and the posterior-mass threshold (each the lowest value giving 99 %
+on the training answers).
 
 Then two sets of queries the map does not cover, each answered against the map:
 
-* ``nordland``: ``--nordland`` Nordland winter frames spread evenly over the traverse
-  (64x32 thumbnails through the same extraction);
-* ``gp_night_removed``: the protocol's test-part night queries against the training part's
-  references, i.e. the map with the queries' own references removed. Queries whose
-  +-2-frame ground truth still reaches a training reference (the two frames either side of
-  each join of the 20-frame stretches) are left out: for them the place *is* in the map.
+* ``foreign``: ``--foreign`` frames of another route spread evenly over it (Nordland winter
+  thumbnails against a Gardens Point map, Gardens Point night_right frames against the
+  Nordland map), through the same extraction;
+* ``removed``: the route's test-part queries against the training part's references, i.e.
+  the map with the queries' own references removed. Queries whose +-2-frame ground truth
+  still reaches a training reference (the two frames either side of each join of the
+  20-frame stretches) are left out: for them the place *is* in the map.
 
-Single frame: each answer accepted by the model (``p_correct >= threshold``) or by the z
+Single frame: each answer accepted by a model (``p_correct >= threshold``) or by the z
 rule. Sequence mode: the queries driven in order as one vehicle through the filter (every
-frame counts; the Nordland frames are ~18 frames apart, a vehicle far faster than the map's
-route), accepted by the sequence model or by the posterior mass. A false accept is an
-accepted answer to an out-of-map query; the goal of issue 17 is <= 1 %.
+frame counts), accepted by a model or by the posterior mass. A false accept is an accepted
+answer to an out-of-map query; the goal of issue 17 is <= 1 %.
 
-Writes the JSON report and prints a Markdown table.
+And in the map: each rule on the route's test part against its own references (single
+frame; sequence mode driven once, in order): accepted share at the 99 % threshold, the
+precision reached and, for the models, the expected calibration error.
+
+Writes the JSON report and prints two Markdown tables.
 """
 
 from __future__ import annotations
@@ -44,7 +50,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hmpf.confidence import ConfidenceModel, feature_matrix  # noqa: E402
+from hmpf.confidence import (  # noqa: E402
+    ConfidenceModel,
+    expected_calibration_error,
+    feature_matrix,
+)
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
 from hmpf.evaluation.acceptance import (  # noqa: E402
@@ -52,6 +62,7 @@ from hmpf.evaluation.acceptance import (  # noqa: E402
     SINGLE_FEATURES,
     Answers,
     fit_acceptance,
+    outside_answers,
     sequence_answers,
     single_answers,
 )
@@ -63,7 +74,19 @@ from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
 from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
 
-MAPS = ("gp_dr_nr", "gp_dl_nr")
+#: Map name -> (reference folder, query folder, config, the foreign route's frames).
+MAPS = {
+    **{
+        k: (ref, qry, "default", "nordland_64x32/winter")
+        for k, (ref, qry) in GARDENS_POINT_PROTOCOLS.items()
+    },
+    "nordland_s_w": (
+        "nordland_64x32/summer",
+        "nordland_64x32/winter",
+        "calibrated/nordland_handcrafted",
+        "gardens_point/night_right",
+    ),
+}
 TARGET = 0.99
 GOAL = 0.01
 TOLERANCE = 2
@@ -136,66 +159,151 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 # -- the map's acceptance, chosen on its training part -------------------------------------------
 
 
+#: The models compared: ``relative`` (the features of the first model, every one relative to
+#: the map; trained on in-map answers only) and ``absolute`` (what ``hmpf-calibrate`` now
+#: fits: with the absolute evidence ``ref_z`` / ``sequence_ref_z`` and trained with the
+#: training part's own out-of-map answers, :func:`outside_answers`).
+VARIANTS = {
+    "relative": (
+        ("tier1_margin", "agreement", "quality"),
+        ("sequence_logit", "sequence_agrees", "tier1_rank"),
+        False,
+    ),
+    "absolute": (SINGLE_FEATURES, SEQUENCE_MODEL_FEATURES, True),
+}
+
+
 def fit_map(train: ScoreBank, config: Any, params: FilterParams) -> dict[str, Any]:
-    """Models and thresholds of one map, on its training part (as ``hmpf-calibrate``)."""
+    """Models and thresholds of one map, on its training part (as ``hmpf-calibrate``), for
+    each of :data:`VARIANTS`; the z and posterior-mass thresholds."""
     routes = RouteMap.from_metadata(train.n_db)
     results = train.results(config)
-    single = single_answers(results, train.gt, routes)
-    model, thr, figs = fit_acceptance(single, SINGLE_FEATURES, TARGET)
+    profile = train.profile(config)
+    single = single_answers(results, train.gt, routes, profile)
+    seq = sequence_answers(
+        results, train.gt, routes, params, training_drives(train.n_query), profile
+    )
+    out_single, out_seq = outside_answers(train, config, profile, params)
     z = acceptance_threshold(single.score, single.correct, TARGET)
-    seq = sequence_answers(results, train.gt, routes, params, training_drives(train.n_query))
-    smodel, sthr, sfigs = fit_acceptance(seq, SEQUENCE_MODEL_FEATURES, TARGET)
     mass = acceptance_threshold(seq.score, seq.correct, TARGET)
-    return {
-        "model": model,
-        "threshold": thr,
+    fitted: dict[str, Any] = {
         "z": z["threshold"],
-        "sequence_model": smodel,
-        "sequence_threshold": sthr,
         "mass": mass["threshold"],
-        "train": {"single": figs, "sequence": sfigs, "z": z, "mass": mass},
+        "profile": profile,
+        "train": {"z": z, "mass": mass, "n_outside": len(out_single)},
+        "variants": {},
     }
+    for name, (s_names, q_names, with_outside) in VARIANTS.items():
+        model, thr, figs = fit_acceptance(
+            single, s_names, TARGET, out_single if with_outside else None
+        )
+        smodel, sthr, sfigs = fit_acceptance(
+            seq, q_names, TARGET, out_seq if with_outside else None
+        )
+        fitted["variants"][name] = {
+            "model": model,
+            "threshold": thr,
+            "sequence_model": smodel,
+            "sequence_threshold": sthr,
+        }
+        fitted["train"][name] = {"single": figs, "sequence": sfigs}
+    return fitted
 
 
 def decisions(
     fitted: dict[str, Any], single: Answers, seq: Answers
 ) -> list[tuple[str, str, float, np.ndarray]]:
-    """(mode, rule, threshold, accepted) of the four rules on one query set."""
+    """(mode, rule, threshold, accepted) of every rule on one query set: each variant's
+    models, the z rule and the posterior-mass rule."""
 
     def p(model: ConfidenceModel, a: Answers) -> np.ndarray:
         return np.asarray(model.predict(feature_matrix(a.features, model.features)))
 
-    zq = np.nan_to_num(single.score, nan=-np.inf)
-    mq = np.nan_to_num(seq.score, nan=-np.inf)
-    return [
-        ("single", "model", fitted["threshold"], p(fitted["model"], single) >= fitted["threshold"]),
-        ("single", "z", fitted["z"], zq >= fitted["z"]),
+    out = []
+    for name, v in fitted["variants"].items():
+        out.append(
+            ("single", f"model ({name})", v["threshold"], p(v["model"], single) >= v["threshold"])
+        )
+        out.append(
+            (
+                "sequence",
+                f"model ({name})",
+                v["sequence_threshold"],
+                p(v["sequence_model"], seq) >= v["sequence_threshold"],
+            )
+        )
+    out.append(
+        ("single", "z", fitted["z"], np.nan_to_num(single.score, nan=-np.inf) >= fitted["z"])
+    )
+    out.append(
         (
             "sequence",
-            "model",
-            fitted["sequence_threshold"],
-            p(fitted["sequence_model"], seq) >= fitted["sequence_threshold"],
-        ),
-        ("sequence", "mass", fitted["mass"], mq >= fitted["mass"]),
+            "mass",
+            fitted["mass"],
+            np.nan_to_num(seq.score, nan=-np.inf) >= fitted["mass"],
+        )
+    )
+    return sorted(out, key=lambda r: r[0])
+
+
+def in_map_row(
+    name: str,
+    mode: str,
+    rule: str,
+    thr: float,
+    acc: np.ndarray,
+    correct: np.ndarray,
+    ece: float | None = None,
+) -> dict[str, Any]:
+    """Accepted share and precision of one rule on the map's own (in-map) test part (and a
+    model's expected calibration error there)."""
+    n = int(acc.sum())
+    return {
+        "ece": ece,
+        "map": name,
+        "mode": mode,
+        "rule": rule,
+        "threshold": float(thr),
+        "n": int(len(acc)),
+        "accepted": float(acc.mean()),
+        "precision": float(correct[acc].mean()) if n else None,
+    }
+
+
+def in_map_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown table of the in-map test-part figures."""
+    lines = [
+        "| route (test part) | mode | rule | threshold | accepted @99 % | precision | ECE |",
+        "|---|---|---|---|---|---|---|",
     ]
+    for r in rows:
+        prec = "n/a" if r["precision"] is None else f"{r['precision']:.3f}"
+        lines.append(
+            f"| {r['map']} ({r['n']}) | {r['mode']} | {r['rule']} | {r['threshold']:.4g} | "
+            f"{r['accepted']:.3f} | {prec} | "
+            f"{'' if r['ece'] is None else format(r['ece'], '.3f')} |"
+        )
+    return "\n".join(lines)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--nordland", type=int, default=200, help="Nordland winter frames used")
+    ap.add_argument("--foreign", type=int, default=200, help="frames of the foreign route")
+    ap.add_argument("--maps", default=",".join(MAPS), help="maps to test (comma-separated)")
     ap.add_argument("--out", default=str(ROOT / "results" / "out_of_map.json"))
     args = ap.parse_args()
     t0 = time.perf_counter()
     datasets = dataset_root()
     cache = FeatureCache(default_cache_dir())
-    config = load_config("default")
     params = FilterParams()
-    winter = list_images(datasets / "nordland_64x32" / "winter")
-    nordland = [winter[i] for i in spread(len(winter), args.nordland)]
     rows: list[dict[str, Any]] = []
+    in_map: list[dict[str, Any]] = []
     maps: dict[str, Any] = {}
-    for name in MAPS:
-        ref, qry = GARDENS_POINT_PROTOCOLS[name]
+    for name in args.maps.split(","):
+        ref, qry, cfg_name, foreign_dir = MAPS[name]
+        config = load_config(cfg_name)
+        frames = list_images(datasets / foreign_dir)
+        foreign = [frames[i] for i in spread(len(frames), args.foreign)]
         data = EvalData.frames(datasets / ref, datasets / qry, TOLERANCE)
         train_data, test_data = split_data(data, block=BLOCK)
         train = ScoreBank.build(config, train_data, cache=cache)
@@ -204,20 +312,47 @@ def main() -> int:
         _, q_test = block_parts(len(data.query))
         outside = out_of_map(data.gt, q_test, r_train)
         query_sets = {
-            "nordland": (nordland, np.ones(len(nordland), dtype=bool)),
-            "gp_night_removed": (test_data.query, outside),
+            "foreign": (foreign, np.ones(len(foreign), dtype=bool)),
+            "removed": (test_data.query, outside),
         }
         maps[name] = {
+            "config": cfg_name,
+            "foreign": foreign_dir,
             "n_reference": train.n_db,
             "thresholds": {
-                k: float(fitted[k]) for k in ("threshold", "z", "sequence_threshold", "mass")
+                "z": fitted["z"],
+                "mass": fitted["mass"],
+                **{
+                    f"{v}_{k}": float(f[k])
+                    for v, f in fitted["variants"].items()
+                    for k in ("threshold", "sequence_threshold")
+                },
             },
             "train": fitted["train"],
             "models": {
-                "single": fitted["model"].to_dict(),
-                "sequence": fitted["sequence_model"].to_dict(),
+                v: {"single": f["model"].to_dict(), "sequence": f["sequence_model"].to_dict()}
+                for v, f in fitted["variants"].items()
             },
         }
+        # The map's own test part (in the map): what each rule still accepts.
+        test = ScoreBank.build(config, test_data, cache=cache)
+        t_results = test.results(config)
+        t_routes = RouteMap.from_metadata(test.n_db)
+        t_prof = test.profile(config)
+        t_single = single_answers(t_results, test.gt, t_routes, t_prof)
+        t_seq = sequence_answers(t_results, test.gt, t_routes, params, profile=t_prof)
+        eces = {}
+        for v, f in fitted["variants"].items():
+            for mode, key, ans in (
+                ("single", "model", t_single),
+                ("sequence", "sequence_model", t_seq),
+            ):
+                p = f[key].predict(feature_matrix(ans.features, f[key].features))
+                eces[(mode, f"model ({v})")] = expected_calibration_error(p, ans.correct)
+        for mode, rule, thr, acc in decisions(fitted, t_single, t_seq):
+            correct = t_single.correct if mode == "single" else t_seq.correct
+            ece = eces.get((mode, rule))
+            in_map.append(in_map_row(name, mode, rule, thr, acc, correct, ece))
         for qname, (queries, out_mask) in query_sets.items():
             gt = np.zeros((len(queries), train.n_db), dtype=bool)
             bank = ScoreBank.build(
@@ -225,8 +360,9 @@ def main() -> int:
             )
             results = bank.results(config)
             routes = RouteMap.from_metadata(bank.n_db)
-            single = single_answers(results, None, routes)
-            seq = sequence_answers(results, None, routes, params)
+            prof = fitted["profile"]
+            single = single_answers(results, None, routes, prof)
+            seq = sequence_answers(results, None, routes, params, profile=prof)
             for mode, rule, thr, acc in decisions(fitted, single, seq):
                 rows.append(
                     {
@@ -243,16 +379,19 @@ def main() -> int:
         "machine": machine_description(),
         "target_precision": TARGET,
         "goal": GOAL,
-        "nordland_frames": len(nordland),
+        "foreign_frames": args.foreign,
         "filter": vars(params) if hasattr(params, "__dict__") else str(params),
         "maps": maps,
         "rows": rows,
+        "in_map": in_map,
         "wall_s": time.perf_counter() - t0,
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1, default=str))
     print(table(rows))
+    print()
+    print(in_map_table(in_map))
     print(f"wrote {out} ({report['wall_s']:.0f} s)")
     return 0
 

@@ -31,13 +31,16 @@ from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Estimate, RouteMap
 
 __all__ = [
+    "ALL_FEATURES",
     "FEATURES",
     "FORMAT",
     "FORMAT_VERSION",
     "LOGIT_CLIP",
+    "PROFILE_FEATURES",
     "SEQUENCE_FEATURES",
     "ConfidenceModel",
     "ModelError",
+    "ReferenceProfile",
     "Reliability",
     "answer_features",
     "expected_calibration_error",
@@ -58,6 +61,11 @@ FEATURES = (
 )
 #: Features added when a sequence :class:`~hmpf.sequence.Estimate` is given.
 SEQUENCE_FEATURES = ("sequence_mass", "sequence_logit", "sequence_agrees")
+#: Absolute evidence, added when a :class:`ReferenceProfile` is given (``sequence_ref_z``
+#: with an estimate too).
+PROFILE_FEATURES = ("ref_z", "sequence_ref_z")
+#: Every feature a model may use.
+ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES
 #: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
 LOGIT_CLIP = 20.0
 
@@ -100,6 +108,7 @@ def answer_features(
     *,
     window: int = 2,
     estimate: Estimate | None = None,
+    profile: ReferenceProfile | None = None,
 ) -> dict[str, float]:
     """The evidence of one answer (``result.match``), every value finite.
 
@@ -129,6 +138,14 @@ def answer_features(
     lock from a poor one is 0.99 against 0.9999, which a linear term in the mass cannot
     express); and ``sequence_agrees``, 1.0 when the estimate lies within ``window`` of the
     single-frame answer, else 0.0.
+
+    With a ``profile`` (:data:`PROFILE_FEATURES`): ``ref_z``, how the query's raw tier-1
+    score at the answer compares with the scores the answer gets from unrelated references
+    (:meth:`ReferenceProfile.z`; the only absolute evidence: every other feature compares
+    the map's references with each other, so a query from a place the map does not hold
+    can look as good as a right one); with an estimate too, ``sequence_ref_z``, the same at
+    the estimate's reference. No raw score there (not scored, a result without raw
+    scores): 0, an unrelated reference's score.
 
     Without an answer (``match`` < 0, no candidates) every feature takes its "no evidence"
     value: 0, and ``tier1_rank`` the database's size (as log1p).
@@ -193,7 +210,124 @@ def answer_features(
         out["sequence_agrees"] = float(
             valid and answered and bool(routes.separation(ref, match) <= window)
         )
+    if profile is not None:
+        raw = tiers[0].raw if tiers else {}
+        out["ref_z"] = _finite(profile.z(raw, match), 0.0) if answered else 0.0
+        if estimate is not None:
+            ref = int(estimate.ref)
+            out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0
     return out
+
+
+# -- absolute evidence: how a reference scores against unrelated ones -------------------------
+
+
+@dataclass(frozen=True)
+class ReferenceProfile:
+    """Per reference and tier-1 global method, the mean and spread of the raw scores the
+    reference gets from unrelated references (a fixed sample of the map's references more
+    than ``window`` route steps away): what a query from *elsewhere* would score there.
+
+    :meth:`z` turns a query's raw score at a reference into a z-score over that
+    distribution (sign flipped for distances, so higher always means more alike). A right
+    answer scores far above what unrelated places give; a query from a place the map does
+    not hold scores like one of them, however much its best reference stands out among the
+    others. Built from the stored descriptors alone (:meth:`build`), never from queries.
+
+    Attributes:
+        methods: the profiled method ids (the tier's global methods).
+        sign: per method, +1 (higher is better) or -1 (distances).
+        mean, std: (len(methods), N) per method and reference.
+    """
+
+    methods: tuple[str, ...]
+    sign: tuple[float, ...]
+    mean: np.ndarray
+    std: np.ndarray
+
+    @classmethod
+    def build(
+        cls,
+        methods: Mapping[str, Any],
+        db: Mapping[str, Any],
+        method_ids: Sequence[str],
+        routes: RouteMap,
+        *,
+        sample: int = 256,
+        window: int = 2,
+        chunk: int = 16384,
+        seed: int = 0,
+    ) -> ReferenceProfile:
+        """Profile the references of ``db`` for the global methods among ``method_ids``
+        (local methods are skipped; none left: an empty profile whose :meth:`z` is NaN).
+
+        Cost: ``sample`` x N scores per method (matrix products, in chunks of ``chunk``
+        references, so memory stays ``sample x chunk``).
+        """
+        from hmpf.methods.base import GlobalMethod
+
+        n = routes.n
+        rng = np.random.default_rng(seed)
+        pick = (
+            np.arange(n)
+            if n <= sample
+            else np.sort(rng.choice(n, sample, replace=False)).astype(np.int64)
+        )
+        ids, signs, means, stds = [], [], [], []
+        for mid in method_ids:
+            m = methods[mid]
+            if not isinstance(m, GlobalMethod):
+                continue
+            mat = np.asarray(db[mid])
+            if len(mat) != n:
+                raise HmpfError(f"method {mid!r} holds {len(mat)} references; the map has {n}")
+            q = mat[pick]
+            mu, sd = np.empty(n), np.empty(n)
+            for lo in range(0, n, chunk):
+                cols = np.arange(lo, min(n, lo + chunk))
+                S = np.asarray(m.pairwise(q, mat[cols]), dtype=np.float64)
+                far = routes.separation(pick[:, None], cols[None, :]) > window
+                S = np.where(far & np.isfinite(S), S, np.nan)
+                cnt = np.sum(~np.isnan(S), axis=0)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    mu[cols] = np.nansum(S, axis=0) / cnt
+                    sd[cols] = np.sqrt(np.nansum((S - mu[cols]) ** 2, axis=0) / cnt)
+            ids.append(mid)
+            signs.append(1.0 if m.higher_is_better else -1.0)
+            means.append(mu)
+            stds.append(sd)
+        shape = (len(ids), n)
+        return cls(
+            tuple(ids),
+            tuple(signs),
+            np.array(means, dtype=np.float64).reshape(shape),
+            np.array(stds, dtype=np.float64).reshape(shape),
+        )
+
+    @property
+    def n(self) -> int:
+        return int(self.mean.shape[1])
+
+    def subset(self, keep: np.ndarray) -> ReferenceProfile:
+        """The profile of the references ``keep`` (a map with some references removed)."""
+        k = np.asarray(keep, dtype=np.int64)
+        return ReferenceProfile(self.methods, self.sign, self.mean[:, k], self.std[:, k])
+
+    def z(self, raw: Mapping[str, np.ndarray], ref: int) -> float:
+        """The lowest, over the profiled methods, of ``sign * (raw - mean) / std`` at ``ref``
+        (methods without a finite raw score there, or no spread, are left out; none left:
+        NaN). The lowest, not the mean: a right answer looks alike to every method, while
+        a query from elsewhere can fool one (NetVLAD's centroids, fitted on the map, can
+        place a foreign image close to a reference)."""
+        vals = []
+        for i, mid in enumerate(self.methods):
+            r = raw.get(mid)
+            if r is None or not 0 <= ref < len(r):
+                continue
+            x, mu, sd = float(r[ref]), self.mean[i, ref], self.std[i, ref]
+            if math.isfinite(x) and math.isfinite(mu) and math.isfinite(sd) and sd > 0:
+                vals.append(self.sign[i] * (x - mu) / sd)
+        return float(min(vals)) if vals else float("nan")
 
 
 def feature_matrix(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> np.ndarray:
@@ -391,7 +525,7 @@ class ConfidenceModel:
         if not isinstance(raw, list | tuple) or not all(isinstance(n, str) for n in raw):
             raise ModelError("'features' must be a list of names")
         names = tuple(raw)
-        known = set(FEATURES) | set(SEQUENCE_FEATURES)
+        known = set(ALL_FEATURES)
         unknown = [n for n in names if n not in known]
         if unknown:
             raise ModelError(f"unknown features in the model: {', '.join(unknown)}")
@@ -437,11 +571,14 @@ def _sigmoid(t: np.ndarray) -> np.ndarray:
 # -- thresholds and calibration -----------------------------------------------------------------
 
 
-def threshold_for_precision(p: np.ndarray, correct: np.ndarray, target: float = 0.99) -> float:
-    """The lowest probability whose accepted answers (``p >= threshold``) reach ``target``
-    precision on the given answers (ties accepted together). Unreachable (even the most
-    confident answers fall short, or there are none): 1.0, which accepts nothing
-    (:meth:`ConfidenceModel.predict` stays below 1). Non-finite ``p`` are left out."""
+def threshold_for_precision(
+    p: np.ndarray, correct: np.ndarray, target: float = 0.99, *, floor: float = 0.0
+) -> float:
+    """The lowest probability, at or above ``floor``, whose accepted answers
+    (``p >= threshold``) reach ``target`` precision on the given answers (ties accepted
+    together). Unreachable (even the most confident answers fall short, or there are
+    none): 1.0, which accepts nothing (:meth:`ConfidenceModel.predict` stays below 1).
+    Non-finite ``p`` are left out."""
     p = np.asarray(p, dtype=np.float64)
     c = np.asarray(correct, dtype=bool)
     if p.shape != c.shape:
@@ -452,7 +589,7 @@ def threshold_for_precision(p: np.ndarray, correct: np.ndarray, target: float = 
     ps, cs = p[order], c[order].astype(np.float64)
     precision = np.cumsum(cs) / np.arange(1, len(cs) + 1)
     last_of_tie = np.append(ps[1:] != ps[:-1], True)  # accepting ps[i] accepts its ties
-    ok = np.flatnonzero(last_of_tie & (precision >= target))
+    ok = np.flatnonzero(last_of_tie & (precision >= target) & (ps >= floor))
     return float(ps[ok[-1]]) if len(ok) else 1.0
 
 

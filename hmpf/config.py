@@ -117,6 +117,15 @@ class AcceptanceSettings(BaseModel):
                 raise ValueError(f"acceptance.{name}: {exc}") from None
         return self
 
+    @property
+    def needs_profile(self) -> bool:
+        """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`),
+        so whoever applies it must build the references' profile."""
+        from hmpf.confidence import PROFILE_FEATURES
+
+        feats = [f for m in (self.model, self.sequence_model) if m for f in m.get("features", ())]
+        return any(f in PROFILE_FEATURES for f in feats)
+
     def confidence_model(self, sequence: bool = False) -> Any:
         """The :class:`~hmpf.confidence.ConfidenceModel` (single frame, or ``sequence``), or
         None when the config has none."""

@@ -78,6 +78,9 @@ class TierResult:
         candidates: the tier's output list: union of per-method top-k (non-final tiers) or the
             top-k of the averaged score (final tier).
         time_ms: wall time of the tier (scoring, normalisation, selection).
+        raw: per method, the (N,) raw score before normalisation (NaN off input): what
+            :class:`~hmpf.confidence.ReferenceProfile` compares in absolute terms. Empty
+            where a result was built without it.
     """
 
     methods: list[str]
@@ -85,6 +88,7 @@ class TierResult:
     scores: dict[str, np.ndarray]
     candidates: np.ndarray
     time_ms: float
+    raw: dict[str, np.ndarray] = field(default_factory=dict)
 
     def mean_score(self) -> np.ndarray:
         """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input)."""
@@ -138,6 +142,7 @@ class Hierarchy:
         for t, tier in enumerate(cfg.tiers):
             start = time.perf_counter()
             scores: dict[str, np.ndarray] = {}
+            raws: dict[str, np.ndarray] = {}
             if inputs is not None:
                 uniq, inverse = np.unique(inputs, return_inverse=True)
             for mid in tier.methods:
@@ -145,6 +150,7 @@ class Hierarchy:
                 if inputs is None:
                     raw = np.asarray(score_fn(mid, None), dtype=np.float64)
                     full = minmax_normalise(raw, method.higher_is_better, faithful=faithful)
+                    raws[mid] = raw
                 else:
                     raw_u = np.asarray(score_fn(mid, uniq), dtype=np.float64)
                     # Normalise over the listed entries (duplicates included, as the original).
@@ -153,6 +159,9 @@ class Hierarchy:
                     )
                     full = np.full(n_db, off)
                     full[inputs] = norm
+                    raw_full = np.full(n_db, np.nan)
+                    raw_full[uniq] = raw_u
+                    raws[mid] = raw_full
                 scores[mid] = full
             if t < n_tiers - 1:
                 cands = union([top_k(scores[m], tier.k) for m in tier.methods], faithful=faithful)
@@ -160,7 +169,12 @@ class Hierarchy:
                 cands = top_k(np.mean([scores[m] for m in tier.methods], axis=0), tier.k)
             tiers.append(
                 TierResult(
-                    list(tier.methods), inputs, scores, cands, (time.perf_counter() - start) * 1e3
+                    list(tier.methods),
+                    inputs,
+                    scores,
+                    cands,
+                    (time.perf_counter() - start) * 1e3,
+                    raws,
                 )
             )
             inputs = cands

@@ -122,6 +122,7 @@ def on_references(result: HierarchyResult, allowed: np.ndarray | None, n: int) -
             {m: spread(s) for m, s in t.scores.items()},
             ids[np.asarray(t.candidates, dtype=np.int64)],
             t.time_ms,
+            {m: spread(r) for m, r in t.raw.items()},
         )
         for t in result.tiers
     ]
@@ -166,6 +167,7 @@ def with_sequence(
                 _NO_RESULT if result is None else result,
                 loaded.sequence.routes,
                 estimate=est,
+                profile=loaded.profile,
             )
             p = _probability(acc.sequence_model.predict(feats))
             estimate = _reference_match(
@@ -225,7 +227,9 @@ def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match 
     else:
         if score is not None:  # a match without a finite score gets no probability
             feats = answer_features(
-                on_references(result, refs.allowed, len(refs.names)), loaded.sequence.routes
+                on_references(result, refs.allowed, len(refs.names)),
+                loaded.sequence.routes,
+                profile=loaded.profile,
             )
             p = _probability(acc.model.predict(feats))
         accepted, rule = p is not None and p >= acc.model_threshold, "p_correct"

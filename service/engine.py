@@ -31,7 +31,14 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from hmpf.confidence import FEATURES, SEQUENCE_FEATURES, ConfidenceModel, ModelError
+from hmpf.confidence import (
+    FEATURES,
+    PROFILE_FEATURES,
+    SEQUENCE_FEATURES,
+    ConfidenceModel,
+    ModelError,
+    ReferenceProfile,
+)
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
@@ -98,8 +105,8 @@ class Acceptance:
             return cls(z)
         model, seq = acc.confidence_model(), acc.confidence_model(sequence=True)
         for name, m, known in (
-            ("model", model, FEATURES),
-            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES),
+            ("model", model, (*FEATURES, "ref_z")),
+            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES),
         ):
             extra = [] if m is None else [f for f in m.features if f not in known]
             if extra:
@@ -116,7 +123,8 @@ class Loaded:
 
     ``sequence`` is the sequence filter over the version's routes and ``binding`` the digest
     that ties a vehicle's track token to this version (:mod:`service.track`); ``acceptance``
-    the rules that decide ``accepted`` (the z threshold, the confidence models).
+    the rules that decide ``accepted`` (the z threshold, the confidence models) and
+    ``profile`` the references' profile the models read (None when none needs it).
     """
 
     reader: IndexReader
@@ -130,12 +138,15 @@ class Loaded:
     retired: bool = False
     lat: np.ndarray | None = field(default=None, repr=False)
     lon: np.ndarray | None = field(default=None, repr=False)
+    profile: ReferenceProfile | None = field(default=None, repr=False)
 
     @classmethod
     def open(cls, root: Path, threshold: float | None) -> Loaded:
         reader = IndexReader(root)
         try:
             acceptance = Acceptance.of(reader, threshold)
+            acc = reader.config.acceptance
+            profile = reader.reference_profile() if acc is not None and acc.needs_profile else None
         except BaseException:
             reader.close()
             raise
@@ -153,6 +164,7 @@ class Loaded:
             acceptance,
             lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
             lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
+            profile=profile,
         )
 
     @property

@@ -518,7 +518,7 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
 
     routes = RouteMap.from_metadata(train.n_db)
     res = train.results(config)
-    f0 = answer_features(res[0], routes)
+    f0 = answer_features(res[0], routes, profile=train.profile(config))
     assert p[0] == pytest.approx(acc.confidence_model().predict(f0))
     assert set(acc.confidence_model().features) == set(SINGLE_FEATURES)
     seq = rep["acceptance"]["sequence"]
@@ -553,3 +553,54 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
     )
     assert bare["acceptance"]["single"]["rule"] == "none"
     assert "sequence" not in bare["acceptance"]
+
+
+def test_outside_answers_and_the_threshold_that_keeps_them_out(banks):
+    """The training part's own out-of-map answers: each stretch of queries answered against
+    the map without the stretch's references (every answer wrong by construction); the
+    fitted threshold accepts at most 1 - target of them out of fold."""
+    from hmpf.evaluation.acceptance import (
+        FOLDS,
+        SEQUENCE_MODEL_FEATURES,
+        SINGLE_FEATURES,
+        fit_acceptance,
+        outside_answers,
+        single_answers,
+    )
+    from hmpf.sequence import FilterParams, RouteMap
+
+    pool, train, _, _, _ = banks
+    config = derive_config(pool, [(("gist", "hog"), 5), (("kaze",), 1)], None)
+    profile = train.profile(config)
+    assert profile.methods == ("gist", "hog") and profile.n == train.n_db
+    single, seq = outside_answers(train, config, profile, FilterParams())
+    assert len(single) > 0 and not single.correct.any()
+    nq = train.n_query
+    fold = np.minimum(np.arange(nq) * FOLDS // nq, FOLDS - 1)
+    for q in single.query:
+        removed = train.gt[fold == fold[q]].any(axis=0)
+        assert not (train.gt[q] & ~removed).any(), "a right reference was left in the map"
+    assert {f for a in single.features for f in a} >= set(SINGLE_FEATURES)
+    assert seq is not None and len(seq) > 0 and not seq.correct.any()
+    assert set(seq.query) <= set(single.query)
+    assert {f for a in seq.features for f in a} >= set(SEQUENCE_MODEL_FEATURES)
+    # The first stretch answered by hand: the same answer and features.
+    first = single.query[fold[single.query] == 0]
+    keep = np.flatnonzero(~train.gt[fold == 0].any(axis=0))
+    sub = train.subset(keep)
+    res = sub.results(config)
+    want = single_answers(
+        [res[int(q)] for q in first], None, RouteMap.from_metadata(len(keep)), profile.subset(keep)
+    )
+    assert want.features == single.features[: len(first)]
+    # The threshold keeps the out-of-map answers out (out of fold).
+    inside = single_answers(
+        train.results(config), train.gt, RouteMap.from_metadata(train.n_db), profile
+    )
+    target = 0.9
+    _, thr, figs = fit_acceptance(inside, SINGLE_FEATURES, target, single)
+    assert figs["outside"]["n"] == len(single)
+    assert figs["outside"]["accepted_out_of_fold"] <= 1 - target + 1e-12
+    assert thr >= figs["outside"]["floor"]
+    _, thr0, figs0 = fit_acceptance(inside, SINGLE_FEATURES, target)
+    assert "outside" not in figs0

@@ -349,3 +349,124 @@ def test_ece_and_reliability_hand_computed() -> None:
             reliability(bad, np.array([1]))
     with pytest.raises(HmpfError):
         reliability(p, c, bins=0)
+
+
+def test_threshold_floor_and_outside_floor() -> None:
+    from hmpf.evaluation.acceptance import outside_floor
+
+    p = np.array([0.9, 0.8, 0.7, 0.6, 0.5])
+    c = np.array([1, 1, 0, 1, 1], dtype=bool)
+    assert threshold_for_precision(p, c, 0.75) == 0.5  # 4/5
+    assert threshold_for_precision(p, c, 0.75, floor=0.55) == 0.6  # 3/4; 0.5 is below
+    assert threshold_for_precision(p, c, 0.75, floor=0.85) == 0.9
+    assert threshold_for_precision(p, c, 0.75, floor=0.95) == 1.0
+    # Out-of-map answers: at most max_rate of them may reach the threshold.
+    out = np.array([0.2, 0.95, 0.5, 0.7])
+    assert outside_floor(out, 0.0) > 0.95 and outside_floor(out, 0.0) == np.nextafter(0.95, 1)
+    assert np.mean(out >= outside_floor(out, 0.25)) == 0.25  # one of four
+    assert outside_floor(out, 1.0) == 0.0 and outside_floor(np.zeros(0), 0.01) == 0.0
+
+
+# -- absolute evidence: the references' profile --------------------------------------------------
+
+
+class _Dot:
+    """A global method whose raw score is the dot product (higher is better)."""
+
+    higher_is_better = True
+
+    def pairwise(self, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.asarray(q, np.float64) @ np.asarray(r, np.float64).T
+
+
+class _Dist(_Dot):
+    higher_is_better = False
+
+    def pairwise(self, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(q[:, None, :] - r[None, :, :], axis=2)
+
+
+def _globals():
+    from hmpf.methods.base import GlobalMethod
+
+    # Register the fakes as global methods without building real ones.
+    dot = type("Dot", (_Dot, GlobalMethod), {"_extract": None, "name": "dot"})
+    dist = type("Dist", (_Dist, GlobalMethod), {"_extract": None, "name": "dist"})
+    for cls in (dot, dist):
+        cls.__abstractmethods__ = frozenset()
+    return dot(), dist()
+
+
+def test_profile_equals_brute_force_every_chunk_and_sample_size() -> None:
+    from hmpf.confidence import ReferenceProfile
+
+    rng = np.random.default_rng(3)
+    n, d = 23, 5
+    db = {"dot": rng.normal(size=(n, d)), "dist": rng.normal(size=(n, d))}
+    dot, dist = _globals()
+    methods = {"dot": dot, "dist": dist, "local": object()}
+    routes = RouteMap.from_metadata(n, sequence=np.array(["a"] * 12 + ["b"] * 11))
+    for sample, chunk, window in ((64, 5, 2), (7, 4, 1), (7, 100, 0)):
+        prof = ReferenceProfile.build(
+            methods, db, ["dot", "local", "dist"], routes, sample=sample, chunk=chunk, window=window
+        )
+        assert prof.methods == ("dot", "dist") and prof.sign == (1.0, -1.0)
+        pick = (
+            np.arange(n)
+            if n <= sample
+            else np.sort(np.random.default_rng(0).choice(n, sample, replace=False))
+        )
+        for i, (mid, m) in enumerate((("dot", dot), ("dist", dist))):
+            for r in range(n):
+                vals = [
+                    float(m.pairwise(db[mid][s][None], db[mid][r][None])[0, 0])
+                    for s in pick
+                    if routes.separation(int(s), r) > window
+                ]
+                assert prof.mean[i, r] == pytest.approx(np.mean(vals), rel=1e-12)
+                assert prof.std[i, r] == pytest.approx(np.std(vals), rel=1e-9, abs=1e-12)
+    sub = prof.subset(np.array([4, 2]))
+    assert np.array_equal(sub.mean, prof.mean[:, [4, 2]]) and sub.n == 2
+
+
+def test_profile_z_is_the_lowest_signed_z_and_skips_what_is_missing() -> None:
+    from hmpf.confidence import ReferenceProfile
+
+    prof = ReferenceProfile(
+        ("dot", "dist"),
+        (1.0, -1.0),
+        np.array([[0.0, 1.0], [5.0, 5.0]]),
+        np.array([[1.0, 2.0], [2.0, 0.0]]),
+    )
+    # ref 0: dot (3 - 0)/1 = 3, dist -(1 - 5)/2 = 2 -> the lowest, 2.
+    assert prof.z({"dot": np.array([3.0, 0.0]), "dist": np.array([1.0, 0.0])}, 0) == 2.0
+    # ref 1: dist has no spread there, dot (0 - 1)/2.
+    assert prof.z({"dot": np.array([3.0, 0.0]), "dist": np.array([1.0, 0.0])}, 1) == -0.5
+    assert prof.z({"dot": np.array([NAN, 0.0])}, 0) != prof.z({"dot": np.array([NAN, 0.0])}, 0)
+    assert math.isnan(prof.z({}, 0)) and math.isnan(prof.z({"dot": np.zeros(2)}, 5))
+
+
+def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
+    from hmpf.confidence import PROFILE_FEATURES, ReferenceProfile
+
+    res = make_result()
+    raw = np.linspace(0.0, 0.9, 10)
+    res.tiers[0].raw = {"a": raw, "b": raw.copy()}
+    prof = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.1), np.full((1, 10), 0.2))
+    plain = answer_features(res, ROUTES)
+    assert not set(PROFILE_FEATURES) & set(plain)
+    f = answer_features(res, ROUTES, profile=prof)
+    assert f["ref_z"] == pytest.approx((raw[3] - 0.1) / 0.2)
+    assert {k: v for k, v in f.items() if k != "ref_z"} == plain
+    est = Estimate(ref=7, mass=0.9, locked=True, speed=1.0, frames=3)
+    g = answer_features(res, ROUTES, estimate=est, profile=prof)
+    assert g["sequence_ref_z"] == pytest.approx((raw[7] - 0.1) / 0.2)
+    # A result without raw scores, or an unscored reference: an unrelated one's score (0).
+    res.tiers[0].raw = {}
+    assert answer_features(res, ROUTES, estimate=est, profile=prof)["sequence_ref_z"] == 0.0
+    # A model over the absolute evidence cannot be applied without the profile.
+    m = ConfidenceModel(("ref_z",), (0.0,), (1.0,), (1.0,), 0.0)
+    with pytest.raises(ModelError, match="ref_z"):
+        m.predict(plain)
+    with pytest.raises(ModelError, match="ref_z"):
+        feature_matrix([plain], m.features)

@@ -139,6 +139,10 @@ def test_two_tiers(mode: str) -> None:
     off = _off(mode)
     _eq(t2.scores["c"], [0.6, 0.0, 1.0, off, 0.4, off])
     np.testing.assert_array_equal(t2.candidates, [2])
+    # The raw scores are kept beside the normalised ones (NaN where a tier did not score).
+    _eq(t1.raw["a"], A)
+    _eq(t1.raw["b"], raw["b"])
+    _eq(t2.raw["c"], [3, 6, 1, NAN, 4, NAN])
     assert fn.subsets("a") == [None] and fn.subsets("b") == [None]
     assert fn.subsets("c") == [{0, 1, 2, 4}]
 

@@ -87,23 +87,28 @@ def test_decisions_and_table_on_a_synthetic_model(oom):
     m1 = ConfidenceModel.fit(Xs, single.correct, SINGLE_FEATURES)
     m2 = ConfidenceModel.fit(Xq, seq.correct, SEQUENCE_MODEL_FEATURES)
     fitted = {
-        "model": m1,
-        "threshold": 0.8,
+        "variants": {
+            "absolute": {
+                "model": m1,
+                "threshold": 0.8,
+                "sequence_model": m2,
+                "sequence_threshold": 0.9,
+            }
+        },
         "z": 0.5,
-        "sequence_model": m2,
-        "sequence_threshold": 0.9,
         "mass": 1.0,
     }
     out = oom.decisions(fitted, single, seq)
     assert [(m, r) for m, r, _, _ in out] == [
-        ("single", "model"),
-        ("single", "z"),
-        ("sequence", "model"),
+        ("sequence", "model (absolute)"),
         ("sequence", "mass"),
+        ("single", "model (absolute)"),
+        ("single", "z"),
     ]
-    assert np.array_equal(out[0][3], m1.predict(Xs) >= 0.8)
-    assert np.array_equal(out[1][3], Xs[:, 0] >= 0.5)
-    assert np.array_equal(out[3][3], Xq[:, 0] >= 1.0)
+    assert np.array_equal(out[0][3], m2.predict(Xq) >= 0.9)
+    assert np.array_equal(out[1][3], Xq[:, 0] >= 1.0)
+    assert np.array_equal(out[2][3], m1.predict(Xs) >= 0.8)
+    assert np.array_equal(out[3][3], Xs[:, 0] >= 0.5)
     rows = [
         {
             "map": "m",
@@ -116,4 +121,4 @@ def test_decisions_and_table_on_a_synthetic_model(oom):
         for mode, rule, thr, acc in out
     ]
     text = oom.table(rows)
-    assert text.count("\n") == 5 and "| m | q (50) | single | model | 0.8 |" in text
+    assert text.count("\n") == 5 and "| m | q (50) | single | model (absolute) | 0.8 |" in text

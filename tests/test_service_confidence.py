@@ -36,7 +36,13 @@ from conftest import SERVICE_CONFIG
 from fastapi.testclient import TestClient
 from service_helpers import BUILD_OPTIONS, ROOT, nan_in_final_tier
 
-from hmpf.confidence import FEATURES, SEQUENCE_FEATURES, ConfidenceModel, answer_features
+from hmpf.confidence import (
+    FEATURES,
+    PROFILE_FEATURES,
+    SEQUENCE_FEATURES,
+    ConfidenceModel,
+    answer_features,
+)
 from hmpf.config import parse_config
 from hmpf.index import layout
 from hmpf.index.reader import IndexReader
@@ -52,6 +58,9 @@ from service.settings import load_settings
 #: Training frames (night_right, frame-aligned with day_right) and the test frames.
 TRAIN = range(0, 20)
 TEST = [3, 8, 12, 17]
+#: The models read the absolute evidence too, so the service must build the profile.
+SINGLE = (*FEATURES, "ref_z")
+SEQUENCE = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES
 #: An answer within this many references of its frame is right.
 TOLERANCE = 2
 
@@ -72,26 +81,26 @@ def models(service_index: Path, night: list[Path]) -> dict[str, Any]:
     reader = IndexReader(service_index)
     try:
         hierarchy, routes = reader.hierarchy(), reader.route_map()
+        profile = reader.reference_profile()
         filt_params = reader.config.sequence_params()
         filt = SequenceFilter(routes, filt_params)
         state = filt.start()
         single, seq, y1, y2 = [], [], [], []
         for i in TRAIN:
             result = hierarchy.run(reader.scorer(reader.extract_query(_rgb(night[i]))), reader.n)
-            single.append(answer_features(result, routes))
+            single.append(answer_features(result, routes, profile=profile))
             y1.append(abs(result.match - i) <= TOLERANCE)
             ev = Evidence.from_result(result, reader.n, proposals=filt_params.proposals)
             state, est = filt.update(state, ev)
-            seq.append(answer_features(result, routes, estimate=est))
+            seq.append(answer_features(result, routes, estimate=est, profile=profile))
             y2.append(abs(est.ref - i) <= TOLERANCE)
     finally:
         reader.close()
     assert 0 < sum(y1) < len(y1), "the training answers must be both right and wrong"
-    names2 = FEATURES + SEQUENCE_FEATURES
-    m1 = ConfidenceModel.fit(np.array([[f[n] for n in FEATURES] for f in single]), y1, FEATURES)
-    m2 = ConfidenceModel.fit(np.array([[f[n] for n in names2] for f in seq]), y2, names2)
-    t1 = float(np.median(m1.predict(np.array([[f[n] for n in FEATURES] for f in single]))))
-    t2 = float(np.median(m2.predict(np.array([[f[n] for n in names2] for f in seq]))))
+    m1 = ConfidenceModel.fit(np.array([[f[n] for n in SINGLE] for f in single]), y1, SINGLE)
+    m2 = ConfidenceModel.fit(np.array([[f[n] for n in SEQUENCE] for f in seq]), y2, SEQUENCE)
+    t1 = float(np.median(m1.predict(np.array([[f[n] for n in SINGLE] for f in single]))))
+    t2 = float(np.median(m2.predict(np.array([[f[n] for n in SEQUENCE] for f in seq]))))
     return {"model": m1, "threshold": t1, "sequence_model": m2, "sequence_threshold": t2}
 
 
@@ -204,7 +213,8 @@ def test_answers_carry_p_correct_and_the_model_decides(
             # The very probability the model gives this answer's features.
             result = hierarchy.run(reader.scorer(reader.extract_query(_rgb(night[i]))), reader.n)
             assert result.match == m["reference_id"]
-            want = models["model"].predict(answer_features(result, routes))
+            feats = answer_features(result, routes, profile=reader.reference_profile())
+            want = models["model"].predict(feats)
             assert m["p_correct"] == pytest.approx(want, rel=1e-9, abs=1e-12)
     finally:
         reader.close()
@@ -213,9 +223,9 @@ def test_answers_carry_p_correct_and_the_model_decides(
     assert info["acceptance"] == {
         "rule": "p_correct",
         "threshold": 2.0,
-        "model": {"features": list(FEATURES), "threshold": models["threshold"]},
+        "model": {"features": list(SINGLE), "threshold": models["threshold"]},
         "sequence_model": {
-            "features": list(FEATURES + SEQUENCE_FEATURES),
+            "features": list(SEQUENCE),
             "threshold": models["sequence_threshold"],
         },
     }
@@ -266,12 +276,16 @@ def test_gps_prior_answer_gets_p_correct_on_the_right_reference_ids(
         sub = reader.hierarchy().run(restricted(reader.scorer(feats), allowed), len(allowed))
         assert allowed[sub.match] == m["reference_id"]
         full = on_references(sub, allowed, reader.n)
-        on_ids = answer_features(full, reader.route_map())
+        profile = reader.reference_profile()
+        on_ids = answer_features(full, reader.route_map(), profile=profile)
     finally:
         reader.close()
     # Independently: the sub-database's own route (positions 0..11 along the same route
-    # stretch) gives the same evidence, route distances included.
-    own = answer_features(sub, RouteMap.from_metadata(len(allowed)))
+    # stretch) gives the same evidence, route distances and absolute evidence included.
+    own = answer_features(
+        sub, RouteMap.from_metadata(len(allowed)), profile=profile.subset(allowed)
+    )
+    assert "ref_z" in own and np.isfinite(own["ref_z"])
     assert on_ids == pytest.approx(own)
     assert m["accepted_by"] == "p_correct"
     assert m["p_correct"] == pytest.approx(models["model"].predict(on_ids), rel=1e-9, abs=1e-12)

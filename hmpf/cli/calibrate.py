@@ -18,8 +18,13 @@ The confidence models (:mod:`hmpf.evaluation.acceptance`) are fitted on the trai
 too: ``acceptance.model`` / ``model_threshold`` (the probability threshold for
 ``--target-precision``, chosen on out-of-fold training predictions) and, with
 ``--sequence``, ``sequence_model`` / ``sequence_threshold``; the z threshold stays as the
-fallback. ``--no-model`` writes the z threshold only. The test part's ECE, accepted share and
-precision of the model and of the z rule are in leaderboard.md and calibration.json.
+fallback. ``--no-model`` writes the z threshold only. The models read absolute evidence
+(``ref_z``) and learn from the training part's own out-of-map answers (each stretch of
+queries answered with its references removed from the map); the threshold also keeps at most
+``1 - target`` of those accepted. ``--no-outside`` leaves them out, for maps that vehicles
+never leave: more answers accepted, but a place off the map may be. The test part's ECE,
+accepted share and precision of the model and of the z rule are in leaderboard.md and
+calibration.json.
 
 The time budget is enforced on a cost model measured on this machine, so the winner may differ
 between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
@@ -143,6 +148,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="do not fit the confidence models (acceptance by the z threshold only)",
     )
+    p.add_argument(
+        "--no-outside",
+        action="store_true",
+        help="fit the models without the training part's out-of-map answers (for maps that "
+        "vehicles never leave)",
+    )
     return p
 
 
@@ -245,6 +256,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             costs=costs,
             sequence=args.sequence,
             model=not args.no_model,
+            outside=not args.no_outside,
         )
     report["protocol"] = {
         "reference": args.reference,

@@ -36,9 +36,11 @@ from hmpf.errors import ConfigError
 from hmpf.evaluation.acceptance import (
     SEQUENCE_MODEL_FEATURES,
     SINGLE_FEATURES,
+    Answers,
     acceptance_figures,
     apply_acceptance,
     fit_acceptance,
+    outside_answers,
     sequence_answers,
     single_answers,
 )
@@ -452,14 +454,18 @@ def calibrate(
     costs: CostModel | None = None,
     sequence: bool = False,
     model: bool = True,
+    outside: bool = True,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """Search, pick the threshold, check on the test part; returns (config, report).
 
     With ``model`` (default), the confidence models are fitted on the training part too
     (:func:`_fit_models`): ``acceptance.model`` / ``model_threshold`` and, with
     ``sequence``, ``sequence_model`` / ``sequence_threshold``; the z threshold stays (the
-    fallback for a reader without a model). The report's ``confidence`` entries (training
-    and test) give the ECE, accepted share and precision of the model and of the z rule.
+    fallback for a reader without a model). With ``outside`` (default) the models also learn
+    from the training part's own out-of-map answers
+    (:func:`~hmpf.evaluation.acceptance.outside_answers`). The report's ``confidence``
+    entries (training and test) give the ECE, accepted share and precision of the model and
+    of the z rule.
 
     With ``sequence``, the sequence filter's settings and lock threshold are chosen for the
     winner on the training part too (written as the config's ``sequence:``) and its
@@ -493,7 +499,9 @@ def calibrate(
         config = config.model_copy(update={"sequence": sequence_settings(seq_params)})
     confidence_train: dict[str, Any] | None = None
     if model:
-        config, confidence_train = _fit_models(config, train, target_precision, seq_params)
+        config, confidence_train = _fit_models(
+            config, train, target_precision, seq_params, outside=outside
+        )
     report: dict[str, Any] = {
         "machine": machine_description(),
         "seed": seed,
@@ -538,22 +546,33 @@ def _fit_models(
     train: ScoreBank,
     target_precision: float,
     seq_params: FilterParams | None,
+    *,
+    outside: bool = True,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """``config`` with its confidence models fitted on the training part, and their
-    training figures (:mod:`hmpf.evaluation.acceptance`)."""
+    training figures (:mod:`hmpf.evaluation.acceptance`); with ``outside``, with the
+    training part's own out-of-map answers."""
     assert config.acceptance is not None
     routes = RouteMap.from_metadata(train.n_db)
     results = train.results(config)
+    profile = train.profile(config)
     update: dict[str, Any] = {}
     out: dict[str, Any] = {}
-    modes = [("single", SINGLE_FEATURES, single_answers(results, train.gt, routes))]
+    # Answers to places the map does not hold, from the training part itself.
+    out_single: Answers | None = None
+    out_seq: Answers | None = None
+    if outside:
+        out_single, out_seq = outside_answers(train, config, profile, seq_params)
+    modes: list[tuple[str, tuple[str, ...], Answers, Answers | None]] = [
+        ("single", SINGLE_FEATURES, single_answers(results, train.gt, routes, profile), out_single)
+    ]
     if seq_params is not None:
         drives = training_drives(train.n_query)
-        seq = sequence_answers(results, train.gt, routes, seq_params, drives)
-        modes.append(("sequence", SEQUENCE_MODEL_FEATURES, seq))
-    for mode, names, answers in modes:
+        seq = sequence_answers(results, train.gt, routes, seq_params, drives, profile)
+        modes.append(("sequence", SEQUENCE_MODEL_FEATURES, seq, out_seq))
+    for mode, names, answers, negatives in modes:
         try:
-            m, thr, figs = fit_acceptance(answers, names, target_precision)
+            m, thr, figs = fit_acceptance(answers, names, target_precision, negatives)
         except ModelError as e:
             # No model for this mode: the z (or mass) rule decides, and the report says why.
             out[mode] = {"features": list(names), "skipped": str(e)}
@@ -579,7 +598,8 @@ def _test_models(
     posterior mass >= the lock threshold)."""
     routes = RouteMap.from_metadata(test.n_db)
     results = test.results(config)
-    single = single_answers(results, test.gt, routes)
+    profile = test.profile(config)
+    single = single_answers(results, test.gt, routes, profile)
     out: dict[str, Any] = {
         "single": {
             "model": _figures(apply_acceptance(config.acceptance, single)),
@@ -591,7 +611,7 @@ def _test_models(
         }
     }
     if seq_params is not None:
-        seq = sequence_answers(results, test.gt, routes, seq_params)
+        seq = sequence_answers(results, test.gt, routes, seq_params, profile=profile)
         out["sequence"] = {
             "model": _figures(apply_acceptance(config.acceptance, seq, sequence=True)),
             "mass": acceptance_figures(

@@ -14,13 +14,14 @@ hierarchies on precomputed scores, in :class:`hmpf.evaluation.study.ScoreBank`.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, build_methods
 from hmpf.datasets import frame_ground_truth, list_images
 from hmpf.features import ExtractionResult, FeatureCache, extract_images, fit_methods
@@ -416,7 +417,16 @@ def evaluate(
     routes = RouteMap.from_metadata(n_db)
     if sequence:
         report["sequence"] = _sequence(results, gt, routes, config)
-    report["acceptance"] = acceptance_report(results, gt, routes, config, sequence=sequence)
+    report["acceptance"] = acceptance_report(
+        results,
+        gt,
+        routes,
+        config,
+        sequence=sequence,
+        profile=lambda: ReferenceProfile.build(
+            prep.methods, prep.db, config.tiers[0].methods, routes
+        ),
+    )
     return report
 
 
@@ -438,8 +448,12 @@ def acceptance_report(
     config: HierarchyConfig,
     *,
     sequence: bool = False,
+    profile: Callable[[], ReferenceProfile] | None = None,
 ) -> dict[str, Any]:
     """The config's acceptance applied to every answer (:mod:`hmpf.evaluation.acceptance`).
+
+    ``profile`` builds the references' :class:`~hmpf.confidence.ReferenceProfile`; called
+    only when a model needs it.
 
     ``single`` (and with ``sequence`` ``sequence``: the queries driven once, in order):
     ``rule`` (``model``, ``z``, ``mass`` or ``none``), per answer ``p_correct`` (None without
@@ -449,10 +463,11 @@ def acceptance_report(
     from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
 
     acc = config.acceptance
-    out = {"single": apply_acceptance(acc, single_answers(results, gt, routes))}
+    prof = profile() if acc is not None and acc.needs_profile and profile else None
+    out = {"single": apply_acceptance(acc, single_answers(results, gt, routes, prof))}
     if sequence:
         params = config.sequence_params()
-        seq = sequence_answers(results, gt, routes, params)
+        seq = sequence_answers(results, gt, routes, params, profile=prof)
         out["sequence"] = apply_acceptance(acc, seq, sequence=True, lock_mass=params.lock_mass)
     return out
 
@@ -506,7 +521,12 @@ def evaluate_index(
     if sequence:
         report["sequence"] = _sequence(results, gt, reader.route_map(), reader.config)
     report["acceptance"] = acceptance_report(
-        results, gt, reader.route_map(), reader.config, sequence=sequence
+        results,
+        gt,
+        reader.route_map(),
+        reader.config,
+        sequence=sequence,
+        profile=reader.reference_profile,
     )
     return report
 

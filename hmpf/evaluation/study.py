@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, TierConfig, build_methods
 from hmpf.errors import ConfigError, DatasetError
 from hmpf.evaluation import SPLITS
@@ -198,6 +199,20 @@ class ScoreBank:
     @property
     def n_db(self) -> int:
         return int(self.gt.shape[1])
+
+    def subset(self, keep: np.ndarray) -> ScoreBank:
+        """The bank over the references ``keep`` only (a map with the others removed; the
+        methods stay fitted as they were, no features for timing)."""
+        k = np.asarray(keep, dtype=np.int64)
+        scores = {m: s[:, k] for m, s in self.scores.items()}
+        return ScoreBank(self.methods, scores, self.gt[:, k], self.data)
+
+    def profile(self, config: HierarchyConfig) -> ReferenceProfile:
+        """The :class:`~hmpf.confidence.ReferenceProfile` of this part's references for
+        ``config``'s tier-1 methods (one route, file order)."""
+        db = {m: f[0] for m, f in self.features.items()}
+        tier1 = config.tiers[0].methods
+        return ReferenceProfile.build(self.methods, db, tier1, RouteMap.from_metadata(self.n_db))
 
     def scorer(self, qi: int) -> ScoreFn:
         """A :data:`ScoreFn` for query ``qi`` gathering from the matrices."""

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, build_methods, parse_config
 from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, ScoreFn
@@ -173,6 +174,7 @@ class IndexReader:
         self._check_shapes()
         self._faiss: dict[str, Any] = {}
         self._routes: RouteMap | None = None
+        self._profile: ReferenceProfile | None = None
         k1 = self.config.tiers[0].k
         self.approx_k = approx_k or max(256, 4 * k1)
         self._sample = np.unique(
@@ -305,6 +307,18 @@ class IndexReader:
                 junction_m=self.config.sequence_params().junction_m,
             )
         return self._routes
+
+    def reference_profile(self) -> ReferenceProfile:
+        """The references' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's
+        global methods (what absolute confidence evidence compares with; built once per
+        reader, about ``256 x N`` scores per method)."""
+        if self._profile is None:
+            tier1 = self.config.tiers[0].methods
+            db = {m: self._globals[m] for m in tier1 if m in self._globals}
+            self._profile = ReferenceProfile.build(
+                self.methods, db, [m for m in tier1 if m in db], self.route_map()
+            )
+        return self._profile
 
     def extract_query(
         self,
