@@ -54,8 +54,10 @@ from sequence import ROUTES, load_parts, pyplot  # noqa: E402
 
 from hmpf.confidence import (  # noqa: E402
     FEATURES,
+    PROFILE_FEATURES,
     SEQUENCE_FEATURES,
     ConfidenceModel,
+    ReferenceProfile,
     expected_calibration_error,
     feature_matrix,
     reliability,
@@ -94,17 +96,23 @@ def _rows(answers: Answers) -> dict[str, Any]:
     }
 
 
-def single_rows(results: Sequence[Any], gt: np.ndarray) -> dict[str, Any]:
+def single_rows(
+    results: Sequence[Any], gt: np.ndarray, profile: ReferenceProfile | None = None
+) -> dict[str, Any]:
     """Features, correctness and quality of every single-frame answer of one part."""
-    return _rows(single_answers(results, gt, RouteMap.from_metadata(gt.shape[1])))
+    return _rows(single_answers(results, gt, RouteMap.from_metadata(gt.shape[1]), profile))
 
 
 def sequence_rows(
-    results: Sequence[Any], gt: np.ndarray, drives: Sequence[Drive], params: FilterParams
+    results: Sequence[Any],
+    gt: np.ndarray,
+    drives: Sequence[Drive],
+    params: FilterParams,
+    profile: ReferenceProfile | None = None,
 ) -> dict[str, Any]:
     """Features (with the estimate), correctness and mass of every answer of ``drives``."""
     routes = RouteMap.from_metadata(gt.shape[1])
-    return _rows(sequence_answers(results, gt, routes, params, drives))
+    return _rows(sequence_answers(results, gt, routes, params, drives, profile))
 
 
 # -- measures -----------------------------------------------------------------------------------
@@ -449,21 +457,29 @@ def main() -> int:
     single: dict[str, dict[str, Any]] = {}
     seq: dict[str, dict[str, Any]] = {}
     for name, p in parts.items():
-        single[name] = {part: single_rows(*p[part]) for part in ("train", "test")}
+        single[name] = {
+            part: single_rows(*p[part], p[f"{part}_profile"]) for part in ("train", "test")
+        }
         tr_results, tr_gt = p["train"]
         te_results, te_gt = p["test"]
         seq[name] = {
-            "train": sequence_rows(tr_results, tr_gt, training_drives(len(tr_results)), params),
+            "train": sequence_rows(
+                tr_results, tr_gt, training_drives(len(tr_results)), params, p["train_profile"]
+            ),
             "test": sequence_rows(
-                te_results, te_gt, [Drive.along(np.arange(len(te_results)))], params
+                te_results,
+                te_gt,
+                [Drive.along(np.arange(len(te_results)))],
+                params,
+                p["test_profile"],
             ),
         }
         print(f"{name}: features done ({time.perf_counter() - t0:.0f} s)", flush=True)
     modes: dict[str, dict[str, Any]] = {}
     selection: dict[str, Any] = {}
     for mode_name, data, names, today in (
-        ("single frame", single, FEATURES, "Combined z"),
-        ("sequence", seq, FEATURES + SEQUENCE_FEATURES, "posterior mass"),
+        ("single frame", single, (*FEATURES, "ref_z"), "Combined z"),
+        ("sequence", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES, "posterior mass"),
     ):
         modes[f"{mode_name}, all features"] = evaluate_mode(data, names, today)
         X, y, g, w = pooled_training(data, names)

@@ -54,6 +54,7 @@ from hmpf.confidence import (  # noqa: E402
     ConfidenceModel,
     expected_calibration_error,
     feature_matrix,
+    reliability,
 )
 from hmpf.config import load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
@@ -286,11 +287,64 @@ def in_map_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def plot(curves: dict[str, dict[str, dict[str, Any]]], out: Path) -> Path | None:
+    """Reliability of the per-route models on the routes' test parts: a panel per mode
+    (single frame, sequence), a line per route and variant (``curves[mode][label]`` holds
+    ``p`` and ``correct``). None when matplotlib is missing."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib missing (pip install 'hmpf[report]'): no plot")
+        return None
+    fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 4.4), sharey=True)
+    for ax, (mode, lines) in zip(np.atleast_1d(axes), curves.items(), strict=True):
+        ax.plot([0, 1], [0, 1], color="grey", ls="--", lw=1)
+        for i, (label, c) in enumerate(lines.items()):
+            rel = reliability(c["p"], c["correct"])
+            used = rel.count > 0
+            style = "-" if "absolute" in label else ":"
+            colour = f"C{i // 2}"
+            ece = expected_calibration_error(c["p"], c["correct"])
+            ax.plot(
+                rel.predicted[used], rel.observed[used], style, color=colour,
+                label=f"{label} (ECE {ece:.3f})",
+            )  # fmt: skip
+            ax.scatter(
+                rel.predicted[used], rel.observed[used], color=colour, alpha=0.7, zorder=3,
+                s=6 + 300 * rel.count[used] / rel.count.sum(),
+            )  # fmt: skip
+        ax.set_title(f"{mode}: per-route models, test parts", fontsize=9)
+        ax.set_xlabel("predicted p_correct")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="upper left")
+    np.atleast_1d(axes)[0].set_ylabel("observed share right")
+    fig.suptitle(
+        "Reliability of hmpf-calibrate's models (solid: absolute evidence + out-of-map "
+        "training, dotted: relative only; marker area ~ answers in the bin)",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--foreign", type=int, default=200, help="frames of the foreign route")
     ap.add_argument("--maps", default=",".join(MAPS), help="maps to test (comma-separated)")
     ap.add_argument("--out", default=str(ROOT / "results" / "out_of_map.json"))
+    ap.add_argument(
+        "--plot",
+        default=str(ROOT / "docs" / "experiments" / "confidence" / "reliability_calibrated.png"),
+        help="reliability diagram of the per-route models (PNG)",
+    )
     args = ap.parse_args()
     t0 = time.perf_counter()
     datasets = dataset_root()
@@ -298,6 +352,7 @@ def main() -> int:
     params = FilterParams()
     rows: list[dict[str, Any]] = []
     in_map: list[dict[str, Any]] = []
+    curves: dict[str, dict[str, dict[str, Any]]] = {}
     maps: dict[str, Any] = {}
     for name in args.maps.split(","):
         ref, qry, cfg_name, foreign_dir = MAPS[name]
@@ -349,6 +404,7 @@ def main() -> int:
             ):
                 p = f[key].predict(feature_matrix(ans.features, f[key].features))
                 eces[(mode, f"model ({v})")] = expected_calibration_error(p, ans.correct)
+                curves.setdefault(mode, {})[f"{name} {v}"] = {"p": p, "correct": ans.correct}
         for mode, rule, thr, acc in decisions(fitted, t_single, t_seq):
             correct = t_single.correct if mode == "single" else t_seq.correct
             ece = eces.get((mode, rule))
@@ -389,6 +445,10 @@ def main() -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1, default=str))
+    figure = plot(curves, Path(args.plot))
+    if figure is not None:
+        report["figure"] = str(figure)
+        out.write_text(json.dumps(report, indent=1, default=str))
     print(table(rows))
     print()
     print(in_map_table(in_map))

@@ -58,7 +58,9 @@ ROUTES = {
 
 
 def load_parts(datasets: Path, cache: FeatureCache) -> dict[str, dict[str, Any]]:
-    """Per route: the hierarchy's results and ground truth on the training and test parts."""
+    """Per route: the hierarchy's results and ground truth on the training and test parts
+    (and each part's references' profile, ``train_profile`` / ``test_profile``, for the
+    absolute confidence evidence)."""
     parts: dict[str, dict[str, Any]] = {}
     for name, (ref, qry, cfg_name) in ROUTES.items():
         config = load_config(cfg_name)
@@ -67,6 +69,7 @@ def load_parts(datasets: Path, cache: FeatureCache) -> dict[str, dict[str, Any]]
         for part, d in zip(("train", "test"), split_data(data), strict=True):
             bank = ScoreBank.build(config, d, cache=cache)
             parts[name][part] = (bank.results(config), bank.gt)
+            parts[name][f"{part}_profile"] = bank.profile(config)
         print(f"{name}: {len(parts[name]['test'][0])} test queries", flush=True)
     return parts
 

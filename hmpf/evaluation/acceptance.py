@@ -8,11 +8,18 @@ the target precision (:func:`fit_acceptance`); ``hmpf-eval`` applies a config's 
 (:func:`acceptance_figures`).
 
 *Why a fixed feature set.* ``bench/confidence.py`` chose features by greedy forward
-selection on the four training parts pooled (route-balanced out-of-fold log-loss); it chose
-``tier1_margin``, ``agreement``, ``quality`` for single frames and ``sequence_logit``,
-``sequence_agrees``, ``tier1_rank`` for sequence mode (docs/experiments/confidence). One
+selection on the four training parts pooled (route-balanced out-of-fold log-loss, in-map
+answers only); with the absolute evidence among the candidates it chose ``tier1_margin``,
+``agreement``, ``quality``, ``ref_z`` for single frames and ``sequence_logit``,
+``sequence_ref_z``, ``tier1_rank`` for sequence mode (docs/experiments/confidence). One
 route's training part (100 answers on Gardens Point) is too small to repeat that choice
 reliably, so the calibrator uses those sets as they are.
+
+*Out-of-map answers.* Every other feature compares the map's references with each other, so
+a query from a place the map does not hold can look like a right answer; ``ref_z`` says how
+the query's score compares with what unrelated references score there. The training part
+itself gives examples of such queries (:func:`outside_answers`): they join the fit and bound
+the threshold (:func:`fit_acceptance`).
 
 *Why an out-of-fold threshold.* The threshold is chosen on predictions of the training
 answers by models fitted without them (5 folds of consecutive queries), so it does not
@@ -60,7 +67,7 @@ __all__ = [
 #: Single-frame model features (chosen by ``bench/confidence.py`` on the training parts).
 SINGLE_FEATURES = ("tier1_margin", "agreement", "quality", "ref_z")
 #: Sequence model features (idem).
-SEQUENCE_MODEL_FEATURES = ("sequence_logit", "sequence_agrees", "tier1_rank", "sequence_ref_z")
+SEQUENCE_MODEL_FEATURES = ("sequence_logit", "sequence_ref_z", "tier1_rank")
 FOLDS = 5
 L2 = 1.0
 #: Weight of the out-of-map training answers, as a share of all (:func:`fit_acceptance`).
