@@ -460,3 +460,25 @@ def test_batch_answers_carry_p_correct(
             thr = models["sequence_threshold" if data else "threshold"]
             assert m["accepted"] == (m["p_correct"] >= thr)
             assert single["accepted"] == (single["p_correct"] >= models["threshold"])
+
+
+def test_hmpf_eval_on_the_index_gives_the_services_p_correct(
+    client: TestClient, keys: dict[str, str], night: list[Path], model_index: Path
+) -> None:
+    """hmpf-eval --index applies the version's model with the same absolute evidence (the
+    reader's reference profile) as the service: the same p_correct per frame."""
+    from hmpf.evaluation.evaluate import evaluate_index
+
+    frames = [night[i] for i in TEST]
+    reader = IndexReader(model_index)
+    try:
+        gt = np.zeros((len(frames), reader.n), dtype=bool)
+        for j, i in enumerate(TEST):
+            gt[j, max(0, i - TOLERANCE) : i + TOLERANCE + 1] = True
+        rep = evaluate_index(reader, frames, gt, "frames +-2")
+    finally:
+        reader.close()
+    single = rep["acceptance"]["single"]
+    assert single["rule"] == "model"
+    served = [_post(client, keys, f)["match"]["p_correct"] for f in frames]
+    assert single["p_correct"] == pytest.approx(served, rel=1e-9, abs=1e-12)
