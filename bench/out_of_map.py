@@ -89,6 +89,9 @@ MAPS = {
     ),
 }
 TARGET = 0.99
+#: The lower target the shipped model is also reported at (variant :data:`LOW`).
+TARGET_LOW = 0.95
+LOW = "absolute, 95 %"
 GOAL = 0.01
 TOLERANCE = 2
 BLOCK = 20
@@ -208,6 +211,18 @@ def fit_map(train: ScoreBank, config: Any, params: FilterParams) -> dict[str, An
             "sequence_threshold": sthr,
         }
         fitted["train"][name] = {"single": figs, "sequence": sfigs}
+    # The shipped model at the lower target too (the same fit, another threshold; the
+    # out-of-map bound then 1 - 0.95).
+    s_names, q_names, _ = VARIANTS["absolute"]
+    low = {}
+    for key, answers, names, out in (
+        ("", single, s_names, out_single),
+        ("sequence_", seq, q_names, out_seq),
+    ):
+        m, t, f = fit_acceptance(answers, names, TARGET_LOW, out)
+        low |= {f"{key}model": m, f"{key}threshold": t}
+        fitted["train"].setdefault(LOW, {})[key or "single"] = f
+    fitted["variants"][LOW] = low
     return fitted
 
 
@@ -274,7 +289,7 @@ def in_map_row(
 def in_map_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown table of the in-map test-part figures."""
     lines = [
-        "| route (test part) | mode | rule | threshold | accepted @99 % | precision | ECE |",
+        "| route (test part) | mode | rule | threshold | accepted | precision | ECE |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -404,7 +419,8 @@ def main() -> int:
             ):
                 p = f[key].predict(feature_matrix(ans.features, f[key].features))
                 eces[(mode, f"model ({v})")] = expected_calibration_error(p, ans.correct)
-                curves.setdefault(mode, {})[f"{name} {v}"] = {"p": p, "correct": ans.correct}
+                if v != LOW:  # the same model as "absolute", another threshold
+                    curves.setdefault(mode, {})[f"{name} {v}"] = {"p": p, "correct": ans.correct}
         for mode, rule, thr, acc in decisions(fitted, t_single, t_seq):
             correct = t_single.correct if mode == "single" else t_seq.correct
             ece = eces.get((mode, rule))
