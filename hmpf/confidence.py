@@ -278,6 +278,8 @@ class ReferenceProfile:
             m = methods[mid]
             if not isinstance(m, GlobalMethod):
                 continue
+            if mid not in db:
+                raise HmpfError(f"no stored descriptors of method {mid!r} to profile")
             mat = np.asarray(db[mid])
             if len(mat) != n:
                 raise HmpfError(f"method {mid!r} holds {len(mat)} references; the map has {n}")

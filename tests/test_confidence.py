@@ -425,6 +425,10 @@ def test_profile_equals_brute_force_every_chunk_and_sample_size() -> None:
                 ]
                 assert prof.mean[i, r] == pytest.approx(np.mean(vals), rel=1e-12)
                 assert prof.std[i, r] == pytest.approx(np.std(vals), rel=1e-9, abs=1e-12)
+    with pytest.raises(HmpfError, match="no stored descriptors"):
+        ReferenceProfile.build(methods, {"dot": db["dot"]}, ["dot", "dist"], routes)
+    with pytest.raises(HmpfError, match="holds 3 references"):
+        ReferenceProfile.build(methods, {"dot": db["dot"][:3]}, ["dot"], routes)
     sub = prof.subset(np.array([4, 2]))
     assert np.array_equal(sub.mean, prof.mean[:, [4, 2]]) and sub.n == 2
 
