@@ -10,8 +10,9 @@ process on a free loopback port (authentication on, default limits). Then, for `
 * ``--vehicles`` vehicles, each a closed loop posting ``night_right`` frames in route order
   in sequence mode (``vehicle_id``, ``timestamp``, the ``track`` token of its last answer);
 * one hostile client cycling through: random bytes as a JPEG, a truncated JPEG, an upload
-  announcing more than ``max_upload_bytes`` (its answer read after 64 kB of body), an upload aborted mid-body (a raw socket that announces more
-  bytes than it sends and hangs up), a batch of three frames, a request without a key;
+  announcing more than ``max_upload_bytes`` (its answer read after 64 kB of body), an
+  upload aborted mid-body (a raw socket that announces more bytes than it sends and hangs
+  up), a batch of three frames, a request without a key;
 * an operator: ``POST /v1/index/reload`` every ``--reload-every`` seconds, and every
   ``--add-every`` seconds ``hmpf-index add`` of ten more ``day_right`` frames (a new version)
   followed by a reload.
