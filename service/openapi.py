@@ -66,7 +66,8 @@ def _apply(doc: dict[str, Any], settings: Settings) -> None:
             form = _deref(doc, body["content"][_MULTIPART]["schema"])["properties"]
             for name, schema in form.items():
                 form[name] = _without_null(schema)
-            form["top_k"]["maximum"] = settings.max_top_k
+            if "top_k" in form:
+                form["top_k"]["maximum"] = settings.max_top_k
             if "image" in form:
                 form["image"]["description"] = f"the camera frame: {images}"
             if "images" in form:
