@@ -31,6 +31,7 @@ from service.engine import Engine
 from service.errors import install_handlers
 from service.limits import BodyLimit
 from service.metrics import Metrics
+from service.openapi import document_limits
 from service.routes import health, index, localize
 from service.settings import Settings
 from service.vehicle import Tracker
@@ -74,6 +75,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
     )
     app.include_router(index.router)
     app.include_router(health.router)
+    document_limits(app, settings)
     return app
 
 

@@ -34,6 +34,7 @@ __all__ = [
     "VehicleKey",
     "api_key_header",
     "authorize",
+    "is_admin",
 ]
 
 
@@ -103,6 +104,12 @@ def _authorize(role: str) -> Callable[[Request, str | None], Awaitable[ApiKey | 
         return authorize(request, presented, role)
 
     return check
+
+
+def is_admin(key: ApiKey | None) -> bool:
+    """Whether the caller may see what admin keys see: an admin key, or any caller of a
+    service without auth (``None``: anyone may reload there)."""
+    return key is None or key.allows("admin")
 
 
 VehicleKey = Annotated[ApiKey | None, Depends(_authorize("vehicle"))]

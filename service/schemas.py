@@ -6,20 +6,26 @@ The multipart form models, which hold uploaded files, live with their routes in
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.track import MAX_TOKEN_CHARS
+
+#: Characters of a ``vehicle_id``, spelled out: JSON Schema's regex dialect (ECMA-262) reads
+#: ``\w`` as ASCII, Python's and pydantic's as any Unicode letter.
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_.:@-]+$"
 
 __all__ = [
     "AcceptanceInfo",
     "AcceptedBy",
     "BatchItem",
     "BatchResponse",
+    "BuildInfo",
     "Candidate",
     "ErrorBody",
     "ErrorDetail",
+    "Health",
     "IndexInfo",
     "LocalizeFields",
     "LocalizeParams",
@@ -27,8 +33,11 @@ __all__ = [
     "Match",
     "ModelInfo",
     "PriorReport",
+    "Ready",
+    "ReloadResponse",
     "SequenceReport",
     "TierReport",
+    "VEHICLE_ID_PATTERN",
 ]
 
 
@@ -41,14 +50,17 @@ class LocalizeFields(BaseModel):
     lat: float | None = Field(None, ge=-90, le=90, description="GPS prior: latitude")
     lon: float | None = Field(None, ge=-180, le=180, description="GPS prior: longitude")
     radius_m: float | None = Field(None, gt=0, le=20_000_000, description="GPS prior radius")
-    top_k: int = Field(5, ge=1, description="ranked candidates returned")
+    top_k: int = Field(
+        5, ge=1, description="ranked candidates returned (at most the service's max_top_k)"
+    )
     vehicle_id: str | None = Field(
         None,
         min_length=1,
         max_length=128,
-        pattern=r"^[\w.:@-]+$",
-        description="the vehicle sending the frame: turns on sequence mode (the answer "
-        "follows the vehicle's frames; see `sequence` in the response)",
+        pattern=VEHICLE_ID_PATTERN,
+        description="the vehicle sending the frame (1-128 ASCII letters, digits and "
+        "`_ . : @ -`): turns on sequence mode (the answer follows the vehicle's frames; see "
+        "`sequence` in the response)",
     )
     track: str | None = Field(
         None,
@@ -246,18 +258,49 @@ class AcceptanceInfo(BaseModel):
     )
 
 
+class BuildInfo(BaseModel):
+    """How the loaded version was made."""
+
+    created: str | None = Field(None, description="when (ISO 8601)")
+    operation: str | None = Field(None, description="the indexer operation that wrote it")
+    seconds: float | None = None
+    images_per_s: float | None = None
+    packages: dict[str, Any] | None = Field(
+        None,
+        description="package versions of the build (admin keys only; null for other keys)",
+    )
+
+
 class IndexInfo(BaseModel):
-    root: str
+    root: str | None = Field(
+        None,
+        description="the index's folder on the server (admin keys only; null for other keys)",
+    )
     version: str
     versions: list[str]
     references: int
     methods: dict[str, dict[str, object]]
     config: dict[str, object]
-    built: dict[str, object]
+    built: BuildInfo
     has_positions: bool
     threshold: float
     acceptance: AcceptanceInfo
     loaded_at: float
+
+
+class ReloadResponse(BaseModel):
+    previous: str = Field(description="the version loaded before")
+    version: str = Field(description="the version loaded now")
+    changed: bool = Field(description="whether the version changed")
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Ready(BaseModel):
+    status: Literal["ready"]
+    index_version: str
 
 
 class ErrorDetail(BaseModel):

@@ -1,4 +1,8 @@
-"""``GET /v1/index`` (what is loaded) and ``POST /v1/index/reload`` (admin: switch versions)."""
+"""``GET /v1/index`` (what is loaded) and ``POST /v1/index/reload`` (admin: switch versions).
+
+``/v1/index`` shows where the index lies on the server's disk and the package versions of its
+build only to admin keys (other keys get null there).
+"""
 
 from __future__ import annotations
 
@@ -9,26 +13,46 @@ from fastapi import APIRouter
 
 from hmpf.errors import HmpfError
 from hmpf.index import layout
-from service.deps import AdminKey, EngineDep, MetricsDep, VehicleKey
+from service.deps import AdminKey, EngineDep, MetricsDep, VehicleKey, is_admin
 from service.engine import Acceptance, Engine
-from service.errors import ERROR_RESPONSES, ApiError
-from service.schemas import IndexInfo
+from service.errors import ApiError
+from service.schemas import ErrorBody, IndexInfo, ReloadResponse
 
 __all__ = ["router"]
 
 log = logging.getLogger("hmpf.service")
-router = APIRouter(tags=["index"], responses=ERROR_RESPONSES)
+#: The errors both routes answer: a missing or unknown key, a key whose role falls short.
+_KEY_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorBody, "description": "missing or unknown API key"},
+    403: {"model": ErrorBody, "description": "the key's role may not use this route"},
+}
+router = APIRouter(tags=["index"], responses=_KEY_ERRORS)
 #: Manifest entries of a method that ``/v1/index`` reports.
 _METHOD_KEYS = ("type", "kind", "version", "dim", "faiss", "params")
 
 
 @router.get("/v1/index", response_model=IndexInfo)
 def index_info(key: VehicleKey, engine: EngineDep) -> dict[str, Any]:
-    """The loaded index version: counts, methods, config, build time."""
-    return _index_info(engine)
+    """The loaded index version: counts, methods, config, build time (its folder on the
+    server and the build's package versions: admin keys only)."""
+    info = _index_info(engine)
+    if not is_admin(key):
+        info["root"] = None
+        info["built"]["packages"] = None
+    return info
 
 
-@router.post("/v1/index/reload")
+@router.post(
+    "/v1/index/reload",
+    response_model=ReloadResponse,
+    responses={
+        409: {
+            "model": ErrorBody,
+            "description": "the current version cannot be loaded (`index_unusable`); the "
+            "loaded one stays in service",
+        }
+    },
+)
 async def reload(key: AdminKey, engine: EngineDep, metrics: MetricsDep) -> dict[str, Any]:
     """Switch to the index's current version; running queries finish on the old one."""
     try:

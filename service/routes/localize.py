@@ -83,7 +83,9 @@ class LocalizeForm(LocalizeFields):
 class BatchForm(LocalizeFields):
     """The multipart form of ``POST /v1/localize/batch`` (one set of fields for all images)."""
 
-    images: list[UploadFile] = Field(description="one or more frames, answered in order")
+    images: list[UploadFile] = Field(
+        min_length=1, description="one or more frames, answered in order"
+    )
 
 
 class FormRoute(APIRoute):
