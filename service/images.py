@@ -3,7 +3,8 @@
 Only JPEG, PNG and WebP are accepted. The format is taken from the bytes (magic numbers), not
 from the declared content type; a declared type that is not an image type we accept is a 415.
 The width and height are read from the container header (JPEG SOFn, PNG IHDR, WebP VP8 /
-VP8L / VP8X) so that a decompression bomb is refused before any pixel is decoded.
+VP8L / VP8X) so that a decompression bomb is refused before any pixel is decoded. The EXIF
+orientation is applied for every format (so tags 5-8 swap the header's width and height).
 """
 
 from __future__ import annotations
@@ -153,8 +154,8 @@ def decode_upload(
         image = decode_image(data, source)
     except ImageError as exc:
         raise ApiError(422, "invalid_image", f"{source}: {exc.reason}") from None
-    if image.shape[0] != h or image.shape[1] != w:
-        # EXIF rotation swaps the axes; anything else means the header lied.
-        if (image.shape[1], image.shape[0]) != (h, w) or kind != "jpeg":
-            raise ApiError(422, "invalid_image", f"{source}: header and pixel data disagree")
+    if image.shape[:2] not in ((h, w), (w, h)):
+        # An EXIF orientation of 5-8 swaps the axes: OpenCV applies the tag of a JPEG (APP1),
+        # a PNG (eXIf) and a WebP (EXIF chunk) alike. Any other size means the header lied.
+        raise ApiError(422, "invalid_image", f"{source}: header and pixel data disagree")
     return image

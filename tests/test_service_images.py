@@ -1,0 +1,115 @@
+"""Uploaded images (service/images.py): EXIF orientation in every accepted format, decoding
+large images at a reduced size and the decode memory budget.
+
+The test images are built here: OpenCV encodes the pixels and the EXIF orientation tag is
+written by hand (a one-entry TIFF IFD in a JPEG APP1 segment, a PNG ``eXIf`` chunk or a WebP
+``EXIF`` chunk of an extended ``VP8X`` file).
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+import pytest
+
+from service.images import decode_upload
+
+# -- building images with an orientation tag ---------------------------------------------------
+
+
+def _tiff(orientation: int) -> bytes:
+    """A big-endian TIFF header and one IFD with the Orientation tag (0x0112, SHORT)."""
+    entry = struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0)
+    return b"MM\x00*" + struct.pack(">I", 8) + struct.pack(">H", 1) + entry + b"\x00" * 4
+
+
+def _encode(ext: str, bgr: np.ndarray, *params: int) -> bytes:
+    ok, buf = cv2.imencode(ext, bgr, list(params))
+    assert ok
+    return buf.tobytes()
+
+
+def jpeg_with(bgr: np.ndarray, orientation: int | None) -> bytes:
+    data = _encode(".jpg", bgr, cv2.IMWRITE_JPEG_QUALITY, 95)
+    if orientation is None:
+        return data
+    app1 = b"Exif\x00\x00" + _tiff(orientation)
+    return data[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + data[2:]
+
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    crc = zlib.crc32(kind + body)
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+
+def png_with(bgr: np.ndarray, orientation: int | None) -> bytes:
+    data = _encode(".png", bgr)
+    if orientation is None:
+        return data
+    ihdr_end = 8 + 25  # signature, then IHDR (length, type, 13 bytes, CRC)
+    return data[:ihdr_end] + _png_chunk(b"eXIf", _tiff(orientation)) + data[ihdr_end:]
+
+
+def webp_with(bgr: np.ndarray, orientation: int | None) -> bytes:
+    data = _encode(".webp", bgr, cv2.IMWRITE_WEBP_QUALITY, 101)  # > 100: lossless
+    if orientation is None:
+        return data
+    assert data[:4] == b"RIFF" and data[8:12] == b"WEBP"
+    h, w = bgr.shape[:2]
+    vp8x = (
+        b"VP8X"
+        + struct.pack("<I", 10)
+        + bytes([0x08, 0, 0, 0])  # flags: EXIF present
+        + (w - 1).to_bytes(3, "little")
+        + (h - 1).to_bytes(3, "little")
+    )
+    tiff = _tiff(orientation)
+    exif = b"EXIF" + struct.pack("<I", len(tiff)) + tiff + b"\x00" * (len(tiff) % 2)
+    payload = b"WEBP" + vp8x + data[12:] + exif
+    return b"RIFF" + struct.pack("<I", len(payload)) + payload
+
+
+BUILDERS: dict[str, Callable[[np.ndarray, int | None], bytes]] = {
+    "jpeg": jpeg_with,
+    "png": png_with,
+    "webp": webp_with,
+}
+
+#: What EXIF orientation 1-8 asks a viewer to do to the stored pixels (H x W x C arrays).
+ORIENT: dict[int, Callable[[np.ndarray], np.ndarray]] = {
+    1: lambda a: a,
+    2: lambda a: a[:, ::-1],  # mirror left-right
+    3: lambda a: a[::-1, ::-1],  # rotate 180
+    4: lambda a: a[::-1],  # mirror top-bottom
+    5: lambda a: a.transpose(1, 0, 2),  # transpose (main diagonal)
+    6: lambda a: np.rot90(a, -1),  # rotate 90 clockwise
+    7: lambda a: np.rot90(a, 2).transpose(1, 0, 2),  # transverse (anti-diagonal)
+    8: lambda a: np.rot90(a, 1),  # rotate 90 counter-clockwise
+}
+
+
+def _pattern(h: int = 48, w: int = 80) -> np.ndarray:
+    """An asymmetric BGR picture of 8 x 8 blocks (every flip or rotation of it differs)."""
+    rng = np.random.default_rng(7)
+    blocks = rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8)
+    return np.ascontiguousarray(np.kron(blocks, np.ones((8, 8, 1), np.uint8)))
+
+
+# -- orientation ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", sorted(BUILDERS))
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_format_applies_every_exif_orientation(kind: str, orientation: int) -> None:
+    bgr = _pattern()
+    build = BUILDERS[kind]
+    # The same compressed pixels without the tag: the oriented answer is this one, transformed.
+    plain = decode_upload(build(bgr, None), max_pixels=10**6)
+    if kind != "jpeg":  # lossless
+        np.testing.assert_array_equal(plain, bgr[:, :, ::-1])
+    out = decode_upload(build(bgr, orientation), max_pixels=10**6)
+    np.testing.assert_array_equal(out, ORIENT[orientation](plain))
