@@ -28,6 +28,7 @@ from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
 from fastapi.routing import APIRoute
 from pydantic import Field, ValidationError
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 from starlette.routing import Match
 from starlette.types import Scope
@@ -90,8 +91,9 @@ class FormRoute(APIRoute):
     """A route with a form body, read (by FastAPI) before the key is checked.
 
     A body the parser cannot read is a 422 like every invalid request (``invalid_request``)
-    rather than FastAPI's 400; and, as for a body that parses, a caller without a key for
-    :attr:`role` hears 401 / 403 instead of what is wrong with its body (or its size).
+    rather than FastAPI's 400, but a client that hung up is a disconnect, not a bad body; and,
+    as for a body that parses, a caller without a key for :attr:`role` hears 401 / 403
+    instead of what is wrong with its body (or its size).
     """
 
     #: The role the route's key dependency asks for.
@@ -104,6 +106,8 @@ class FormRoute(APIRoute):
             try:
                 return await handler(request)
             except HTTPException as exc:
+                if isinstance(exc.__cause__, ClientDisconnect):  # FastAPI's 400 for it
+                    raise exc.__cause__ from None
                 if exc.status_code not in (400, 413):
                     raise
                 authorize(request, request.headers.get(API_KEY_HEADER), self.role)

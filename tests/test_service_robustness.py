@@ -1,0 +1,185 @@
+"""The service against misbehaving clients, through a real uvicorn server on loopback: a client
+that hangs up mid-upload, slow clients (headers, body) and more connections than allowed.
+
+The server runs in a thread of the test process with the options ``hmpf-serve`` gives uvicorn
+(:func:`service.server.uvicorn_config`) and an engine without an index: every request here is
+answered (or dropped) before it would reach the engine. Logs are read from the records of the
+``hmpf`` and ``uvicorn`` loggers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+
+from service.app import create_app
+from service.settings import load_settings
+
+BOUNDARY = "hmpfboundary"
+
+
+class IdleEngine:
+    """An engine with no index: what the app's lifespan and ``/metrics`` read of one."""
+
+    ready = True
+    workers = 1
+    queued = 0
+    running = 0
+    current = SimpleNamespace(version="v-test")
+
+    def load(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def admit(self, n: int = 1) -> bool:
+        raise AssertionError("no request of these tests should reach the engine")
+
+
+class Records(logging.Handler):
+    """Every record of the loggers it is attached to."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    def lines(self) -> list[str]:
+        out = []
+        for r in self.records:
+            text = r.getMessage()
+            if r.exc_info:
+                text += "\n" + logging.Formatter().formatException(r.exc_info)
+            out += text.splitlines()
+        return out
+
+
+class LiveServer:
+    """uvicorn serving the app in a thread, on a free loopback port."""
+
+    def __init__(self, tmp: Path, **overrides: Any) -> None:
+        settings = load_settings(None, index=tmp, auth=False, port=0, **overrides)
+        self.app = create_app(settings, engine=IdleEngine())  # type: ignore[arg-type]
+        config = _config(self.app, settings)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve()))
+        self.log = Records()
+        self._levels = {}
+        for name in ("hmpf", "uvicorn"):  # at hmpf-serve's default level, info
+            logger = logging.getLogger(name)
+            self._levels[name] = logger.level
+            logger.setLevel(logging.INFO)
+            logger.addHandler(self.log)
+
+    def __enter__(self) -> LiveServer:
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            assert self.thread.is_alive() and time.monotonic() < deadline, "server did not start"
+            time.sleep(0.02)
+        (sock,) = self.server.servers[0].sockets
+        self.port = sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(15)
+        for name, level in self._levels.items():
+            logging.getLogger(name).removeHandler(self.log)
+            logging.getLogger(name).setLevel(level)
+
+    def connect(self) -> socket.socket:
+        return socket.create_connection(("127.0.0.1", self.port), timeout=10)
+
+    def requests_counted(self) -> dict[str, float]:
+        """``hmpf_requests_total`` by status, from ``/metrics``."""
+        text = httpx.get(self.url + "/metrics", timeout=10).text
+        counts: dict[str, float] = {}
+        for m in re.finditer(r"^hmpf_requests_total\{([^}]*)\} (\S+)$", text, re.M):
+            labels = dict(re.findall(r'(\w+)="([^"]*)"', m.group(1)))
+            if labels["route"] != "/metrics":
+                counts[labels["status"]] = counts.get(labels["status"], 0) + float(m.group(2))
+        return counts
+
+
+def _config(app: Any, settings: Any) -> uvicorn.Config:
+    return uvicorn.Config(app, host="127.0.0.1", port=0, log_level="info")
+
+
+def multipart_head(path: str, length: int) -> bytes:
+    """The request line and headers of a multipart upload of ``length`` body bytes."""
+    return (
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n"
+        f"Content-Length: {length}\r\n\r\n"
+    ).encode()
+
+
+def part_head(field: str = "image") -> bytes:
+    return (
+        f'--{BOUNDARY}\r\nContent-Disposition: form-data; name={field!r}; filename="a.png"\r\n'
+        "Content-Type: image/png\r\n\r\n"
+    ).encode()
+
+
+def wait_for(check: Any, timeout: float = 5.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if value or time.monotonic() > deadline:
+            return value
+        time.sleep(0.05)
+
+
+@pytest.fixture()
+def live(tmp_path: Path) -> Iterator[LiveServer]:
+    with LiveServer(tmp_path) as server:
+        yield server
+
+
+# -- a client that hangs up mid-upload ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("path", "multipart"),
+    [("/v1/localize", True), ("/v1/localize", False), ("/v1/localize/batch", True)],
+)
+def test_a_client_hanging_up_mid_upload_is_a_disconnect_not_a_server_error(
+    live: LiveServer, path: str, multipart: bool
+) -> None:
+    with live.connect() as s:
+        if multipart:
+            s.sendall(
+                multipart_head(path, 100_000) + part_head("images" if "batch" in path else "image")
+            )
+        else:
+            s.sendall(
+                f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: image/png\r\n"
+                "Content-Length: 100000\r\n\r\n".encode()
+            )
+        s.sendall(b"\x89PNG\r\n\x1a\n" + b"\x00" * 5000)
+        time.sleep(0.2)  # the server is reading the body
+    counted = wait_for(lambda: live.requests_counted().get("499"))
+    assert counted == 1, live.requests_counted()
+    assert "500" not in live.requests_counted()
+    lines = live.log.lines()
+    assert not [ln for ln in lines if "Traceback" in ln], "\n".join(lines)
+    disconnect = [ln for ln in lines if "disconnect" in ln.lower()]
+    assert len(disconnect) == 1, "\n".join(lines)
+    assert path in disconnect[0]
