@@ -64,6 +64,23 @@ class Settings(BaseSettings):
     queue: int = Field(8, ge=0, description="queries waiting beyond the workers, then 503")
     threads_per_worker: int = Field(0, ge=0, description="torch/OpenCV threads (0: auto)")
     retry_after_s: int = Field(1, ge=1)
+    # -- connections (service/server.py) ------------------------------------------------------
+    max_connections: int = Field(
+        128, ge=1, description="connections open at once; a request on one more gets 503"
+    )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="time for a request's line and headers, from the connection or the "
+        "previous answer; then 408 and the connection is closed",
+    )
+    body_timeout_s: float = Field(
+        60.0, gt=0, description="time for a request's whole body after its headers; then 408"
+    )
+    keep_alive_s: int = Field(5, ge=1, description="an idle kept-alive connection is closed")
+    max_header_bytes: int = Field(
+        16 * 1024, ge=1024, description="request line and headers; more is a 400"
+    )
     # -- answers -----------------------------------------------------------------------------
     accept_threshold: float | None = Field(
         None,

@@ -25,6 +25,7 @@ import pytest
 import uvicorn
 
 from service.app import create_app
+from service.server import uvicorn_config
 from service.settings import load_settings
 
 BOUNDARY = "hmpfboundary"
@@ -75,7 +76,7 @@ class LiveServer:
     def __init__(self, tmp: Path, **overrides: Any) -> None:
         settings = load_settings(None, index=tmp, auth=False, port=0, **overrides)
         self.app = create_app(settings, engine=IdleEngine())  # type: ignore[arg-type]
-        config = _config(self.app, settings)
+        config = uvicorn_config(self.app, settings)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve()))
         self.log = Records()
@@ -116,10 +117,6 @@ class LiveServer:
             if labels["route"] != "/metrics":
                 counts[labels["status"]] = counts.get(labels["status"], 0) + float(m.group(2))
         return counts
-
-
-def _config(app: Any, settings: Any) -> uvicorn.Config:
-    return uvicorn.Config(app, host="127.0.0.1", port=0, log_level="info")
 
 
 def multipart_head(path: str, length: int) -> bytes:
@@ -183,3 +180,67 @@ def test_a_client_hanging_up_mid_upload_is_a_disconnect_not_a_server_error(
     disconnect = [ln for ln in lines if "disconnect" in ln.lower()]
     assert len(disconnect) == 1, "\n".join(lines)
     assert path in disconnect[0]
+
+
+# -- slow clients and too many connections -------------------------------------------------------
+
+
+def read_answer(s: socket.socket, within: float) -> tuple[bytes, float]:
+    """Everything the server sends until it closes the connection, and when it closed it."""
+    start = time.monotonic()
+    s.settimeout(within)
+    data = b""
+    while True:
+        chunk = s.recv(65536)
+        if not chunk:
+            return data, time.monotonic() - start
+        data += chunk
+
+
+def test_a_client_slow_to_send_its_headers_is_cut_off(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, header_timeout_s=0.5) as live, live.connect() as s:
+        s.sendall(b"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # ... and no more
+        answer, after = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 408 "), answer
+        assert b'"request_timeout"' in answer
+        assert 0.4 < after < 2.5
+        # a connection that sends nothing at all is closed as well
+        with live.connect() as idle:
+            answer, after = read_answer(idle, within=5)
+            assert answer.startswith(b"HTTP/1.1 408 ") and after < 2.5
+
+
+@pytest.mark.parametrize("multipart", [True, False])
+def test_a_client_slow_to_send_its_body_gets_408(tmp_path: Path, multipart: bool) -> None:
+    with LiveServer(tmp_path, body_timeout_s=0.5) as live, live.connect() as s:
+        if multipart:
+            s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
+        else:
+            s.sendall(
+                b"POST /v1/localize HTTP/1.1\r\nHost: x\r\nContent-Type: image/png\r\n"
+                b"Content-Length: 100000\r\n\r\n"
+            )
+        s.sendall(b"\x89PNG\r\n\x1a\n" + b"\x00" * 1000)  # ... and the rest never comes
+        answer, after = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 408 "), answer
+        assert b'"request_timeout"' in answer
+        assert after < 2.5
+        assert wait_for(lambda: live.requests_counted().get("408")) == 1
+        lines = live.log.lines()
+        assert not [ln for ln in lines if "Traceback" in ln], "\n".join(lines)
+
+
+def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, max_connections=2) as live:
+        held = [live.connect() for _ in range(2)]
+        try:
+            for s in held:  # two uploads in progress
+                s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
+            time.sleep(0.2)
+            r = httpx.get(live.url + "/healthz", timeout=5)
+            assert r.status_code == 503
+        finally:
+            for s in held:
+                s.close()
+        ok = wait_for(lambda: httpx.get(live.url + "/healthz", timeout=5).status_code == 200)
+        assert ok
