@@ -57,6 +57,19 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(10 * 2**20, ge=1024, description="per image")
     max_pixels: int = Field(40_000_000, ge=64, description="width x height, from the header")
     max_batch: int = Field(16, ge=1, description="images per /v1/localize/batch request")
+    decode_side: int = Field(
+        1024,
+        ge=0,
+        description="working size: an image whose shorter side is at least twice this is "
+        "decoded at 1/2, 1/4 or 1/8 of its size, its shorter side kept at or above it; 0: "
+        "always the full size",
+    )
+    max_decode_bytes: int = Field(
+        256 * 2**20,
+        ge=2**20,
+        description="pixels the decoder may hold for one request's images (3 bytes each, as "
+        "if decoded at once: service/images.py decode_cost); more is a 413",
+    )
     max_top_k: int = Field(50, ge=1)
     workers: int = Field(
         0, ge=0, description="query threads and extraction threads (0: one per core)"

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.images import decode_upload
+from service.images import decode_cost, decode_upload
 
 # -- building images with an orientation tag ---------------------------------------------------
 
@@ -113,3 +113,55 @@ def test_every_format_applies_every_exif_orientation(kind: str, orientation: int
         np.testing.assert_array_equal(plain, bgr[:, :, ::-1])
     out = decode_upload(build(bgr, orientation), max_pixels=10**6)
     np.testing.assert_array_equal(out, ORIENT[orientation](plain))
+
+
+# -- large images: reduced decoding and the decode budget ---------------------------------------
+
+
+def _large(h: int, w: int) -> np.ndarray:
+    """A smooth BGR picture (gradients and a disc), cheap to encode at any size."""
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([x * 255 // w, y * 255 // h, (x + y) * 127 // (w + h)], axis=2).astype(np.uint8)
+    cv2.circle(img, (w // 3, h // 2), min(h, w) // 4, (20, 200, 40), -1)
+    return img
+
+
+@pytest.mark.parametrize("kind", ["jpeg", "png", "webp"])
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_a_large_image_is_decoded_reduced_to_the_working_size(kind: str, orientation: int) -> None:
+    bgr = _large(1700, 2300)  # shorter side 1700: halved (850 >= 800), not quartered
+    data = BUILDERS[kind](bgr, orientation)
+    out = decode_upload(data, max_pixels=10**7, decode_side=800)
+    full = decode_upload(data, max_pixels=10**7)  # no working size: the whole image
+    assert full.shape[:2] == ((1700, 2300) if orientation == 1 else (2300, 1700))
+    assert out.shape == (full.shape[0] // 2, full.shape[1] // 2, 3)
+    # the same picture as the full decode shrunk by 2 (2 x 2 box), up to rounding and JPEG
+    area = cv2.resize(full, out.shape[1::-1], interpolation=cv2.INTER_AREA)
+    diff = np.abs(out.astype(np.int16) - area.astype(np.int16))
+    assert diff.mean() < (1.5 if kind == "jpeg" else 0.6), diff.mean()
+
+
+def test_reduction_steps_and_images_at_the_working_size_are_untouched() -> None:
+    bgr = _large(600, 900)
+    data = BUILDERS["jpeg"](bgr, None)
+    same = decode_upload(data, max_pixels=10**7, decode_side=300)  # 600 = 2 x 300: halved
+    assert same.shape == (300, 450, 3)
+    for side, shape in ((301, (600, 900)), (150, (150, 225)), (75, (75, 113)), (10, (75, 113))):
+        assert decode_upload(data, max_pixels=10**7, decode_side=side).shape[:2] == shape, side
+    np.testing.assert_array_equal(
+        decode_upload(data, max_pixels=10**7, decode_side=301),
+        decode_upload(data, max_pixels=10**7),
+    )
+
+
+def test_decode_cost_counts_what_the_decoder_holds() -> None:
+    baseline = BUILDERS["jpeg"](_large(1600, 2400), None)
+    progressive = _encode(".jpg", _large(1600, 2400), cv2.IMWRITE_JPEG_PROGRESSIVE, 1)
+    png = BUILDERS["png"](_large(1600, 2400), None)
+    full = 1600 * 2400 * 3
+    assert decode_cost(baseline, 0) == full
+    assert decode_cost(baseline, 400) == full // 16  # libjpeg decodes at 1/4 directly
+    assert decode_cost(progressive, 400) == full  # its coefficients are held whole
+    assert decode_cost(png, 400) == full  # decoded whole, then shrunk
+    assert decode_cost(b"not an image", 400) == 0  # refused on its own later
+    assert decode_cost(png, 400, max_pixels=1600 * 2400 - 1) == 0  # as is one over the limit

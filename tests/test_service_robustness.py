@@ -20,7 +20,9 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import cv2
 import httpx
+import numpy as np
 import pytest
 import uvicorn
 
@@ -244,3 +246,30 @@ def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
                 s.close()
         ok = wait_for(lambda: httpx.get(live.url + "/healthz", timeout=5).status_code == 200)
         assert ok
+
+
+# -- the decode budget -----------------------------------------------------------------------------
+
+
+def _png(side: int) -> bytes:
+    ok, buf = cv2.imencode(".png", np.zeros((side, side, 3), np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def test_a_batch_over_the_decode_budget_is_refused_before_decoding(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, max_decode_bytes=2**20) as live:
+        images = [("images", (f"{i}.png", _png(400), "image/png")) for i in range(3)]
+        r = httpx.post(live.url + "/v1/localize/batch", files=images, timeout=10)
+        assert r.status_code == 413, r.text
+        error = r.json()["error"]
+        assert error["code"] == "decode_budget_exceeded"
+        assert "1440000" in error["message"] and "1048576" in error["message"]
+        big = _png(700)  # 1.47 MB decoded: one image alone is over the budget as well
+        r = httpx.post(
+            live.url + "/v1/localize",
+            content=big,
+            timeout=10,
+            headers={"Content-Type": "image/png"},
+        )
+        assert r.status_code == 413 and r.json()["error"]["code"] == "decode_budget_exceeded"

@@ -52,7 +52,7 @@ from service.errors import (
     upload_too_large,
     validation_message,
 )
-from service.images import ACCEPTED_TYPES, check_content_type
+from service.images import ACCEPTED_TYPES, check_content_type, check_decode_budget
 from service.metrics import Metrics
 from service.query import ImageQuery
 from service.schemas import (
@@ -191,18 +191,29 @@ class Localizer:
     def queries(
         self, params: LocalizeParams, uploads: list[Upload], sequence: bool = False
     ) -> list[ImageQuery]:
-        """Admitted work for each upload: 413 over the size limit, 503 when the slots are
-        taken (a batch takes one per lane, at most ``workers``); ``sequence``: keep each
-        frame's evidence for the sequence filter."""
-        limit = self.settings.max_upload_bytes
+        """Admitted work for each upload: 413 over the size limit or the decode budget, 503
+        when the slots are taken (a batch takes one per lane, at most ``workers``);
+        ``sequence``: keep each frame's evidence for the sequence filter."""
+        s = self.settings
         for upload in uploads:
-            if len(upload.data) > limit:
-                raise upload_too_large(limit, upload.source)
+            if len(upload.data) > s.max_upload_bytes:
+                raise upload_too_large(s.max_upload_bytes, upload.source)
+        images = [u.data for u in uploads]
+        check_decode_budget(images, s.max_decode_bytes, s.decode_side, s.max_pixels)
         if not self.engine.admit(self.lanes(len(uploads))):
-            raise overloaded(self.settings.retry_after_s)
-        pixels, compute = self.settings.max_pixels, self.engine.compute
+            raise overloaded(s.retry_after_s)
+        pixels, compute = s.max_pixels, self.engine.compute
         return [
-            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute, sequence=sequence)
+            ImageQuery(
+                u.data,
+                u.content_type,
+                params,
+                u.source,
+                pixels,
+                compute,
+                sequence=sequence,
+                decode_side=s.decode_side,
+            )
             for u in uploads
         ]
 
