@@ -199,6 +199,21 @@ def read_answer(s: socket.socket, within: float) -> tuple[bytes, float]:
         data += chunk
 
 
+def read_response(s: socket.socket) -> bytes:
+    """One whole answer (head and ``Content-Length`` bytes of body) from a kept-alive
+    connection."""
+    s.settimeout(5)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += s.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = int(re.search(rb"(?i)content-length: *(\d+)", head).group(1))  # type: ignore[union-attr]
+    while len(body) < length:
+        body += s.recv(65536)
+    assert len(body) == length, "more than one answer"
+    return head + b"\r\n\r\n" + body
+
+
 def test_a_client_slow_to_send_its_headers_is_cut_off(tmp_path: Path) -> None:
     with LiveServer(tmp_path, header_timeout_s=0.5) as live, live.connect() as s:
         s.sendall(b"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # ... and no more
@@ -210,6 +225,29 @@ def test_a_client_slow_to_send_its_headers_is_cut_off(tmp_path: Path) -> None:
         with live.connect() as idle:
             answer, after = read_answer(idle, within=5)
             assert answer.startswith(b"HTTP/1.1 408 ") and after < 2.5
+
+
+def test_the_header_deadline_does_not_cut_a_body_or_a_kept_alive_connection(
+    tmp_path: Path,
+) -> None:
+    with LiveServer(tmp_path, header_timeout_s=0.3) as live, live.connect() as s:
+        body = (
+            f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="top_k"\r\n\r\n3\r\n'
+            f"--{BOUNDARY}--\r\n"
+        ).encode()
+        s.sendall(multipart_head("/v1/localize", len(body)))
+        for i in range(0, len(body), 8):  # the body over about a second, slower than 0.3 s
+            s.sendall(body[i : i + 8])
+            time.sleep(0.1)
+        answer = read_response(s)
+        assert answer.startswith(b"HTTP/1.1 422 "), answer  # no image field: read, refused
+        for _ in range(2):  # the same connection, each request well within its deadline
+            time.sleep(0.2)
+            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            answer = read_response(s)
+            assert answer.startswith(b"HTTP/1.1 200 "), answer
+        answer, after = read_answer(s, within=5)  # then idle: cut after 0.3 s
+        assert answer.startswith(b"HTTP/1.1 408 ") and after < 2.5
 
 
 @pytest.mark.parametrize("multipart", [True, False])
