@@ -11,12 +11,18 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Callable
+from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
 from service.images import decode_cost, decode_upload
+from service.metrics import Metrics
+from service.routes.localize import Localizer, Upload
+from service.schemas import LocalizeParams
+from service.settings import load_settings
 
 # -- building images with an orientation tag ---------------------------------------------------
 
@@ -165,3 +171,16 @@ def test_decode_cost_counts_what_the_decoder_holds() -> None:
     assert decode_cost(png, 400) == full  # decoded whole, then shrunk
     assert decode_cost(b"not an image", 400) == 0  # refused on its own later
     assert decode_cost(png, 400, max_pixels=1600 * 2400 - 1) == 0  # as is one over the limit
+
+
+def test_the_routes_decode_at_the_working_size_of_the_settings(tmp_path: Path) -> None:
+    settings = load_settings(None, index=tmp_path, auth=False, decode_side=300)
+    engine = SimpleNamespace(admit=lambda n: True, workers=1, compute=None)
+    localizer = Localizer(engine, settings, Metrics(), None)  # type: ignore[arg-type]
+    data = BUILDERS["jpeg"](_large(600, 900), None)
+    (query,) = localizer.queries(LocalizeParams(), [Upload(data, "image/jpeg", "image")])
+    assert query.decode_side == 300
+    assert decode_upload(data, max_pixels=10**7, decode_side=query.decode_side).shape[:2] == (
+        300,
+        450,
+    )

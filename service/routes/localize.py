@@ -194,15 +194,16 @@ class Localizer:
         """Admitted work for each upload: 413 over the size limit or the decode budget, 503
         when the slots are taken (a batch takes one per lane, at most ``workers``);
         ``sequence``: keep each frame's evidence for the sequence filter."""
-        s = self.settings
+        limit = self.settings.max_upload_bytes
         for upload in uploads:
-            if len(upload.data) > s.max_upload_bytes:
-                raise upload_too_large(s.max_upload_bytes, upload.source)
-        images = [u.data for u in uploads]
-        check_decode_budget(images, s.max_decode_bytes, s.decode_side, s.max_pixels)
+            if len(upload.data) > limit:
+                raise upload_too_large(limit, upload.source)
+        side = self.settings.decode_side
+        budget, pixels = self.settings.max_decode_bytes, self.settings.max_pixels
+        check_decode_budget([u.data for u in uploads], budget, side, pixels)
         if not self.engine.admit(self.lanes(len(uploads))):
-            raise overloaded(s.retry_after_s)
-        pixels, compute = s.max_pixels, self.engine.compute
+            raise overloaded(self.settings.retry_after_s)
+        compute = self.engine.compute
         return [
             ImageQuery(
                 u.data,
@@ -212,7 +213,7 @@ class Localizer:
                 pixels,
                 compute,
                 sequence=sequence,
-                decode_side=s.decode_side,
+                decode_side=side,
             )
             for u in uploads
         ]
