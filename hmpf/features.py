@@ -16,12 +16,14 @@ from __future__ import annotations
 import hashlib
 import multiprocessing
 import os
+import threading
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -130,9 +132,31 @@ def _init_worker(methods: Mapping[str, Method], single_thread: bool = True) -> N
     _WORKER_METHODS.update(methods)
 
 
-def _init_pool_worker(methods: Mapping[str, Method]) -> None:
+def _init_pool_worker(methods: Mapping[str, Method], lifeline: Connection) -> None:
     ignore_sigint()  # Ctrl-C is the parent's: a worker stops without a traceback
+    _exit_with_parent(lifeline)
     _init_worker(methods)
+
+
+def _exit_with_parent(lifeline: Connection) -> None:
+    """End this worker as soon as the process that started its pool is gone, killed or not.
+
+    ``lifeline`` is the read end of a pipe whose only write end that process holds (never
+    written to): its end of file means the parent has exited. A thread of the worker waits
+    for it. Without this a worker whose parent was killed (SIGKILL: no pool shutdown) waits
+    for work for ever, and keeps the forkserver and the resource tracker alive with it (they
+    exit once no worker holds their pipes). A parent-death signal (``PR_SET_PDEATHSIG``)
+    would not do: a forkserver worker's parent is the forkserver, not the pool's owner.
+    """
+
+    def watch() -> None:
+        try:
+            lifeline.recv_bytes()  # nothing is ever sent: returns only at end of file
+        except (EOFError, OSError):
+            pass
+        os._exit(1)
+
+    threading.Thread(target=watch, name="hmpf-parent-watch", daemon=True).start()
 
 
 def _extract_one(
@@ -343,6 +367,7 @@ def _extract(
         return decode
     n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
     bar = tqdm(total=len(jobs), desc=desc, unit="img", disable=None if progress else True)
+    closing: list[Connection] = []
 
     def collect(i: int, res: tuple[dict[str, Any], dict[str, float], float]) -> None:
         feats, times, dms = res
@@ -360,8 +385,14 @@ def _extract(
             # forkserver: forking a process whose OpenCV/BLAS threads hold locks deadlocks.
             ctx = multiprocessing.get_context("forkserver")
             cpu_methods = {m: methods[m] for m in methods if m not in batched_ids}
+            # The workers end when this end of the pipe closes (_exit_with_parent).
+            lifeline, alive = ctx.Pipe(duplex=False)
+            closing.extend((lifeline, alive))
             with ProcessPoolExecutor(
-                n_workers, mp_context=ctx, initializer=_init_pool_worker, initargs=(cpu_methods,)
+                n_workers,
+                mp_context=ctx,
+                initializer=_init_pool_worker,
+                initargs=(cpu_methods, lifeline),
             ) as pool:
                 futs = {i: pool.submit(_extract_one, str(paths[i]), cpu_todo[i]) for i in jobs}
                 try:
@@ -372,4 +403,6 @@ def _extract(
                     raise
     finally:
         bar.close()
+        for conn in closing:  # after the pool's shutdown; at an error, the workers stop now
+            conn.close()
     return decode

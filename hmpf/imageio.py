@@ -24,6 +24,13 @@ _JPEG_SOI = b"\xff\xd8"
 _JPEG_EOI = b"\xff\xd9"
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND"
+#: imdecode flags per size divisor (1: full size).
+_REDUCED = {
+    1: cv2.IMREAD_COLOR,
+    2: cv2.IMREAD_REDUCED_COLOR_2,
+    4: cv2.IMREAD_REDUCED_COLOR_4,
+    8: cv2.IMREAD_REDUCED_COLOR_8,
+}
 
 
 def _check_complete(data: bytes, source: str) -> None:
@@ -64,10 +71,16 @@ def to_rgb(image: np.ndarray, source: str = "<array>") -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def decode_image(data: bytes | bytearray | memoryview, source: str = "<bytes>") -> np.ndarray:
+def decode_image(
+    data: bytes | bytearray | memoryview, source: str = "<bytes>", reduce: int = 1
+) -> np.ndarray:
     """Decode encoded image bytes (JPEG, PNG, WebP, BMP, TIFF) to H x W x 3 RGB ``uint8``.
 
     Grey and 16-bit images are converted to 8-bit 3-channel; EXIF orientation is applied.
+    ``reduce`` (2, 4 or 8) decodes at that fraction of the size (each side rounded up for a
+    JPEG, down otherwise): a JPEG through libjpeg's scaled decoding (the full image is never
+    held, except a progressive one's coefficients), another format decoded whole, then shrunk
+    as 2 x 2 means (OpenCV's reduced decoding) and by area for the rest.
 
     Raises:
         ImageError: empty, truncated or undecodable data (the message names ``source``).
@@ -75,8 +88,14 @@ def decode_image(data: bytes | bytearray | memoryview, source: str = "<bytes>") 
     buf = bytes(data)
     _check_data(buf, source)
     arr = np.frombuffer(buf, dtype=np.uint8)
+    if reduce not in _REDUCED:
+        raise ValueError(f"reduce must be one of {sorted(_REDUCED)}, got {reduce}")
+    jpeg = buf.startswith(_JPEG_SOI)
     try:
-        bgr = cv2.imdecode(arr, cv2.IMREAD_COLOR)
+        bgr = cv2.imdecode(arr, _REDUCED[reduce] if jpeg else _REDUCED[min(reduce, 2)])
+        if bgr is not None and not jpeg and reduce > 2:
+            rows, cols = (bgr.shape[0] * 2) // reduce, (bgr.shape[1] * 2) // reduce
+            bgr = cv2.resize(bgr, (max(cols, 1), max(rows, 1)), interpolation=cv2.INTER_AREA)
     except cv2.error as exc:  # e.g. pixel limits inside OpenCV
         raise ImageError(
             source, f"decoder failed ({exc.err.strip() if exc.err else exc})"

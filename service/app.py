@@ -29,7 +29,7 @@ from hmpf.cli.common import package_version
 from service.auth import KeyStore
 from service.engine import Engine
 from service.errors import install_handlers
-from service.limits import BodyLimit
+from service.limits import BodyDeadline, BodyLimit
 from service.metrics import Metrics
 from service.openapi import document_limits
 from service.routes import health, index, localize
@@ -68,6 +68,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
     app.state.keys = keys
     install_handlers(app)
     app.add_middleware(BodyLimit, limit_for=_body_limits(settings))
+    app.add_middleware(BodyDeadline, timeout_s=settings.body_timeout_s)
     app.middleware("http")(metrics.middleware)
     app.include_router(
         localize.router,

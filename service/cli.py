@@ -108,6 +108,8 @@ def _run_server(app: FastAPI, settings: Settings) -> int:
     """
     import uvicorn
 
+    from service.server import uvicorn_config
+
     class Server(uvicorn.Server):
         interrupted = False
 
@@ -115,14 +117,7 @@ def _run_server(app: FastAPI, settings: Settings) -> int:
             self.interrupted = self.interrupted or sig == signal.SIGINT
             super().handle_exit(sig, frame)
 
-    config = uvicorn.Config(
-        app,
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=10,
-    )
-    server = Server(config)
+    server = Server(uvicorn_config(app, settings))
     server.run()
     if server.interrupted:
         raise KeyboardInterrupt

@@ -2,9 +2,11 @@
 
 This module is the one place that builds that body (:func:`error_body`) and maps errors to
 HTTP: our own :class:`ApiError`, FastAPI's validation errors (422), a body over the limit
-(413, :class:`~service.limits.BodyTooLarge`), Starlette's HTTP errors (404, 405, ...) and, as
-a last resort, any other exception (500 with a generic message; the traceback goes to the
-log, never to the client). The constructors below name the errors several routes raise.
+(413, :class:`~service.limits.BodyTooLarge`), Starlette's HTTP errors (404, 405, ...), a client
+that hung up before its request was read (:data:`CLIENT_CLOSED`: one log line, no answer can
+reach it) and, as a last resort, any other exception (500 with a generic message; the
+traceback goes to the log, never to the client). The constructors below name the errors
+several routes raise.
 """
 
 from __future__ import annotations
@@ -17,10 +19,13 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+from starlette.responses import Response
 
 from service.schemas import ErrorBody
 
 __all__ = [
+    "CLIENT_CLOSED",
     "ERROR_RESPONSES",
     "ApiError",
     "error_body",
@@ -32,6 +37,10 @@ __all__ = [
 ]
 
 log = logging.getLogger("hmpf.service")
+
+#: The status recorded (metrics, access log) for a request whose client hung up before it was
+#: read: nginx's 499 "client closed request". Never sent: nobody is there to read it.
+CLIENT_CLOSED = 499
 
 #: The error answers the API's routes document (``responses=`` of a route or router).
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -90,6 +99,7 @@ _HTTP_CODES = {
     403: "forbidden",
     404: "not_found",
     405: "method_not_allowed",
+    408: "request_timeout",
     413: "payload_too_large",
     415: "unsupported_media_type",
 }
@@ -118,6 +128,15 @@ def install_handlers(app: FastAPI) -> None:
         # Also answers BodyTooLarge (an HTTPException with status 413).
         code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
         return JSONResponse(error_body(code, str(exc.detail)), exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_closed(request: Request, exc: ClientDisconnect) -> Response:
+        log.info(
+            "client disconnected before its request was read: %s %s",
+            request.method,
+            request.url.path,
+        )
+        return Response(status_code=CLIENT_CLOSED)
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:

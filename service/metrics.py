@@ -1,6 +1,7 @@
 """Prometheus metrics of one app (its own registry, so several apps can coexist in tests).
 
-* ``hmpf_requests_total{route,method,status}``
+* ``hmpf_requests_total{route,method,status}``: ``status`` is the HTTP status answered, or
+  499 for a client that hung up before its request was read (nothing answered)
 * ``hmpf_request_seconds{route}``: end-to-end latency histogram per route
 * ``hmpf_stage_seconds{stage}``: queue, decode, extract, hierarchy, total per query
 * ``hmpf_queue_depth``, ``hmpf_running``: admitted queries waiting / computing

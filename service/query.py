@@ -40,6 +40,7 @@ class ImageQuery:
         compute: the engine's pool for the extraction tasks.
         submitted: when the request handed it over (``perf_counter``), for the queue time.
         sequence: keep the frame's evidence for the sequence filter.
+        decode_side: the working size the image is decoded at (0: full size).
         evidence, loaded: after the call, in sequence mode: the evidence and the version it
             was computed on.
         result: after the call, in sequence mode with a sequence confidence model: the
@@ -55,6 +56,7 @@ class ImageQuery:
     compute: Executor
     submitted: float = field(default_factory=time.perf_counter)
     sequence: bool = False
+    decode_side: int = 0
     evidence: Evidence | None = field(default=None, init=False)
     loaded: Loaded | None = field(default=None, init=False, repr=False)
     result: HierarchyResult | None = field(default=None, init=False, repr=False)
@@ -72,6 +74,7 @@ class ImageQuery:
             max_pixels=self.max_pixels,
             content_type=self.content_type,
             source=self.source,
+            decode_side=self.decode_side,
         )
         timing["decode"] = _ms_since(t)
         try:

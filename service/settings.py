@@ -57,6 +57,19 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(10 * 2**20, ge=1024, description="per image")
     max_pixels: int = Field(40_000_000, ge=64, description="width x height, from the header")
     max_batch: int = Field(16, ge=1, description="images per /v1/localize/batch request")
+    decode_side: int = Field(
+        1024,
+        ge=0,
+        description="working size: an image whose shorter side is at least twice this is "
+        "decoded at 1/2, 1/4 or 1/8 of its size, its shorter side kept at or above it; 0: "
+        "always the full size",
+    )
+    max_decode_bytes: int = Field(
+        256 * 2**20,
+        ge=2**20,
+        description="pixels the decoder may hold for one request's images (3 bytes each, as "
+        "if decoded at once: service/images.py decode_cost); more is a 413",
+    )
     max_top_k: int = Field(50, ge=1)
     workers: int = Field(
         0, ge=0, description="query threads and extraction threads (0: one per core)"
@@ -64,6 +77,23 @@ class Settings(BaseSettings):
     queue: int = Field(8, ge=0, description="queries waiting beyond the workers, then 503")
     threads_per_worker: int = Field(0, ge=0, description="torch/OpenCV threads (0: auto)")
     retry_after_s: int = Field(1, ge=1)
+    # -- connections (service/server.py) ------------------------------------------------------
+    max_connections: int = Field(
+        128, ge=1, description="connections open at once; a request on one more gets 503"
+    )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="time for a request's line and headers, from the connection or the "
+        "previous answer; then 408 and the connection is closed",
+    )
+    body_timeout_s: float = Field(
+        60.0, gt=0, description="time for a request's whole body after its headers; then 408"
+    )
+    keep_alive_s: int = Field(5, ge=1, description="an idle kept-alive connection is closed")
+    max_header_bytes: int = Field(
+        16 * 1024, ge=1024, description="request line and headers; more is a 400"
+    )
     # -- answers -----------------------------------------------------------------------------
     accept_threshold: float | None = Field(
         None,

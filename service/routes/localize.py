@@ -28,6 +28,7 @@ from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
 from fastapi.routing import APIRoute
 from pydantic import Field, ValidationError
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 from starlette.routing import Match
 from starlette.types import Scope
@@ -51,7 +52,7 @@ from service.errors import (
     upload_too_large,
     validation_message,
 )
-from service.images import ACCEPTED_TYPES, check_content_type
+from service.images import ACCEPTED_TYPES, check_content_type, check_decode_budget
 from service.metrics import Metrics
 from service.query import ImageQuery
 from service.schemas import (
@@ -92,8 +93,9 @@ class FormRoute(APIRoute):
     """A route with a form body, read (by FastAPI) before the key is checked.
 
     A body the parser cannot read is a 422 like every invalid request (``invalid_request``)
-    rather than FastAPI's 400; and, as for a body that parses, a caller without a key for
-    :attr:`role` hears 401 / 403 instead of what is wrong with its body (or its size).
+    rather than FastAPI's 400, but a client that hung up is a disconnect, not a bad body; and,
+    as for a body that parses, a caller without a key for :attr:`role` hears 401 / 403
+    instead of what is wrong with its body (or its size).
     """
 
     #: The role the route's key dependency asks for.
@@ -106,6 +108,8 @@ class FormRoute(APIRoute):
             try:
                 return await handler(request)
             except HTTPException as exc:
+                if isinstance(exc.__cause__, ClientDisconnect):  # FastAPI's 400 for it
+                    raise exc.__cause__ from None
                 if exc.status_code not in (400, 413):
                     raise
                 authorize(request, request.headers.get(API_KEY_HEADER), self.role)
@@ -189,18 +193,30 @@ class Localizer:
     def queries(
         self, params: LocalizeParams, uploads: list[Upload], sequence: bool = False
     ) -> list[ImageQuery]:
-        """Admitted work for each upload: 413 over the size limit, 503 when the slots are
-        taken (a batch takes one per lane, at most ``workers``); ``sequence``: keep each
-        frame's evidence for the sequence filter."""
+        """Admitted work for each upload: 413 over the size limit or the decode budget, 503
+        when the slots are taken (a batch takes one per lane, at most ``workers``);
+        ``sequence``: keep each frame's evidence for the sequence filter."""
         limit = self.settings.max_upload_bytes
         for upload in uploads:
             if len(upload.data) > limit:
                 raise upload_too_large(limit, upload.source)
+        side = self.settings.decode_side
+        budget, pixels = self.settings.max_decode_bytes, self.settings.max_pixels
+        check_decode_budget([u.data for u in uploads], budget, side, pixels)
         if not self.engine.admit(self.lanes(len(uploads))):
             raise overloaded(self.settings.retry_after_s)
-        pixels, compute = self.settings.max_pixels, self.engine.compute
+        compute = self.engine.compute
         return [
-            ImageQuery(u.data, u.content_type, params, u.source, pixels, compute, sequence=sequence)
+            ImageQuery(
+                u.data,
+                u.content_type,
+                params,
+                u.source,
+                pixels,
+                compute,
+                sequence=sequence,
+                decode_side=side,
+            )
             for u in uploads
         ]
 

@@ -1,0 +1,313 @@
+"""The service against misbehaving clients, through a real uvicorn server on loopback: a client
+that hangs up mid-upload, slow clients (headers, body) and more connections than allowed.
+
+The server runs in a thread of the test process with the options ``hmpf-serve`` gives uvicorn
+(:func:`service.server.uvicorn_config`) and an engine without an index: every request here is
+answered (or dropped) before it would reach the engine. Logs are read from the records of the
+``hmpf`` and ``uvicorn`` loggers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+
+from service.app import create_app
+from service.server import uvicorn_config
+from service.settings import load_settings
+
+BOUNDARY = "hmpfboundary"
+
+
+class IdleEngine:
+    """An engine with no index: what the app's lifespan and ``/metrics`` read of one."""
+
+    ready = True
+    workers = 1
+    queued = 0
+    running = 0
+    current = SimpleNamespace(version="v-test")
+
+    def load(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def admit(self, n: int = 1) -> bool:
+        raise AssertionError("no request of these tests should reach the engine")
+
+
+class Records(logging.Handler):
+    """Every record of the loggers it is attached to."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    def lines(self) -> list[str]:
+        out = []
+        for r in self.records:
+            text = r.getMessage()
+            if r.exc_info:
+                text += "\n" + logging.Formatter().formatException(r.exc_info)
+            out += text.splitlines()
+        return out
+
+
+class LiveServer:
+    """uvicorn serving the app in a thread, on a free loopback port."""
+
+    def __init__(self, tmp: Path, **overrides: Any) -> None:
+        settings = load_settings(None, index=tmp, auth=False, port=0, **overrides)
+        self.app = create_app(settings, engine=IdleEngine())  # type: ignore[arg-type]
+        config = uvicorn_config(self.app, settings)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve()))
+        self.log = Records()
+        self._levels = {}
+        for name in ("hmpf", "uvicorn"):  # at hmpf-serve's default level, info
+            logger = logging.getLogger(name)
+            self._levels[name] = logger.level
+            logger.setLevel(logging.INFO)
+            logger.addHandler(self.log)
+
+    def __enter__(self) -> LiveServer:
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            assert self.thread.is_alive() and time.monotonic() < deadline, "server did not start"
+            time.sleep(0.02)
+        (sock,) = self.server.servers[0].sockets
+        self.port = sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(15)
+        for name, level in self._levels.items():
+            logging.getLogger(name).removeHandler(self.log)
+            logging.getLogger(name).setLevel(level)
+
+    def connect(self) -> socket.socket:
+        return socket.create_connection(("127.0.0.1", self.port), timeout=10)
+
+    def requests_counted(self) -> dict[str, float]:
+        """``hmpf_requests_total`` by status, from ``/metrics``."""
+        text = httpx.get(self.url + "/metrics", timeout=10).text
+        counts: dict[str, float] = {}
+        for m in re.finditer(r"^hmpf_requests_total\{([^}]*)\} (\S+)$", text, re.M):
+            labels = dict(re.findall(r'(\w+)="([^"]*)"', m.group(1)))
+            if labels["route"] != "/metrics":
+                counts[labels["status"]] = counts.get(labels["status"], 0) + float(m.group(2))
+        return counts
+
+
+def multipart_head(path: str, length: int) -> bytes:
+    """The request line and headers of a multipart upload of ``length`` body bytes."""
+    return (
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n"
+        f"Content-Length: {length}\r\n\r\n"
+    ).encode()
+
+
+def part_head(field: str = "image") -> bytes:
+    return (
+        f'--{BOUNDARY}\r\nContent-Disposition: form-data; name={field!r}; filename="a.png"\r\n'
+        "Content-Type: image/png\r\n\r\n"
+    ).encode()
+
+
+def wait_for(check: Any, timeout: float = 5.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if value or time.monotonic() > deadline:
+            return value
+        time.sleep(0.05)
+
+
+@pytest.fixture()
+def live(tmp_path: Path) -> Iterator[LiveServer]:
+    with LiveServer(tmp_path) as server:
+        yield server
+
+
+# -- a client that hangs up mid-upload ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("path", "multipart"),
+    [("/v1/localize", True), ("/v1/localize", False), ("/v1/localize/batch", True)],
+)
+def test_a_client_hanging_up_mid_upload_is_a_disconnect_not_a_server_error(
+    live: LiveServer, path: str, multipart: bool
+) -> None:
+    with live.connect() as s:
+        if multipart:
+            s.sendall(
+                multipart_head(path, 100_000) + part_head("images" if "batch" in path else "image")
+            )
+        else:
+            s.sendall(
+                f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: image/png\r\n"
+                "Content-Length: 100000\r\n\r\n".encode()
+            )
+        s.sendall(b"\x89PNG\r\n\x1a\n" + b"\x00" * 5000)
+        time.sleep(0.2)  # the server is reading the body
+    counted = wait_for(lambda: live.requests_counted().get("499"))
+    assert counted == 1, live.requests_counted()
+    assert "500" not in live.requests_counted()
+    lines = live.log.lines()
+    assert not [ln for ln in lines if "Traceback" in ln], "\n".join(lines)
+    disconnect = [ln for ln in lines if "disconnect" in ln.lower()]
+    assert len(disconnect) == 1, "\n".join(lines)
+    assert path in disconnect[0]
+
+
+# -- slow clients and too many connections -------------------------------------------------------
+
+
+def read_answer(s: socket.socket, within: float) -> tuple[bytes, float]:
+    """Everything the server sends until it closes the connection, and when it closed it."""
+    start = time.monotonic()
+    s.settimeout(within)
+    data = b""
+    while True:
+        chunk = s.recv(65536)
+        if not chunk:
+            return data, time.monotonic() - start
+        data += chunk
+
+
+def read_response(s: socket.socket) -> bytes:
+    """One whole answer (head and ``Content-Length`` bytes of body) from a kept-alive
+    connection."""
+    s.settimeout(5)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += s.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = int(re.search(rb"(?i)content-length: *(\d+)", head).group(1))  # type: ignore[union-attr]
+    while len(body) < length:
+        body += s.recv(65536)
+    assert len(body) == length, "more than one answer"
+    return head + b"\r\n\r\n" + body
+
+
+def test_a_client_slow_to_send_its_headers_is_cut_off(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, header_timeout_s=0.5) as live, live.connect() as s:
+        s.sendall(b"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # ... and no more
+        answer, after = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 408 "), answer
+        assert b'"request_timeout"' in answer
+        assert 0.4 < after < 2.5
+        # a connection that sends nothing at all is closed as well
+        with live.connect() as idle:
+            answer, after = read_answer(idle, within=5)
+            assert answer.startswith(b"HTTP/1.1 408 ") and after < 2.5
+
+
+def test_the_header_deadline_does_not_cut_a_body_or_a_kept_alive_connection(
+    tmp_path: Path,
+) -> None:
+    with LiveServer(tmp_path, header_timeout_s=0.3) as live, live.connect() as s:
+        body = (
+            f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="top_k"\r\n\r\n3\r\n'
+            f"--{BOUNDARY}--\r\n"
+        ).encode()
+        s.sendall(multipart_head("/v1/localize", len(body)))
+        for i in range(0, len(body), 8):  # the body over about a second, slower than 0.3 s
+            s.sendall(body[i : i + 8])
+            time.sleep(0.1)
+        answer = read_response(s)
+        assert answer.startswith(b"HTTP/1.1 422 "), answer  # no image field: read, refused
+        for _ in range(2):  # the same connection, each request well within its deadline
+            time.sleep(0.2)
+            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            answer = read_response(s)
+            assert answer.startswith(b"HTTP/1.1 200 "), answer
+        answer, after = read_answer(s, within=5)  # then idle: cut after 0.3 s
+        assert answer.startswith(b"HTTP/1.1 408 ") and after < 2.5
+
+
+@pytest.mark.parametrize("multipart", [True, False])
+def test_a_client_slow_to_send_its_body_gets_408(tmp_path: Path, multipart: bool) -> None:
+    with LiveServer(tmp_path, body_timeout_s=0.5) as live, live.connect() as s:
+        if multipart:
+            s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
+        else:
+            s.sendall(
+                b"POST /v1/localize HTTP/1.1\r\nHost: x\r\nContent-Type: image/png\r\n"
+                b"Content-Length: 100000\r\n\r\n"
+            )
+        s.sendall(b"\x89PNG\r\n\x1a\n" + b"\x00" * 1000)  # ... and the rest never comes
+        answer, after = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 408 "), answer
+        assert b'"request_timeout"' in answer
+        assert after < 2.5
+        assert wait_for(lambda: live.requests_counted().get("408")) == 1
+        lines = live.log.lines()
+        assert not [ln for ln in lines if "Traceback" in ln], "\n".join(lines)
+
+
+def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, max_connections=2) as live:
+        held = [live.connect() for _ in range(2)]
+        try:
+            for s in held:  # two uploads in progress
+                s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
+            time.sleep(0.2)
+            r = httpx.get(live.url + "/healthz", timeout=5)
+            assert r.status_code == 503
+        finally:
+            for s in held:
+                s.close()
+        ok = wait_for(lambda: httpx.get(live.url + "/healthz", timeout=5).status_code == 200)
+        assert ok
+
+
+# -- the decode budget -----------------------------------------------------------------------------
+
+
+def _png(side: int) -> bytes:
+    ok, buf = cv2.imencode(".png", np.zeros((side, side, 3), np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def test_a_batch_over_the_decode_budget_is_refused_before_decoding(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, max_decode_bytes=2**20) as live:
+        images = [("images", (f"{i}.png", _png(400), "image/png")) for i in range(3)]
+        r = httpx.post(live.url + "/v1/localize/batch", files=images, timeout=10)
+        assert r.status_code == 413, r.text
+        error = r.json()["error"]
+        assert error["code"] == "decode_budget_exceeded"
+        assert "1440000" in error["message"] and "1048576" in error["message"]
+        big = _png(700)  # 1.47 MB decoded: one image alone is over the budget as well
+        r = httpx.post(
+            live.url + "/v1/localize",
+            content=big,
+            timeout=10,
+            headers={"Content-Type": "image/png"},
+        )
+        assert r.status_code == 413 and r.json()["error"]["code"] == "decode_budget_exceeded"
