@@ -48,7 +48,7 @@ from hmpf.index.ann import (
     read_faiss,
     set_search_params,
 )
-from hmpf.index.layout import IndexBuildError
+from hmpf.index.layout import IndexBuildError, IndexCorruptError
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import (
     Precision,
@@ -590,11 +590,10 @@ def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dic
 
 
 def _file_entries(out: Path) -> dict[str, dict[str, Any]]:
-    """``files`` of the manifest: every file under ``out`` -> its sha256 and size."""
+    """``files`` of the manifest: every file under ``out`` -> its size and sha256 (and its
+    pieces' sha256 when large, :func:`hmpf.index.layout.file_entry`)."""
     return {
-        str(p.relative_to(out)): {"sha256": layout.sha256_file(p), "bytes": p.stat().st_size}
-        for p in sorted(out.rglob("*"))
-        if p.is_file()
+        str(p.relative_to(out)): layout.file_entry(p) for p in sorted(out.rglob("*")) if p.is_file()
     }
 
 
@@ -636,6 +635,21 @@ def _kept(refs: RefTable, paths: Sequence[Path]) -> np.ndarray:
     return np.array([pos[p.name] for p in paths], dtype=np.int64)
 
 
+def _parent(root: Path, operation: str) -> IndexReader:
+    """The current version, every file verified against its sha256 first: a derived version
+    copies its rows, and its manifest would vouch for them.
+
+    Raises:
+        IndexCorruptError: the current version does not verify (nothing is written).
+    """
+    try:
+        return IndexReader(root, verify=True)
+    except IndexCorruptError as exc:
+        raise IndexCorruptError(
+            f"{operation} refused, it would copy corrupt data into a new version: {exc}"
+        ) from None
+
+
 def add(
     index: str | Path,
     images: str | Path,
@@ -653,7 +667,7 @@ def add(
     """
     tx = VersionTransaction(Path(index), "add")
     paths, new = _read_inputs(images, metadata)
-    with tx, IndexReader(tx.root) as parent:
+    with tx, _parent(tx.root, "add") as parent:
         opt = (options or BuildOptions()).with_config(parent.config)
         _check_options(parent.config, parent.methods, opt)
         clash = sorted(set(new.names) & set(parent.refs.names))
@@ -718,7 +732,7 @@ def remove(
 ) -> Summary:
     """Publish a version of the current one without the references ``names``."""
     tx = VersionTransaction(Path(index), "remove")
-    with tx, IndexReader(tx.root) as parent:
+    with tx, _parent(tx.root, "remove") as parent:
         present = set(parent.refs.names)
         missing = [n for n in names if n not in present]
         if missing:

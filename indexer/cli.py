@@ -3,12 +3,15 @@
     hmpf-index build --config handcrafted --images refs/ --index maps/campus
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
-    hmpf-index verify|info --index maps/campus [--index-version v0002]
+    hmpf-index verify --index maps/campus [--index-version v0002]   (default: every version)
+    hmpf-index info --index maps/campus [--index-version v0002]
+    hmpf-index use --index maps/campus v0002
     hmpf-index list|gc --index maps/campus
     hmpf-index --version
 
-Exit status: 0 success, 1 ``verify`` found a problem, 2 bad input or a failed operation,
-130 interrupted (the current version is untouched; ``--resume`` continues).
+Exit status: 0 success, 1 ``verify`` found a problem, 2 bad input or a failed operation (a
+corrupt version among them: ``use`` it, or ``add`` / ``remove`` from it), 130 interrupted (the
+current version is untouched; ``--resume`` continues).
 """
 
 from __future__ import annotations
@@ -18,11 +21,13 @@ import json
 import re
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 # Only light modules at import time: the heavy ones (numpy, OpenCV, h5py, FAISS) load inside
 # ``run``, so Ctrl-C while they load is one line and exit 130 too, and --version is instant.
 from hmpf.cli.common import add_version, run
+from hmpf.errors import HmpfError
 
 if TYPE_CHECKING:
     from indexer.build import BuildOptions
@@ -110,19 +115,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--index", required=True)
     r.add_argument("names", nargs="+", help="image file names to drop")
 
-    for name, helptext in (
-        ("verify", "recompute checksums and shapes"),
-        ("info", "show a version's manifest"),
+    for name, helptext, default in (
+        ("verify", "recompute checksums and shapes", "every version"),
+        ("info", "show a version's manifest", "current"),
     ):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("--index", required=True)
         s.add_argument(
-            "--index-version", metavar="NAME", help="index version, e.g. v0002 (default: current)"
+            "--index-version",
+            metavar="NAME",
+            help=f"index version, e.g. v0002 (default: {default})",
         )
         s.add_argument("--version", nargs="?", action=_RenamedFlag, help=argparse.SUPPRESS)
         if name == "info":
             s.add_argument("--json", action="store_true", help="print JSON")
             s.add_argument("--names", action="store_true", help="also list reference names")
+
+    u = sub.add_parser("use", help="make a version current (verified first; atomic)")
+    u.add_argument("--index", required=True)
+    u.add_argument("name", metavar="VERSION", help="the version to use, e.g. v0002")
 
     ls = sub.add_parser("list", help="list versions")
     ls.add_argument("--index", required=True)
@@ -176,6 +187,35 @@ def _print_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _verify(args: argparse.Namespace) -> int:
+    """One version (``--index-version``) or every version; exit 1 when any is corrupt."""
+    from hmpf.index import layout
+    from indexer import maintenance
+
+    if args.index_version is not None:
+        problems = maintenance.verify(args.index, args.index_version)
+        for line in problems:
+            print(f"CORRUPT {line}")
+        print("ok" if not problems else f"{len(problems)} problem(s)")
+        return 1 if problems else 0
+    results = maintenance.verify_all(args.index)
+    try:
+        current = layout.current_version(Path(args.index))
+    except HmpfError:
+        current = None
+    for version, problems in results.items():
+        mark = " (current)" if version == current else ""
+        for line in problems:
+            print(f"CORRUPT {version}{mark}: {line}")
+        if not problems:
+            print(f"{version}{mark}: ok")
+    bad = [v for v, p in results.items() if p]
+    n = sum(v != "CURRENT" for v in results)
+    checked = f"checked {n} version(s): every file's size and sha256, then shapes"
+    print(f"ok: {checked}" if not bad else f"corrupt: {', '.join(bad)}; {checked}")
+    return 1 if bad else 0
+
+
 def _run(args: argparse.Namespace) -> int:
     from indexer import maintenance
     from indexer.build import add, build, remove
@@ -202,11 +242,14 @@ def _run(args: argparse.Namespace) -> int:
     elif cmd == "remove":
         summary = remove(args.index, args.names)
     elif cmd == "verify":
-        problems = maintenance.verify(args.index, args.index_version)
-        for line in problems:
-            print(f"CORRUPT {line}")
-        print("ok" if not problems else f"{len(problems)} problem(s)")
-        return 1 if problems else 0
+        return _verify(args)
+    elif cmd == "use":
+        old, new = maintenance.use(args.index, args.name)
+        print(
+            f"CURRENT: {old or '-'} -> {new} (verified); a running hmpf-serve switches on "
+            "POST /v1/index/reload"
+        )
+        return 0
     elif cmd == "info":
         return _print_info(args)
     elif cmd == "list":

@@ -1,4 +1,4 @@
-"""``verify``, ``gc``, ``info`` and ``list``."""
+"""``verify``, ``use``, ``gc``, ``info`` and ``list``."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from typing import Any
 
 from hmpf.errors import HmpfError
 from hmpf.index import layout
-from hmpf.index.layout import IndexCorruptError
+from hmpf.index.layout import IndexCorruptError, IndexNotFoundError
 from hmpf.index.reader import IndexReader, resolve_version
 
-__all__ = ["gc", "info", "list_versions", "verify"]
+__all__ = ["gc", "info", "list_versions", "use", "verify", "verify_all"]
 
 
 def verify(index: str | Path, version: str | None = None) -> list[str]:
@@ -25,31 +25,70 @@ def verify(index: str | Path, version: str | None = None) -> list[str]:
         manifest = layout.read_manifest(path)
     except HmpfError as exc:
         return [str(exc)]
-    problems = []
-    listed = manifest.get("files", {})
-    for rel, entry in sorted(listed.items()):
-        p = path / rel
-        if not p.is_file():
-            problems.append(f"{p}: missing")
-        elif p.stat().st_size != entry["bytes"]:
-            problems.append(f"{p}: {p.stat().st_size} bytes, manifest says {entry['bytes']}")
-        elif layout.sha256_file(p) != entry["sha256"]:
-            problems.append(f"{p}: sha256 differs from the manifest (file is corrupt)")
-    extra = {
-        str(p.relative_to(path))
-        for p in path.rglob("*")
-        if p.is_file() and p.name != layout.MANIFEST
-    } - set(listed)
-    problems += [f"{path / rel}: not listed in the manifest" for rel in sorted(extra)]
+    problems = layout.file_problems(path, manifest)
     if problems:
         return problems
     try:
-        with IndexReader(path.parent, path.name) as reader:
+        with IndexReader(path.parent, path.name, verify=False) as reader:  # just verified
             for mid in reader.methods:
                 reader.faiss_index(mid)  # loads and checks ntotal / d
     except HmpfError as exc:
         problems.append(str(exc))
     return problems
+
+
+def verify_all(index: str | Path) -> dict[str, list[str]]:
+    """:func:`verify` every published version (and that ``CURRENT`` names one of them).
+
+    Returns:
+        version name -> its problems (empty: sound), oldest first; a bad ``CURRENT`` is
+        reported under the key ``"CURRENT"``.
+
+    Raises:
+        IndexNotFoundError: the folder holds no published version.
+    """
+    root = Path(index)
+    versions = layout.list_versions(root)
+    if not versions:
+        resolve_version(root)  # the folder or its versions are missing: a clear error
+    out = {v: verify(root, v) for v in versions}
+    try:
+        current = layout.current_version(root)
+    except HmpfError as exc:
+        return out | {"CURRENT": [str(exc)]}
+    if current is None or current not in versions:
+        out["CURRENT"] = [f"{root / layout.CURRENT}: names {current!r}, not a published version"]
+    return out
+
+
+def use(index: str | Path, version: str) -> tuple[str | None, str]:
+    """Point ``CURRENT`` at ``version`` after verifying it (as :func:`verify`), atomically.
+
+    Holds the writer lock, so no ``gc`` deletes the version meanwhile.
+
+    Returns:
+        (the version ``CURRENT`` named before, or None; ``version``).
+
+    Raises:
+        IndexNotFoundError: no such version. IndexCorruptError: it does not verify
+            (``CURRENT`` is left as it was).
+    """
+    root = Path(index)
+    if not layout.is_version_name(version):
+        raise IndexNotFoundError(f"{version!r} is not a version name (like v0002)")
+    with layout.writer_lock(root):
+        resolve_version(root, version)
+        problems = verify(root, version)
+        if problems:
+            raise IndexCorruptError(
+                f"{version} is corrupt, CURRENT left as it was: {'; '.join(problems)}"
+            )
+        try:
+            old = layout.current_version(root)
+        except IndexCorruptError:
+            old = None
+        layout.set_current(root, version)
+    return old, version
 
 
 def list_versions(index: str | Path) -> list[dict[str, Any]]:
@@ -86,7 +125,12 @@ def info(index: str | Path, version: str | None = None) -> dict[str, Any]:
 def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
     """Delete old versions (never the current one; also keep the ``keep`` newest others).
 
-    Also deletes an abandoned ``.build`` folder. Returns the deleted paths.
+    Also deletes an abandoned ``.build`` folder. Each folder is first renamed out of the way
+    (``.deleting-<name>``, atomic, fsynced) and only then deleted, so a ``gc`` killed
+    midway leaves every version whole or gone; the next ``gc`` deletes what it left.
+
+    Returns:
+        the deleted paths (their names before the rename).
     """
     root = Path(index)
     with layout.writer_lock(root):
@@ -98,8 +142,19 @@ def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
         paths = [root / v for v in doomed]
         if (root / layout.BUILD_DIR).exists():
             paths.append(root / layout.BUILD_DIR)
+        leftovers = sorted(root.glob(layout.DELETING + "*"))
         if not dry_run:
-            for p in paths:
+            for p in leftovers:
                 shutil.rmtree(p)
+            for p in paths:
+                shutil.rmtree(_move_away(p))
             layout.fsync_dir(root)
-    return [str(p) for p in paths]
+    return [str(p) for p in paths + leftovers]
+
+
+def _move_away(path: Path) -> Path:
+    """Rename ``path`` to ``.deleting-<name>`` beside it (atomic; fsynced)."""
+    trash = path.with_name(layout.DELETING + path.name)
+    path.rename(trash)
+    layout.fsync_dir(path.parent)
+    return trash

@@ -142,7 +142,10 @@ class Loaded:
 
     @classmethod
     def open(cls, root: Path, threshold: float | None) -> Loaded:
-        reader = IndexReader(root)
+        """Open the version ``CURRENT`` names, every file checked against the manifest's
+        sha256 before anything is read from it (a corrupt version raises
+        :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload answers 409)."""
+        reader = IndexReader(root, verify=True)
         try:
             acceptance = Acceptance.of(reader, threshold)
             acc = reader.config.acceptance
@@ -241,7 +244,11 @@ class Engine:
                 if old.leases == 0:
                     old.reader.close()
         log.info(
-            "index %s version %s loaded (%d references)", self.root, loaded.version, loaded.reader.n
+            "index %s version %s loaded (%d references; files verified in %.2f s)",
+            self.root,
+            loaded.version,
+            loaded.reader.n,
+            loaded.reader.verify_seconds or 0.0,
         )
         return loaded
 

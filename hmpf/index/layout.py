@@ -15,7 +15,14 @@
 
 A version is written into ``.build/out``, every file fsynced, renamed to ``<name>``, and only
 then ``CURRENT`` is replaced atomically, so an interrupted writer never changes what readers
-see (``.build`` also keeps the finished images' features, for ``--resume``).
+see (``.build`` also keeps the finished images' features, for ``--resume``). ``gc`` renames a
+version to ``.deleting-<name>`` before deleting it, so a killed ``gc`` leaves it whole or gone.
+
+Integrity: the manifest lists every data file's size and sha256 (and, for files over
+:data:`CHUNK_BYTES`, the sha256 of each piece, :func:`file_entry`). Whoever reads a version
+checks every file against it first (:func:`check_files`; the reader does unless told not to),
+so no reader serves, evaluates or copies into a new version a byte that differs from what
+was written.
 """
 
 from __future__ import annotations
@@ -23,11 +30,15 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import hashlib
 import json
+import logging
 import os
 import platform
 import re
-from collections.abc import Iterator
+import time
+from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -45,10 +56,14 @@ __all__ = [
     "IndexVersionError",
     "OPENCV_DISTS",
     "RECORDED_PACKAGES",
+    "check_files",
     "current_version",
+    "file_entry",
+    "file_problems",
     "fsync_dir",
     "fsync_tree",
     "installed_version",
+    "is_version_name",
     "list_versions",
     "next_version_name",
     "package_versions",
@@ -58,6 +73,8 @@ __all__ = [
     "write_json_atomic",
     "writer_lock",
 ]
+
+log = logging.getLogger("hmpf.index")
 
 #: Major.minor of the on-disk format. Readers accept any minor of their major.
 FORMAT_VERSION = "1.0"
@@ -69,6 +86,10 @@ REFERENCES_H5 = "references.h5"
 LOCAL_H5 = "local.h5"
 STATE_H5 = "state.h5"
 FAISS_DIR = "faiss"
+#: A file larger than this also gets a sha256 per piece of this size (hashed in parallel).
+CHUNK_BYTES = 1 << 26
+#: Prefix of a version folder being deleted by ``gc`` (renamed first, so never half a version).
+DELETING = ".deleting-"
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
 #: The two OpenCV wheels hmpf runs on (same cv2 module; either satisfies an index).
 OPENCV_DISTS = ("opencv-python-headless", "opencv-contrib-python-headless")
@@ -150,6 +171,11 @@ def write_json_atomic(path: Path, data: Any) -> None:
     fsync_dir(path.parent)
 
 
+def is_version_name(name: str) -> bool:
+    """``v0001``-style names (what ``CURRENT`` and ``hmpf-index use`` accept)."""
+    return bool(_VERSION_RE.match(name))
+
+
 def list_versions(root: Path) -> list[str]:
     """Published version names under ``root``, oldest first."""
     if not root.is_dir():
@@ -223,3 +249,131 @@ def writer_lock(root: Path) -> Iterator[None]:
         yield
     finally:
         fh.close()
+
+
+def file_entry(path: Path) -> dict[str, Any]:
+    """The manifest's ``files`` entry of one file, from one read of it.
+
+    ``{"sha256", "bytes"}``; a file over :data:`CHUNK_BYTES` also gets ``chunk_bytes`` and
+    ``chunks``, the sha256 of each ``chunk_bytes`` piece in order, so that a reader can hash
+    the pieces on every core (:func:`file_problems`). Matching every piece's sha256, with the
+    size, is as strong as matching the whole file's: the pieces cover the file.
+    """
+    whole = hashlib.sha256()
+    chunks = []
+    with open(path, "rb") as fh:
+        while block := fh.read(CHUNK_BYTES):
+            whole.update(block)
+            chunks.append(hashlib.sha256(block).hexdigest())
+    entry: dict[str, Any] = {"sha256": whole.hexdigest(), "bytes": path.stat().st_size}
+    if len(chunks) > 1:
+        entry.update(chunk_bytes=CHUNK_BYTES, chunks=chunks)
+    return entry
+
+
+def _range_digest(path: Path, offset: int, length: int) -> str:
+    """sha256 of ``length`` bytes of ``path`` from ``offset`` (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    buf = bytearray(1 << 20)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as fh:
+        fh.seek(offset)
+        while length > 0:
+            got = fh.readinto(view[: min(length, len(buf))])
+            if not got:
+                break
+            h.update(view[:got])
+            length -= got
+    return h.hexdigest()
+
+
+def _pieces(p: Path, entry: Mapping[str, Any]) -> list[tuple[int, int, str]] | str:
+    """(offset, length, sha256) of what to hash in ``p``, or a problem with the entry."""
+    size = int(entry["bytes"])
+    chunks = entry.get("chunks")
+    if not chunks:
+        return [(0, size, entry["sha256"])]
+    step = int(entry.get("chunk_bytes", 0))
+    if step <= 0 or len(chunks) != -(-size // step):
+        return f"{p}: the manifest's chunk list does not cover the file's {size} bytes"
+    return [(i * step, min(step, size - i * step), sha) for i, sha in enumerate(chunks)]
+
+
+def file_problems(version_dir: Path, manifest: Mapping[str, Any]) -> list[str]:
+    """Every file of a version against its manifest's ``files`` (size and sha256 of each).
+
+    Every listed file is read whole and hashed (sha256, about 2 GB/s per core with SHA
+    instructions): the pieces a file's entry lists (:func:`file_entry`), or the whole file,
+    on one thread per core (hashlib releases the GIL), largest first. A file that is missing,
+    of another size, of another digest, or present but not listed is a problem.
+
+    Returns:
+        one line per problem, naming the file (empty: every file is as written).
+    """
+    listed = manifest.get("files")
+    if not isinstance(listed, Mapping) or not listed:
+        return [f"{version_dir / MANIFEST}: lists no files, so nothing can be verified"]
+    problems: list[str] = []
+    todo: list[tuple[Path, int, int, str]] = []
+    pieced: set[Path] = set()
+    for rel, entry in sorted(listed.items()):
+        p = version_dir / rel
+        if not p.is_file():
+            problems.append(f"{p}: missing")
+        elif p.stat().st_size != entry["bytes"]:
+            problems.append(f"{p}: {p.stat().st_size} bytes, manifest says {entry['bytes']}")
+        else:
+            pieces = _pieces(p, entry)
+            if isinstance(pieces, str):
+                problems.append(pieces)
+            else:
+                todo += [(p, *piece) for piece in pieces]
+                if entry.get("chunks"):
+                    pieced.add(p)
+    todo.sort(key=lambda t: -t[2])
+    if todo:
+        with ThreadPoolExecutor(min(len(todo), os.cpu_count() or 1)) as pool:
+            digests = list(pool.map(lambda t: _range_digest(*t[:3]), todo))
+        bad: dict[Path, list[int]] = {}
+        for (p, offset, _, want), got in zip(todo, digests, strict=True):
+            if got != want:
+                bad.setdefault(p, []).append(offset)
+        for p, offsets in bad.items():
+            where = f" from byte {min(offsets)}" if p in pieced else ""
+            problems.append(f"{p}: sha256 differs from the manifest{where} (file is corrupt)")
+    extra = {
+        p.relative_to(version_dir).as_posix()
+        for p in version_dir.rglob("*")
+        if p.is_file() and p.name != MANIFEST
+    } - set(listed)
+    problems += [f"{version_dir / rel}: not listed in the manifest" for rel in sorted(extra)]
+    return sorted(problems)
+
+
+def check_files(version_dir: Path, manifest: Mapping[str, Any]) -> float:
+    """:func:`file_problems`, as an error: what opening a version for reading does first.
+
+    Returns:
+        the seconds the check took (logged).
+
+    Raises:
+        IndexCorruptError: naming every file that does not match, and what to do.
+    """
+    t = time.perf_counter()
+    problems = file_problems(version_dir, manifest)
+    if problems:
+        raise IndexCorruptError(
+            f"{version_dir.name} is corrupt, refusing to read it: {'; '.join(problems)}; "
+            f"check every version with `hmpf-index verify --index {version_dir.parent}` and "
+            "switch to a sound one with `hmpf-index use VERSION`, or rebuild"
+        )
+    seconds = time.perf_counter() - t
+    total = sum(int(e["bytes"]) for e in manifest["files"].values())
+    log.info(
+        "%s: %d files (%.1f MB) match their sha256 (%.2f s)",
+        version_dir,
+        len(manifest["files"]),
+        total / 1e6,
+        seconds,
+    )
+    return seconds

@@ -23,6 +23,10 @@ Tier 1 (``subset is None``) of a global method:
 
 Later tiers read only the candidates' rows: global rows from the matrix, local features
 (KAZE ragged rows, OLO blocks) from ``local.h5`` by offsets.
+
+Opening a version first checks every one of its files against the size and sha256 in the
+manifest (:func:`hmpf.index.layout.check_files`): a damaged byte anywhere, even inside a
+dataset where HDF5 cannot see it, is an :class:`IndexCorruptError` naming the file.
 """
 
 from __future__ import annotations
@@ -128,6 +132,9 @@ class IndexReader:
         expected_config: when given, the index must have been built for exactly this
             hierarchy config (same digest), else :class:`IndexVersionError`.
         mmap: memory-map global matrices stored in their own dtype (else read into RAM).
+        verify: check every file of the version against the manifest's sha256 before
+            reading anything (:func:`~hmpf.index.layout.check_files`: the whole version is
+            read once). Only ``hmpf-index verify``, which has just done so, turns it off.
         approx_k: FAISS candidates per approximate tier-1 search (default ``max(256, 4 k)``).
 
     Raises:
@@ -141,12 +148,15 @@ class IndexReader:
         *,
         expected_config: HierarchyConfig | None = None,
         mmap: bool = True,
+        verify: bool = True,
         approx_k: int | None = None,
     ) -> None:
         self.root = Path(root)
         self.path = resolve_version(self.root, version)
         self.version = self.path.name
         self.manifest = layout.read_manifest(self.path)
+        #: seconds spent checking the files' sha256 (None: not checked, ``verify=False``)
+        self.verify_seconds = layout.check_files(self.path, self.manifest) if verify else None
         check_packages(self.manifest.get("packages", {}), self.path)
         self.config = self._check_config(expected_config)
         self.methods: dict[str, Method] = self._load_methods()

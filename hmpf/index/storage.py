@@ -184,8 +184,8 @@ def open_h5(path: Path) -> Any:
         raise IndexCorruptError(f"{path}: missing; run `hmpf-index verify`") from None
     except OSError as exc:
         raise IndexCorruptError(
-            f"{path}: unreadable HDF5 ({exc}); run `hmpf-index verify` and rebuild or "
-            "switch to an older version"
+            f"{path}: unreadable HDF5 ({exc}); run `hmpf-index verify` and rebuild, or "
+            "switch to a sound version with `hmpf-index use VERSION`"
         ) from None
 
 
