@@ -94,6 +94,11 @@ class Backbone(ABC):
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
         """(B, 3, rows, cols) -> {layer: (B, C, h, w)} for every requested layer."""
 
+    def for_export(self, size: tuple[int, int]) -> Backbone:
+        """The backbone to export to ONNX at input ``size`` (rows, cols): this one, or a copy
+        whose size-dependent work is made constant for that size (same maps)."""
+        return self
+
     @classmethod
     def required_file(cls, path: Path | None, options: Mapping[str, Any]) -> Path:
         """The weight file of a backbone that takes no options and has no bundled weights."""

@@ -62,7 +62,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Bump when the export procedure changes (the wrapper, names, settings): new cache keys.
-EXPORT_VERSION = "1"
+EXPORT_VERSION = "2"  # 2: constant "same" padding (Backbone.for_export)
 #: ONNX opset of the exported models.
 OPSET = 17
 INPUT = "input"
@@ -193,7 +193,7 @@ def _export(net: Backbone, layers: Sequence[str], size: tuple[int, int], path: P
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    module = _maps_module(net, layers)
+    module = _maps_module(net.for_export(size), layers)
     example = torch.zeros((2, 3, *size), dtype=torch.float32)
     dynamic = {name: {0: "batch"} for name in [INPUT, *layers]}
     try:
