@@ -3,13 +3,16 @@
 The ``onnx`` CNN runtime (:func:`hmpf.runtime.cnn_runtime`, the default) runs a backbone's
 :meth:`~hmpf.backbones.base.Backbone.forward_maps` for one set of layers at one input size
 through an ONNX Runtime session instead of torch: on one CPU thread EfficientNet-Lite0 runs
-several times faster (``bench/cnn_runtime.py``) and the maps equal torch's within float32
-rounding (``tests/test_cnn_runtime.py``).
+about 1.7-1.9x faster than the (already BN-folded, channels-last) torch model
+(``bench/cnn_runtime.py``) and the maps equal torch's within float32 rounding (6e-5 on maps
+up to 33; ``tests/test_cnn_runtime.py``).
 
 * Export: at first use, with torch's TorchScript-based exporter (``torch.onnx.export``,
   ``dynamo=False``; torch is pinned, so is the exporter), at the fixed input size, with a
-  dynamic batch dimension and one output per layer. The "same" padding of the model is
-  computed from the input size at trace time, which is why a model is exported per size.
+  dynamic batch dimension and one output per layer. Padding depends on the input size
+  (EfficientNet's "same" padding is made constant for it, :meth:`Backbone.for_export`),
+  which is why a model is exported per size. The session runs one image at a time
+  (:class:`OnnxMaps`).
 * Cache: ``<onnx_cache_dir()>/<backbone>-<key>.onnx`` where the key is a sha256 of the
   weights (the loaded module's tensors, so folded BatchNorm and any weight file count), the
   layers, the input size, the export settings (opset, :data:`EXPORT_VERSION`) and the torch
