@@ -1,9 +1,10 @@
 """Feature extraction over image lists, in parallel processes, with an on-disk cache.
 
-The cache is keyed by the method's :meth:`~hmpf.methods.base.Method.cache_key` (name, code
-version, config) and by the sha256 of the image file's bytes, so a second run re-extracts
-nothing and a change to either the method or the image invalidates the entry. Entries are
-``.npz`` files written atomically (temporary file + rename); a corrupt entry is re-extracted.
+The cache is keyed by the method's :meth:`~hmpf.methods.base.Method.descriptor_key` (name,
+code version, config, CNN runtime) and by the sha256 of the image file's bytes, so a second
+run re-extracts nothing and a change to either the method or the image invalidates the entry.
+Entries are ``.npz`` files written atomically (temporary file + rename); a corrupt entry is
+re-extracted.
 
 How a method is run is what it declares (:mod:`hmpf.methods.base`), never its type: ``batched``
 methods (the CNNs) run in this process ``batch_size`` images at a time, the others image by
@@ -62,7 +63,7 @@ class FeatureCache:
         self.root = Path(root)
 
     def _path(self, method: Method, digest: str) -> Path:
-        return self.root / method.cache_key() / digest[:2] / f"{digest}.npz"
+        return self.root / method.descriptor_key() / digest[:2] / f"{digest}.npz"
 
     def get(self, method: Method, digest: str) -> tuple[Any, float] | None:
         """(feature, extraction ms when it was computed) or None."""
@@ -81,8 +82,8 @@ class FeatureCache:
         return self.root / "fitted" / method_key / f"{fit_key}.npz"
 
     def get_state(self, method_key: str, fit_key: str) -> dict[str, np.ndarray] | None:
-        """Fitted parameters of the unfitted method ``method_key`` (its ``cache_key()``) for
-        the fitting image set ``fit_key``, or None."""
+        """Fitted parameters of the unfitted method ``method_key`` (its
+        ``descriptor_key()``) for the fitting image set ``fit_key``, or None."""
         p = self._state_path(method_key, fit_key)
         try:
             with np.load(p, allow_pickle=False) as z:
@@ -269,13 +270,13 @@ def fit_methods(
         fit_key = hashlib.sha256(joined.encode()).hexdigest()[:32]
     pending: dict[str, Method] = {}
     for mid, m in todo.items():
-        state = cache.get_state(m.cache_key(), fit_key) if cache is not None else None
+        state = cache.get_state(m.descriptor_key(), fit_key) if cache is not None else None
         if state is not None:
             m.load_state(state)
         else:
             pending[mid] = m
     if pending:
-        keys = {mid: m.cache_key() for mid, m in pending.items()}  # before fitting
+        keys = {mid: m.descriptor_key() for mid, m in pending.items()}  # before fitting
         images = [load_image(paths[i]) for i in pick]
         fit_many(pending, images)
         if cache is not None:

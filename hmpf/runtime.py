@@ -1,6 +1,6 @@
 """Process-wide settings: compute threads (FFT and BLAS-like work inside one image), the
-signals of worker processes and the descriptor cache's default place. Light to import (the
-commands read it before their heavy imports).
+runtime of the CNN forward passes, the signals of worker processes and the caches' default
+places. Light to import (the commands read it before their heavy imports).
 
 Extraction worker processes call :func:`set_compute_threads(1)` so that parallel workers do not
 oversubscribe the cores; a single process uses every core for one image. They also call
@@ -14,6 +14,10 @@ import signal
 from pathlib import Path
 
 _threads: int | None = None
+_cnn_runtime: str | None = None
+
+#: Runtimes of the CNN backbones' forward passes (:func:`cnn_runtime`).
+CNN_RUNTIMES = ("onnx", "torch")
 
 
 def compute_threads() -> int:
@@ -24,6 +28,47 @@ def compute_threads() -> int:
     if env:
         return max(1, int(env))
     return os.cpu_count() or 1
+
+
+def cnn_runtime() -> str:
+    """Runtime of the CNN forward passes on the CPU: ``onnx`` (the default: the torch model
+    exported once to ONNX and run by ONNX Runtime, about 1.7-1.9x faster on one thread) or
+    ``torch`` (the reference implementation). Set by :func:`set_cnn_runtime` or
+    ``HMPF_CNN_RUNTIME``.
+
+    It is how descriptors are computed, not what they are (both give the same maps within
+    float32 rounding, tests/test_cnn_runtime.py), so it is not part of a config's digest nor of
+    a method's :meth:`~hmpf.methods.base.Method.cache_key` (an index built with one runtime
+    serves queries with the other); the descriptor cache keeps the two apart
+    (:meth:`~hmpf.methods.base.Method.descriptor_key`).
+    """
+    if _cnn_runtime is not None:
+        return _cnn_runtime
+    return _check_runtime(os.environ.get("HMPF_CNN_RUNTIME") or "onnx", "HMPF_CNN_RUNTIME")
+
+
+def set_cnn_runtime(name: str) -> None:
+    """Choose the CNN runtime of this process and of the processes it starts (also sets
+    ``HMPF_CNN_RUNTIME``)."""
+    global _cnn_runtime
+    _cnn_runtime = _check_runtime(name, "CNN runtime")
+    os.environ["HMPF_CNN_RUNTIME"] = _cnn_runtime
+
+
+def _check_runtime(name: str, what: str) -> str:
+    value = name.strip().lower()
+    if value not in CNN_RUNTIMES:
+        from hmpf.errors import ConfigError
+
+        raise ConfigError(f"{what} must be one of {', '.join(CNN_RUNTIMES)}, got {name!r}")
+    return value
+
+
+def onnx_cache_dir() -> Path:
+    """Where exported ONNX models are cached: ``$HMPF_CACHE_DIR/onnx`` or
+    ``~/.cache/hmpf/onnx``."""
+    env = os.environ.get("HMPF_CACHE_DIR")
+    return Path(env) / "onnx" if env else Path.home() / ".cache" / "hmpf" / "onnx"
 
 
 def default_cache_dir() -> Path:

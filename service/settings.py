@@ -36,7 +36,15 @@ __all__ = ["CORE_ENV", "Settings", "load_settings"]
 PREFIX = "HMPF_"
 #: ``HMPF_*`` variables that belong to the core (hmpf) or its client, not to the service.
 CORE_ENV = frozenset(
-    {"DATASETS", "CACHE_DIR", "THREADS", "REQUIRE_DATASETS", "SETTINGS_FILE", "API_KEY"}
+    {
+        "DATASETS",
+        "CACHE_DIR",
+        "THREADS",
+        "CNN_RUNTIME",
+        "REQUIRE_DATASETS",
+        "SETTINGS_FILE",
+        "API_KEY",
+    }
 )
 
 

@@ -264,7 +264,9 @@ def test_fitted_state_round_trip_pickle_and_cache_key(fitted: dict[str, object])
         create_method("olo").load_state({"vocabulary": np.zeros((2, 80))})
 
 
-def test_shared_forward_pass_per_group() -> None:
+def test_shared_forward_pass_per_group(monkeypatch: pytest.MonkeyPatch) -> None:
+    # torch's forward_maps counted here; ONNX Runtime's runs in tests/test_cnn_runtime.py
+    monkeypatch.setattr("hmpf.runtime._cnn_runtime", "torch")
     gem = create_method("gem", {"input_size": [416, 416]})
     hyb = create_method("hybridnet")  # s6 at 416 x 416: same group as gem above
     other = create_method("gem", {"input_size": [96, 96]})
@@ -300,7 +302,7 @@ def test_fit_methods_uses_cache(tmp_path: Path) -> None:
     from hmpf.config import build_methods
 
     first = build_methods(cfg)
-    unfitted_key = first["netvlad"].cache_key()
+    unfitted_key = first["netvlad"].descriptor_key()  # cache_key + the CNN runtime
     assert fit_methods(first, paths, cache=cache) == ["netvlad"]
     [stored] = list((tmp_path / "cache" / "fitted" / unfitted_key).glob("*.npz"))
     # Overwrite the stored state: a second fit on the same images must load it, not refit.

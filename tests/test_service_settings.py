@@ -48,6 +48,7 @@ def test_unknown_environment_variable(monkeypatch: pytest.MonkeyPatch) -> None:
         load_settings(auth=False)
     monkeypatch.delenv("HMPF_WORKRES")
     monkeypatch.setenv("HMPF_CACHE_DIR", "/tmp/x")  # the core's own variables are fine
+    monkeypatch.setenv("HMPF_CNN_RUNTIME", "torch")
     assert load_settings(auth=False).port == 8000
 
 

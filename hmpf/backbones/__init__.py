@@ -8,6 +8,7 @@
 from hmpf.backbones.base import (
     Backbone,
     available_backbones,
+    backbone_class,
     load_backbone,
     register_backbone,
     require_torch,
@@ -17,6 +18,7 @@ from hmpf.backbones.base import (
 __all__ = [
     "Backbone",
     "available_backbones",
+    "backbone_class",
     "load_backbone",
     "register_backbone",
     "require_torch",

@@ -34,6 +34,7 @@ __all__ = [
     "Backbone",
     "MapsModuleBackbone",
     "available_backbones",
+    "backbone_class",
     "load_backbone",
     "register_backbone",
     "require_torch",
@@ -60,12 +61,17 @@ class Backbone(ABC):
         layers: exposed map name -> channels.
         default_input_size: (rows, cols) used when a method does not choose one.
         weights_hint: where users get the weight file (shown when it is missing).
+        onnx: True when :meth:`forward_maps` exports to ONNX (traced at a fixed input size)
+            and was checked equal under ONNX Runtime, so that the ``onnx`` CNN runtime
+            (:func:`hmpf.runtime.cnn_runtime`) runs it there; other backbones always run in
+            torch.
     """
 
     name: ClassVar[str]
     layers: ClassVar[dict[str, int]]
     default_input_size: ClassVar[tuple[int, int]]
     weights_hint: ClassVar[str] = ""
+    onnx: ClassVar[bool] = False
 
     def __init__(self, module: torch.nn.Module, device: str = "cpu") -> None:
         self.module = module.eval().to(device)
@@ -87,6 +93,11 @@ class Backbone(ABC):
     @abstractmethod
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
         """(B, 3, rows, cols) -> {layer: (B, C, h, w)} for every requested layer."""
+
+    def for_export(self, size: tuple[int, int]) -> Backbone:
+        """The backbone to export to ONNX at input ``size`` (rows, cols): this one, or a copy
+        whose size-dependent work is made constant for that size (same maps)."""
+        return self
 
     @classmethod
     def required_file(cls, path: Path | None, options: Mapping[str, Any]) -> Path:
@@ -153,6 +164,14 @@ def _registry() -> dict[str, type[Backbone]]:
 
 def available_backbones() -> list[str]:
     return sorted(_registry())
+
+
+def backbone_class(name: str) -> type[Backbone]:
+    """The registered backbone class ``name`` (nothing is loaded)."""
+    registry = _registry()
+    if name not in registry:
+        raise UnknownMethodError(name, sorted(registry), kind="backbone")
+    return registry[name]
 
 
 def weights_file(path: str | Path, backbone: str, hint: str) -> Path:

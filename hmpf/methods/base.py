@@ -236,6 +236,13 @@ class Method(ABC):
         )
         return f"{self.name}-{hashlib.sha256(payload.encode()).hexdigest()[:16]}"
 
+    def descriptor_key(self) -> str:
+        """Key of the descriptor cache: :meth:`cache_key` plus how the features are computed
+        when that can change them within rounding (the CNN runtime): cached descriptors of
+        two runtimes are kept apart, while the method's identity (recorded in an index) stays
+        the same."""
+        return self.cache_key()
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.config!r})"
 

@@ -6,10 +6,16 @@ reads and an input size; it turns those maps into its feature in :meth:`CnnMetho
 
 CNN methods are ``batched`` and grouped by (backbone, weights, input size)
 (:meth:`CnnMethod.group_key`): :meth:`CnnMethod.extract_group` runs one batched forward pass
-per image under ``torch.inference_mode()`` for every method of a group, and
+per image for every method of a group, and
 :meth:`CnnMethod.fit_group` fits the parameters of methods that learn them from the reference
 set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`~hmpf.methods.base.extract_many`
 and :func:`~hmpf.methods.base.fit_many` run that over every group of a hierarchy.
+
+The forward pass runs in ONNX Runtime or in torch (:meth:`CnnMethod.runtime`): ``onnx`` by
+default on the CPU, for backbones that export (:attr:`~hmpf.backbones.base.Backbone.onnx`,
+:mod:`hmpf.backbones.onnx_runtime`); ``torch``, the reference implementation, with
+``HMPF_CNN_RUNTIME=torch`` (:func:`hmpf.runtime.set_cnn_runtime`), on other devices and for
+the other backbones. Both give the same maps within float32 rounding.
 """
 
 from __future__ import annotations
@@ -22,10 +28,10 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from hmpf.backbones import Backbone, load_backbone, require_torch
+from hmpf.backbones import Backbone, backbone_class, load_backbone, require_torch
 from hmpf.imageio import to_rgb
 from hmpf.methods.base import GroupOutput, Method, MethodConfig
-from hmpf.runtime import compute_threads
+from hmpf.runtime import cnn_runtime, compute_threads
 
 __all__ = [
     "CnnConfig",
@@ -43,7 +49,8 @@ class CnnConfig(MethodConfig):
         weights: local weight file (None: the bundled EfficientNet-Lite0 weights).
         backbone_options: backbone-specific settings (e.g. CaffeNet ``mean_mode``).
         input_size: network input (rows, cols); None: the method's default for the backbone.
-        device: torch device (``cpu``, ``cuda``, ``cuda:1``...).
+        device: torch device (``cpu``, ``cuda``, ``cuda:1``...); the ``onnx`` runtime runs
+            on the CPU only, so another device runs torch.
         batch_size: images per forward pass when extracting many.
     """
 
@@ -94,6 +101,22 @@ class CnnMethod(Method):
         opts = tuple(sorted((k, repr(v)) for k, v in c.backbone_options.items()))
         return (c.backbone, c.weights, opts, c.device, self.input_size())
 
+    def runtime(self) -> str:
+        """Where the forward pass runs: ``onnx`` when that is the process's runtime
+        (:func:`~hmpf.runtime.cnn_runtime`), the device is the CPU and the backbone exports;
+        else ``torch``."""
+        if cnn_runtime() == "onnx" and self.cnn.device == "cpu":
+            if backbone_class(self.cnn.backbone).onnx:
+                return "onnx"
+        return "torch"
+
+    def descriptor_key(self) -> str:
+        """:meth:`cache_key`, plus ``-onnx`` when ONNX Runtime computes the maps: descriptors
+        of the two runtimes are cached apart (torch keeps the keys it always had)."""
+        key = self.cache_key()
+        runtime = self.runtime()
+        return key if runtime == "torch" else f"{key}-{runtime}"
+
     @abstractmethod
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> Any:
         """One image's feature from its maps ({layer: (C, h, w) float32})."""
@@ -141,24 +164,34 @@ def forward_group(
 ) -> Iterator[dict[str, np.ndarray]]:
     """Maps of every layer the ``methods`` need, one dict per image, one pass per image.
 
-    All ``methods`` must share :meth:`CnnMethod.group_key`. When ``timing`` is given, the
-    preprocessing + forward time per image (ms) is appended to it for every image.
+    All ``methods`` must share :meth:`CnnMethod.group_key` (hence one :meth:`CnnMethod.runtime`).
+    When ``timing`` is given, the preprocessing + forward time per image (ms) is appended to it
+    for every image.
     """
     require_torch()  # an install hint, not a ModuleNotFoundError traceback
     import torch
 
-    torch.set_num_threads(compute_threads())
     head = methods[0]
     net = head.backbone()
     size = head.input_size()
     layers = sorted({layer for m in methods for layer in m.layers()})
     batch_size = max(m.cnn.batch_size for m in methods)
+    onnx = None
+    if head.runtime() == "onnx":
+        from hmpf.backbones.onnx_runtime import onnx_maps
+
+        onnx = onnx_maps(net, layers, size)
+    else:
+        torch.set_num_threads(compute_threads())
     for sl in _batches(len(images), batch_size):
         t0 = time.perf_counter()
         x = np.stack([net.preprocess(to_rgb(im), size) for im in images[sl]])
-        with torch.inference_mode():
-            out = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
-            arrays = {k: v.float().cpu().numpy() for k, v in out.items()}
+        if onnx is not None:
+            arrays = onnx(x)
+        else:
+            with torch.inference_mode():
+                out = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
+                arrays = {k: v.float().cpu().numpy() for k, v in out.items()}
         if timing is not None:
             timing.extend([(time.perf_counter() - t0) * 1e3 / x.shape[0]] * x.shape[0])
         for i in range(x.shape[0]):
