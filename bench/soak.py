@@ -10,7 +10,7 @@ process on a free loopback port (authentication on, default limits). Then, for `
 * ``--vehicles`` vehicles, each a closed loop posting ``night_right`` frames in route order
   in sequence mode (``vehicle_id``, ``timestamp``, the ``track`` token of its last answer);
 * one hostile client cycling through: random bytes as a JPEG, a truncated JPEG, an upload
-  announcing more than ``max_upload_bytes`` (its answer read after 64 kB of body), an
+  announcing 1 MiB more than ``max_upload_bytes`` (its answer read after 64 kB), an
   upload aborted mid-body (a raw socket that announces more bytes than it sends and hangs
   up), a batch of three frames, a request without a key;
 * an operator: ``POST /v1/index/reload`` every ``--reload-every`` seconds, and every
@@ -172,12 +172,13 @@ def aborted_upload(port: int, key: str) -> str:
 
 
 def oversize_upload(port: int, key: str, max_upload: int) -> int | str:
-    """Announce a body one byte over ``max_upload``, send 64 kB of it, read the answer (the
-    server refuses from the Content-Length, before the body)."""
+    """Announce a body 1 MiB over ``max_upload`` (past the route's limit, which allows the
+    multipart framing on top of the image), send 64 kB of it, read the answer (the server
+    refuses from the Content-Length, before the body)."""
     with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S) as s:
         head = (
             "POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/jpeg\r\n"
-            f"X-API-Key: {key}\r\nContent-Length: {max_upload + 1}\r\n\r\n"
+            f"X-API-Key: {key}\r\nContent-Length: {max_upload + 2**20}\r\n\r\n"
         )
         try:
             s.sendall(head.encode() + b"\xff\xd8" + bytes(65536))
