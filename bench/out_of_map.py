@@ -49,6 +49,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from sequence import ROUTES, pyplot  # noqa: E402
 
 from hmpf.confidence import (  # noqa: E402
     ConfidenceModel,
@@ -57,7 +60,7 @@ from hmpf.confidence import (  # noqa: E402
     reliability,
 )
 from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
+from hmpf.datasets import dataset_root, list_images  # noqa: E402
 from hmpf.evaluation.acceptance import (  # noqa: E402
     SEQUENCE_MODEL_FEATURES,
     SINGLE_FEATURES,
@@ -75,19 +78,14 @@ from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
 from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
 
-#: Map name -> (reference folder, query folder, config, the foreign route's frames).
-MAPS = {
-    **{
-        k: (ref, qry, "default", "nordland_64x32/winter")
-        for k, (ref, qry) in GARDENS_POINT_PROTOCOLS.items()
-    },
-    "nordland_s_w": (
-        "nordland_64x32/summer",
-        "nordland_64x32/winter",
-        "calibrated/nordland_handcrafted",
-        "gardens_point/night_right",
-    ),
+#: The foreign route whose frames each map is asked about.
+FOREIGN = {
+    **{k: "nordland_64x32/winter" for k in ROUTES if k.startswith("gp_")},
+    "nordland_s_w": "gardens_point/night_right",
 }
+#: Map name -> (reference folder, query folder, config, the foreign route's frames): the
+#: routes of ``bench/sequence.py``.
+MAPS = {k: (*ROUTES[k], FOREIGN[k]) for k in ROUTES}
 TARGET = 0.99
 #: The lower target the shipped model is also reported at (variant :data:`LOW`).
 TARGET_LOW = 0.95
@@ -306,13 +304,8 @@ def plot(curves: dict[str, dict[str, dict[str, Any]]], out: Path) -> Path | None
     """Reliability of the per-route models on the routes' test parts: a panel per mode
     (single frame, sequence), a line per route and variant (``curves[mode][label]`` holds
     ``p`` and ``correct``). None when matplotlib is missing."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib missing (pip install 'hmpf[report]'): no plot")
+    plt = pyplot()
+    if plt is None:
         return None
     fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 4.4), sharey=True)
     for ax, (mode, lines) in zip(np.atleast_1d(axes), curves.items(), strict=True):
