@@ -69,6 +69,18 @@ def nordland() -> Path:
     return root
 
 
+#: A small handcrafted hierarchy for index operation tests (builds in a second on synthetic
+#: images; KAZE capped so local features stay small).
+SMALL_INDEX_CONFIG = """
+name: small-index-test
+methods:
+  kaze: {max_keypoints: 40}
+tiers:
+  - {methods: [hog, gist], k: 4}
+  - {methods: [sad, kaze], k: 1}
+"""
+
+
 def synthetic_image(seed: int, size: tuple[int, int] = (120, 160)) -> np.ndarray:
     """A textured RGB uint8 image (blobs and edges) that KAZE and HOG respond to."""
     rng = np.random.default_rng(seed)

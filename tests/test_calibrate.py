@@ -444,6 +444,17 @@ def test_calibrate_cli_version_and_ctrl_c(monkeypatch, capsys, tmp_path: Path):
     assert err == "hmpf-calibrate: interrupted\n"
 
 
+def _weak_calibration(pool, train, test):
+    """Calibrate one weak method alone (its training answers are right and wrong, so a model
+    can be fit), with sequence mode: (config, report, the search space, the method)."""
+    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
+    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
+    config, rep = calibrate(
+        pool, train, test, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
+    )
+    return config, rep, space, weak
+
+
 def test_calibrate_fits_confidence_models_that_load_and_round_trip(banks, tmp_path: Path):
     """With sequence mode: both models and thresholds are written into ``acceptance``, the
     z threshold stays, the config round-trips through YAML and the report has the test
@@ -454,12 +465,7 @@ def test_calibrate_fits_confidence_models_that_load_and_round_trip(banks, tmp_pa
     from hmpf.evaluation.calibrate import leaderboard_markdown
 
     pool, train, test, _, _ = banks
-    # One weak method alone: its training answers are right and wrong, so a model can be fit.
-    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
-    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
-    config, rep = calibrate(
-        pool, train, test, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
-    )
+    config, rep, space, _ = _weak_calibration(pool, train, test)
     acc = config.acceptance
     assert acc is not None and math.isfinite(acc.threshold)
     tr = rep["train"]["confidence"]
@@ -498,11 +504,7 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
     from hmpf.evaluation.evaluate import format_report
 
     pool, train, _, train_data, cache = banks
-    weak = min(pool.method_ids, key=lambda m: (train.single_recall(m, [1])[1], m))
-    space = SearchSpace((weak,), max_tiers=1, max_per_tier=1, samples=1, refine=1)
-    config, _ = calibrate(
-        pool, train, None, space, budget_ms=None, seed=0, target_precision=0.9, sequence=True
-    )
+    config, _, _, weak = _weak_calibration(pool, train, None)
     acc = config.acceptance
     assert acc is not None and acc.model is not None
     rep = evaluate(config, train_data, cache=cache, skip_curves=[weak], sequence=True)

@@ -13,7 +13,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
-from conftest import synthetic_image
+from conftest import SMALL_INDEX_CONFIG, synthetic_image
 
 import hmpf.features
 import indexer.build
@@ -27,14 +27,7 @@ from hmpf.methods.base import MetricSpec, euclidean
 from indexer.build import BuildOptions, add, build, remove
 from indexer.cli import main
 
-CONFIG = """
-name: ops-test
-methods:
-  kaze: {max_keypoints: 40}
-tiers:
-  - {methods: [hog, gist], k: 4}
-  - {methods: [sad, kaze], k: 1}
-"""
+CONFIG = SMALL_INDEX_CONFIG
 OPTS = BuildOptions(workers=1, progress=False)
 ROOT = Path(__file__).resolve().parent.parent
 

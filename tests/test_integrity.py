@@ -23,7 +23,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
-from conftest import synthetic_image
+from conftest import SMALL_INDEX_CONFIG, synthetic_image
 from fastapi.testclient import TestClient
 
 import indexer.maintenance
@@ -35,14 +35,7 @@ from service.auth import add_key
 from service.cli import main as serve_main
 from service.settings import load_settings
 
-CONFIG = """
-name: integrity-test
-methods:
-  kaze: {max_keypoints: 40}
-tiers:
-  - {methods: [hog, gist], k: 4}
-  - {methods: [sad, kaze], k: 1}
-"""
+CONFIG = SMALL_INDEX_CONFIG
 OPTS = BuildOptions(workers=1, progress=False)
 
 
