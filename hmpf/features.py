@@ -401,9 +401,12 @@ def _extract(
                         collect(i, futs[i].result())
                 except BaseException:
                     pool.shutdown(wait=False, cancel_futures=True)
+                    # End the workers now (_exit_with_parent), so the pool's exit does not
+                    # wait on a worker an interrupt left stuck.
+                    alive.close()
                     raise
     finally:
         bar.close()
-        for conn in closing:  # after the pool's shutdown; at an error, the workers stop now
+        for conn in closing:  # after the pool's shutdown (closing twice is harmless)
             conn.close()
     return decode
