@@ -400,13 +400,17 @@ def _extract(
                     for i in jobs:
                         collect(i, futs[i].result())
                 except BaseException:
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    # End the workers now (_exit_with_parent), so the pool's exit does not
-                    # wait on a worker an interrupt left stuck.
-                    alive.close()
+                    # Drop the queued images and let each worker finish the one it holds (they
+                    # ignore Ctrl-C): a worker ended mid-image could leave half a result in
+                    # the pool's result pipe, and the pool's reader thread, joined at exit,
+                    # would wait for the rest for ever. A second Ctrl-C waits again (the
+                    # pool's exit joins the same thread).
+                    pool.shutdown(wait=True, cancel_futures=True)
                     raise
     finally:
         bar.close()
-        for conn in closing:  # after the pool's shutdown (closing twice is harmless)
+        # Only now, with the pool shut down, may the lifeline close (_exit_with_parent ends
+        # any worker still there: only after repeated Ctrl-C).
+        for conn in closing:
             conn.close()
     return decode
