@@ -6,8 +6,9 @@
 Builds (once, under ``results/service-index/<config name>``) an index of Gardens Point
 ``day_right``, starts a real ``hmpf-serve`` process on a free loopback port (authentication
 off, as under ``make run``), and for each client count runs that many closed-loop clients
-posting ``night_right`` frames as raw JPEG bodies for ``--duration`` seconds. A client sends
-its next request when the previous answer arrives; after a 503 it waits the server's
+posting ``night_right`` frames as raw JPEG bodies for ``--duration`` seconds, each through
+its own :class:`hmpf.client.Client` (retries off: the bench counts them). A client sends its
+next request when the previous answer arrives; after a 503 it waits the server's
 ``Retry-After`` (capped at 0.2 s, so the overload phase keeps pressing).
 
 Per phase it prints: answers per second (200s), latency p50/p95/p99/max of the 200s (client
@@ -37,8 +38,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+import httpx  # noqa: E402
 from accuracy import machine  # noqa: E402
 
+from hmpf.client import Client, ServiceError, ServiceUnreachable  # noqa: E402
 from hmpf.datasets import dataset_root, list_images  # noqa: E402
 
 TIMEOUT_S = 30.0
@@ -120,45 +123,39 @@ def _run_phase(port: int, clients: int, seconds: float, frames: list[bytes]) -> 
     stop_at = time.monotonic() + seconds
 
     def client(seed: int) -> None:
-        conn: http.client.HTTPConnection | None = None
         k = seed * 37
-        while time.monotonic() < stop_at:
-            qi = k % len(frames)
-            k += 1
-            t0 = time.perf_counter()
-            try:
-                if conn is None:
-                    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=TIMEOUT_S)
-                conn.request(
-                    "POST", "/v1/localize", body=frames[qi], headers={"Content-Type": "image/jpeg"}
-                )
-                r = conn.getresponse()
-                data = r.read()
-                status, retry = r.status, r.getheader("Retry-After")
-            except TimeoutError:
+        # retries=0: the bench counts every 503 and error itself
+        with Client(f"http://127.0.0.1:{port}", timeout=TIMEOUT_S, retries=0) as service:
+            while time.monotonic() < stop_at:
+                qi = k % len(frames)
+                k += 1
+                t0 = time.perf_counter()
+                retry = None
+                try:
+                    answer = service.localize(frames[qi])
+                    status = 200
+                except ServiceError as exc:
+                    status, retry = exc.status, exc.retry_after
+                except ServiceUnreachable as exc:
+                    cause = exc.__cause__
+                    with lock:
+                        timeout = isinstance(cause, httpx.TimeoutException)
+                        phase.count("timeout" if timeout else type(cause).__name__)
+                    continue
+                ms = (time.perf_counter() - t0) * 1e3
                 with lock:
-                    phase.count("timeout")
-                conn = None
-                continue
-            except (OSError, http.client.HTTPException) as exc:
-                with lock:
-                    phase.count(type(exc).__name__)
-                conn = None
-                continue
-            ms = (time.perf_counter() - t0) * 1e3
-            with lock:
-                phase.count(str(status))
-                if status == 200:
-                    body = json.loads(data)
-                    phase.latencies.append(ms)
-                    for stage in ("queue", "decode", "extract", "hierarchy", "total"):
-                        phase.stages.setdefault(stage, []).append(body["timing_ms"][stage])
-                    m = body["match"]
-                    phase.correct += m is not None and abs(m["reference_id"] - qi) <= 2
-                elif status == 503:
-                    phase.busy_ms.append(ms)
-            if status == 503:
-                time.sleep(min(0.2, float(retry or 1)))
+                    phase.count(str(status))
+                    if status == 200:
+                        phase.latencies.append(ms)
+                        timing = answer.timing_ms
+                        for stage in ("queue", "decode", "extract", "hierarchy", "total"):
+                            phase.stages.setdefault(stage, []).append(timing[stage])  # type: ignore[arg-type]
+                        m = answer.match
+                        phase.correct += m is not None and abs(m.reference_id - qi) <= 2
+                    elif status == 503:
+                        phase.busy_ms.append(ms)
+                if status == 503:
+                    time.sleep(min(0.2, retry if retry is not None else 1.0))
 
     threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
     t0 = time.perf_counter()
@@ -231,11 +228,11 @@ def main() -> int:
         port = _free_port()
         proc = _start(index, port, args, Path(tmp) / "serve.log")
         try:
-            _, info = _request(port, "GET", "/v1/index", b"", 10)
-            meta = json.loads(info)
+            with Client(f"http://127.0.0.1:{port}", timeout=10) as service:
+                meta = service.index()
             print(
-                f"index {meta['version']}: {meta['references']} references, methods "
-                f"{', '.join(meta['methods'])}"
+                f"index {meta.version}: {meta.references} references, methods "
+                f"{', '.join(meta.methods)}"
             )
             _run_phase(port, 2, 3.0, frames)  # warm-up
             rows = []
