@@ -1,5 +1,5 @@
 """End to end: a real ``hmpf-serve`` (uvicorn) process on a free loopback port, a real index
-built from Gardens Point, real night images posted with httpx.
+built from Gardens Point, real night images posted with httpx (and :class:`hmpf.client.Client`).
 
 * night_right queries match their day_right places;
 * an over-limit upload streamed without Content-Length is refused before it has been sent;
@@ -23,6 +23,7 @@ import httpx
 import pytest
 from service_helpers import BUILD_OPTIONS, Server, build_gp_index
 
+from hmpf.client import Client
 from indexer.build import remove
 from service.auth import add_key
 
@@ -71,17 +72,13 @@ def _post(client: httpx.Client, path: Path, key: str) -> httpx.Response:
 def test_night_images_match_their_places(server, keys, gardens_point) -> None:
     picks = list(range(2, N_REFS - 2, 3))  # 12 queries inside the reference stretch
     hits = 0
-    with httpx.Client(base_url=server.url) as client:
+    with Client(server.url, keys["vehicle"], timeout=60, retries=0) as client:  # hmpf.client
         for i in picks:
-            r = _post(client, _night(gardens_point, i), keys["vehicle"])
-            assert r.status_code == 200, r.text
-            body = r.json()
-            assert body["index_version"] == "v0001"
-            assert [t["methods"] for t in body["tiers"]] == [
-                ["gem", "gist"],
-                ["gem", "gist", "hog"],
-            ]
-            hits += abs(body["match"]["reference_id"] - i) <= 2
+            answer = client.localize(_night(gardens_point, i))  # raises unless a 200
+            assert answer.index_version == "v0001"
+            assert [t.methods for t in answer.tiers] == [["gem", "gist"], ["gem", "gist", "hog"]]
+            assert answer.match is not None, answer
+            hits += abs(answer.match.reference_id - i) <= 2
     # Measured: all 12 of these night queries land within +-2 frames; allow for 3 misses.
     assert hits >= 9, f"{hits}/{len(picks)} night queries matched"
 
