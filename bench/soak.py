@@ -8,7 +8,8 @@ temporary folder, creates a vehicle and an admin API key, and starts a real ``hm
 process on a free loopback port (authentication on, default limits). Then, for ``--minutes``:
 
 * ``--vehicles`` vehicles, each a closed loop posting ``night_right`` frames in route order
-  in sequence mode (``vehicle_id``, ``timestamp``, the ``track`` token of its last answer);
+  in sequence mode (``vehicle_id``, ``timestamp``, the ``track`` token of its last answer),
+  through :class:`hmpf.client.Client` (one pooled connection each);
 * one hostile client cycling through: random bytes as a JPEG, a truncated JPEG, an upload
   announcing 1 MiB more than ``max_upload_bytes`` (its answer read after 64 kB), an
   upload aborted mid-body (a raw socket that announces more bytes than it sends and hangs
@@ -45,12 +46,11 @@ import time
 import uuid
 from collections import Counter
 from pathlib import Path
-from typing import Any
-from urllib.parse import urlencode
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hmpf.client import Client, ServiceError, ServiceUnreachable  # noqa: E402
 from hmpf.datasets import dataset_root, list_images  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
 
@@ -125,39 +125,28 @@ class Log:
 def vehicle(
     port: int, key: str, name: str, frames: list[bytes], stop: threading.Event, log: Log
 ) -> None:
-    track: str | None = None
+    """A vehicle on :class:`hmpf.client.Client`, which carries its track (retries off: every
+    answer is tallied)."""
     i, t = 0, 0.0
-    while not stop.is_set():
-        query: dict[str, Any] = {"vehicle_id": name, "timestamp": f"{t:.1f}"}
-        if track:
-            query["track"] = track
-        t0 = time.perf_counter()
-        try:
-            status, body = request(
-                port,
-                "POST",
-                "/v1/localize?" + urlencode(query),
-                frames[i % len(frames)],
-                {"Content-Type": "image/jpeg", "X-API-Key": key},
-            )
-        except OSError as e:
-            log.add("vehicle", type(e).__name__)
-            log.error(f"vehicle {name}: {e!r}")
-            time.sleep(0.2)
-            continue
-        ms = (time.perf_counter() - t0) * 1e3
-        log.add("vehicle", status, ms if status == 200 else None)
-        if status == 200:
-            seq = json.loads(body).get("sequence") or {}
-            track = seq.get("track", track)
-        elif status == 422 and b"invalid_track" in body:
-            track = None
-        elif status >= 500:
-            log.error(f"vehicle {name}: {status} {body[:300]!r}")
-            if status == 503:
+    with Client(f"http://127.0.0.1:{port}", key, timeout=TIMEOUT_S, retries=0) as service:
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                service.localize(frames[i % len(frames)], vehicle_id=name, timestamp=t)
+                log.add("vehicle", 200, (time.perf_counter() - t0) * 1e3)
+            except ServiceUnreachable as e:
+                log.add("vehicle", type(e.__cause__).__name__)
+                log.error(f"vehicle {name}: {e}")
                 time.sleep(0.2)
-        i += 1
-        t += 0.5
+                continue
+            except ServiceError as e:  # an invalid_track: the client starts a new track
+                log.add("vehicle", e.status)
+                if e.status >= 500:
+                    log.error(f"vehicle {name}: {e.status} {e.body!r:.300}")
+                    if e.status == 503:
+                        time.sleep(0.2)
+            i += 1
+            t += 0.5
 
 
 def aborted_upload(port: int, key: str) -> str:
