@@ -76,6 +76,9 @@ __all__ = [
 API_KEY_HEADER = "X-API-Key"
 #: An image as the client takes it: a file path, encoded bytes, or an RGB / grey uint8 array.
 ImageInput = str | os.PathLike[str] | bytes | bytearray | memoryview | np.ndarray
+#: Transport errors worth another try: timeouts, refused / reset connections, a connection
+#: closed without an answer (not, e.g., an unsupported URL scheme).
+_TRANSIENT = (httpx.TimeoutException, httpx.NetworkError, httpx.RemoteProtocolError)
 _Http = TypeVar("_Http", httpx.Client, httpx.AsyncClient)
 _MAGIC = (
     (b"\xff\xd8\xff", "image/jpeg"),
@@ -283,7 +286,10 @@ class _Core:
     def wait(self, attempt: int, outcome: httpx.Response | httpx.TransportError) -> float | None:
         """Seconds to wait before trying again after try ``attempt`` (0: the first) ended in
         ``outcome``; None: no more tries (an answer to return or raise, or tries used up)."""
-        retryable = isinstance(outcome, httpx.TransportError) or outcome.status_code == 503
+        if isinstance(outcome, httpx.Response):
+            retryable = outcome.status_code == 503
+        else:
+            retryable = isinstance(outcome, _TRANSIENT)
         if not retryable or attempt >= self.retries:
             return None
         delay = min(self.max_backoff, self.backoff * 2.0**attempt)
@@ -295,10 +301,12 @@ class _Core:
                 delay = min(self.max_backoff, after)
         return delay
 
-    def finish(self, call: _Call, outcome: httpx.Response | httpx.TransportError) -> Any:
-        """The call's answer as its model, its track kept; or the error it ended in."""
+    def finish(
+        self, call: _Call, outcome: httpx.Response | httpx.TransportError, tries: int
+    ) -> Any:
+        """The call's answer as its model, its track kept; or the error it ended in after
+        ``tries`` tries."""
         if isinstance(outcome, httpx.TransportError):
-            tries = self.retries + 1
             raise ServiceUnreachable(
                 f"no answer from {self.url} after {tries} tr{'y' if tries == 1 else 'ies'}: "
                 f"{type(outcome).__name__}: {outcome}"
@@ -451,7 +459,7 @@ class Client(_Base[httpx.Client]):
                 outcome = exc
             delay = self._core.wait(attempt, outcome)
             if delay is None:
-                return self._core.finish(call, outcome)
+                return self._core.finish(call, outcome, attempt + 1)
             time.sleep(delay)
 
     def close(self) -> None:
@@ -505,7 +513,7 @@ class AsyncClient(_Base[httpx.AsyncClient]):
                 outcome = exc
             delay = self._core.wait(attempt, outcome)
             if delay is None:
-                return self._core.finish(call, outcome)
+                return self._core.finish(call, outcome, attempt + 1)
             await asyncio.sleep(delay)
 
     async def aclose(self) -> None:

@@ -208,22 +208,28 @@ def test_bad_arguments_are_refused_before_sending(tmp_path: Path) -> None:
 # -- retries: a scripted stub on loopback --------------------------------------------------------
 class Stub:
     """An ``http.server`` on 127.0.0.1 answering each request with the next of ``script``
-    (status, headers, body; the last one repeats), noting when each request came."""
+    (status, headers, body; the last one repeats), request ``n`` (1: the first) after
+    ``pause[n]`` seconds; it notes when each request came."""
 
-    def __init__(self, script: list[tuple[int, dict[str, str], bytes]]) -> None:
-        self.script, self.times = script, []
+    def __init__(
+        self, script: list[tuple[int, dict[str, str], bytes]], pause: dict[int, float] | None = None
+    ) -> None:
+        self.script, self.times, self.pause = script, [], pause or {}
         stub = self
 
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:  # noqa: N802 - http.server's name
                 self.rfile.read(int(self.headers.get("Content-Length", 0)))
                 stub.times.append(time.monotonic())
-                status, headers, body = stub.script[min(len(stub.times), len(stub.script)) - 1]
-                self.send_response(status)
-                for k, v in {**headers, "Content-Length": str(len(body))}.items():
-                    self.send_header(k, v)
-                self.end_headers()
-                self.wfile.write(body)
+                n = len(stub.times)
+                time.sleep(stub.pause.get(n, 0.0))
+                status, headers, body = stub.script[min(n, len(stub.script)) - 1]
+                with contextlib.suppress(OSError):  # a client that timed out has gone
+                    self.send_response(status)
+                    for k, v in {**headers, "Content-Length": str(len(body))}.items():
+                        self.send_header(k, v)
+                    self.end_headers()
+                    self.wfile.write(body)
 
             def log_message(self, *args: Any) -> None:
                 pass
@@ -281,6 +287,20 @@ def test_503_retries_are_bounded_and_end_in_the_services_error(night) -> None:
     assert exc.value.retry_after == 0.0
     # the date's wait capped by max_backoff (0.3 s), then Retry-After: 0
     assert 0.15 <= stub.times[1] - stub.times[0] < 0.6 and elapsed < 2
+
+
+def test_a_timeout_is_retried_and_then_the_error(recorded: bytes, night) -> None:
+    stub = Stub([(200, {}, recorded)], pause={1: 1.5, 3: 1.5})  # 1st and 3rd: too slow
+    try:
+        with Client(stub.url, timeout=0.3, retries=1, backoff=0.0) as c:
+            answer = c.localize(night[5])  # the 1st times out, the 2nd answers
+            assert answer == LocalizeResponse.model_validate_json(recorded)
+        with Client(stub.url, timeout=0.3, retries=0) as c:
+            with pytest.raises(ServiceUnreachable, match=r"after 1 try: ReadTimeout"):
+                c.localize(night[5])
+    finally:
+        stub.close()
+    assert len(stub.times) == 3
 
 
 def test_a_success_body_that_is_not_the_model_is_an_error(night) -> None:

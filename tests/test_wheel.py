@@ -98,12 +98,15 @@ def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
             "print(hmpf.__file__)\n"
             "print(' '.join(preset_names()))\n"
             "meta = m.metadata('hmpf')\n"
-            "print(meta['License-Expression'], meta.get_all('License-File'))\n",
+            "print(meta['License-Expression'], meta.get_all('License-File'))\n"
+            "import sys, hmpf.client\n"  # the client: a base dependency (httpx), no torch
+            "print([d.split('>')[0] for d in meta.get_all('Requires-Dist') if ';' not in d])\n"
+            "print(hmpf.client.__file__, 'torch' in sys.modules)\n",
         ],
         work,
         env,
     )
-    where, presets, license_ = out.splitlines()
+    where, presets, license_, base_deps, client = out.splitlines()
     venv = bindir.parent.resolve()
     assert Path(where).resolve().is_relative_to(venv), where  # the wheel's copy, not ROOT
     assert not Path(where).resolve().is_relative_to(ROOT)
@@ -112,6 +115,9 @@ def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
         for p in (ROOT / "configs").rglob("*.yaml")
     }
     assert license_ == "MIT ['LICENSE']"
+    assert "'httpx'" in base_deps, base_deps
+    client_file, torch_loaded = client.split()
+    assert Path(client_file).resolve().is_relative_to(venv) and torch_loaded == "False", client
 
 
 def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> None:
