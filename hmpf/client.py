@@ -261,6 +261,7 @@ class _Core:
 
     def localize(self, image: ImageInput, options: LocalizeOptions) -> _Call:
         """``POST /v1/localize``: the image as the raw body, the fields in the query string."""
+        _check_options("localize", options, LocalizeOptions.__optional_keys__)
         data, content_type = encode_image(image, self.array_format)
         request = self._request(
             "POST", "/v1/localize", options, content=data, headers={"Content-Type": content_type}
@@ -269,6 +270,7 @@ class _Core:
 
     def batch(self, images: Iterable[ImageInput], options: BatchOptions) -> _Call:
         """``POST /v1/localize/batch``: multipart ``images`` fields, the fields in the query."""
+        _check_options("localize_batch", options, BatchOptions.__optional_keys__)
         files = []
         for i, image in enumerate(images):
             data, content_type = encode_image(image, self.array_format)
@@ -328,6 +330,15 @@ class _Core:
         if call.vehicle_id is not None and track is not None:
             self.tracks[call.vehicle_id] = track
         return answer
+
+
+def _check_options(call: str, options: Mapping[str, Any], known: frozenset[str]) -> None:
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(
+            f"{call}() got an unexpected keyword argument {unknown[0]!r} (it takes "
+            f"{', '.join(sorted(known))})"
+        )
 
 
 def _track_of(answer: BaseModel) -> str | None:

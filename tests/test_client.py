@@ -199,6 +199,10 @@ def test_bad_arguments_are_refused_before_sending(tmp_path: Path) -> None:
             c.localize(12)  # type: ignore[arg-type]
         with pytest.raises(ValueError, match="at least one image"):
             c.localize_batch([])
+        with pytest.raises(TypeError, match="unexpected keyword argument 'radius'"):
+            c.localize(b"\xff\xd8\xff", radius=5)  # type: ignore[call-arg]
+        with pytest.raises(TypeError, match="argument 'timestamp'"):  # a batch has none
+            c.localize_batch([b"\xff\xd8\xff"], timestamp=1.0)  # type: ignore[call-arg]
     with pytest.raises(ValueError, match="http://"):
         Client("127.0.0.1:8000")
     grey, content_type = encode_image(np.full((16, 16), 128, np.uint8))
