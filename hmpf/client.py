@@ -133,6 +133,9 @@ class ServiceError(ClientError):
         self.body = body
         self.retry_after = retry_after
 
+    def __reduce__(self) -> tuple[type, tuple[int, str, str, Any, float | None]]:  # picklable
+        return (type(self), (self.status, self.code, self.message, self.body, self.retry_after))
+
 
 class ServiceUnreachable(ClientError):
     """No answer after every try (connection refused, timeouts, broken connections); the

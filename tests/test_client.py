@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import pickle
 import re
 import socket
 import threading
@@ -173,6 +174,8 @@ def test_a_4xx_raises_at_once_with_the_body_and_is_sent_once(
     assert exc.value.status == 401 and exc.value.code == "unauthorized"
     assert exc.value.body == {"error": {"code": "unauthorized", "message": exc.value.message}}
     assert "X-API-Key" in exc.value.message and str(exc.value).startswith("401 unauthorized")
+    copy = pickle.loads(pickle.dumps(exc.value))  # e.g. out of a worker process
+    assert (copy.status, copy.body, str(copy)) == (401, exc.value.body, str(exc.value))
     with Client(server.url, keys["vehicle"], retries=5, backoff=0.5) as c:
         with pytest.raises(ServiceError) as bad_image:
             c.localize(b"GIF89a this is not a frame")
