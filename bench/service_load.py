@@ -82,7 +82,9 @@ def _ensure_index(config: Path, index: Path | None) -> Path:
 
 
 def _start(index: Path, port: int, args: argparse.Namespace, log: Path) -> subprocess.Popen:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+    # The service's own settings only; the CNN runtime and caches may be chosen by the caller.
+    keep = ("HMPF_CNN_RUNTIME", "HMPF_CACHE_DIR")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_") or k in keep}
     env.update(HMPF_AUTH="false", HMPF_LOG_LEVEL="warning")
     if args.workers:
         env["HMPF_WORKERS"] = str(args.workers)

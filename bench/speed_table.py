@@ -1,0 +1,166 @@
+"""Before / after: the default hierarchy's speed with each of issue 20's levers, one run.
+
+    python bench/speed_table.py [--images 20] [--duration 20] [--rows before onnx after]
+        [--json F]
+
+Rows (the same machine, images and run; each lever added on top of the row above):
+
+* ``before``: the torch runtime and the previous default's three input sizes (GeM 224 x 224,
+  NetVLAD 288 x 512, OLO 416 x 416: three EfficientNet-Lite0 passes per query);
+* ``onnx``: the same three passes in ONNX Runtime;
+* ``after``: ONNX Runtime and one pass at the default's shared input size.
+
+Columns:
+
+* one query on one thread, end to end (decode + extraction + hierarchy against the 200
+  day_right references; :func:`hmpf.evaluation.study.measure_query_ms`, median of
+  ``--images`` night_right frames);
+* HTTP (``bench/service_load.py``: a real ``hmpf-serve`` on loopback with its default 2
+  workers x 1 thread, raw JPEG bodies, ``--duration`` s per phase): p50 of a lone client and
+  answers/s with 8 clients, and the errors of both phases;
+* index build of Gardens Point day_right (200 images, no feature cache, every core):
+  images/s end to end;
+* recall@1 of the hierarchy on the three Gardens Point protocols (+-2 frames).
+
+The runtime is chosen by ``HMPF_CNN_RUNTIME`` (set for the service's process too).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from one_pass import VARIANTS, variant_config  # noqa: E402
+
+from hmpf.config import HierarchyConfig, load_config  # noqa: E402
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
+from hmpf.evaluation.study import ScoreBank, measure_query_ms  # noqa: E402
+from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
+from indexer.build import BuildOptions, build  # noqa: E402
+
+#: row -> (CNN runtime, config); "three_pass" is the previous default (method defaults).
+ROWS = {
+    "before": ("torch", "three_pass"),
+    "onnx": ("onnx", "three_pass"),
+    "after": ("onnx", "default"),
+}
+
+
+def config_of(which: str) -> HierarchyConfig:
+    if which == "default":
+        return load_config("default")
+    config = variant_config(VARIANTS["default"])  # every CNN method at its own default size
+    return config.model_copy(update={"name": "default-three-pass"})
+
+
+def write_yaml(config: HierarchyConfig, folder: Path) -> Path:
+    path = folder / f"{config.name}.yaml"
+    path.write_text(yaml.safe_dump(config.model_dump(mode="json", exclude_unset=True)))
+    return path
+
+
+def http(
+    config_yaml: Path, index: Path, runtime: str, duration: float, out: Path
+) -> dict[str, Any]:
+    """bench/service_load.py's phases with 1 and 8 clients (no overload phase)."""
+    cmd = [sys.executable, str(ROOT / "bench" / "service_load.py"), "--config", str(config_yaml)]
+    cmd += ["--index", str(index)]
+    cmd += ["--clients", "1", "8", "--duration", str(duration), "--overload", "0"]
+    cmd += ["--json", str(out)]
+    env = {**os.environ, "HMPF_CNN_RUNTIME": runtime}
+    subprocess.run(cmd, check=True, env=env, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return json.loads(out.read_text())
+
+
+def build_rate(config_yaml: Path, tmp: Path, index: Path) -> float:
+    images = tmp / "images"
+    if not images.exists():
+        images.mkdir()
+        for src in list_images(dataset_root() / "gardens_point" / "day_right"):
+            (images / src.name).symlink_to(src.resolve())
+    summary = build(config_yaml, images, index, options=BuildOptions(progress=False))
+    return float(summary.images_per_s)
+
+
+def recalls(config: HierarchyConfig, cache: FeatureCache) -> dict[str, float]:
+    out = {}
+    for name, (r, q) in GARDENS_POINT_PROTOCOLS.items():
+        data = EvalData.frames(dataset_root() / r, dataset_root() / q, 2)
+        rep = evaluate(config, data, cache=cache, skip_curves=list(config.method_ids))
+        out[name] = float(rep["hierarchy"]["combined_recall_at_1"])
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--images", type=int, default=20, help="queries timed on one thread")
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds per HTTP phase")
+    ap.add_argument("--rows", nargs="*", default=list(ROWS), choices=list(ROWS))
+    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    print(f"Machine: {machine_description()}", flush=True)
+    cache = FeatureCache(args.cache_dir)
+    gp = dataset_root() / "gardens_point"
+    timed = EvalData.frames(gp / "day_right", gp / "night_right", 2)
+    table: dict[str, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        for row in args.rows:
+            runtime, which = ROWS[row]
+            set_cnn_runtime(runtime)
+            config = config_of(which)
+            config_yaml = write_yaml(config, tmp)
+            bank = ScoreBank.build(config, timed, cache=cache)
+            q = measure_query_ms(config, bank, images=args.images, threads=1)
+            index = tmp / f"index-{row}"
+            rate = build_rate(config_yaml, tmp, index)
+            load = http(config_yaml, index, runtime, args.duration, tmp / f"{row}-load.json")
+            table[row] = {
+                "runtime": runtime,
+                "config": which,
+                "query": q,
+                "http": load,
+                "build_images_per_s": rate,
+                "recall": recalls(config, cache),
+            }
+            print(f"{row}: {json.dumps(table[row])}", flush=True)
+    print(f"\nMachine: {machine_description()}; one run of every row.\n")
+    names = " / ".join(GARDENS_POINT_PROTOCOLS)
+    print(
+        "| row | runtime, passes | one query, 1 thread (extract + hierarchy) | HTTP p50, 1 client "
+        f"| answers/s, 8 clients (errors) | build, images/s | recall@1 {names} |"
+    )
+    print("|---|---|---:|---:|---:|---:|---|")
+    for row, r in table.items():
+        q, phases = r["query"], {p["clients"]: p for p in r["http"]["phases"]}
+        one, eight = phases[1], phases[8]
+        errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
+        passes = 3 if r["config"] == "three_pass" else 1
+        rec = " / ".join(f"{r['recall'][p]:.3f}" for p in GARDENS_POINT_PROTOCOLS)
+        print(
+            f"| {row} | {r['runtime']}, {passes} | {q['total_ms']:.1f} ms "
+            f"({q['extract_ms']:.1f} + {q['hierarchy_ms']:.1f}) | {one['p50_ms']:.1f} ms "
+            f"| {eight['answers_per_s']:.1f} ({errors}) | {r['build_images_per_s']:.1f} | {rec} |"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(table, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
