@@ -414,3 +414,10 @@ def test_the_docs_vehicle_example_runs(
     lines = capsys.readouterr().out.splitlines()
     assert [line.split(":")[0] for line in lines] == [f"frame {n}" for n in range(4)], lines
     assert all(re.search(r": at Image\d+\.jpg \(|: not sure yet \(", line) for line in lines)
+
+
+def test_the_readme_shows_the_docs_vehicle_example() -> None:
+    """README's vehicle example is the block the test above runs (docs/client.md)."""
+    fence = re.compile(r"^```python\n(.*?)^```", re.MULTILINE | re.DOTALL)
+    (example,) = fence.findall((ROOT / "docs" / "client.md").read_text())
+    assert example in fence.findall((ROOT / "README.md").read_text())
