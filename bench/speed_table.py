@@ -5,10 +5,10 @@
 
 Rows (the same machine, images and run; each lever added on top of the row above):
 
-* ``before``: the torch runtime and the previous default's three input sizes (GeM 224 x 224,
-  NetVLAD 288 x 512, OLO 416 x 416: three EfficientNet-Lite0 passes per query);
-* ``onnx``: the same three passes in ONNX Runtime;
-* ``after``: ONNX Runtime and one pass at the default's shared input size.
+* ``before``: the default hierarchy in torch (GeM 224 x 224, NetVLAD 288 x 512, OLO 416 x 416:
+  three EfficientNet-Lite0 passes per query);
+* ``after``: the same in ONNX Runtime, the default runtime;
+* ``fast``: the ``fast`` preset in ONNX Runtime (one shared 224 x 384 pass).
 
 Columns:
 
@@ -42,8 +42,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from one_pass import VARIANTS, variant_config  # noqa: E402
-
 from hmpf.config import HierarchyConfig, load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
 from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
@@ -52,19 +50,12 @@ from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
 from indexer.build import BuildOptions, build  # noqa: E402
 
-#: row -> (CNN runtime, config); "three_pass" is the previous default (method defaults).
+#: row -> (CNN runtime, preset).
 ROWS = {
-    "before": ("torch", "three_pass"),
-    "onnx": ("onnx", "three_pass"),
+    "before": ("torch", "default"),
     "after": ("onnx", "default"),
+    "fast": ("onnx", "fast"),
 }
-
-
-def config_of(which: str) -> HierarchyConfig:
-    if which == "default":
-        return load_config("default")
-    config = variant_config(VARIANTS["default"])  # every CNN method at its own default size
-    return config.model_copy(update={"name": "default-three-pass"})
 
 
 def write_yaml(config: HierarchyConfig, folder: Path) -> Path:
@@ -123,7 +114,7 @@ def main() -> int:
         for row in args.rows:
             runtime, which = ROWS[row]
             set_cnn_runtime(runtime)
-            config = config_of(which)
+            config = load_config(which)
             config_yaml = write_yaml(config, tmp)
             bank = ScoreBank.build(config, timed, cache=cache)
             q = measure_query_ms(config, bank, images=args.images, threads=1)
@@ -150,7 +141,7 @@ def main() -> int:
         q, phases = r["query"], {p["clients"]: p for p in r["http"]["phases"]}
         one, eight = phases[1], phases[8]
         errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
-        passes = 3 if r["config"] == "three_pass" else 1
+        passes = 3 if r["config"] == "default" else 1
         rec = " / ".join(f"{r['recall'][p]:.3f}" for p in GARDENS_POINT_PROTOCOLS)
         print(
             f"| {row} | {r['runtime']}, {passes} | {q['total_ms']:.1f} ms "
