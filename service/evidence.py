@@ -4,16 +4,16 @@
 (right), both scaled to :data:`HEIGHT` pixels, and draws what matched:
 
 * **KAZE** (when the index has a ``kaze`` method): the query's keypoints, extracted from the
-  upload, against the reference's keypoints *as stored in the index*; a pair is drawn when
-  the two descriptors are each other's nearest neighbours and pass the method's ratio test
-  (``max_ratio``); at most :data:`MAX_PAIRS`, closest first, as dots joined by lines.
-* **OLO** (otherwise, when the index has an ``olo`` method): the index stores region
-  descriptors, not where the regions lie, so both sides are encoded here, the query from
-  the upload and the reference from its thumbnail (a 160-pixel image: the reference's regions
-  are close to, not exactly, the stored ones); a pair is a mutual best match (OLO's rule),
-  weighted by the cosine times both visual words' idf (a box that several mask channels
-  share counts once); the :data:`MAX_PAIRS` heaviest pairs
-  are drawn as boxes on the 13 x 13 map grid, same colour on both sides, joined by lines.
+  upload, against the reference's keypoints *as stored in the index*: the matches KAZE's
+  distance counts (nearest descriptor within the match threshold, passing the ratio test;
+  the ``n_best`` closest, at most :data:`MAX_PAIRS`), as dots joined by lines.
+* **OLO** (otherwise, when the index has an ``olo`` method): the pairs OLO's score counts,
+  mutual best matches between the query's regions (encoded from the upload) and the
+  reference's regions *as stored in the index*, weighted by the cosine times both visual
+  words' idf; the :data:`MAX_PAIRS` heaviest are drawn as boxes on the 13 x 13 map grid, same
+  colour on both sides, joined by lines. The index stores no boxes, so a stored region is
+  drawn at the box of the most similar region encoded from the reference's thumbnail (close
+  to where it lies, not exact).
 
 Both methods stretch the whole image to a square input, so grid cells and keypoint
 coordinates scale linearly to the drawn images.
@@ -30,8 +30,8 @@ import numpy as np
 from hmpf.imageio import decode_image
 from hmpf.index.reader import IndexReader
 from hmpf.methods.cnn import forward_group
-from hmpf.methods.kaze import Kaze, KazeFeatures
-from hmpf.methods.olo import Olo
+from hmpf.methods.kaze import Kaze, KazeConfig, KazeFeatures, best_two_ssd, half
+from hmpf.methods.olo import Olo, OloFeatures
 
 __all__ = ["HEIGHT", "MAX_PAIRS", "Evidence", "evidence_method", "render_evidence"]
 
@@ -73,7 +73,8 @@ def render_evidence(reader: IndexReader, query: np.ndarray, ref: int, thumb: byt
         r_boxes = _points(r_pts / size)
     else:
         assert isinstance(method, Olo)
-        q_boxes, r_boxes = _olo_pairs(method, query, ref_img)
+        stored = reader.local_features(mid, np.array([ref]))[0]
+        q_boxes, r_boxes = _olo_pairs(method, stored, query, ref_img)
     return Evidence(_draw(query, ref_img, q_boxes, r_boxes), mid, len(q_boxes))
 
 
@@ -85,53 +86,47 @@ def _points(xy: np.ndarray) -> np.ndarray:
 def _kaze_pairs(
     method: Kaze, ref: KazeFeatures, query: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Keypoint positions (n, 2 each, in the method's image_size frame) of mutual nearest
-    descriptor pairs passing the ratio test, closest first."""
+    """Keypoint positions (n, 2 each, in the method's image_size frame) of the matches KAZE's
+    distance counts (:func:`~hmpf.methods.kaze.match_distance`: nearest SSD within the match
+    threshold and passing the ratio test, the ``n_best`` closest), closest first."""
+    c = method.config
+    assert isinstance(c, KazeConfig)
     q = method.extract(query)
-    if len(q) == 0 or len(ref) < 2:
+    if len(q) == 0 or len(ref) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    d = np.maximum(
-        2.0 - 2.0 * (q.descriptors.astype(np.float64) @ ref.descriptors.T.astype(np.float64)), 0
-    )
-    best = d.argmin(axis=1)
-    back = d.argmin(axis=0)
-    two = np.sort(d, axis=1)[:, :2]
-    ratio = float(method.config.max_ratio)  # type: ignore[attr-defined]
-    ok = (back[best] == np.arange(len(q))) & (two[:, 0] < (ratio**2) * two[:, 1])
+    ssd1, ssd2 = best_two_ssd(q.descriptors, ref.descriptors)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = (ssd1 <= 4.0 * c.match_threshold / 100.0) & (ssd1 / ssd2 <= c.max_ratio)
     idx = np.flatnonzero(ok)
-    idx = idx[np.argsort(d[idx, best[idx]], kind="stable")][:MAX_PAIRS]
-    return q.keypoints[idx, :2], ref.keypoints[best[idx], :2]
+    idx = idx[np.argsort(ssd1[idx], kind="stable")][: min(MAX_PAIRS, c.n_best)]
+    nearest = (q.descriptors[idx] @ ref.descriptors.T).argmax(axis=1)  # unit rows: least SSD
+    return q.keypoints[idx, :2], ref.keypoints[nearest, :2]
 
 
-def _olo_pairs(method: Olo, query: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boxes (n, 4: x0, y0, x1, y1 in [0, 1]) of the heaviest mutual region pairs."""
-    (q_maps, r_maps) = list(forward_group([method], [query, ref]))
-    q_reg, q_box = _distinct(*method.region_boxes(q_maps))
-    r_reg, r_box = _distinct(*method.region_boxes(r_maps))
-    if len(q_reg) == 0 or len(r_reg) == 0:
+def _olo_pairs(
+    method: Olo, stored: OloFeatures, query: np.ndarray, thumb: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes (n, 4: x0, y0, x1, y1 in [0, 1]) of the heaviest region pairs OLO's score
+    counts: mutual best matches between the query's regions and the reference's stored ones,
+    weighted by cosine x idf x idf. A stored region's box is that of the most similar region
+    encoded from the thumbnail (the index keeps no boxes)."""
+    q_maps, t_maps = list(forward_group([method], [query, thumb]))
+    q_reg, q_box = method.region_boxes(q_maps)
+    t_reg, t_box = method.region_boxes(t_maps)
+    refs = stored.regions
+    if len(q_reg) == 0 or len(refs) == 0 or len(t_reg) == 0:
         return np.zeros((0, 4)), np.zeros((0, 4))
-    idf = method.idf
-    s = r_reg @ q_reg.T
+    q_reg = half(q_reg)  # as the query's feature is scored
+    s = refs @ q_reg.T
     j_star = s.argmax(axis=1)
     i_star = s.argmax(axis=0)
-    mutual = np.flatnonzero((i_star[j_star] == np.arange(len(r_reg))) & (s.max(axis=1) > 0))
-    weight = (
-        s[mutual, j_star[mutual]]
-        * idf[method.words(r_reg[mutual])]
-        * idf[method.words(q_reg[j_star[mutual]])]
-    )
-    top = mutual[np.argsort(-weight, kind="stable")][:MAX_PAIRS]
+    idx = np.flatnonzero((i_star[j_star] == np.arange(len(refs))) & (s.max(axis=1) != 0))
+    idf = method.idf
+    weight = s[idx, j_star[idx]] * idf[stored.words[idx]] * idf[method.words(q_reg[j_star[idx]])]
+    top = idx[np.argsort(-weight, kind="stable")][:MAX_PAIRS]
+    where = (t_reg @ refs[top].T).argmax(axis=0)  # the thumbnail region nearest each one
     grid = next(iter(q_maps.values())).shape[1:]
-    return _grid_boxes(q_box[j_star[top]], grid), _grid_boxes(r_box[top], grid)
-
-
-def _distinct(regions: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The first region of each distinct box: masks of several channels often give the same
-    component, whose near-identical descriptors would keep each other from being mutual."""
-    if len(boxes) == 0:
-        return regions, boxes
-    first = np.sort(np.unique(boxes, axis=0, return_index=True)[1])
-    return regions[first], boxes[first]
+    return _grid_boxes(q_box[j_star[top]], grid), _grid_boxes(t_box[where], grid)
 
 
 def _grid_boxes(boxes: np.ndarray, grid: tuple[int, ...]) -> np.ndarray:

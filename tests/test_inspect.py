@@ -356,3 +356,20 @@ def test_page_answers_a_night_frame_in_chromium(
     (tmp_path / "inspect.png").write_bytes(shot)
     if os.environ.get("HMPF_SCREENSHOT"):
         Path(os.environ["HMPF_SCREENSHOT"]).write_bytes(shot)
+
+
+def test_kaze_evidence_draws_keypoint_pairs(gardens_point, tmp_path) -> None:
+    """With KAZE in the index the evidence is its keypoint pairs (stored reference
+    keypoints against the query's), rendered without a server (a query thread's work)."""
+    from service.evidence import evidence_method, render_evidence
+
+    refs = copy_gp(gardens_point, "day_right", tmp_path / "refs", 4)
+    kaze = {"name": "kaze", "tiers": [{"methods": ["gist"], "k": 2}, {"methods": ["kaze"], "k": 1}]}
+    build(parse_config(kaze), refs, tmp_path / "index", options=BUILD_OPTIONS)
+    with IndexReader(tmp_path / "index") as reader:
+        assert evidence_method(reader) == "kaze"
+        query = load_image(_night(gardens_point, 2))
+        out = render_evidence(reader, query, 2, reader.thumbnail(2))  # type: ignore[arg-type]
+    assert out.method == "kaze" and out.pairs > 0
+    png = cv2.imdecode(np.frombuffer(out.png, np.uint8), cv2.IMREAD_COLOR)
+    assert png is not None and png.shape[0] == 320
