@@ -194,6 +194,10 @@ async function localise() {
   try {
     const a = await (await api("/v1/localize", { method: "POST", body: form })).json();
     showError("");
+    if (state.refs && a.index_version !== state.refs.index_version) {  // reloaded: new data
+      state.thumbs.clear();
+      state.refs = await (await api("/v1/references")).json();
+    }
     $("query-img").src = URL.createObjectURL(state.file);
     if (a.sequence) {
       state.tracks.set(vehicle, a.sequence.track);
