@@ -132,6 +132,22 @@ def test_build_add_remove_store_each_references_thumbnail(gardens_point, tmp_pat
         IndexReader(root)
 
 
+def test_thumbnails_of_an_interrupted_build_are_reused(gardens_point, tmp_path) -> None:
+    """``make_thumbnails`` with a cache (``.build/thumbnails``, keyed by the image's sha256)
+    makes each thumbnail once: a resumed build reads the ones made before."""
+    from hmpf.features import file_digest
+
+    paths = sorted(copy_gp(gardens_point, "day_right", tmp_path / "a", 2).iterdir())
+    digests = [file_digest(p) for p in paths]
+    first = thumbnails.make_thumbnails(paths, digests, tmp_path / "cache")
+    assert sorted(p.stem for p in (tmp_path / "cache").iterdir()) == sorted(digests)
+    marked = thumbnails.make_thumbnail(np.zeros((9, 16, 3), np.uint8))
+    (tmp_path / "cache" / f"{digests[1]}.jpg").write_bytes(marked)
+    again = thumbnails.make_thumbnails(paths, digests, tmp_path / "cache")
+    assert again.item(0).tobytes() == first.item(0).tobytes()
+    assert again.item(1).tobytes() == marked
+
+
 def test_a_version_without_thumbnails_loads_and_grows(gardens_point, tmp_path) -> None:
     refs = copy_gp(gardens_point, "day_right", tmp_path / "a", 3)
     root = tmp_path / "index"
