@@ -156,6 +156,13 @@ def test_a_version_without_thumbnails_loads_and_grows(gardens_point, tmp_path) -
     assert maintenance.verify(root) == []
     with IndexReader(root) as reader:
         assert reader.thumbnails is None and reader.thumbnail(0) is None
+    manifest = json.loads((root / "v0001" / layout.MANIFEST).read_text())
+    manifest["thumbnails"] = {"file": "references.h5x"}  # not a file the manifest covers
+    (root / "v0001" / layout.MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(layout.IndexCorruptError, match="not in its files"):
+        IndexReader(root)
+    del manifest["thumbnails"]
+    (root / "v0001" / layout.MANIFEST).write_text(json.dumps(manifest))
     more = tmp_path / "b"
     more.mkdir()
     new = sorted((gardens_point / "day_right").iterdir())[3]

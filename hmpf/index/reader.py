@@ -285,7 +285,12 @@ class IndexReader:
         entry = self.manifest.get("thumbnails")
         if not isinstance(entry, dict) or not entry.get("file"):
             return None
-        return ThumbnailStore(self._open(str(entry["file"])), self.n)
+        name = str(entry["file"])
+        if name not in self.manifest.get("files", {}):  # only a file the checksums cover
+            raise IndexCorruptError(
+                f"{self.path / layout.MANIFEST}: thumbnails file {name!r} is not in its files"
+            )
+        return ThumbnailStore(self._open(name), self.n)
 
     def thumbnail(self, i: int) -> bytes | None:
         """Reference ``i``'s thumbnail (JPEG bytes), None when the version has none."""
