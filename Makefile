@@ -14,7 +14,7 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 
-.PHONY: install run index clean-index eval test test-offline bench lint format clean
+.PHONY: install run index clean-index eval test test-offline browser bench lint format clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -46,6 +46,15 @@ eval: install
 ## test: the whole test suite (fails when no test is collected)
 test: install
 	$(PY) -m pytest -q
+
+## browser: the system chromium the inspection page's browser test drives (tests/test_inspect.py;
+## Playwright's own browser download is not used). Installed with apt-get when missing (root).
+browser:
+	@command -v chromium >/dev/null || { \
+		SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null; }
+	@chromium --version 2>/dev/null
 
 ## test-offline: the tests that need no dataset (pytest -m "not dataset")
 test-offline: install

@@ -58,6 +58,7 @@ def main() -> None:
         )
         for mid, b in s.bytes_per_method.items():
             print(f"  {mid:<8} {b / n / 1024:8.2f} KiB per reference")
+        print(f"  {'thumbs':<8} {s.bytes_thumbnails / n / 1024:8.2f} KiB per reference")
         before = rss_bytes()
         reader = IndexReader(Path(tmp) / "index")
         for mid, m in reader.methods.items():

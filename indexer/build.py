@@ -38,7 +38,7 @@ import hmpf.features as hfeatures
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import ImageError
 from hmpf.features import FeatureCache, extract_images, file_digest
-from hmpf.index import layout
+from hmpf.index import layout, thumbnails
 from hmpf.index.ann import (
     MetricSpec,
     build_faiss,
@@ -59,6 +59,7 @@ from hmpf.index.storage import (
 )
 from hmpf.index.tables import (
     Columns,
+    Ragged,
     RefTable,
     columns_from_features,
     concat_columns,
@@ -130,6 +131,8 @@ class Summary:
     images_per_s: float
     bytes_total: int
     bytes_per_method: dict[str, int]
+    #: bytes of the reference thumbnails (``thumbnails.h5``; 0: none stored)
+    bytes_thumbnails: int = 0
 
     def lines(self) -> list[str]:
         n = max(self.images, 1)
@@ -140,7 +143,8 @@ class Summary:
             f"in {self.seconds:.1f} s ({self.images_per_s:.1f} images/s)",
             f"on disk: {self.bytes_total / 1e6:.2f} MB, {self.bytes_total / n / 1024:.1f} KiB "
             "per reference; per method: "
-            + ", ".join(f"{m} {b / n / 1024:.1f} KiB" for m, b in self.bytes_per_method.items()),
+            + ", ".join(f"{m} {b / n / 1024:.1f} KiB" for m, b in self.bytes_per_method.items())
+            + f"; thumbnails {self.bytes_thumbnails / n / 1024:.1f} KiB",
         ]
         out += [f"skipped {s['name']}: {s['reason']}" for s in self.skipped]
         return out
@@ -401,6 +405,8 @@ class NewVersion:
         options: how to store them (precision, FAISS factories and parameters).
         parent: the version this one derives from (``add``, ``remove``), else None.
         retrain: train approximate FAISS indexes anew instead of refilling the parent's.
+        thumbnails: the references' thumbnails (:mod:`hmpf.index.thumbnails`), rows aligned
+            with ``refs``; None: the version stores none (derived from a version without).
     """
 
     config: HierarchyConfig
@@ -410,6 +416,7 @@ class NewVersion:
     options: BuildOptions
     parent: IndexReader | None = None
     retrain: bool = True
+    thumbnails: Ragged | None = None
 
 
 class VersionTransaction:
@@ -470,6 +477,9 @@ class VersionTransaction:
         name = layout.next_version_name(self.root)
         try:
             sizes, faiss_info = _write_data(out, new)
+            thumb_bytes = 0
+            if new.thumbnails is not None:
+                thumb_bytes = thumbnails.write_thumbnails(out / thumbnails.FILE, new.thumbnails)
             seconds = time.perf_counter() - self._started
             summary = Summary(
                 version=name,
@@ -483,6 +493,7 @@ class VersionTransaction:
                 images_per_s=(extracted or len(new.refs)) / max(seconds, 1e-9),
                 bytes_total=0,
                 bytes_per_method=sizes,
+                bytes_thumbnails=thumb_bytes,
             )
             manifest = _manifest(name, self.operation, new, faiss_info)
             manifest["summary"] = asdict(summary)
@@ -563,6 +574,13 @@ def _manifest(
             "sources": [{"folder": s, "count": refs.sources.count(s)} for s in sources],
             "metadata_columns": sorted(refs.meta),
         },
+        "thumbnails": None
+        if new.thumbnails is None
+        else {
+            "file": thumbnails.FILE,
+            "max_side": thumbnails.MAX_SIDE,
+            "quality": thumbnails.QUALITY,
+        },
     }
 
 
@@ -626,8 +644,15 @@ def build(
         feats, resumed = _extract(paths, methods, tx.work, opt)
         refs = refs.select(_kept(refs, paths))
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
-        new = NewVersion(cfg, methods, refs, cols, opt)
+        thumbs = _thumbnails(paths, refs, tx.work)
+        new = NewVersion(cfg, methods, refs, cols, opt, thumbnails=thumbs)
         return tx.publish(new, extracted=len(refs), resumed=resumed, skipped=skipped)
+
+
+def _thumbnails(paths: Sequence[Path], refs: RefTable, work: WorkDir) -> Ragged:
+    """Thumbnails of ``paths`` (``refs``' rows), kept in the work folder for ``--resume``."""
+    with _images_stay_readable():
+        return thumbnails.make_thumbnails(paths, refs.sha256, work.path / "thumbnails")
 
 
 def _kept(refs: RefTable, paths: Sequence[Path]) -> np.ndarray:
@@ -699,7 +724,10 @@ def add(
             fresh = {mid: methods[mid] for mid in refit_ids}
             feats_all, _ = _extract(all_paths, fresh, tx.work, opt)
             cols.update({mid: columns_from_features(fresh[mid], feats_all[mid]) for mid in fresh})
-        version = NewVersion(parent.config, methods, refs, cols, opt, parent, retrain=refit)
+        thumbs = Ragged.concat([parent.thumbnail_column(), _thumbnails(paths, new, tx.work)])
+        version = NewVersion(
+            parent.config, methods, refs, cols, opt, parent, retrain=refit, thumbnails=thumbs
+        )
         return tx.publish(version, extracted=len(new), resumed=resumed, skipped=skipped)
 
 
@@ -755,5 +783,8 @@ def remove(
             options or BuildOptions(),
             parent,
             retrain=False,
+            thumbnails=None
+            if parent.thumbnails is None
+            else parent.thumbnail_column().select(keep),
         )
         return tx.publish(new, extracted=0)

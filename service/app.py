@@ -10,6 +10,9 @@
   multipart, one or more ``images`` fields; one answer each, in order (a bad image gets its
   own error entry, the others are answered).
 * :mod:`service.routes.index`: ``GET /v1/index``; ``POST /v1/index/reload`` (admin).
+* :mod:`service.routes.inspect`: ``GET /inspect`` (the inspection page, its files under
+  ``/inspect/static``), ``GET /v1/references``, ``GET /v1/references/{reference}/thumbnail``,
+  ``POST /v1/evidence``.
 * :mod:`service.routes.health`: ``GET /healthz``, ``GET /readyz``, ``GET /metrics`` (no key
   needed).
 
@@ -24,6 +27,7 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
 from hmpf.cli.common import package_version
 from service.auth import KeyStore
@@ -32,7 +36,7 @@ from service.errors import install_handlers
 from service.limits import BodyDeadline, BodyLimit
 from service.metrics import Metrics
 from service.openapi import document_limits
-from service.routes import health, index, localize
+from service.routes import health, index, inspect, localize
 from service.settings import Settings
 from service.vehicle import Tracker
 
@@ -75,6 +79,8 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         form_limits={"max_files": settings.max_batch, "max_fields": _MAX_FORM_FIELDS},
     )
     app.include_router(index.router)
+    app.include_router(inspect.router, form_limits={"max_files": 1, "max_fields": _MAX_FORM_FIELDS})
+    app.mount("/inspect/static", StaticFiles(directory=inspect.STATIC), name="inspect-static")
     app.include_router(health.router)
     document_limits(app, settings)
     return app
@@ -117,7 +123,7 @@ def _body_limits(settings: Settings) -> Callable[[str], int]:
     batch = settings.max_upload_bytes * settings.max_batch + overhead
 
     def limit(path: str) -> int:
-        if path.rstrip("/") == "/v1/localize":
+        if path.rstrip("/") in ("/v1/localize", "/v1/evidence"):
             return single
         if path.rstrip("/") == "/v1/localize/batch":
             return batch

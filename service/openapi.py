@@ -22,7 +22,7 @@ __all__ = ["MIN_IMAGE_SIDE", "document_limits", "image_limits"]
 
 #: Narrower images are refused (422 ``invalid_image``; :func:`service.images.decode_upload`).
 MIN_IMAGE_SIDE = 2
-_ROUTES = ("/v1/localize", "/v1/localize/batch")
+_ROUTES = ("/v1/localize", "/v1/localize/batch", "/v1/evidence")
 _MULTIPART = "multipart/form-data"
 
 

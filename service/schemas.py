@@ -34,6 +34,7 @@ __all__ = [
     "ModelInfo",
     "PriorReport",
     "Ready",
+    "ReferenceList",
     "ReloadResponse",
     "SequenceReport",
     "TierReport",
@@ -286,6 +287,18 @@ class IndexInfo(BaseModel):
     threshold: float
     acceptance: AcceptanceInfo
     loaded_at: float
+
+
+class ReferenceList(BaseModel):
+    """Every reference of the loaded version, in row order (``reference_id`` = position)."""
+
+    index_version: str
+    names: list[str]
+    lat: list[float | None] | None = Field(
+        description="latitude per reference (null: the index has no positions)"
+    )
+    lon: list[float | None] | None = Field(description="longitude per reference")
+    thumbnails: bool = Field(description="whether the version stores reference thumbnails")
 
 
 class ReloadResponse(BaseModel):

@@ -133,6 +133,17 @@ def copy_gp(gardens_point: Path, traverse: str, dest: Path, n: int) -> Path:
     return dest
 
 
+def write_positions(refs: Path, csv: Path) -> Path:
+    """A metadata CSV giving the images of ``refs`` (in name order) the synthetic positions
+    :data:`BASE_LAT`, :data:`BASE_LON` + i * :data:`STEP_LAT`."""
+    rows = ["name,lat,lon"] + [
+        f"{p.name},{BASE_LAT + i * STEP_LAT:.7f},{BASE_LON:.7f}"
+        for i, p in enumerate(sorted(refs.iterdir()))
+    ]
+    csv.write_text("\n".join(rows) + "\n")
+    return csv
+
+
 @pytest.fixture(scope="session")
 def service_index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A built index over the first 20 Gardens Point day_right images, with positions."""
@@ -141,12 +152,7 @@ def service_index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory)
 
     base = tmp_path_factory.mktemp("service")
     refs = copy_gp(gardens_point, "day_right", base / "refs", 20)
-    csv = base / "meta.csv"
-    rows = ["name,lat,lon"] + [
-        f"{p.name},{BASE_LAT + i * STEP_LAT:.7f},{BASE_LON:.7f}"
-        for i, p in enumerate(sorted(refs.iterdir()))
-    ]
-    csv.write_text("\n".join(rows) + "\n")
+    csv = write_positions(refs, base / "meta.csv")
     index = base / "index"
     build(
         parse_config(SERVICE_CONFIG),

@@ -120,6 +120,27 @@ def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
     assert Path(client_file).resolve().is_relative_to(venv) and torch_loaded == "False", client
 
 
+def test_wheel_holds_the_inspection_page(wheel_env) -> None:
+    """The page's files (service/static) are package data: hmpf-serve serves them from the
+    installed wheel."""
+    bindir, work, env = wheel_env
+    out = _run(
+        [
+            str(bindir / "python"),
+            "-c",
+            "from service.routes.inspect import STATIC\n"
+            "print(STATIC)\n"
+            "print(' '.join(sorted(p.name for p in STATIC.iterdir())))\n",
+        ],
+        work,
+        env,
+    )
+    where, files = out.splitlines()
+    assert Path(where).resolve().is_relative_to(bindir.parent.resolve()), where
+    assert files.split() == sorted(p.name for p in (ROOT / "service" / "static").iterdir())
+    assert {"inspect.html", "inspect.css", "inspect.js"} <= set(files.split())
+
+
 def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> None:
     bindir, work, env = wheel_env
     for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve", "hmpf-replay"):

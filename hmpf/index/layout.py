@@ -11,6 +11,7 @@
         references.h5         names, sha256, metadata columns, global descriptors (N x D)
         local.h5              local features: ragged rows + offsets, or N x R x D blocks
         state.h5              fitted parameters per method (only when a method has any)
+        thumbnails.h5         small JPEG per reference (format 1.1; hmpf.index.thumbnails)
         faiss/<method>.faiss  tier-1 FAISS index per global method
 
 A version is written into ``.build/out``, every file fsynced, renamed to ``<name>``, and only
@@ -76,8 +77,9 @@ __all__ = [
 
 log = logging.getLogger("hmpf.index")
 
-#: Major.minor of the on-disk format. Readers accept any minor of their major.
-FORMAT_VERSION = "1.0"
+#: Major.minor of the on-disk format. Readers accept any minor of their major (1.1 added
+#: ``thumbnails.h5``, optional: a 1.0 version has none).
+FORMAT_VERSION = "1.1"
 MANIFEST = "manifest.json"
 CURRENT = "CURRENT"
 LOCK = ".lock"

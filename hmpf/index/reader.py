@@ -55,7 +55,8 @@ from hmpf.index.storage import (
     read_ref_table,
     read_state,
 )
-from hmpf.index.tables import Columns
+from hmpf.index.tables import Columns, Ragged
+from hmpf.index.thumbnails import ThumbnailStore, empty_thumbnails
 from hmpf.methods import Method
 from hmpf.sequence import RouteMap
 
@@ -182,6 +183,8 @@ class IndexReader:
                 f"{self.path}: missing or damaged dataset ({exc}); run `hmpf-index verify`"
             ) from None
         self._check_shapes()
+        #: the references' thumbnails (None: a version built before they were stored)
+        self.thumbnails = self._open_thumbnails()
         self._faiss: dict[str, Any] = {}
         self._routes: RouteMap | None = None
         self._profile: ReferenceProfile | None = None
@@ -277,6 +280,25 @@ class IndexReader:
                     raise IndexCorruptError(
                         f"{local_h5}: local/{mid}/{key} has {rows} blocks for {n}"
                     )
+
+    def _open_thumbnails(self) -> ThumbnailStore | None:
+        entry = self.manifest.get("thumbnails")
+        if not isinstance(entry, dict) or not entry.get("file"):
+            return None
+        name = str(entry["file"])
+        if name not in self.manifest.get("files", {}):  # only a file the checksums cover
+            raise IndexCorruptError(
+                f"{self.path / layout.MANIFEST}: thumbnails file {name!r} is not in its files"
+            )
+        return ThumbnailStore(self._open(name), self.n)
+
+    def thumbnail(self, i: int) -> bytes | None:
+        """Reference ``i``'s thumbnail (JPEG bytes), None when the version has none."""
+        return None if self.thumbnails is None else self.thumbnails.get(i)
+
+    def thumbnail_column(self) -> Ragged:
+        """Every reference's thumbnail (empty entries without one), for add / remove."""
+        return empty_thumbnails(self.n) if self.thumbnails is None else self.thumbnails.column()
 
     def _local_rows(self, mid: str, key: str, offsets: np.ndarray | None) -> int:
         g = self._local_h5["local"][mid][key]  # type: ignore[index]

@@ -89,9 +89,17 @@ def encode_regions(feat: np.ndarray, mask: np.ndarray, n_regions: int = 200) -> 
     Rows are unit vectors (or zero); R is ``n_regions`` normally, more on ties at the
     threshold, fewer when there are fewer components.
     """
+    return encode_regions_boxes(feat, mask, n_regions)[0]
+
+
+def encode_regions_boxes(
+    feat: np.ndarray, mask: np.ndarray, n_regions: int = 200
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`encode_regions` and each region's inclusive box on the H x W grid, (R, 4:
+    r0, r1, c0, c1) int (what the inspection page draws)."""
     channel, means, boxes = _components(mask)
     if len(means) == 0:
-        return np.zeros((0, feat.shape[0]), dtype=np.float32)
+        return np.zeros((0, feat.shape[0]), dtype=np.float32), np.zeros((0, 4), np.int64)
     if len(means) > n_regions:
         thr = np.sort(means)[::-1][n_regions - 1]
         keep = np.flatnonzero(means >= thr)
@@ -107,7 +115,8 @@ def encode_regions(feat: np.ndarray, mask: np.ndarray, n_regions: int = 200) -> 
     weights /= np.maximum(np.linalg.norm(weights, axis=1, keepdims=True), 1e-30)
     v = weights @ feat.reshape(feat.shape[0], -1).T.astype(np.float64)  # (R, Cf)
     norms = np.linalg.norm(v, axis=1, keepdims=True)
-    return np.where(norms > 0, v / np.where(norms > 0, norms, 1.0), v).astype(np.float32)
+    v = np.where(norms > 0, v / np.where(norms > 0, norms, 1.0), v)
+    return v.astype(np.float32), boxes[keep].astype(np.int64)
 
 
 def olo_similarity(
@@ -277,11 +286,16 @@ class Olo(CnnMethod, LocalMethod):
         self._state = {k: np.asarray(v) for k, v in arrays.items()}
 
     def _regions(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:
+        return self.region_boxes(maps)[0]
+
+    def region_boxes(self, maps: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """One image's regions and their boxes on the maps' grid
+        (:func:`encode_regions_boxes`)."""
         f_name, m_name = self.layers()
         feat, mask = maps[f_name], maps[m_name]
         if self.use_relu:
             feat, mask = np.maximum(feat, 0), np.maximum(mask, 0)
-        return encode_regions(feat, mask, self.olo.regions)
+        return encode_regions_boxes(feat, mask, self.olo.regions)
 
     def fit_from_maps(self, samples: Sequence[Mapping[str, np.ndarray]]) -> None:
         regions = [self._regions(maps) for maps in samples]
@@ -304,8 +318,11 @@ class Olo(CnnMethod, LocalMethod):
     # -- features and scores --------------------------------------------------------------------
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> OloFeatures:
         r = half(self._regions(maps))  # float16 precision: what the index stores
-        words = nearest(r, self._vocab()["vocabulary"]).astype(np.int32)
-        return OloFeatures(r, words)
+        return OloFeatures(r, self.words(r))
+
+    def words(self, regions: np.ndarray) -> np.ndarray:
+        """The visual word of each region (R,) int32."""
+        return nearest(regions, self._vocab()["vocabulary"]).astype(np.int32)
 
     def to_arrays(self, feature: OloFeatures) -> dict[str, np.ndarray]:
         return {"regions": feature.regions, "words": feature.words}
