@@ -13,7 +13,7 @@ from hmpf.config import parse_config
 from hmpf.features import FeatureCache, fit_methods
 from hmpf.methods import create_method
 from hmpf.methods.base import extract_many, fit_many
-from hmpf.methods.cnn import kmeans, l2_rows, nearest
+from hmpf.methods.cnn import cluster_sums, kmeans, l2_rows, nearest
 from hmpf.methods.hybridnet import max_location_histogram
 from hmpf.methods.netvlad import vlad
 from hmpf.methods.olo import OloFeatures, encode_regions, olo_similarity
@@ -158,6 +158,23 @@ def test_kmeans_deterministic_and_separates_clusters() -> None:
     assert sorted(np.round(a).astype(int).tolist()) == sorted(centres.astype(int).tolist())
     assert nearest(np.array([[9.0, 1.0]]), a).item() == int(np.argmin(np.abs(a - [10, 0]).sum(1)))
     assert kmeans(np.ones((5, 2)), 3).shape == (1, 2)  # fewer distinct points than k
+
+
+@pytest.mark.parametrize(("n", "k"), [(0, 3), (1, 1), (500, 7), (3000, 64)])
+def test_cluster_sums_equal_add_at_to_the_bit(n: int, k: int) -> None:
+    """k-means' per-cluster sums (sort + reduceat) against ``np.add.at``, the brute force:
+    empty clusters, one point, more clusters than used labels."""
+    rng = np.random.default_rng(n)
+    x = rng.normal(0, 3, (n, 16))
+    assign = rng.integers(0, max(1, k - 2), n)  # the last clusters stay empty
+    expect = np.zeros((k, 16))
+    np.add.at(expect, assign, x)
+    np.testing.assert_allclose(cluster_sums(x, assign, k), expect, rtol=1e-12, atol=1e-12)
+    # k-means' points are float32: these float64 sums are exact, in any order.
+    x32 = x.astype(np.float32)
+    expect = np.zeros((k, 16))
+    np.add.at(expect, assign, x32)
+    np.testing.assert_array_equal(cluster_sums(x32.astype(np.float64), assign, k), expect)
 
 
 def test_published_netvlad_pipeline_on_synthetic_pitts30k(tmp_path: Path) -> None:

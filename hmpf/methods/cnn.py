@@ -211,6 +211,25 @@ def _sq_dists(x: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.maximum((x * x).sum(1)[:, None] + (c * c).sum(1)[None, :] - 2.0 * (x @ c.T), 0.0)
 
 
+def cluster_sums(x: np.ndarray, assign: np.ndarray, k: int) -> np.ndarray:
+    """(k, d) float64 sums of the rows of ``x`` per cluster ``assign`` (empty clusters: 0).
+
+    Equal to ``np.add.at(zeros, assign, x)`` to float64 rounding (bit for bit on float32
+    points of similar magnitude, whose float64 sums are exact) and about 10x faster (a stable
+    sort, then one ``reduceat`` per cluster): ``np.add.at`` took a quarter of a default
+    index build.
+    """
+    sums = np.zeros((k, x.shape[1]), dtype=np.float64)
+    if len(x) == 0:
+        return sums
+    order = np.argsort(assign, kind="stable")
+    ranked = assign[order]
+    starts = np.flatnonzero(np.r_[True, ranked[1:] != ranked[:-1]])
+    rows = x[order].astype(np.float64, copy=False)
+    sums[ranked[starts]] = np.add.reduceat(rows, starts, axis=0)
+    return sums
+
+
 def kmeans(
     x: np.ndarray, k: int, *, iters: int = 25, seed: int = 0, max_points: int = 200_000
 ) -> np.ndarray:
@@ -240,10 +259,10 @@ def kmeans(
         d2 = np.minimum(d2, _sq_dists(pool, centres[-1][None])[:, 0])
     c = np.array(centres, dtype=np.float32)
     chunk = max(1, 50_000_000 // max(1, k))
+    x64 = x.astype(np.float64)  # the sums' precision, converted once
     for _ in range(iters):
         assign = np.concatenate([_sq_dists(x[s], c).argmin(1) for s in _batches(len(x), chunk)])
-        sums = np.zeros_like(c, dtype=np.float64)
-        np.add.at(sums, assign, x)
+        sums = cluster_sums(x64, assign, len(c))
         counts = np.bincount(assign, minlength=len(c)).astype(np.float64)
         new = c.copy()
         filled = counts > 0
