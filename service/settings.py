@@ -11,7 +11,9 @@ the same keys without the prefix::
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
-``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) and the client's
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_CNN_RUNTIME``), the test suite's
+(``HMPF_REQUIRE_DATASETS``, ``HMPF_REQUIRE_BROWSER``, ``HMPF_REQUIRE_HAPROXY``,
+``HMPF_SCREENSHOT``: set by ``.ci/run`` for every process it starts) and the client's
 (``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
@@ -42,6 +44,9 @@ CORE_ENV = frozenset(
         "THREADS",
         "CNN_RUNTIME",
         "REQUIRE_DATASETS",
+        "REQUIRE_BROWSER",
+        "REQUIRE_HAPROXY",
+        "SCREENSHOT",
         "SETTINGS_FILE",
         "API_KEY",
     }
