@@ -13,7 +13,7 @@ Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are erro
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
 ``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_CNN_RUNTIME``), the test suite's
 (``HMPF_REQUIRE_DATASETS``, ``HMPF_REQUIRE_BROWSER``, ``HMPF_REQUIRE_HAPROXY``,
-``HMPF_SCREENSHOT``: set by ``.ci/run`` for every process it starts) and the client's
+``HMPF_SCREENSHOT``, ``HMPF_CHROMIUM``; set for every process a test run starts) and the client's
 (``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
@@ -47,6 +47,7 @@ CORE_ENV = frozenset(
         "REQUIRE_BROWSER",
         "REQUIRE_HAPROXY",
         "SCREENSHOT",
+        "CHROMIUM",
         "SETTINGS_FILE",
         "API_KEY",
     }
