@@ -279,7 +279,9 @@ def test_503_is_retried_after_retry_after_then_answered(recorded: bytes, night) 
 
 
 def test_503_retries_are_bounded_and_end_in_the_services_error(night) -> None:
-    later = formatdate(time.time() + 1, usegmt=True)  # the HTTP-date form of Retry-After
+    # The HTTP-date form of Retry-After, whole seconds: 3 s ahead stays over max_backoff
+    # (0.3 s) after the truncation and a slow first request (+1 s was in the past once).
+    later = formatdate(time.time() + 3, usegmt=True)
     stub = Stub([(503, {"Retry-After": later}, BUSY), (503, {"Retry-After": "0"}, BUSY)])
     try:
         with Client(stub.url, "k", retries=2, backoff=5.0, max_backoff=0.3) as c:
