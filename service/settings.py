@@ -11,7 +11,8 @@ the same keys without the prefix::
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
-``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_REQUIRE_DATASETS``) and the client's
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, the test suite's ``HMPF_REQUIRE_DATASETS``,
+``HMPF_REQUIRE_BROWSER`` and ``HMPF_REQUIRE_HAPROXY``) and the client's
 (``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
@@ -42,6 +43,9 @@ CORE_ENV = frozenset(
         "THREADS",
         "CNN_RUNTIME",
         "REQUIRE_DATASETS",
+        # the test suite's (.ci/run): tests that must run, not skip
+        "REQUIRE_BROWSER",
+        "REQUIRE_HAPROXY",
         "SETTINGS_FILE",
         "API_KEY",
     }
@@ -122,6 +126,15 @@ class Settings(BaseSettings):
     )
     track_max_age_s: float = Field(
         600.0, gt=0, description="a track token older than this restarts the vehicle's track"
+    )
+    # -- replicas -----------------------------------------------------------------------------
+    watch_current_s: float = Field(
+        0.0,
+        ge=0,
+        le=3600,
+        description="look at the index's CURRENT every this many seconds and load the "
+        "version it names when it changes, as POST /v1/index/reload does (replicas behind a "
+        "balancer: e.g. 2); 0: only POST /v1/index/reload switches versions",
     )
     log_level: str = "info"
 
