@@ -166,17 +166,21 @@ class Balancer:
             [binary, "-db", "-f", str(cfg)], stdout=self._out, stderr=subprocess.STDOUT
         )
         deadline = time.monotonic() + 20
+        seen: set[str | None] = set()  # until both replicas have answered through it
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
                 raise AssertionError(f"haproxy exited {self.proc.returncode}: {self.output()}")
             try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return
+                r = httpx.get(self.url + "/readyz", timeout=2)
+                if r.status_code == 200:
+                    seen.add(r.headers.get("x-hmpf-replica"))
+                    if {"replica1", "replica2"} <= seen:
+                        return
             except httpx.TransportError:
                 pass
-            time.sleep(0.1)
+            time.sleep(0.05)
         self.stop()
-        raise AssertionError(f"haproxy not answering after 20 s: {self.output()}")
+        raise AssertionError(f"haproxy not balancing after 20 s ({seen}): {self.output()}")
 
     def output(self) -> str:
         if not self._out.closed:
@@ -433,11 +437,77 @@ def test_an_unusable_version_is_reported_and_not_served(balancer, replicas, inde
         assert "kept version v0002" in r.json()["error"]["message"]
         after = sum(metric(s, "hmpf_requests_total", route="/v1/index/reload") for s in replicas)
         assert after - before == 1
+        # the admin command that posts the reload to every replica directly says so too
+        refused = _reload_all(replicas, keys)
+        assert refused.returncode == 1 and refused.stdout.count("409") == 2, refused.stdout
     finally:
         use(index, "v0002")
     for s in replicas:
         assert metric(s, "hmpf_index_behind") == 0  # checked at each scrape
     assert _versions(replicas, keys["vehicle"]) == [("v0002", "v0002")] * 2
+    done = _reload_all(replicas, keys)
+    assert done.returncode == 0 and done.stdout.count("v0002 -> v0002") == 2, done.stdout
+
+
+def _reload_all(replicas: list[Server], keys: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    key_file = Path(keys["file"]).with_name("admin.key")
+    key_file.write_text(keys["admin"] + "\n")
+    return subprocess.run(
+        [sys.executable, "-m", "service.replicas", "reload", "--key-file", str(key_file)]
+        + [s.url for s in replicas],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path) -> None:
+    """``python -m service.replicas run``: N replicas and HAProxy, all stopped on SIGTERM."""
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+    env.update({"HMPF_AUTH": "false", "HMPF_WORKERS": "1"})
+    for k in ("HMPF_DATASETS", "HMPF_CACHE_DIR"):
+        if k in os.environ:
+            env[k] = os.environ[k]
+    log = (tmp_path / "run.log").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.replicas", "run", "--index", str(index)]
+        + ["--replicas", "2", "--bind", f"127.0.0.1:{port}", "--haproxy", haproxy_bin]
+        + ["--out", str(tmp_path / "lb")],
+        cwd=ROOT,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        served_by: Counter[str | None] = Counter()
+
+        def both_serve() -> bool:  # HAProxy puts a replica in after 2 good checks (1 s apart)
+            try:
+                r = httpx.get(url + "/v1/index", timeout=5)
+            except httpx.TransportError:
+                return False
+            if r.status_code == 200:
+                served_by[r.headers.get("x-hmpf-replica")] += 1
+            return {"replica1", "replica2"} <= set(served_by)
+
+        _wait("both of the launcher's replicas serving", both_serve, 90)
+        assert set(served_by) == {"replica1", "replica2"}, served_by
+        assert httpx.get(url + "/v1/index", timeout=10).json()["version"] == "v0002"
+        proc.terminate()
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        log.close()
+    out = (tmp_path / "run.log").read_text(errors="replace")
+    assert "2 replicas on ports" in out and "Traceback" not in out, out[-3000:]
+    for i in (1, 2):  # every replica stopped with it
+        with pytest.raises(httpx.TransportError):
+            httpx.get(f"http://127.0.0.1:{port + i}/readyz", timeout=2)
 
 
 def test_a_replica_killed_under_load_loses_no_request(balancer, replicas, keys, frames) -> None:
