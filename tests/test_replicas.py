@@ -12,7 +12,8 @@ the index's ``CURRENT`` (``watch_current_s``); HAProxy's configuration is the on
   (``/v1/index``'s ``current``, ``hmpf_index_behind``, the failures counter);
 * a replica killed (SIGKILL) under load loses no request the client retries.
 
-Without HAProxy the tests are skipped, with the reason; with ``HMPF_REQUIRE_HAPROXY=1`` (set
+The watch itself is also tested in process (no HAProxy needed). Without HAProxy the other
+tests are skipped, with the reason; with ``HMPF_REQUIRE_HAPROXY=1`` (set
 by ``.ci/run``, which installs it: ``make haproxy``) they fail instead. The tests run in this
 order and share the servers; the last one kills a replica.
 """
@@ -91,6 +92,37 @@ def test_watch_setting_is_validated() -> None:
         load_settings(auth=False, watch_current_s=-1)
     with pytest.raises(ConfigError, match="watch_current_s"):
         load_settings(auth=False, watch_current_s="often")
+
+
+def test_watch_follows_current_in_process(service_index: Path, tmp_path: Path) -> None:
+    """The watch alone (no HAProxy needed): a version published while the app runs is loaded
+    by itself; the metrics say so; an unreadable CURRENT is reported, not acted on."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+
+    index = tmp_path / "index"
+    shutil.copytree(service_index, index)
+    settings = load_settings(None, index=index, auth=False, workers=1, watch_current_s=0.1)
+    with TestClient(create_app(settings)) as c:
+        assert c.get("/v1/index").json()["version"] == "v0001"
+        assert "hmpf_index_behind 0.0" in c.get("/metrics").text
+        remove(index, ["Image000.jpg"], options=BUILD_OPTIONS)  # publishes v0002
+        _wait("the watch loads v0002", lambda: c.get("/v1/index").json()["version"] == "v0002")
+        text = c.get("/metrics").text
+        assert 'hmpf_index_reloads_total{trigger="watch"} 1.0' in text
+        assert 'hmpf_index_info{version="v0002"} 1.0' in text and "v0001" not in text
+        assert "hmpf_index_behind 0.0" in text
+        (index / layout.CURRENT).write_text("not a version\n")
+        body = c.get("/v1/index").json()
+        assert (body["version"], body["current"]) == ("v0002", None)
+        assert "hmpf_index_behind 1.0" in c.get("/metrics").text
+        time.sleep(0.5)  # several polls: nothing to load, nothing failed
+        text = c.get("/metrics").text
+        assert 'hmpf_index_reload_failures_total{trigger="watch"} 0.0' in text
+        assert c.get("/readyz").json()["index_version"] == "v0002"
+        layout.set_current(index, "v0002")
+        assert "hmpf_index_behind 0.0" in c.get("/metrics").text
 
 
 # -- servers ----------------------------------------------------------------------------------
