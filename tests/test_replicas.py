@@ -439,6 +439,8 @@ def test_index_use_reaches_every_replica_without_a_failed_request(
 def test_an_unusable_version_is_reported_and_not_served(balancer, replicas, index, keys) -> None:
     """CURRENT names a corrupt copy: both replicas keep v0002 and say so; a reload through
     the balancer is a 409 (not retried); CURRENT back on v0002: nothing behind."""
+    use(index, "v0002")  # where the test before left it (or this test alone: switch now)
+    _wait("both on v0002", lambda: _versions(replicas, keys["vehicle"]) == [("v0002",) * 2] * 2)
     broken = index / "v0003"
     shutil.copytree(index / "v0002", broken)
     listed = layout.read_manifest(broken)["files"]
