@@ -11,8 +11,9 @@ the same keys without the prefix::
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
-``HMPF_CACHE_DIR``, ``HMPF_THREADS``, the test suite's ``HMPF_REQUIRE_DATASETS``,
-``HMPF_REQUIRE_BROWSER`` and ``HMPF_REQUIRE_HAPROXY``) and the client's
+``HMPF_CACHE_DIR``, ``HMPF_THREADS``, ``HMPF_CNN_RUNTIME``), the test suite's
+(``HMPF_REQUIRE_DATASETS``, ``HMPF_REQUIRE_BROWSER``, ``HMPF_REQUIRE_HAPROXY``,
+``HMPF_SCREENSHOT``, ``HMPF_CHROMIUM``; set for every process a test run starts) and the client's
 (``HMPF_API_KEY``, read by ``hmpf-replay``) are allowed.
 """
 
@@ -43,9 +44,10 @@ CORE_ENV = frozenset(
         "THREADS",
         "CNN_RUNTIME",
         "REQUIRE_DATASETS",
-        # the test suite's (.ci/run): tests that must run, not skip
         "REQUIRE_BROWSER",
         "REQUIRE_HAPROXY",
+        "SCREENSHOT",
+        "CHROMIUM",
         "SETTINGS_FILE",
         "API_KEY",
     }
