@@ -20,10 +20,13 @@ order and share the servers; the last one kills a replica.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import secrets
 import shutil
+import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -496,9 +499,23 @@ def _reload_all(replicas: list[Server], keys: dict[str, str]) -> subprocess.Comp
     )
 
 
+def _free_ports(n: int) -> int:
+    """A port P with P..P+n-1 all free on loopback now."""
+    for _ in range(100):
+        port = free_port()
+        try:
+            for p in range(port, port + n):
+                with socket.socket() as sock:
+                    sock.bind(("127.0.0.1", p))
+        except OSError:
+            continue
+        return port
+    raise AssertionError(f"no {n} consecutive free ports found")
+
+
 def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path) -> None:
     """``python -m service.replicas run``: N replicas and HAProxy, all stopped on SIGTERM."""
-    port = free_port()
+    port = _free_ports(3)
     env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
     env.update({"HMPF_AUTH": "false", "HMPF_WORKERS": "1"})
     for k in ("HMPF_DATASETS", "HMPF_CACHE_DIR"):
@@ -513,12 +530,17 @@ def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path)
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,
+        start_new_session=True,  # its own process group: a failed test stops its children too
     )
     url = f"http://127.0.0.1:{port}"
     try:
         served_by: Counter[str | None] = Counter()
 
         def both_serve() -> bool:  # HAProxy puts a replica in after 2 good checks (1 s apart)
+            if proc.poll() is not None:
+                log.flush()
+                out = (tmp_path / "run.log").read_text(errors="replace")[-3000:]
+                raise AssertionError(f"the launcher exited {proc.returncode}: {out}")
             try:
                 r = httpx.get(url + "/v1/index", timeout=5)
             except httpx.TransportError:
@@ -529,13 +551,20 @@ def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path)
 
         _wait("both of the launcher's replicas serving", both_serve, 90)
         assert set(served_by) == {"replica1", "replica2"}, served_by
-        assert httpx.get(url + "/v1/index", timeout=10).json()["version"] == "v0002"
+        version = httpx.get(url + "/v1/index", timeout=10).json()["version"]
+        assert version == layout.current_version(index)
         proc.terminate()
         assert proc.wait(60) == 0
     finally:
         if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                pass
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # whatever of the group is left
+        proc.wait()
         log.close()
     out = (tmp_path / "run.log").read_text(errors="replace")
     assert "2 replicas on ports" in out and "Traceback" not in out, out[-3000:]
