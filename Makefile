@@ -14,7 +14,7 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 
-.PHONY: install run index clean-index eval test test-offline browser bench lint format clean
+.PHONY: install run index clean-index eval test test-offline browser haproxy bench lint format clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -55,6 +55,15 @@ browser:
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null; }
 	@chromium --version 2>/dev/null
+
+## haproxy: the load balancer tests/test_replicas.py puts in front of two hmpf-serve replicas
+## (docs/replicas.md). Installed with apt-get when missing (root).
+haproxy:
+	@PATH="$$PATH:/usr/sbin:/sbin" command -v haproxy >/dev/null || { \
+		SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends haproxy >/dev/null; }
+	@PATH="$$PATH:/usr/sbin:/sbin" haproxy -v | head -n 1
 
 ## test-offline: the tests that need no dataset (pytest -m "not dataset")
 test-offline: install

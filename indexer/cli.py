@@ -247,7 +247,7 @@ def _run(args: argparse.Namespace) -> int:
         old, new = maintenance.use(args.index, args.name)
         print(
             f"CURRENT: {old or '-'} -> {new} (verified); a running hmpf-serve switches on "
-            "POST /v1/index/reload"
+            "POST /v1/index/reload, or by itself with watch_current_s (replicas)"
         )
         return 0
     elif cmd == "info":

@@ -9,7 +9,8 @@
   :mod:`service.vehicle`) as query parameters or form fields. ``POST /v1/localize/batch``:
   multipart, one or more ``images`` fields; one answer each, in order (a bad image gets its
   own error entry, the others are answered).
-* :mod:`service.routes.index`: ``GET /v1/index``; ``POST /v1/index/reload`` (admin).
+* :mod:`service.routes.index`: ``GET /v1/index``; ``POST /v1/index/reload`` (admin); with
+  ``watch_current_s`` a change of the index's ``CURRENT`` reloads too (:mod:`service.reloader`).
 * :mod:`service.routes.inspect`: ``GET /inspect`` (the inspection page, its files under
   ``/inspect/static``), ``GET /v1/references``, ``GET /v1/references/{reference}/thumbnail``,
   ``POST /v1/evidence``.
@@ -36,6 +37,7 @@ from service.errors import install_handlers
 from service.limits import BodyDeadline, BodyLimit
 from service.metrics import Metrics
 from service.openapi import document_limits
+from service.reloader import CurrentWatch, update_behind
 from service.routes import health, index, inspect, localize
 from service.settings import Settings
 from service.vehicle import Tracker
@@ -97,8 +99,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     if not engine.ready:
         engine.load()
     app.state.metrics.set_index(engine.current.version)
-    yield
-    engine.close()
+    update_behind(engine, app.state.metrics)
+    watch = None
+    if settings.watch_current_s > 0:
+        watch = CurrentWatch(engine, app.state.metrics, settings.watch_current_s)
+        watch.start()
+        log.info("watching %s/CURRENT every %g s", engine.root, settings.watch_current_s)
+    try:
+        yield
+    finally:
+        if watch is not None:
+            await watch.stop()
+        engine.close()
 
 
 def _limit_threads(n: int) -> None:

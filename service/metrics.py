@@ -6,6 +6,11 @@
 * ``hmpf_stage_seconds{stage}``: queue, decode, extract, hierarchy, total per query
 * ``hmpf_queue_depth``, ``hmpf_running``: admitted queries waiting / computing
 * ``hmpf_index_info{version}``: 1 for the loaded index version
+* ``hmpf_index_behind``: 1 while the index's ``CURRENT`` names another version than the loaded
+  one (or cannot be read), checked at each scrape: a replica left on an old version says so
+* ``hmpf_index_reloads_total{trigger}`` and ``hmpf_index_reload_failures_total{trigger}``:
+  reloads that switched versions and reloads that failed (the loaded version stayed), by
+  ``request`` (``POST /v1/index/reload``) or ``watch`` (``watch_current_s``)
 * sequence mode (requests with a ``vehicle_id``): ``hmpf_sequence_frames_total{status}``
   (started, tracking, reset, out_of_order), ``hmpf_sequence_resets_total{reason}`` (expired,
   index_changed), ``hmpf_sequence_refused_total{reason}`` (track tokens answered 422:
@@ -34,7 +39,10 @@ from starlette.responses import Response
 
 from service.track import REFUSALS, RESET_REASONS, STATUSES
 
-__all__ = ["Metrics"]
+__all__ = ["RELOAD_TRIGGERS", "Metrics"]
+
+#: What started a reload: ``POST /v1/index/reload`` or the watch on ``CURRENT``.
+RELOAD_TRIGGERS = ("request", "watch")
 
 _BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0)
 _STAGES = ("queue", "decode", "extract", "hierarchy", "total")
@@ -70,6 +78,23 @@ class Metrics:
             "hmpf_index_info", "loaded index version", ["version"], registry=self.registry
         )
         self._version: str | None = None
+        self.index_behind = Gauge(
+            "hmpf_index_behind",
+            "1 while the index's CURRENT names another version than the loaded one",
+            registry=self.registry,
+        )
+        self.reloads = Counter(
+            "hmpf_index_reloads",
+            "reloads that switched the loaded index version",
+            ["trigger"],
+            registry=self.registry,
+        )
+        self.reload_failures = Counter(
+            "hmpf_index_reload_failures",
+            "reloads that failed (the loaded version stayed in service)",
+            ["trigger"],
+            registry=self.registry,
+        )
         self.sequence_frames = Counter(
             "hmpf_sequence_frames",
             "frames answered in sequence mode, by track status",
@@ -109,6 +134,9 @@ class Metrics:
             self.sequence_refused.labels(refusal)
         for locked in ("true", "false"):
             self.sequence_answers.labels(locked)
+        for trigger in RELOAD_TRIGGERS:
+            self.reloads.labels(trigger)
+            self.reload_failures.labels(trigger)
 
     async def middleware(
         self, request: Request, call_next: Callable[[Request], Awaitable[Response]]

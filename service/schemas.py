@@ -277,7 +277,13 @@ class IndexInfo(BaseModel):
         None,
         description="the index's folder on the server (admin keys only; null for other keys)",
     )
-    version: str
+    version: str = Field(description="the version this server has loaded and answers with")
+    current: str | None = Field(
+        None,
+        description="the version the index's CURRENT names now: another one than `version` "
+        "until this server reloads (POST /v1/index/reload, or the watch_current_s setting); "
+        "null when CURRENT cannot be read",
+    )
     versions: list[str]
     references: int
     methods: dict[str, dict[str, object]]

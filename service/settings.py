@@ -129,6 +129,15 @@ class Settings(BaseSettings):
     track_max_age_s: float = Field(
         600.0, gt=0, description="a track token older than this restarts the vehicle's track"
     )
+    # -- replicas -----------------------------------------------------------------------------
+    watch_current_s: float = Field(
+        0.0,
+        ge=0,
+        le=3600,
+        description="look at the index's CURRENT every this many seconds and load the "
+        "version it names when it changes, as POST /v1/index/reload does (replicas behind a "
+        "balancer: e.g. 2); 0: only POST /v1/index/reload switches versions",
+    )
     log_level: str = "info"
 
     @model_validator(mode="after")

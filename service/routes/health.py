@@ -8,6 +8,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from service.deps import EngineDep, MetricsDep
 from service.errors import error_body
+from service.reloader import update_behind
 from service.schemas import ErrorBody, Health, Ready
 
 __all__ = ["router"]
@@ -43,4 +44,6 @@ def readyz(engine: EngineDep) -> Response:
 )
 def prometheus(engine: EngineDep, metrics: MetricsDep) -> Response:
     metrics.set_queue(engine.queued, engine.running)
+    if engine.ready:
+        update_behind(engine, metrics)
     return metrics.response()

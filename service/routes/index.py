@@ -16,6 +16,7 @@ from hmpf.index import layout
 from service.deps import AdminKey, EngineDep, MetricsDep, VehicleKey, is_admin
 from service.engine import Acceptance, Engine
 from service.errors import ApiError
+from service.reloader import current_version, reload_index
 from service.schemas import ErrorBody, IndexInfo, ReloadResponse
 
 __all__ = ["router"]
@@ -34,7 +35,8 @@ _METHOD_KEYS = ("type", "kind", "version", "dim", "faiss", "params")
 @router.get("/v1/index", response_model=IndexInfo)
 def index_info(key: VehicleKey, engine: EngineDep) -> dict[str, Any]:
     """The loaded index version: counts, methods, config, build time (its folder on the
-    server and the build's package versions: admin keys only)."""
+    server and the build's package versions: admin keys only), and the version the index's
+    ``CURRENT`` names now (another one: this server has not switched yet)."""
     info = _index_info(engine)
     if not is_admin(key):
         info["root"] = None
@@ -56,7 +58,7 @@ def index_info(key: VehicleKey, engine: EngineDep) -> dict[str, Any]:
 async def reload(key: AdminKey, engine: EngineDep, metrics: MetricsDep) -> dict[str, Any]:
     """Switch to the index's current version; running queries finish on the old one."""
     try:
-        old, new = await engine.reload()
+        old, new = await reload_index(engine, metrics, "request")
     except HmpfError as exc:
         raise ApiError(
             409, "index_unusable", f"kept version {engine.current.version}: {exc}"
@@ -69,7 +71,6 @@ async def reload(key: AdminKey, engine: EngineDep, metrics: MetricsDep) -> dict[
             f"kept version {engine.current.version}: the current version could not be "
             "loaded (see the service log)",
         ) from None
-    metrics.set_index(new)
     return {"previous": old, "version": new, "changed": old != new}
 
 
@@ -81,6 +82,7 @@ def _index_info(engine: Engine) -> dict[str, Any]:
     return {
         "root": str(engine.root),
         "version": reader.version,
+        "current": current_version(engine),
         "versions": layout.list_versions(engine.root),
         "references": reader.n,
         "methods": {
