@@ -45,7 +45,10 @@ from hmpf.methods.registry import register
 DESC_DIM = 64
 
 
-class KazeConfig(MethodConfig):
+class KazeBaseConfig(MethodConfig):
+    """How KAZE features are extracted and which nearest neighbours are matches: what every
+    method built on KAZE features shares (``kaze``, ``inliers``)."""
+
     image_size: int = Field(300, ge=32)
     threshold: float = Field(1e-4, gt=0)
     octaves: int = Field(3, ge=1)
@@ -53,6 +56,9 @@ class KazeConfig(MethodConfig):
     max_keypoints: int | None = Field(500, ge=1, description="strongest kept; None = all")
     match_threshold: float = Field(20.0, gt=0, le=100, description="percent of the SSD range")
     max_ratio: float = Field(0.7, gt=0, le=1)
+
+
+class KazeConfig(KazeBaseConfig):
     n_best: int = Field(20, ge=1, description="matches summed")
     pad_value: float = Field(1.0, ge=0, description="SSD used for missing matches")
 
@@ -127,17 +133,42 @@ def best_two_ssd(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.nd
     Returns ``(ssd1, ssd2)`` of shape (nq,); ``ssd2`` is ``inf`` when ``refs`` has one row and
     both are ``inf`` when it has none.
     """
+    ssd1, ssd2, _ = nearest_two(query, refs)
+    return ssd1, ssd2
+
+
+def nearest_two(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`best_two_ssd` plus the index of each query row's nearest reference row.
+
+    Returns ``(ssd1, ssd2, nearest)``, each (nq,); ``nearest`` is int64 (0 when ``refs`` is
+    empty; the first of tied nearest rows).
+    """
     nq = query.shape[0]
     if refs.shape[0] == 0:
         inf = np.full(nq, np.inf)
-        return inf, inf.copy()
+        return inf, inf.copy(), np.zeros(nq, np.int64)
     qn = (query.astype(np.float64) ** 2).sum(axis=1)[:, None]
     rn = (refs.astype(np.float64) ** 2).sum(axis=1)[None, :]
     ssd = np.maximum(qn + rn - 2.0 * (query @ refs.T).astype(np.float64), 0.0)
+    nearest = ssd.argmin(axis=1)
+    rows = np.arange(nq)
+    ssd1 = ssd[rows, nearest]
     if refs.shape[0] == 1:
-        return ssd[:, 0], np.full(nq, np.inf)
-    two = np.partition(ssd, 1, axis=1)[:, :2]
-    return two[:, 0], two[:, 1]
+        return ssd1, np.full(nq, np.inf), nearest
+    ssd[rows, nearest] = np.inf  # remove one minimum; a tied minimum stays
+    return ssd1, ssd.min(axis=1), nearest
+
+
+def match_mask(
+    ssd1: np.ndarray, ssd2: np.ndarray, *, match_threshold: float = 20.0, max_ratio: float = 0.7
+) -> np.ndarray:
+    """Which nearest neighbours are matches (``matchFeatures``' rule): ``ssd1 <= 4 *
+    match_threshold / 100`` and ``ssd1 / ssd2 <= max_ratio`` (an infinite ``ssd2`` passes,
+    ``0 / 0`` does not)."""
+    thr = 4.0 * match_threshold / 100.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio_ok = (ssd1 / ssd2) <= max_ratio  # inf second-best: ratio 0 -> kept; 0/0 -> False
+    return (ssd1 <= thr) & ratio_ok
 
 
 def match_distance(
@@ -155,10 +186,7 @@ def match_distance(
     max_ratio``; the result is the sum of the ``n_best`` smallest matched SSDs, each missing
     match counted as ``pad_value``.
     """
-    thr = 4.0 * match_threshold / 100.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio_ok = (ssd1 / ssd2) <= max_ratio  # inf second-best: ratio 0 -> kept; 0/0 -> False
-    keep = (ssd1 <= thr) & ratio_ok
+    keep = match_mask(ssd1, ssd2, match_threshold=match_threshold, max_ratio=max_ratio)
     vals = np.where(keep, ssd1, pad_value)
     nq = vals.shape[-1]
     take = min(n_best, nq)
