@@ -21,7 +21,7 @@ from hmpf.imageio import load_image
 from hmpf.index import IndexReader
 from hmpf.methods import create_method
 from hmpf.methods.inliers import Inliers, match_points
-from hmpf.methods.kaze import KazeFeatures
+from hmpf.methods.kaze import KazeFeatures, best_two_ssd, nearest_two
 from indexer.build import BuildOptions, build
 
 SIZE = (240, 320)
@@ -124,20 +124,19 @@ def test_config_is_validated_and_shares_kaze_cache_entries() -> None:
 
 @pytest.mark.dataset
 def test_gardens_point_same_place_beats_far_places(gardens_point: Path) -> None:
-    # Lateral shift (day_left -> day_right): the same frame has more inliers than frames
-    # 40 and 80 places away, for most frames.
+    # Lateral shift (day_left -> day_right): among 20 references 10 frames apart, the same
+    # frame has the most inliers for most queries (all 4 when this was written: 10, 7, 45 and
+    # 28 inliers against at most 5 elsewhere).
     m = create_method("inliers", {"max_keypoints": 300})
     left, right = list_images(gardens_point / "day_left"), list_images(gardens_point / "day_right")
-    frames = [10, 60, 110, 160]
-    refs = m.stack([m.extract(load_image(right[i])) for i in range(0, 200, 5)])
-    wins = 0
-    for f in frames:
+    refs = m.stack([m.extract(load_image(right[i])) for i in range(0, 200, 10)])
+    best, same = [], []
+    for f in (10, 60, 110, 160):
         s = m.scores(m.extract(load_image(left[f])), refs)
-        same = s[f // 5]
-        far = [s[((f + d) % 200) // 5] for d in (40, 80)]
-        wins += int(same > max(far))
-        assert same >= 8, (f, same)
-    assert wins >= 3
+        best.append(int(np.argmax(s)) == f // 10)
+        same.append(s[f // 10])
+    assert sum(best) >= 3, (best, same)
+    assert max(same) >= 20
 
 
 CONFIG = {
@@ -207,7 +206,7 @@ def test_hmpf_eval_and_service_on_an_inliers_index(built, tmp_path, capsys) -> N
     args = ["--index", str(index), "--query", str(queries_dir), "--no-cache", "--quiet"]
     assert eval_main([*args, "--workers", "1", "--json", str(out)]) == 0
     rep = json.loads(out.read_text())
-    assert rep["hierarchy"]["matches"] == list(range(6))
+    assert rep["hierarchy"]["matches"] == [f"r{i:02d}.png" for i in range(6)]
     capsys.readouterr()
 
     keys = tmp_path / "keys.yaml"
@@ -222,3 +221,22 @@ def test_hmpf_eval_and_service_on_an_inliers_index(built, tmp_path, capsys) -> N
         )
     assert r.status_code == 200, r.text
     assert r.json()["match"]["name"] == "r02.png"
+
+
+def test_nearest_two_equals_brute_force() -> None:
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(40, 64)).astype(np.float32)
+    r = rng.normal(size=(70, 64)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    ssd1, ssd2, nearest = nearest_two(q, r)
+    brute = ((q[:, None, :].astype(np.float64) - r[None, :, :]) ** 2).sum(-1)
+    np.testing.assert_array_equal(nearest, brute.argmin(axis=1))
+    two = np.sort(brute, axis=1)[:, :2]
+    np.testing.assert_allclose(ssd1, two[:, 0], atol=1e-9)
+    np.testing.assert_allclose(ssd2, two[:, 1], atol=1e-9)
+    np.testing.assert_allclose(best_two_ssd(q, r)[0], ssd1, atol=1e-6)
+    one = nearest_two(q, r[:1])
+    assert np.isinf(one[1]).all() and (one[2] == 0).all()
+    none = nearest_two(q, r[:0])
+    assert np.isinf(none[0]).all() and np.isinf(none[1]).all()

@@ -133,30 +133,48 @@ def best_two_ssd(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.nd
     Returns ``(ssd1, ssd2)`` of shape (nq,); ``ssd2`` is ``inf`` when ``refs`` has one row and
     both are ``inf`` when it has none.
     """
-    ssd1, ssd2, _ = nearest_two(query, refs)
-    return ssd1, ssd2
+    nq = query.shape[0]
+    if refs.shape[0] == 0:
+        inf = np.full(nq, np.inf)
+        return inf, inf.copy()
+    qn = (query.astype(np.float64) ** 2).sum(axis=1)[:, None]
+    rn = (refs.astype(np.float64) ** 2).sum(axis=1)[None, :]
+    ssd = np.maximum(qn + rn - 2.0 * (query @ refs.T).astype(np.float64), 0.0)
+    if refs.shape[0] == 1:
+        return ssd[:, 0], np.full(nq, np.inf)
+    two = np.partition(ssd, 1, axis=1)[:, :2]
+    return two[:, 0], two[:, 1]
 
 
 def nearest_two(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`best_two_ssd` plus the index of each query row's nearest reference row.
+    """Nearest and second-nearest reference row of each query row, with their SSDs.
 
-    Returns ``(ssd1, ssd2, nearest)``, each (nq,); ``nearest`` is int64 (0 when ``refs`` is
-    empty; the first of tied nearest rows).
+    Rows are ranked in float32 by ``q.d - |d|^2 / 2`` (as :meth:`Kaze.scores` ranks them:
+    ``SSD = |q|^2 - 2 (q.d - |d|^2 / 2)``), one matrix product and two argmax passes; the two
+    picks' SSDs are then computed exactly in float64, so they equal :func:`best_two_ssd`'s
+    except on near-ties of the ranking.
+
+    Returns ``(ssd1, ssd2, nearest)``, each (nq,): ``ssd2`` is ``inf`` when ``refs`` has one
+    row, both are ``inf`` (and ``nearest`` 0) when it has none; ``nearest`` is int64.
     """
     nq = query.shape[0]
     if refs.shape[0] == 0:
         inf = np.full(nq, np.inf)
         return inf, inf.copy(), np.zeros(nq, np.int64)
-    qn = (query.astype(np.float64) ** 2).sum(axis=1)[:, None]
-    rn = (refs.astype(np.float64) ** 2).sum(axis=1)[None, :]
-    ssd = np.maximum(qn + rn - 2.0 * (query @ refs.T).astype(np.float64), 0.0)
-    nearest = ssd.argmin(axis=1)
+    q64, r64 = query.astype(np.float64), refs.astype(np.float64)
+    qn, rn = (q64 * q64).sum(axis=1), (r64 * r64).sum(axis=1)
+    sim = np.asarray(query, np.float32) @ np.asarray(refs, np.float32).T
+    sim -= (0.5 * rn).astype(np.float32)[None, :]
     rows = np.arange(nq)
-    ssd1 = ssd[rows, nearest]
+    nearest = sim.argmax(axis=1)
+
+    def ssd(j: np.ndarray) -> np.ndarray:
+        return np.maximum(qn + rn[j] - 2.0 * np.einsum("ij,ij->i", q64, r64[j]), 0.0)
+
     if refs.shape[0] == 1:
-        return ssd1, np.full(nq, np.inf), nearest
-    ssd[rows, nearest] = np.inf  # remove one minimum; a tied minimum stays
-    return ssd1, ssd.min(axis=1), nearest
+        return ssd(nearest), np.full(nq, np.inf), nearest
+    sim[rows, nearest] = -np.inf  # remove one maximum; a tied maximum stays
+    return ssd(nearest), ssd(sim.argmax(axis=1)), nearest
 
 
 def match_mask(
