@@ -240,3 +240,14 @@ def test_nearest_two_equals_brute_force() -> None:
     assert np.isinf(one[1]).all() and (one[2] == 0).all()
     none = nearest_two(q, r[:0])
     assert np.isinf(none[0]).all() and np.isinf(none[1]).all()
+
+
+def test_service_evidence_draws_inliers_matches(built) -> None:
+    from service.evidence import evidence_method, render_evidence
+
+    _, queries_dir, index, _ = built
+    with IndexReader(index) as reader:
+        assert evidence_method(reader) == "inliers"
+        query = load_image(list_images(queries_dir)[1])
+        out = render_evidence(reader, query, 1, reader.thumbnail(1))  # type: ignore[arg-type]
+    assert out.method == "inliers" and out.pairs > 0
