@@ -201,12 +201,21 @@ def test_hmpf_eval_and_service_on_an_inliers_index(built, tmp_path, capsys) -> N
     from service.auth import add_key
     from service.settings import load_settings
 
-    _, queries_dir, index, _ = built
+    refs_dir, queries_dir, index, _ = built
     out = tmp_path / "r.json"
     args = ["--index", str(index), "--query", str(queries_dir), "--no-cache", "--quiet"]
     assert eval_main([*args, "--workers", "1", "--json", str(out)]) == 0
     rep = json.loads(out.read_text())
     assert rep["hierarchy"]["matches"] == [f"r{i:02d}.png" for i in range(6)]
+    # In memory (no index): the same answers, and the method's own curve over the database.
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(json.dumps(CONFIG))  # JSON is YAML
+    mem = tmp_path / "m.json"
+    args = ["--config", str(cfg), "--reference", str(refs_dir), "--query", str(queries_dir)]
+    assert eval_main([*args, "--no-cache", "--quiet", "--workers", "1", "--json", str(mem)]) == 0
+    rep = json.loads(mem.read_text())
+    assert rep["hierarchy"]["matches"] == list(range(6))  # reference indices in memory
+    assert rep["methods"]["inliers"]["recall_at"]["1"] == 1.0
     capsys.readouterr()
 
     keys = tmp_path / "keys.yaml"
