@@ -30,7 +30,7 @@ import numpy as np
 from hmpf.imageio import decode_image
 from hmpf.index.reader import IndexReader
 from hmpf.methods.cnn import forward_group
-from hmpf.methods.kaze import Kaze, KazeConfig, KazeFeatures, best_two_ssd, half
+from hmpf.methods.kaze import Kaze, KazeBaseConfig, KazeFeatures, best_two_ssd, half
 from hmpf.methods.olo import Olo, OloFeatures
 
 __all__ = ["HEIGHT", "MAX_PAIRS", "Evidence", "evidence_method", "render_evidence"]
@@ -88,9 +88,10 @@ def _kaze_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Keypoint positions (n, 2 each, in the method's image_size frame) of the matches KAZE's
     distance counts (:func:`~hmpf.methods.kaze.match_distance`: nearest SSD within the match
-    threshold and passing the ratio test, the ``n_best`` closest), closest first."""
+    threshold and passing the ratio test, the ``n_best`` closest), closest first (``inliers``,
+    a KAZE method without ``n_best``: the closest :data:`MAX_PAIRS`)."""
     c = method.config
-    assert isinstance(c, KazeConfig)
+    assert isinstance(c, KazeBaseConfig)
     q = method.extract(query)
     if len(q) == 0 or len(ref) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
@@ -98,7 +99,9 @@ def _kaze_pairs(
     with np.errstate(invalid="ignore", divide="ignore"):
         ok = (ssd1 <= 4.0 * c.match_threshold / 100.0) & (ssd1 / ssd2 <= c.max_ratio)
     idx = np.flatnonzero(ok)
-    idx = idx[np.argsort(ssd1[idx], kind="stable")][: min(MAX_PAIRS, c.n_best)]
+    idx = idx[np.argsort(ssd1[idx], kind="stable")][
+        : min(MAX_PAIRS, getattr(c, "n_best", MAX_PAIRS))
+    ]
     nearest = (q.descriptors[idx] @ ref.descriptors.T).argmax(axis=1)  # unit rows: least SSD
     return q.keypoints[idx, :2], ref.keypoints[nearest, :2]
 

@@ -4,7 +4,17 @@
 >>> hog = create_method("hog")
 """
 
-from hmpf.methods import gem, gist, hog, hybridnet, kaze, netvlad, olo, sad  # noqa: F401  (registration side effects)
+from hmpf.methods import (  # noqa: F401  (registration side effects)
+    gem,
+    gist,
+    hog,
+    hybridnet,
+    inliers,
+    kaze,
+    netvlad,
+    olo,
+    sad,
+)
 from hmpf.methods.base import GlobalMethod, LocalMethod, Method, MethodConfig
 from hmpf.methods.registry import available_methods, create_method, get_method_class, register
 

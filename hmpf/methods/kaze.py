@@ -45,7 +45,10 @@ from hmpf.methods.registry import register
 DESC_DIM = 64
 
 
-class KazeConfig(MethodConfig):
+class KazeBaseConfig(MethodConfig):
+    """How KAZE features are extracted and which nearest neighbours are matches: what every
+    method built on KAZE features shares (``kaze``, ``inliers``)."""
+
     image_size: int = Field(300, ge=32)
     threshold: float = Field(1e-4, gt=0)
     octaves: int = Field(3, ge=1)
@@ -53,6 +56,9 @@ class KazeConfig(MethodConfig):
     max_keypoints: int | None = Field(500, ge=1, description="strongest kept; None = all")
     match_threshold: float = Field(20.0, gt=0, le=100, description="percent of the SSD range")
     max_ratio: float = Field(0.7, gt=0, le=1)
+
+
+class KazeConfig(KazeBaseConfig):
     n_best: int = Field(20, ge=1, description="matches summed")
     pad_value: float = Field(1.0, ge=0, description="SSD used for missing matches")
 
@@ -140,6 +146,49 @@ def best_two_ssd(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.nd
     return two[:, 0], two[:, 1]
 
 
+def nearest_two(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest and second-nearest reference row of each query row, with their SSDs.
+
+    Rows are ranked in float32 by ``q.d - |d|^2 / 2`` (as :meth:`Kaze.scores` ranks them:
+    ``SSD = |q|^2 - 2 (q.d - |d|^2 / 2)``), one matrix product and two argmax passes; the two
+    picks' SSDs are then computed exactly in float64, so they equal :func:`best_two_ssd`'s
+    except on near-ties of the ranking.
+
+    Returns ``(ssd1, ssd2, nearest)``, each (nq,): ``ssd2`` is ``inf`` when ``refs`` has one
+    row, both are ``inf`` (and ``nearest`` 0) when it has none; ``nearest`` is int64.
+    """
+    nq = query.shape[0]
+    if refs.shape[0] == 0:
+        inf = np.full(nq, np.inf)
+        return inf, inf.copy(), np.zeros(nq, np.int64)
+    q64, r64 = query.astype(np.float64), refs.astype(np.float64)
+    qn, rn = (q64 * q64).sum(axis=1), (r64 * r64).sum(axis=1)
+    sim = np.asarray(query, np.float32) @ np.asarray(refs, np.float32).T
+    sim -= (0.5 * rn).astype(np.float32)[None, :]
+    rows = np.arange(nq)
+    nearest = sim.argmax(axis=1)
+
+    def ssd(j: np.ndarray) -> np.ndarray:
+        return np.maximum(qn + rn[j] - 2.0 * np.einsum("ij,ij->i", q64, r64[j]), 0.0)
+
+    if refs.shape[0] == 1:
+        return ssd(nearest), np.full(nq, np.inf), nearest
+    sim[rows, nearest] = -np.inf  # remove one maximum; a tied maximum stays
+    return ssd(nearest), ssd(sim.argmax(axis=1)), nearest
+
+
+def match_mask(
+    ssd1: np.ndarray, ssd2: np.ndarray, *, match_threshold: float = 20.0, max_ratio: float = 0.7
+) -> np.ndarray:
+    """Which nearest neighbours are matches (``matchFeatures``' rule): ``ssd1 <= 4 *
+    match_threshold / 100`` and ``ssd1 / ssd2 <= max_ratio`` (an infinite ``ssd2`` passes,
+    ``0 / 0`` does not)."""
+    thr = 4.0 * match_threshold / 100.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio_ok = (ssd1 / ssd2) <= max_ratio  # inf second-best: ratio 0 -> kept; 0/0 -> False
+    return (ssd1 <= thr) & ratio_ok
+
+
 def match_distance(
     ssd1: np.ndarray,
     ssd2: np.ndarray,
@@ -155,10 +204,7 @@ def match_distance(
     max_ratio``; the result is the sum of the ``n_best`` smallest matched SSDs, each missing
     match counted as ``pad_value``.
     """
-    thr = 4.0 * match_threshold / 100.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio_ok = (ssd1 / ssd2) <= max_ratio  # inf second-best: ratio 0 -> kept; 0/0 -> False
-    keep = (ssd1 <= thr) & ratio_ok
+    keep = match_mask(ssd1, ssd2, match_threshold=match_threshold, max_ratio=max_ratio)
     vals = np.where(keep, ssd1, pad_value)
     nq = vals.shape[-1]
     take = min(n_best, nq)
