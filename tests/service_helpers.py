@@ -61,7 +61,33 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-class Server:
+class LoggedProcess:
+    """A subprocess writing stdout and stderr to ``log``; :meth:`stop` sends SIGTERM, then
+    SIGKILL after ``stop_wait_s``. Subclasses set ``proc``, ``log`` and ``_out``."""
+
+    proc: subprocess.Popen[bytes]
+    log: Path
+    _out: Any
+    stop_wait_s = 20.0
+
+    def output(self) -> str:
+        """The log's last 4000 characters."""
+        if not self._out.closed:
+            self._out.flush()
+        return self.log.read_text(errors="replace")[-4000:]
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(self.stop_wait_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._out.close()
+
+
+class Server(LoggedProcess):
     """``hmpf-serve`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
     def __init__(self, index: Path, log: Path, **env: str) -> None:
@@ -94,21 +120,6 @@ class Server:
             time.sleep(0.25)
         self.stop()
         raise AssertionError(f"hmpf-serve not ready after 180 s: {self.output()}")
-
-    def output(self) -> str:
-        if not self._out.closed:
-            self._out.flush()
-        return self.log.read_text(errors="replace")[-4000:]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._out.close()
 
 
 def nan_in_final_tier(real: ScoreFn, method: str = "sad") -> ScoreFn:

@@ -40,7 +40,7 @@ from typing import Any
 import httpx
 import pytest
 from conftest import SERVICE_CONFIG, copy_gp
-from service_helpers import BUILD_OPTIONS, ROOT, Server, free_port
+from service_helpers import BUILD_OPTIONS, ROOT, LoggedProcess, Server, free_port
 
 from hmpf.client import Client, ServiceError
 from hmpf.config import parse_config
@@ -182,8 +182,10 @@ def replicas(
     assert "Traceback" not in servers[0].output()
 
 
-class Balancer:
+class Balancer(LoggedProcess):
     """HAProxy in the foreground with the generated configuration."""
+
+    stop_wait_s = 10.0
 
     def __init__(self, binary: str, servers: list[Server], folder: Path) -> None:
         port = free_port()
@@ -216,21 +218,6 @@ class Balancer:
             time.sleep(0.05)
         self.stop()
         raise AssertionError(f"haproxy not balancing after 20 s ({seen}): {self.output()}")
-
-    def output(self) -> str:
-        if not self._out.closed:
-            self._out.flush()
-        return self.log.read_text(errors="replace")[-4000:]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._out.close()
 
 
 @pytest.fixture(scope="module")
