@@ -41,6 +41,7 @@ class IdleEngine:
     queued = 0
     running = 0
     current = SimpleNamespace(version="v-test")
+    root = Path("/nonexistent/hmpf-index")  # no CURRENT: /metrics says the index is behind
 
     def load(self) -> None:
         pass
