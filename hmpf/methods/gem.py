@@ -5,8 +5,9 @@
 distance (lower is better), FAISS-friendly.
 
 Values are kept at float16 precision (what the index stores). Default layer per backbone:
-EfficientNet-Lite0 ``head`` (1280-d), VGG16 ``conv5_3`` (512-d, through a ReLU), CaffeNet
-``relu5`` (256-d), VGG-M ``relu5`` (512-d).
+EfficientNet-Lite0 / Lite1 / Lite2 ``head`` (1280-d, at the backbone's ImageNet input size),
+VGG16 ``conv5_3`` (512-d, through a ReLU), CaffeNet ``relu5`` (256-d), VGG-M ``relu5``
+(512-d).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ from hmpf.methods.registry import register
 
 DEFAULT_LAYER = {
     "efficientnet_lite0": "head",
+    "efficientnet_lite1": "head",
+    "efficientnet_lite2": "head",
     "vgg16": "conv5_3",
     "caffenet": "relu5",
     "vgg_m_1024": "relu5",

@@ -16,6 +16,7 @@ Backbones:
   weaker on Gardens Point). Stage 6 ends in a linear projection, so its activations are
   signed; the rule takes the maximum as it is (a channel is skipped only when its maximum is
   0, as in the original).
+* ``efficientnet_lite1`` / ``efficientnet_lite2``: the same (the histogram needs 13 x 13).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ GRID = 13
 DEFAULTS = {
     "caffenet": ("relu5", (227, 227)),
     "efficientnet_lite0": ("s6", (416, 416)),
+    "efficientnet_lite1": ("s6", (416, 416)),
+    "efficientnet_lite2": ("s6", (416, 416)),
 }
 
 

@@ -16,6 +16,8 @@ METHODS.md §2.5. Two ways to get its parameters:
   NetVLAD initialisation. With ``pca_dim`` set, a PCA-whitening fitted on the references'
   VLAD vectors reduces the descriptor (then L2 again). The fitted parameters are stored with
   the index and never refitted for a query.
+* ``efficientnet_lite1`` / ``efficientnet_lite2``: the same on their stage 6 (192-d / 208-d)
+  at 320 x 544 / 352 x 608 (Lite0's input scaled by the variants' ImageNet sizes).
 
 Distance: Euclidean, lower is better.
 """
@@ -36,6 +38,10 @@ from hmpf.methods.registry import register
 DEFAULTS = {
     "vgg16": ("conv5_3", (224, 224)),
     "efficientnet_lite0": ("s6", (288, 512)),
+    # Lite0's choice scaled to the variants' ImageNet sizes (240 / 224, 260 / 224), in whole
+    # stride-32 cells: 10 x 17 and 11 x 19 local features.
+    "efficientnet_lite1": ("s6", (320, 544)),
+    "efficientnet_lite2": ("s6", (352, 608)),
 }
 
 

@@ -28,6 +28,8 @@ Backbones:
   vocabulary file, one of
   ``vocabulary_size`` words is fitted by k-means on the reference regions and the word counts
   are the references' document frequencies; both are stored with the index.
+* ``efficientnet_lite1`` / ``efficientnet_lite2``: the same layers at 448 x 448 / 480 x 480
+  (14 x 14 / 15 x 15 maps: Lite0's 416 scaled by the variants' ImageNet sizes).
 
 Deviation: fewer than 200 regions keeps them all (MATLAB would error, §8.12).
 """
@@ -52,6 +54,10 @@ from hmpf.methods.registry import register
 DEFAULTS = {
     "vgg_m_1024": ("relu4", "relu5", (224, 224)),
     "efficientnet_lite0": ("s6", "head", (416, 416)),
+    # Lite0's 416 scaled to the variants' ImageNet sizes (240 / 224, 260 / 224), in whole
+    # stride-32 cells: 14 x 14 and 15 x 15 maps.
+    "efficientnet_lite1": ("s6", "head", (448, 448)),
+    "efficientnet_lite2": ("s6", "head", (480, 480)),
 }
 
 
@@ -238,7 +244,7 @@ class Olo(CnnMethod, LocalMethod):
     @property
     def use_relu(self) -> bool:
         r = self.olo.relu
-        return self.olo.backbone == "efficientnet_lite0" if r is None else r
+        return self.olo.backbone.startswith("efficientnet_lite") if r is None else r
 
     # -- vocabulary ---------------------------------------------------------------------------
     @cached_property
