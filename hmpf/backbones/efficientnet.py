@@ -41,6 +41,7 @@ rounding (below 3e-5 at the default sizes).
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Collection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -60,6 +61,7 @@ _STAGES = ("s1", "s2", "s3", "s4", "s5", "s6", "s7")
 _STRIDES = {"s1": 2, "s2": 4, "s3": 8, "s4": 16, "s5": 16, "s6": 32, "s7": 32, "head": 32}
 
 
+@functools.cache
 def _stage_ends(repeats: tuple[int, ...]) -> dict[str, int]:
     """Index of the last block of each stage in ``model._blocks``, from the stage repeats."""
     return dict(zip(_STAGES, (int(v) - 1 for v in np.cumsum(repeats)), strict=True))
