@@ -148,6 +148,29 @@ def test_thumbnails_of_an_interrupted_build_are_reused(gardens_point, tmp_path) 
     assert again.item(1).tobytes() == marked
 
 
+def test_identical_images_share_one_cached_thumbnail(tmp_path) -> None:
+    """A route may hold byte-identical frames (Nordland does): they share one cache key, and
+    the threads that make them at once must not trip over each other's temporary file (small
+    images, so that the threads overlap)."""
+    from hmpf.features import file_digest
+
+    folder = tmp_path / "same"
+    folder.mkdir()
+    paths = []
+    for i in range(100):  # 100 frames, each 4 times in a row: 4 threads make each at once
+        ok, png = cv2.imencode(".png", np.full((32, 64, 3), i, np.uint8))
+        for j in range(4):
+            paths.append(folder / f"{i:03d}-{j}.png")
+            paths[-1].write_bytes(png.tobytes())
+    digests = [file_digest(p) for p in paths]
+    made = thumbnails.make_thumbnails(paths, digests, tmp_path / "cache")
+    for i in range(0, len(paths), 4):
+        assert len({made.item(i + j).tobytes() for j in range(4)}) == 1
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == sorted(
+        f"{d}.jpg" for d in set(digests)
+    )
+
+
 def test_a_version_without_thumbnails_loads_and_grows(gardens_point, tmp_path) -> None:
     refs = copy_gp(gardens_point, "day_right", tmp_path / "a", 3)
     root = tmp_path / "index"

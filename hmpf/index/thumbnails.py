@@ -15,6 +15,8 @@ the manifest like every other file, so its sha256 is checked with them.
 
 from __future__ import annotations
 
+import os
+import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -64,7 +66,8 @@ def _cached_thumbnail(path: Path, cache: Path | None, key: str) -> np.ndarray:
         return np.frombuffer(hit.read_bytes(), np.uint8)
     data = make_thumbnail(load_image(path))
     if hit is not None:
-        tmp = hit.with_suffix(".tmp")
+        # one temporary file per thread: identical images (one key) may be made at once
+        tmp = hit.with_name(f"{key}.{os.getpid()}-{threading.get_ident()}.tmp")
         tmp.write_bytes(data)
         tmp.replace(hit)
     return np.frombuffer(data, np.uint8)

@@ -1,0 +1,108 @@
+"""Per-query CPU and resident memory of one ``hmpf-serve`` replica: inputs of docs/scale.md.
+
+    .venv/bin/python bench/capacity.py --index INDEX --queries DIR [--n 100] [--workers 1]
+
+Starts a real ``hmpf-serve`` on INDEX (loopback, no auth), reads its resident memory when
+ready, sends ``--n`` frames from DIR one at a time through :class:`hmpf.client.Client`
+(sequence tracking on, as a vehicle does), then prints:
+
+* CPU per answered query: the server process's user + system CPU time (``/proc/PID/stat``)
+  over the run divided by the answers. CPU time, unlike wall time, barely moves when other
+  jobs share the cores, so this is the figure to size cores with;
+* wall p50 per request (affected by other jobs; quoted for reference only);
+* resident memory (``VmRSS``) at ready and after the run, and the index's bytes on disk.
+
+Two indexes of different sizes (e.g. Gardens Point, 200 references, and Nordland, 3576) give
+the resident memory per reference as the slope between them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from bench.service_load import _free_port, _start  # noqa: E402
+from hmpf.client import Client  # noqa: E402
+from hmpf.datasets import list_images  # noqa: E402
+from hmpf.runtime import machine_description  # noqa: E402
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process (fields 14 and 15 of /proc/PID/stat)."""
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def rss_mib(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS")
+
+
+def version_bytes(index: Path) -> tuple[int, int]:
+    """(bytes on disk of the current version, references in it)."""
+    version = index / (index / "CURRENT").read_text().strip()
+    total = sum(f.stat().st_size for f in version.rglob("*") if f.is_file())
+    manifest = json.loads((version / "manifest.json").read_text())
+    return total, int(manifest["images"]["count"])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--index", type=Path, required=True)
+    p.add_argument("--queries", type=Path, required=True, help="folder of query frames")
+    p.add_argument("--n", type=int, default=100, help="queries sent (evenly spaced frames)")
+    p.add_argument("--workers", type=int, default=1, help="HMPF_WORKERS of the replica")
+    p.add_argument("--warmup", type=int, default=5)
+    a = p.parse_args()
+    a.queue = None
+    paths = list_images(a.queries)
+    step = max(1, len(paths) // (a.n + a.warmup))
+    frames = [q.read_bytes() for q in paths[::step][: a.n + a.warmup]]
+    port = _free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = _start(a.index, port, a, Path(tmp) / "serve.log")
+        try:
+            rss_ready = rss_mib(proc.pid)
+            with Client(f"http://127.0.0.1:{port}", timeout=120) as client:
+                for f in frames[: a.warmup]:
+                    client.localize(f, vehicle_id="capacity")
+                cpu0 = cpu_seconds(proc.pid)
+                walls = []
+                for f in frames[a.warmup :]:
+                    t0 = time.perf_counter()
+                    client.localize(f, vehicle_id="capacity")
+                    walls.append((time.perf_counter() - t0) * 1e3)
+                cpu1 = cpu_seconds(proc.pid)
+            rss_after = rss_mib(proc.pid)
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    disk, refs = version_bytes(a.index)
+    n = len(walls)
+    print(machine_description())
+    print(f"index {a.index}: {refs} references, {disk / refs / 1024:.1f} KiB per reference on disk")
+    print(f"replica HMPF_WORKERS={a.workers}; {n} queries from {a.queries} (after {a.warmup})")
+    print(f"CPU per answered query: {(cpu1 - cpu0) / n * 1e3:.1f} ms (server process, user+sys)")
+    print(
+        f"wall per request p50: {statistics.median(walls):.1f} ms (load {os.getloadavg()[0]:.2f})"
+    )
+    print(f"resident: {rss_ready:.0f} MiB at ready, {rss_after:.0f} MiB after the queries")
+
+
+if __name__ == "__main__":
+    main()

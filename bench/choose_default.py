@@ -1,0 +1,118 @@
+"""Choose between hierarchy configs on training parts, report test parts: the default's rule.
+
+    python bench/choose_default.py default path/to/variant.yaml ... [--nordland] [--out F]
+
+For every config (a preset name or a YAML file; the first is the baseline):
+
+* recall@1 (+-2 frames) of the hierarchy on the training and the test part of every Gardens
+  Point protocol (``split_data``: alternating stretches of 20 frames, each part its own map,
+  so fitted parameters are fitted on that part's references), and with ``--nordland`` on
+  Nordland summer -> winter's parts too; and on the whole Gardens Point protocols;
+* the query's extraction on one compute thread (median over ``--images`` day_right images);
+* the bytes an index stores per reference (``exact`` precision, from the method's features).
+
+Choice rule (training parts only, as the issue asks): the config with the best mean training
+recall over the protocols, provided its query stays within ``--budget-ms``. Its test recall
+is then compared with the baseline's by an exact paired sign test on the pooled test queries.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from one_pass import correct_flags, passes, query_ms  # noqa: E402
+
+from hmpf.config import HierarchyConfig, load_config  # noqa: E402
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
+from hmpf.evaluation.calibrate import paired_test  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData  # noqa: E402
+from hmpf.evaluation.study import split_data  # noqa: E402
+from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from hmpf.imageio import load_image  # noqa: E402
+from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
+
+NORDLAND = ("nordland_64x32/summer", "nordland_64x32/winter")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("configs", nargs="+", help="preset names or YAML files; first = baseline")
+    ap.add_argument("--nordland", action="store_true", help="Nordland summer -> winter too")
+    ap.add_argument("--images", type=int, default=10, help="images timed (day_right)")
+    ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    args = ap.parse_args()
+    set_cnn_runtime("onnx")
+    print(f"Machine: {machine_description()}", flush=True)
+    root = dataset_root()
+    refs = list_images(root / "gardens_point" / "day_right")
+    pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)
+    images = [load_image(refs[i]) for i in pick]
+    fit = [load_image(p) for p in refs[::7]]
+    cache = FeatureCache(args.cache_dir)
+    protocols = dict(GARDENS_POINT_PROTOCOLS)
+    if args.nordland:
+        protocols["nordland_s_w"] = NORDLAND
+    full = {n: EvalData.frames(root / r, root / q, 2) for n, (r, q) in protocols.items()}
+    parts = {n: split_data(d) for n, d in full.items()}
+    out: dict[str, Any] = {}
+    for name in args.configs:
+        config: HierarchyConfig = load_config(name)
+        row: dict[str, Any] = {"passes": passes(config), "query_ms": query_ms(config, images, fit)}
+        for i, part in enumerate(("train", "test", "whole")):
+            flags = {
+                p: correct_flags(config, parts[p][i] if part != "whole" else full[p], cache)
+                for p in protocols
+                if part != "whole" or p in GARDENS_POINT_PROTOCOLS
+            }
+            row[part] = {p: float(f.mean()) for p, f in flags.items()}
+            row[f"{part}_mean"] = float(np.mean(list(row[part].values())))
+            row[f"{part}_flags"] = np.concatenate(list(flags.values())).tolist()
+        out[name] = row
+        print(
+            f"{name}: {row['query_ms']:.1f} ms/query, train {row['train_mean']:.3f}, "
+            f"test {row['test_mean']:.3f}, GP whole {row['whole_mean']:.3f}",
+            flush=True,
+        )
+    names = list(protocols)
+    print(
+        "\nrecall@1 (+-2); query extraction on one thread (median); p: paired sign test, pooled\n"
+    )
+    print(f"| config | ms | train: {' / '.join(names)} (mean) | test (mean) | test vs first |")
+    print("|---|---:|---|---|---|")
+    base = out[args.configs[0]]
+    for name, row in out.items():
+        tr = " / ".join(f"{row['train'][p]:.3f}" for p in names)
+        te = " / ".join(f"{row['test'][p]:.3f}" for p in names)
+        t = paired_test(np.array(row["test_flags"]), np.array(base["test_flags"]))
+        print(
+            f"| {name} | {row['query_ms']:.1f} | {tr} ({row['train_mean']:.3f}) | {te} "
+            f"({row['test_mean']:.3f}) | {t['wins']}/{t['losses']}, p = {t['p']:.3f} |"
+        )
+    ok = [n for n in out if out[n]["query_ms"] <= args.budget_ms]
+    if ok:
+        chosen = max(ok, key=lambda n: out[n]["train_mean"])
+        t = paired_test(np.array(out[chosen]["test_flags"]), np.array(base["test_flags"]))
+        print(
+            f"\nChosen on the training parts: {chosen} (train {out[chosen]['train_mean']:.3f} "
+            f"vs {base['train_mean']:.3f}); test {out[chosen]['test_mean']:.3f} vs "
+            f"{base['test_mean']:.3f}: {t['wins']} wins / {t['losses']} losses, p = {t['p']:.3f}"
+        )
+    if args.out:
+        args.out.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""Tier-1 FAISS choice on real descriptors: exact Flat against IVF, as far as real data goes.
+
+    .venv/bin/python bench/tier1_real.py [--methods gem netvlad] [--winter-every 4]
+
+``bench/index_search.py`` sizes tier 1 on synthetic route-like vectors up to a million
+references. This checks the same choice on the real descriptors we have: one map made of
+every reference route in ``$HMPF_DATASETS`` (Nordland summer, 3576 frames, and Gardens Point
+day_left and day_right, 200 each: 3976 references of three routes and two kinds of camera),
+queried by Nordland winter (every ``--winter-every``-th frame) and Gardens Point night_right.
+
+Per tier-1 method of the default config (descriptors from the descriptor cache; a method
+that needs fitting is fitted on the whole mixed map), per FAISS type (``Flat``; ``IVF{n},Flat``
+for n = sqrt(R), 4 sqrt(R)) and ``nprobe``, it prints:
+
+* ``exact top-k kept``: the fraction of the exact top-k (k = the default's tier-1 k = 10)
+  that the reader's approximate path (FAISS's top max(256, 4k) plus its 1024-reference
+  sample, re-scored exactly) keeps: where all are kept, tier 1 passes on the same list;
+* ``right kept``: of the queries whose exact top-k holds a right place (+-2 frames, on its
+  own route), the fraction whose approximate list still holds one;
+* single-query FAISS search time p50 (one thread; re-scoring not included).
+
+Nothing is chosen on these routes' test parts: this only says whether the IVF settings the
+capacity model (docs/scale.md) recommends lose tier-1 candidates on real descriptors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from hmpf.config import build_methods, load_config  # noqa: E402
+from hmpf.datasets import dataset_root, list_images  # noqa: E402
+from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods  # noqa: E402
+from hmpf.index.ann import build_faiss, declared_metric, faiss_module  # noqa: E402
+from hmpf.index.reader import SAMPLE_SIZE  # noqa: E402
+from hmpf.runtime import machine_description  # noqa: E402
+
+TOLERANCE = 2
+
+
+def routes(root: Path, winter_every: int) -> tuple[list[Path], np.ndarray, list[Path], np.ndarray]:
+    """Reference and query paths with (route, frame) labels for ground truth."""
+    refs: list[Path] = []
+    ref_lab: list[tuple[int, int]] = []
+    qs: list[Path] = []
+    q_lab: list[tuple[int, int]] = []
+    nl = root / "nordland_64x32"
+    gp = root / "gardens_point"
+    # Gardens Point's day_left and day_right are frame-aligned traverses of the same places:
+    # one place-route (1), so a night query's right answer may sit on either
+    for rid, folder in [(0, nl / "summer"), (1, gp / "day_left"), (1, gp / "day_right")]:
+        paths = list_images(folder)
+        refs += paths
+        ref_lab += [(rid, i) for i in range(len(paths))]
+    winter = list_images(nl / "winter")
+    pick = range(0, len(winter), winter_every)
+    qs += [winter[i] for i in pick]
+    q_lab += [(0, i) for i in pick]
+    night = list_images(gp / "night_right")
+    qs += night
+    q_lab += [(1, i) for i in range(len(night))]  # frame-aligned with both day traverses
+    return refs, np.array(ref_lab), qs, np.array(q_lab)
+
+
+def right_mask(ref_lab: np.ndarray, q_lab: np.ndarray) -> np.ndarray:
+    """(Q, R) True where reference r is a right answer for query q."""
+    same_route = q_lab[:, None, 0] == ref_lab[None, :, 0]
+    close = np.abs(q_lab[:, None, 1] - ref_lab[None, :, 1]) <= TOLERANCE
+    return same_route & close
+
+
+def search_times(index: object, q: np.ndarray, k: int) -> float:
+    """Median ms of single-query searches (one thread)."""
+    times = []
+    for row in q[:200]:
+        t0 = time.perf_counter()
+        index.search(row[None, :], k)  # type: ignore[attr-defined]
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default="default")
+    p.add_argument("--methods", nargs="*", default=None, help="default: the config's tier 1")
+    p.add_argument("--winter-every", type=int, default=4)
+    p.add_argument("--k", type=int, default=None, help="default: the config's tier-1 k")
+    p.add_argument("--nprobe", type=int, nargs="*", default=[1, 2, 4, 8, 16, 32])
+    p.add_argument("--workers", type=int, default=None)
+    a = p.parse_args()
+    faiss = faiss_module()
+    faiss.omp_set_num_threads(1)
+    config = load_config(a.config)
+    k = a.k or config.tiers[0].k
+    tier1 = a.methods or list(config.tiers[0].methods)
+    methods = {mid: m for mid, m in build_methods(config).items() if mid in tier1}
+    refs, ref_lab, qs, q_lab = routes(dataset_root(), a.winter_every)
+    print(machine_description())
+    print(f"map: {len(refs)} references (3 routes), {len(qs)} queries; tier-1 k = {k}")
+    cache = FeatureCache(default_cache_dir())
+    fit_methods(methods, refs, cache=cache)
+    r_feat = extract_images(refs, methods, cache=cache, workers=a.workers, progress=True)
+    q_feat = extract_images(qs, methods, cache=cache, workers=a.workers, progress=True)
+    right = right_mask(ref_lab, q_lab)
+    n = len(refs)
+    for mid, m in methods.items():
+        metric = declared_metric(mid, m)
+        if metric is None:
+            print(f"{mid}: no FAISS metric, tier 1 scans the matrix")
+            continue
+        x = np.ascontiguousarray(m.stack(r_feat.features[mid]), np.float32)
+        q = np.ascontiguousarray(m.stack(q_feat.features[mid]), np.float32)
+        exact, _ = build_faiss(x, metric, "Flat")
+        _, order = exact.search(q, n)  # every reference, best first
+        top_exact = order[:, :k]
+        rank = np.empty_like(order)
+        rank[np.arange(len(q))[:, None], order] = np.arange(n)[None, :]
+        held = right[np.arange(len(q))[:, None], top_exact].any(axis=1)
+        r1_exact = right[np.arange(len(q)), top_exact[:, 0]].mean()
+        print(
+            f"\n{mid} ({x.shape[1]}-d, metric {metric.kind}): exact top-{k} holds the right "
+            f"place for {held.mean():.3f} of queries, recall@1 {r1_exact:.3f}, "
+            f"Flat p50 {search_times(exact, q, k):.2f} ms"
+        )
+        # the reader's approximate path (hmpf.index.reader): FAISS's top max(256, 4k) and an
+        # evenly spaced sample of up to 1024 references are scored exactly, the rest get the
+        # worst value; tier 1 then keeps the exact top k of those
+        approx_k = max(256, 4 * k)
+        sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
+        print(f"| FAISS | nprobe | exact top-{k} kept | right kept | p50 ms (FAISS only) |")
+        print("|---|---|---|---|---|")
+        for nlist in sorted({int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))}):
+            ivf, _ = build_faiss(x, metric, f"IVF{nlist},Flat")
+            for nprobe in a.nprobe:
+                if nprobe > nlist:
+                    continue
+                ivf.nprobe = nprobe
+                _, cand = ivf.search(q, approx_k)
+                kept_top = np.empty(len(q))
+                kept_right = np.empty(len(q), bool)
+                for i, c in enumerate(cand):
+                    scored = np.union1d(c[c >= 0], sample)
+                    top = scored[np.argsort(rank[i, scored], kind="stable")[:k]]
+                    kept_top[i] = np.isin(top_exact[i], top).mean()
+                    kept_right[i] = right[i, top].any()
+                kept_of_held = (kept_right & held).sum() / max(int(held.sum()), 1)
+                print(
+                    f"| IVF{nlist},Flat | {nprobe} | {kept_top.mean():.4f} | "
+                    f"{kept_of_held:.4f} | {search_times(ivf, q, approx_k):.2f} |"
+                )
+    print(f"\nload {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
