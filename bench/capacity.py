@@ -67,6 +67,7 @@ def main() -> None:
     p.add_argument("--queries", type=Path, required=True, help="folder of query frames")
     p.add_argument("--n", type=int, default=100, help="queries sent (evenly spaced frames)")
     p.add_argument("--workers", type=int, default=1, help="HMPF_WORKERS of the replica")
+    p.add_argument("--threads", type=int, default=1, help="HMPF_THREADS_PER_WORKER")
     p.add_argument("--warmup", type=int, default=5)
     a = p.parse_args()
     a.queue = None
@@ -96,7 +97,10 @@ def main() -> None:
     n = len(walls)
     print(machine_description())
     print(f"index {a.index}: {refs} references, {disk / refs / 1024:.1f} KiB per reference on disk")
-    print(f"replica HMPF_WORKERS={a.workers}; {n} queries from {a.queries} (after {a.warmup})")
+    print(
+        f"replica HMPF_WORKERS={a.workers} x {a.threads} thread(s); "
+        f"{n} queries from {a.queries} (after {a.warmup})"
+    )
     print(f"CPU per answered query: {(cpu1 - cpu0) / n * 1e3:.1f} ms (server process, user+sys)")
     print(
         f"wall per request p50: {statistics.median(walls):.1f} ms (load {os.getloadavg()[0]:.2f})"

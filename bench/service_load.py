@@ -90,6 +90,8 @@ def _start(index: Path, port: int, args: argparse.Namespace, log: Path) -> subpr
         env["HMPF_WORKERS"] = str(args.workers)
     if args.queue is not None:
         env["HMPF_QUEUE"] = str(args.queue)
+    if getattr(args, "threads", None):
+        env["HMPF_THREADS_PER_WORKER"] = str(args.threads)
     cmd = [str(ROOT / ".venv" / "bin" / "hmpf-serve"), "--index", str(index)]
     cmd += ["--port", str(port)]
     proc = subprocess.Popen(cmd, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT)

@@ -10,11 +10,14 @@ queried by Nordland winter (every ``--winter-every``-th frame) and Gardens Point
 
 Per tier-1 method of the default config (descriptors from the descriptor cache; a method
 that needs fitting is fitted on the whole mixed map), per FAISS type (``Flat``; ``IVF{n},Flat``
-for n = sqrt(R), 4 sqrt(R)) and ``nprobe``, it prints:
+and ``IVF{n},PQ{m}`` for n = sqrt(R), 4 sqrt(R), m = D / 20 sub-quantizers of 8 bits) and
+``nprobe``, it prints the bytes per reference the FAISS index holds in memory and:
 
 * ``exact top-k kept``: the fraction of the exact top-k (k = the default's tier-1 k = 10)
   that the reader's approximate path (FAISS's top max(256, 4k) plus its 1024-reference
-  sample, re-scored exactly) keeps: where all are kept, tier 1 passes on the same list;
+  sample, re-scored exactly) keeps: where all are kept, tier 1 passes on the same list. In
+  brackets: without the sample, which is a quarter of this small map but 0.1 % of a
+  million-reference one (the figure that carries over to large maps);
 * ``right kept``: of the queries whose exact top-k holds a right place (+-2 frames, on its
   own route), the fraction whose approximate list still holds one;
 * single-query FAISS search time p50 (one thread; re-scoring not included).
@@ -77,6 +80,14 @@ def right_mask(ref_lab: np.ndarray, q_lab: np.ndarray) -> np.ndarray:
     return same_route & close
 
 
+def pq_subquantizers(d: int) -> int:
+    """PQ sub-quantizers: about 20 dimensions each (a divisor of ``d``), 8 bits each."""
+    m = max(1, d // 20)
+    while d % m:
+        m -= 1
+    return m
+
+
 def search_times(index: object, q: np.ndarray, k: int) -> float:
     """Median ms of single-query searches (one thread)."""
     times = []
@@ -135,26 +146,39 @@ def main() -> None:
         # worst value; tier 1 then keeps the exact top k of those
         approx_k = max(256, 4 * k)
         sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
-        print(f"| FAISS | nprobe | exact top-{k} kept | right kept | p50 ms (FAISS only) |")
-        print("|---|---|---|---|---|")
-        for nlist in sorted({int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))}):
-            ivf, _ = build_faiss(x, metric, f"IVF{nlist},Flat")
+        print(
+            f"| FAISS | bytes/ref in RAM | nprobe | exact top-{k} kept (no sample) "
+            "| right kept (no sample) | p50 ms (FAISS only) |"
+        )
+        print("|---|---:|---:|---|---|---:|")
+        s1, s4 = int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))
+        pq = pq_subquantizers(x.shape[1])
+        for factory in (f"IVF{s1},Flat", f"IVF{s4},Flat", f"IVF{s1},PQ{pq}", f"IVF{s4},PQ{pq}"):
+            ivf, _ = build_faiss(x, metric, factory)
+            ram = len(faiss.serialize_index(ivf)) / n
+            nlist = int(ivf.nlist)
             for nprobe in a.nprobe:
                 if nprobe > nlist:
                     continue
                 ivf.nprobe = nprobe
                 _, cand = ivf.search(q, approx_k)
-                kept_top = np.empty(len(q))
-                kept_right = np.empty(len(q), bool)
-                for i, c in enumerate(cand):
-                    scored = np.union1d(c[c >= 0], sample)
-                    top = scored[np.argsort(rank[i, scored], kind="stable")[:k]]
-                    kept_top[i] = np.isin(top_exact[i], top).mean()
-                    kept_right[i] = right[i, top].any()
-                kept_of_held = (kept_right & held).sum() / max(int(held.sum()), 1)
+                kept = {}
+                for label, extra in (("sample", sample), ("none", np.zeros(0, np.int64))):
+                    kept_top = np.empty(len(q))
+                    kept_right = np.empty(len(q), bool)
+                    for i, c in enumerate(cand):
+                        scored = np.union1d(c[c >= 0], extra)
+                        top = scored[np.argsort(rank[i, scored], kind="stable")[:k]]
+                        kept_top[i] = np.isin(top_exact[i], top).mean()
+                        kept_right[i] = right[i, top].any()
+                    kept[label] = (
+                        kept_top.mean(),
+                        (kept_right & held).sum() / max(int(held.sum()), 1),
+                    )
                 print(
-                    f"| IVF{nlist},Flat | {nprobe} | {kept_top.mean():.4f} | "
-                    f"{kept_of_held:.4f} | {search_times(ivf, q, approx_k):.2f} |"
+                    f"| {factory} | {ram:.0f} | {nprobe} | {kept['sample'][0]:.4f} "
+                    f"({kept['none'][0]:.4f}) | {kept['sample'][1]:.4f} ({kept['none'][1]:.4f}) "
+                    f"| {search_times(ivf, q, approx_k):.2f} |"
                 )
     print(f"\nload {os.getloadavg()[0]:.2f}")
 
