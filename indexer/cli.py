@@ -171,8 +171,9 @@ def _options(args: argparse.Namespace) -> BuildOptions:
 def _ray_options(args: argparse.Namespace) -> RayOptions | None:
     if args.ray is None:
         return None
-    from indexer.distributed import RayOptions
+    from indexer.distributed import RayOptions, require_ray
 
+    require_ray()  # before any image is read
     return RayOptions(address=None if args.ray == "local" else args.ray, workers=args.workers)
 
 

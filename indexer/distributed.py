@@ -28,6 +28,7 @@ import io
 import logging
 import os
 import pickle
+import socket
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,13 +37,21 @@ from typing import Any, ClassVar
 import numpy as np
 from tqdm import tqdm
 
-from hmpf.errors import ImageError
+from hmpf.errors import HmpfError, ImageError
 from hmpf.features import FeatureCache, file_digest
+from hmpf.index import layout
 from hmpf.index.layout import IndexBuildError
 from hmpf.methods import Method
 from hmpf.runtime import cnn_runtime
 
-__all__ = ["RAY_HINT", "RayOptions", "extract_to_cache", "ray_session"]
+__all__ = [
+    "RAY_HINT",
+    "RayOptions",
+    "VersionMismatchError",
+    "extract_to_cache",
+    "ray_session",
+    "require_ray",
+]
 
 RAY_HINT = "--ray needs Ray, an optional extra: pip install 'hmpf[ray]'"
 
@@ -64,7 +73,12 @@ class RayOptions:
     batch_size: int = 4
 
 
-def _ray() -> Any:
+def require_ray() -> Any:
+    """The ``ray`` module (with Ray Data).
+
+    Raises:
+        IndexBuildError: Ray is not installed (one line: how to install it).
+    """
     try:
         import ray
         import ray.data  # noqa: F401
@@ -73,13 +87,37 @@ def _ray() -> Any:
     return ray
 
 
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Fail fast on a ``HOST:PORT`` nothing listens on (``ray.init`` would retry for minutes)."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        raise IndexBuildError(f"--ray {address!r}: expected HOST:PORT (or auto)")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise IndexBuildError(
+            f"--ray {address}: no Ray cluster reachable there ({exc.strerror or exc}); start "
+            "one (ray start --head) or give its address as printed by ray start"
+        ) from None
+
+
+def _package_versions() -> dict[str, str]:
+    """What must be equal on the driver and every worker: the recorded package versions
+    (manifest ``packages``: hmpf, numpy, OpenCV, torch, ...) and ONNX Runtime."""
+    out = layout.package_versions()
+    ort = layout.installed_version("onnxruntime")
+    if ort is not None:
+        out["onnxruntime"] = ort
+    return out
+
+
 @contextlib.contextmanager
 def ray_session(opt: RayOptions) -> Iterator[int]:
     """Connect to ``opt.address`` (or start a local instance); yields the number of actors.
 
     The driver disconnects on exit; a local instance stops with it.
     """
-    ray = _ray()
+    ray = require_ray()
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if ray.is_initialized():  # e.g. a test or notebook already connected: use that
         owned = False
@@ -94,6 +132,8 @@ def ray_session(opt: RayOptions) -> Iterator[int]:
         if opt.address is None:
             kwargs["num_cpus"] = opt.workers or os.cpu_count() or 1
         else:
+            if opt.address != "auto":
+                _check_reachable(opt.address)
             kwargs["address"] = opt.address
         try:
             ray.init(**kwargs)
@@ -110,6 +150,10 @@ def ray_session(opt: RayOptions) -> Iterator[int]:
             ray.shutdown()
 
 
+class VersionMismatchError(IndexBuildError):
+    """A worker's packages differ from the driver's (features could differ)."""
+
+
 class _Extractor:
     """A Ray Data actor: the fitted methods, rebuilt once; extracts batches of images.
 
@@ -118,13 +162,28 @@ class _Extractor:
     subclass holding the methods (:func:`_extractor_class`).
     """
 
-    #: the methods, pickled with their fitted state, and the CNN runtime
+    #: the methods, pickled with their fitted state, the CNN runtime and the driver's
+    #: package versions
     blob: ClassVar[bytes] = b""
     runtime: ClassVar[str] = "onnx"
+    versions: ClassVar[dict[str, str]] = {}
 
     def __init__(self) -> None:
         from hmpf.runtime import set_cnn_runtime, set_compute_threads
 
+        mine = _package_versions()
+        if mine != self.versions:
+            keys = {*mine, *self.versions}
+            differ = sorted(k for k in keys if mine.get(k) != self.versions.get(k))
+            raise VersionMismatchError(
+                f"worker node {socket.gethostname()} has other package versions than the "
+                "driver: "
+                + ", ".join(
+                    f"{k} {mine.get(k, 'missing')} (driver {self.versions.get(k, 'missing')})"
+                    for k in differ
+                )
+                + "; install the same hmpf and packages on every node"
+            )
         set_compute_threads(1)
         set_cnn_runtime(self.runtime)
         self.methods: dict[str, Method] = pickle.loads(self.blob)
@@ -159,7 +218,11 @@ def _extractor_class(methods: Mapping[str, Method], runtime: str) -> type[_Extra
     ``runtime``: Ray ships the class by value with the actor's definition, so a restarted actor
     rebuilds from it (constructor arguments would live in the object store, and a restart
     fails once they are lost)."""
-    attrs = {"blob": pickle.dumps(dict(methods)), "runtime": runtime}
+    attrs = {
+        "blob": pickle.dumps(dict(methods)),
+        "runtime": runtime,
+        "versions": _package_versions(),
+    }
     return type("_FittedExtractor", (_Extractor,), attrs)
 
 
@@ -190,15 +253,21 @@ def _todo(
     return rows, digests, len(paths) - len(rows)
 
 
-def _image_error(exc: BaseException) -> ImageError | None:
-    """The :class:`ImageError` a worker raised, from the exceptions Ray wraps it in."""
+def _cause(exc: BaseException, kind: type[HmpfError]) -> HmpfError | None:
+    """The ``kind`` exception a worker raised, from the exceptions Ray wraps it in: the object
+    itself where Ray keeps it, else rebuilt from its last line in Ray's message (an actor that
+    died in its constructor leaves only the traceback text)."""
     seen: set[int] = set()
     cur: BaseException | None = exc
     while cur is not None and id(cur) not in seen:
-        if isinstance(cur, ImageError):
+        if isinstance(cur, kind):
             return cur
         seen.add(id(cur))
         cur = cur.__cause__ or getattr(cur, "cause", None) or cur.__context__
+    if kind is VersionMismatchError:
+        tag = f"{kind.__module__}.{kind.__name__}: "
+        lines = [ln.strip() for ln in str(exc).splitlines() if tag in ln]
+        return kind(lines[-1].split(tag, 1)[1]) if lines else None
     return None
 
 
@@ -224,7 +293,7 @@ def extract_to_cache(
     if not rows:
         return done
     with ray_session(opt) as n_actors:
-        ray = _ray()
+        ray = require_ray()
         ctx = ray.data.DataContext.get_current()
         ctx.enable_progress_bars = False
         ctx.print_on_execution_start = False
@@ -253,9 +322,10 @@ def extract_to_cache(
                     if left[int(i)] == 0:
                         bar.update(1)
         except Exception as exc:
-            img = _image_error(exc)
-            if img is not None:
-                raise img from None
+            for kind in (ImageError, VersionMismatchError):
+                cause = _cause(exc, kind)
+                if cause is not None:
+                    raise cause from None
             if isinstance(exc, IndexBuildError):
                 raise
             raise IndexBuildError(

@@ -3,10 +3,10 @@
 A head node (no CPU: it only coordinates) and two worker nodes of one CPU each are started on
 this machine for this module (in a temp dir of their own) and always stopped. They use Ray's
 own node address: Ray 2.60 rewrites a loopback address given to ``ray.init`` into that one,
-so a cluster bound to 127.0.0.1 only cannot be joined by address. Each Ray build must equal a local build of the
-same Gardens Point images bit for bit (every data file's sha256 in the manifest), also when
-an extraction actor is killed mid-build (Ray restarts it and retries its batch) and when the
-driver is killed (CURRENT untouched; ``--resume`` finishes).
+so a cluster bound to 127.0.0.1 only cannot be joined by address. Each Ray build must equal
+a local build of the same Gardens Point images bit for bit (every data file's sha256 in the
+manifest), also when an extraction actor is killed mid-build (Ray restarts it and retries
+its batch) and when the driver is killed (CURRENT untouched; ``--resume`` finishes).
 
 The config covers each kind of extraction: handcrafted global (HOG, Gist) and local (KAZE,
 ragged keypoints) methods, and CNN methods (GeM, NetVLAD) whose VLAD centroids are fitted on
@@ -19,6 +19,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -26,17 +27,15 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install hmpf[ray])")
-pytest.importorskip("ray.data")
-
-from ray.cluster_utils import Cluster  # noqa: E402
-
-from hmpf.datasets import list_images  # noqa: E402
-from indexer.build import BuildOptions, build  # noqa: E402
-from indexer.distributed import RayOptions  # noqa: E402
+from hmpf.datasets import list_images
+from indexer import distributed
+from indexer.build import BuildOptions, build
+from indexer.cli import main
+from indexer.distributed import RayOptions, VersionMismatchError
 
 N_IMAGES = 16
 CONFIG = """
@@ -80,8 +79,12 @@ def _data_files(version: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def cluster() -> Iterator[Cluster]:
+def cluster() -> Iterator[Any]:
     """Head node + two one-CPU worker nodes, in a temp dir of their own; always stopped."""
+    ray = pytest.importorskip("ray", reason="the ray extra is not installed: pip install hmpf[ray]")
+    pytest.importorskip("ray.data")
+    from ray.cluster_utils import Cluster
+
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     temp = tempfile.mkdtemp(prefix="hmpf-ray-")  # short: Ray's socket paths have a limit
     common = {
@@ -103,7 +106,7 @@ def cluster() -> Iterator[Cluster]:
         shutil.rmtree(temp, ignore_errors=True)
 
 
-def _ray_options(cluster: Cluster) -> BuildOptions:
+def _ray_options(cluster: Any) -> BuildOptions:
     return BuildOptions(
         workers=1, progress=False, ray=RayOptions(address=cluster.address, batch_size=2)
     )
@@ -114,7 +117,7 @@ def _features_done(index: Path) -> int:
     return len(list(features.rglob("*.npz"))) if features.exists() else 0
 
 
-def _actor_pids(cluster: Cluster) -> list[int]:
+def _actor_pids(cluster: Any) -> list[int]:
     """Processes of the cluster's extraction actors (children of its raylets)."""
     raylets = {
         info.process.pid
@@ -199,3 +202,43 @@ def test_killed_driver_leaves_current_and_resume_finishes(inputs, local_files, c
     assert summary.version == "v0002" and summary.images == N_IMAGES
     assert summary.resumed >= 2
     assert _data_files(index / "v0002") == local_files
+
+
+def test_worker_with_other_packages_is_refused(inputs, cluster, tmp_path, monkeypatch):
+    """The actors compare their package versions with the driver's: a node with another
+    numpy (here: the driver claims one) stops the build with one clear error."""
+    config, images = inputs
+    real = distributed._package_versions()
+    monkeypatch.setattr(distributed, "_package_versions", lambda: {**real, "numpy": "0.0.test"})
+    index = tmp_path / "index"
+    with pytest.raises(VersionMismatchError, match=r"numpy .* \(driver 0\.0\.test\)"):
+        build(config, images, index, options=_ray_options(cluster))
+    assert not (index / "CURRENT").exists()
+
+
+def test_unreachable_address_fails_fast(inputs, tmp_path, capsys):
+    pytest.importorskip("ray.data")
+    config, images = inputs
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    rc = main(
+        ["build", "--config", str(config), "--images", str(images)]
+        + ["--index", str(tmp_path / "i"), "--quiet", "--ray", f"127.0.0.1:{port}"]
+    )
+    assert rc == 2 and time.monotonic() - t0 < 60
+    assert f"--ray 127.0.0.1:{port}: no Ray cluster reachable there" in capsys.readouterr().err
+
+
+def test_without_the_extra_one_line_error(tmp_path, monkeypatch, capsys):
+    """No Ray installed (simulated: the import fails): exit 2, one line naming the extra,
+    before any image is read."""
+    monkeypatch.setitem(sys.modules, "ray", None)
+    rc = main(
+        ["build", "--config", "handcrafted", "--images", str(tmp_path / "none")]
+        + ["--index", str(tmp_path / "i"), "--ray"]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.strip().splitlines() == [f"hmpf-index: error: {distributed.RAY_HINT}"]
