@@ -335,4 +335,9 @@ def extract_to_cache(
             ) from exc
         finally:
             bar.close()
+    missing = sum(n > 0 for n in left.values())
+    if missing:  # Ray Data retries lost batches; never expected, but never hidden either
+        raise IndexBuildError(
+            f"--ray: the cluster returned no features for {missing} image(s); rerun with --resume"
+        )
     return done

@@ -33,7 +33,7 @@ import pytest
 
 from hmpf.datasets import list_images
 from indexer import distributed
-from indexer.build import BuildOptions, build
+from indexer.build import BuildOptions, add, build
 from indexer.cli import main
 from indexer.distributed import RayOptions, VersionMismatchError
 
@@ -202,6 +202,32 @@ def test_killed_driver_leaves_current_and_resume_finishes(inputs, local_files, c
     assert summary.version == "v0002" and summary.images == N_IMAGES
     assert summary.resumed >= 2
     assert _data_files(index / "v0002") == local_files
+
+
+def _split(images: Path, root: Path, n_first: int) -> tuple[Path, Path]:
+    """The images as two folders: the first ``n_first`` and the rest (symlinks)."""
+    first, more = root / "first", root / "more"
+    first.mkdir()
+    more.mkdir()
+    for k, p in enumerate(sorted(images.iterdir())):
+        ((first if k < n_first else more) / p.name).symlink_to(p.resolve())
+    return first, more
+
+
+def test_ray_add_equals_local_add(inputs, cluster, tmp_path):
+    """``add --ray`` extracts only the new images on the cluster (the fitted state comes from
+    the parent version): the new version equals a local ``add`` bit for bit."""
+    config, images = inputs
+    first, more = _split(images, tmp_path, 10)
+    local = BuildOptions(workers=1, progress=False)
+    versions = {}
+    for name, opts in (("local", local), ("ray", _ray_options(cluster))):
+        index = tmp_path / name
+        build(config, first, index, options=local)
+        summary = add(index, more, options=opts)
+        assert summary.images == N_IMAGES and summary.extracted == N_IMAGES - 10
+        versions[name] = _data_files(index / "v0002")
+    assert versions["ray"] == versions["local"]
 
 
 def test_worker_with_other_packages_is_refused(inputs, cluster, tmp_path, monkeypatch):
