@@ -129,7 +129,8 @@ def ray_session(opt: RayOptions) -> Iterator[int]:
             "logging_level": "WARNING",
             "configure_logging": True,
         }
-        if opt.address is None:
+        if opt.address is None:  # a new instance, even where RAY_ADDRESS names a cluster
+            kwargs["address"] = "local"
             kwargs["num_cpus"] = opt.workers or os.cpu_count() or 1
         else:
             if opt.address != "auto":

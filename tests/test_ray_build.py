@@ -230,6 +230,21 @@ def test_ray_add_equals_local_add(inputs, cluster, tmp_path):
     assert versions["ray"] == versions["local"]
 
 
+def test_cli_ray_without_address_starts_and_stops_a_local_instance(
+    inputs, local_files, cluster, tmp_path, capsys
+):
+    """``--ray`` alone: a Ray instance of its own (not the running test cluster), stopped at
+    the end; the same version as a local build."""
+    config, images = inputs
+    index = tmp_path / "index"
+    argv = ["build", "--config", str(config), "--images", str(images), "--index", str(index)]
+    assert main([*argv, "--ray", "--workers", "1", "--quiet"]) == 0
+    assert f"published v0001 with {N_IMAGES} references" in capsys.readouterr().out
+    assert _data_files(index / "v0001") == local_files
+    assert not pytest.importorskip("ray").is_initialized()
+    assert cluster.remaining_processes_alive()  # the test cluster was not stopped
+
+
 def test_worker_with_other_packages_is_refused(inputs, cluster, tmp_path, monkeypatch):
     """The actors compare their package versions with the driver's: a node with another
     numpy (here: the driver claims one) stops the build with one clear error."""
