@@ -19,7 +19,7 @@ PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
-	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report]'
+	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report,ray]'
 	touch $@
 
 install: $(VENV)/.installed

@@ -30,7 +30,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -68,6 +68,9 @@ from hmpf.index.tables import (
 from hmpf.methods import Method
 from indexer.inputs import ImageCheck, check_images, read_metadata, scan_images
 
+if TYPE_CHECKING:
+    from indexer.distributed import RayOptions
+
 __all__ = ["BuildOptions", "NewVersion", "Summary", "VersionTransaction", "add", "build", "remove"]
 
 
@@ -83,6 +86,8 @@ class BuildOptions:
         strict: fail on an unreadable image instead of skipping it.
         workers: extraction processes (default: CPU count).
         progress: progress bars on stderr.
+        ray: extract on a Ray cluster (:mod:`indexer.distributed`) instead of local
+            processes; not part of the output's identity (the version is the same bits).
     """
 
     faiss: Mapping[str, str] = field(default_factory=dict)
@@ -91,6 +96,7 @@ class BuildOptions:
     strict: bool = False
     workers: int | None = None
     progress: bool = True
+    ray: RayOptions | None = None
 
     def with_config(self, config: HierarchyConfig) -> BuildOptions:
         """These options over the config's ``index`` defaults (options win per method id)."""
@@ -307,6 +313,12 @@ def _extract(
     """
     if not methods:
         return {}, 0
+    resumed: int | None = None
+    if opt.ray is not None:
+        from indexer.distributed import extract_to_cache
+
+        with _images_stay_readable():  # the features land in the cache, read back below
+            resumed = extract_to_cache(paths, methods, work.cache, opt.ray, progress=opt.progress)
     with _images_stay_readable():
         res = extract_images(
             paths,
@@ -316,7 +328,7 @@ def _extract(
             progress=opt.progress,
             desc="extract",
         )
-    return res.features, min(res.cached.values())
+    return res.features, min(res.cached.values()) if resumed is None else resumed
 
 
 # -- writing -----------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from hmpf.errors import HmpfError
 
 if TYPE_CHECKING:
     from indexer.build import BuildOptions
+    from indexer.distributed import RayOptions
 
 PROG = "hmpf-index"
 INTERRUPTED = "interrupted; the current version is untouched (rerun with --resume to continue)"
@@ -79,6 +80,14 @@ def _add_write_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
     p.add_argument("--workers", type=int, default=None, help="extraction processes")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="extract on Ray (pip install 'hmpf[ray]'): a local instance of --workers CPUs, "
+        "or the cluster at ADDRESS (HOST:PORT or auto); the version is the same as without",
+    )
 
 
 class _RenamedFlag(argparse.Action):
@@ -155,7 +164,17 @@ def _options(args: argparse.Namespace) -> BuildOptions:
         strict=args.strict,
         workers=args.workers,
         progress=not args.quiet,
+        ray=_ray_options(args),
     )
+
+
+def _ray_options(args: argparse.Namespace) -> RayOptions | None:
+    if args.ray is None:
+        return None
+    from indexer.distributed import RayOptions, require_ray
+
+    require_ray()  # before any image is read
+    return RayOptions(address=None if args.ray == "local" else args.ray, workers=args.workers)
 
 
 def _print_info(args: argparse.Namespace) -> int:

@@ -163,8 +163,8 @@ def write_state(path: Path, methods: Mapping[str, Method]) -> list[str]:
                 continue
             g = f.create_group(mid)
             g.attrs["sha256"] = m.state_digest()
-            for k, v in arrays.items():
-                g.create_dataset(k, data=np.asarray(v))
+            for k in sorted(arrays):  # as state_digest: the bytes do not depend on dict order
+                g.create_dataset(k, data=np.asarray(arrays[k]))
             written.append(mid)
     return written
 
