@@ -199,6 +199,12 @@ def test_index_round_trip_with_a_binary_descriptor(tmp_path: Path) -> None:
         db = m.stack(ref.features["kaze"])
         np.testing.assert_array_equal(m.scores(q["kaze"], m.stack(stored)), m.scores(q["kaze"], db))
         assert reader.hierarchy().run(reader.scorer(q), reader.n).match == 3
+        # The service's evidence draws the Hamming matches (the same image: many pairs).
+        from service.evidence import evidence_method, render_evidence
+
+        assert evidence_method(reader) == "kaze"
+        out = render_evidence(reader, query, 3, reader.thumbnail(3))  # type: ignore[arg-type]
+        assert out.method == "kaze" and out.pairs >= 10
     # Stored: float16 keypoints (5 values) and 32 bytes of descriptor per keypoint.
     n_kp = sum(len(f) for f in ref.features["kaze"])
     assert n_kp * (5 * 2 + 32) <= summary.bytes_per_method["kaze"] <= n_kp * 42 + 4096
