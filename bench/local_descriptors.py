@@ -67,14 +67,16 @@ GRID = [(t, r) for t in (20.0, 25.0, 30.0) for r in (0.7, 0.8, 0.9)]
 INLIER_DESCRIPTORS = ("kaze", "kaze_tuned", "beblid", "teblid")
 
 
-def pool_config() -> HierarchyConfig:
-    """Every method of the default and the handcrafted presets, in one tier (a score pool)."""
-    d, h = load_config("default"), load_config("handcrafted")
-    methods = {**{m: dict(p) for m, p in d.methods.items()}}
-    methods.update({m: dict(p) for m, p in h.methods.items()})
-    ids = sorted(set(d.method_ids) | set(h.method_ids))
+def pool_config(presets: tuple[str, ...] = ("default", "handcrafted")) -> HierarchyConfig:
+    """Every method of ``presets``, in one tier (a score pool)."""
+    methods: dict[str, dict[str, Any]] = {}
+    ids: set[str] = set()
+    for name in presets:
+        cfg = load_config(name)
+        methods.update({m: dict(p) for m, p in cfg.methods.items()})
+        ids |= set(cfg.method_ids)
     return HierarchyConfig(
-        name="pool", methods=methods, tiers=[TierConfig(methods=ids, k=1)], weights=[1.0]
+        name="pool", methods=methods, tiers=[TierConfig(methods=sorted(ids), k=1)], weights=[1.0]
     )
 
 
@@ -93,7 +95,7 @@ def with_kaze(base: HierarchyConfig, kid: str, params: dict[str, Any], tiers: An
     )
 
 
-def families(desc: str, params: dict[str, Any]) -> dict[str, HierarchyConfig]:
+def families(desc: str, params: dict[str, Any], with_default: bool) -> dict[str, HierarchyConfig]:
     """The structures each descriptor is measured in (family -> config)."""
     d, h = load_config("default"), load_config("handcrafted")
     kid, iid = f"kaze_{desc}", f"inliers_{desc}"
@@ -108,6 +110,8 @@ def families(desc: str, params: dict[str, Any]) -> dict[str, HierarchyConfig]:
         "handcrafted, kaze swapped": with_kaze(h, kid, kp, swap),
         "default + kaze in final tier": with_kaze(d, kid, kp, d_final),
     }
+    if not with_default:
+        return {k: v for k, v in out.items() if not k.startswith("default")}
     if desc in INLIER_DESCRIPTORS:
         out["default + inliers in final tier"] = with_kaze(
             d, iid, {"type": "inliers", **params}, i_final
@@ -170,6 +174,11 @@ def main() -> int:
         "--descriptors",
         help=f"comma-separated subset of {', '.join(DESCRIPTORS)} (kaze, the baseline, always)",
     )
+    ap.add_argument(
+        "--no-default",
+        action="store_true",
+        help="kaze alone and the handcrafted preset only (no CNN method is scored)",
+    )
     args = ap.parse_args()
     if args.descriptors:
         keep = {"kaze", *args.descriptors.split(",")}
@@ -179,7 +188,7 @@ def main() -> int:
             del DESCRIPTORS[d]
     cache = FeatureCache(args.cache_dir)
     print(machine_description(), flush=True)
-    pool = pool_config()
+    pool = pool_config(("handcrafted",) if args.no_default else ("default", "handcrafted"))
     banks: dict[tuple[str, str], ScoreBank] = {}
     near: dict[tuple[str, str, str], dict[tuple[float, float], np.ndarray]] = {}
     feats: dict[tuple[str, str, str], tuple[Any, list[Any]]] = {}
@@ -189,6 +198,10 @@ def main() -> int:
         for part, split in zip(("train", "test"), split_data(data), strict=True):
             banks[proto, part] = ScoreBank.build(pool, split, cache=cache)
             for d, p in DESCRIPTORS.items():
+                if d == "kaze_tuned" and "kaze" in DESCRIPTORS:  # the same features and grid
+                    feats[proto, part, d] = feats[proto, part, "kaze"]
+                    near[proto, part, d] = near[proto, part, "kaze"]
+                    continue
                 m = create_method("kaze", p)
                 prep = prepare({"k": m}, split, cache=cache)
                 feats[proto, part, d] = (prep.db["k"], prep.queries["k"])
@@ -219,13 +232,13 @@ def main() -> int:
     print("chosen: " + "; ".join(f"{d} {chosen[d]}" for d in DESCRIPTORS))
     print(
         "ms per pair (nearest two): "
-        + ", ".join(f"{d} {np.mean(v):.3f}" for d, v in pair_ms.items())
+        + ", ".join(f"{d} {np.mean(v):.3f}" for d, v in pair_ms.items() if v)
     )
 
     # Every chosen method's scores into the banks (dense for kaze, sparse for inliers).
     configs: dict[str, dict[str, HierarchyConfig]] = {}
     for d in DESCRIPTORS:
-        configs[d] = families(d, params[d])
+        configs[d] = families(d, params[d], not args.no_default)
         for (p, part), bank in banks.items():
             db, qs = feats[p, part, d]
             m = create_method("kaze", params[d])
@@ -252,6 +265,16 @@ def main() -> int:
 
     rows: dict[str, Any] = {}
     first = next(iter(PROTOCOLS))
+    presets = {
+        n: load_config(n) for n in ("handcrafted",) + (() if args.no_default else ("default",))
+    }
+    print("\n### The presets as they are (recall@1, train / test)\n")
+    for n, cfg in presets.items():
+        cells = [
+            f"{correct(cfg, p, part).mean():.3f}" for p in PROTOCOLS for part in ("train", "test")
+        ]
+        print(f"| {n} | " + " | ".join(cells) + " |")
+        rows[f"preset {n}"] = {"cells": cells}
     print("\n### Recall@1 (+-2 frames); test cells: won/lost vs KAZE's descriptor, sign test p\n")
     print("| structure | descriptor | " + " | ".join(f"{p} train | {p} test" for p in PROTOCOLS)
           + " | mean train | mean test | ms/query | bytes/ref |")  # fmt: skip
@@ -272,6 +295,10 @@ def main() -> int:
                     continue
                 t = paired_test(te, correct(base, p, "test"))
                 signs[p] = t
+                if fam.startswith("default"):  # also against the default preset itself
+                    signs[f"{p} vs default"] = paired_test(
+                        te, correct(presets["default"], p, "test")
+                    )
                 cells.append(f"{te.mean():.3f} (+{t['wins']}/-{t['losses']}, p {t['p']:.2g})")
             bank = banks[first, "test"]
             timing = measure_query_ms(cfg, bank, images=args.time_images, threads=1)
@@ -295,7 +322,7 @@ def main() -> int:
                     "grid": [list(g) for g in GRID],
                     "grid_train": grid_rows,
                     "chosen": chosen,
-                    "pair_ms": {d: float(np.mean(v)) for d, v in pair_ms.items()},
+                    "pair_ms": {d: float(np.mean(v)) for d, v in pair_ms.items() if v},
                     "rows": rows,
                 },
                 indent=2,
