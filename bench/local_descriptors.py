@@ -1,6 +1,7 @@
 """Learned binary local descriptors (BEBLID / TEBLID) against KAZE's, Gardens Point.
 
     python bench/local_descriptors.py [--json out.json] [--time-images 10] [--descriptors a,b]
+    python bench/local_descriptors.py --time-only     (extraction and matching per descriptor)
 
 KAZE keypoints (the method's detection, orientation and 500 strongest) described by KAZE's
 64 floats (the baseline), BEBLID (512 bits), TEBLID (256 and 512 bits) or ORB (256 bits),
@@ -164,6 +165,35 @@ def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
     return total
 
 
+def time_descriptors(datasets: Path, n_query: int = 10) -> None:
+    """Extraction and ``Kaze.scores`` (against 100 day_right references) per descriptor, one
+    thread, medians over ``n_query`` night_right queries."""
+    from hmpf.datasets import list_images
+    from hmpf.imageio import load_image
+    from hmpf.runtime import set_compute_threads
+
+    set_compute_threads(1)
+    gp = datasets / "gardens_point"
+    refs = [load_image(p) for p in list_images(gp / "day_right")[::2]]
+    queries = [load_image(p) for p in list_images(gp / "night_right")[1 :: 200 // n_query]]
+    for name, p in DESCRIPTORS.items():
+        m = create_method("kaze", p)
+        db = m.stack([m.extract(r) for r in refs])
+        ext, score = [], []
+        for img in queries:
+            t0 = time.perf_counter()
+            q = m.extract(img)
+            t1 = time.perf_counter()
+            m.scores(q, db)
+            ext.append((t1 - t0) * 1e3)
+            score.append((time.perf_counter() - t1) * 1e3)
+        print(
+            f"{name}: extract {np.median(ext):.1f} ms, scores vs {len(refs)} references "
+            f"{np.median(score):.1f} ms, {np.mean(db.counts):.0f} keypoints per reference",
+            flush=True,
+        )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", default=str(dataset_root()))
@@ -179,6 +209,7 @@ def main() -> int:
         action="store_true",
         help="kaze alone and the handcrafted preset only (no CNN method is scored)",
     )
+    ap.add_argument("--time-only", action="store_true", help="only time each descriptor")
     args = ap.parse_args()
     if args.descriptors:
         keep = {"kaze", *args.descriptors.split(",")}
@@ -188,6 +219,9 @@ def main() -> int:
             del DESCRIPTORS[d]
     cache = FeatureCache(args.cache_dir)
     print(machine_description(), flush=True)
+    if args.time_only:
+        time_descriptors(Path(args.datasets))
+        return 0
     pool = pool_config(("handcrafted",) if args.no_default else ("default", "handcrafted"))
     banks: dict[tuple[str, str], ScoreBank] = {}
     near: dict[tuple[str, str, str], dict[tuple[float, float], np.ndarray]] = {}
