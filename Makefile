@@ -19,7 +19,13 @@ PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
+	@# opencv-contrib-python-headless replaced opencv-python-headless (the same cv2 module):
+	@# an old venv's plain wheel goes first; contrib is reinstalled if that removed its files.
+	$(VENV)/bin/pip uninstall -y -q opencv-python-headless 2>/dev/null || true
 	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report,ray]'
+	$(PY) -c 'import cv2; cv2.xfeatures2d.TEBLID_create' 2>/dev/null || $(PIP_INSTALL) \
+		--force-reinstall --no-deps "$$($(VENV)/bin/pip list --format=freeze | grep -i '^opencv-contrib')"
+	$(PY) -c 'import cv2; cv2.xfeatures2d.TEBLID_create'
 	touch $@
 
 install: $(VENV)/.installed

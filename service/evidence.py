@@ -30,7 +30,14 @@ import numpy as np
 from hmpf.imageio import decode_image
 from hmpf.index.reader import IndexReader
 from hmpf.methods.cnn import forward_group
-from hmpf.methods.kaze import Kaze, KazeBaseConfig, KazeFeatures, best_two_ssd, half
+from hmpf.methods.kaze import (
+    Kaze,
+    KazeBaseConfig,
+    KazeFeatures,
+    best_two_ssd,
+    half,
+    hamming_nearest_two,
+)
 from hmpf.methods.olo import Olo, OloFeatures
 
 __all__ = ["HEIGHT", "MAX_PAIRS", "Evidence", "evidence_method", "render_evidence"]
@@ -95,14 +102,21 @@ def _kaze_pairs(
     q = method.extract(query)
     if len(q) == 0 or len(ref) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    ssd1, ssd2 = best_two_ssd(q.descriptors, ref.descriptors)
+    binary = q.descriptors.dtype == np.uint8  # descriptor: beblid / teblid / orb
+    if binary:
+        ssd1, ssd2, nearest_of = hamming_nearest_two(q.descriptors, ref.descriptors)
+    else:
+        ssd1, ssd2 = best_two_ssd(q.descriptors, ref.descriptors)
     with np.errstate(invalid="ignore", divide="ignore"):
         ok = (ssd1 <= 4.0 * c.match_threshold / 100.0) & (ssd1 / ssd2 <= c.max_ratio)
     idx = np.flatnonzero(ok)
     idx = idx[np.argsort(ssd1[idx], kind="stable")][
         : min(MAX_PAIRS, getattr(c, "n_best", MAX_PAIRS))
     ]
-    nearest = (q.descriptors[idx] @ ref.descriptors.T).argmax(axis=1)  # unit rows: least SSD
+    if binary:
+        nearest = nearest_of[idx]
+    else:
+        nearest = (q.descriptors[idx] @ ref.descriptors.T).argmax(axis=1)  # unit rows: least SSD
     return q.keypoints[idx, :2], ref.keypoints[nearest, :2]
 
 

@@ -175,20 +175,33 @@ def test_reader_checks_the_build_package_versions(built, tmp_path, caplog):
     m = idx / "v0001" / "manifest.json"
     data = json.loads(m.read_text())
     packages = data["packages"]
-    assert packages["opencv-python-headless"].split(".")[0] == cv2.__version__.split(".")[0]
-    major, minor, *_ = packages["opencv-python-headless"].split(".")
+    from hmpf.index.layout import OPENCV_DISTS, installed_version
+
+    (cv,) = [d for d in OPENCV_DISTS if d in packages]  # the OpenCV wheel installed here
+    assert packages[cv].split(".")[0] == cv2.__version__.split(".")[0]
+    major, minor, *_ = packages[cv].split(".")
     # Another minor version of OpenCV (or another numpy): opened, with a warning.
-    packages["opencv-python-headless"] = f"{major}.{int(minor) + 1}.0"
+    packages[cv] = f"{major}.{int(minor) + 1}.0"
     packages["numpy"] = "1.0.0"
     m.write_text(json.dumps(data))
     with caplog.at_level(logging.WARNING, logger="hmpf.index"):
         IndexReader(idx).close()
-    assert "opencv-python-headless" in caplog.text and "numpy 1.0.0" in caplog.text
+    assert cv in caplog.text and "numpy 1.0.0" in caplog.text
     # Another major version of OpenCV: the stored HOG/Gist/KAZE are not comparable.
-    packages["opencv-python-headless"] = f"{int(major) + 1}.0.0"
+    packages[cv] = f"{int(major) + 1}.0.0"
     m.write_text(json.dumps(data))
-    with pytest.raises(IndexVersionError, match=r"opencv-python-headless==\d"):
+    with pytest.raises(IndexVersionError, match=rf"{cv}==\d"):
         IndexReader(idx)
+    # An index built with the other OpenCV wheel of the same version opens without a note.
+    other = next(d for d in OPENCV_DISTS if d != cv)
+    del packages[cv]
+    packages[other] = installed_version(cv)
+    packages["numpy"] = np.__version__
+    m.write_text(json.dumps(data))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hmpf.index"):
+        IndexReader(idx).close()
+    assert "opencv" not in caplog.text
 
 
 def test_reader_rejects_wrong_shapes(built, tmp_path):

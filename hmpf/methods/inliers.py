@@ -7,7 +7,9 @@ localisation pipelines, as a local method usable in any tier.
 lanczos3, OpenCV KAZE with the MATLAB defaults, the ``max_keypoints`` strongest, keypoints
 (x, y, size, angle, response) and unit descriptors at float16 precision. The extraction and the
 stored arrays are KAZE's own code, and so is the descriptor cache entry: an ``inliers`` and a
-``kaze`` with the same extraction settings share cached features.
+``kaze`` with the same extraction settings share cached features. KAZE's ``descriptor``
+option applies as well (``beblid`` / ``teblid`` / ``orb``: binary descriptors on the same
+keypoints, matched by Hamming distance with the same rule).
 
 **Matching** is KAZE's ``matchFeatures`` rule (:func:`~hmpf.methods.kaze.nearest_two`,
 :func:`~hmpf.methods.kaze.match_mask`): a query keypoint's nearest reference keypoint by SSD
@@ -49,7 +51,7 @@ from hmpf.methods.kaze import (
     KazeFeatures,
     KazeSet,
     match_mask,
-    nearest_two,
+    nearest_two_any,
 )
 from hmpf.methods.registry import register
 
@@ -82,7 +84,7 @@ def match_points(
     keypoint's closest query match only)."""
     if len(query) == 0 or len(ref) == 0:
         return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
-    ssd1, ssd2, nearest = nearest_two(query.descriptors, ref.descriptors)
+    ssd1, ssd2, nearest = nearest_two_any(query.descriptors, ref.descriptors)
     idx = np.flatnonzero(
         match_mask(ssd1, ssd2, match_threshold=match_threshold, max_ratio=max_ratio)
     )

@@ -25,6 +25,26 @@ Deviations (documented):
 * Keypoints and unit descriptors are rounded to float16 precision (what the index stores);
   descriptor norms are then 1 to within 1e-3, and SSDs are computed exactly on those stored
   values (``|q|^2 + |d|^2 - 2 q.d``), not as ``2 - 2 q.d``.
+
+Binary descriptors (issue 18, beyond the paper): ``descriptor: beblid | teblid | orb`` describes
+the same keypoints (KAZE's detection and orientation, the same ``max_keypoints`` strongest)
+with a binary descriptor of OpenCV contrib (``cv2.xfeatures2d``) instead of KAZE's 64 floats:
+
+* ``beblid`` / ``teblid``: BEBLID (Suarez et al. 2020) / TEBLID (2021), boosted binary
+  descriptors learned on UBC patches; ``descriptor_bits`` 256 or 512 (unset: OpenCV's default,
+  512 for BEBLID, 256 for TEBLID); ``scale_factor`` the sampling window, unset = 6.25, OpenCV's
+  documented value for KAZE (and SURF) keypoints (1.0 is ORB's, 6.75 SIFT's, 5.0 AKAZE's).
+* ``orb``: ORB's rotated BRIEF (256 bits) on the same keypoints at the 300 x 300 level (the
+  keypoints' octave is reset to 0; patch 31 px; keypoints too close to the border are
+  dropped), a baseline.
+
+Descriptors are stored as packed bits (uint8, 32 or 64 bytes a keypoint). A binary descriptor
+of ``b`` bits read as a unit vector of +-1/sqrt(b) entries has ``SSD = 4 * hamming / b``, so
+matching is KAZE's rule unchanged on that SSD (the threshold is a percentage of the range, the
+ratio test compares Hamming distances, and the sum and padding are the same); the Hamming
+distances are computed by ``cv2.batchDistance`` (exact integers). The default ``kaze`` keeps
+its behaviour, stored arrays and cache key: the new options are left out of the config's dump
+while unset.
 """
 
 from __future__ import annotations
@@ -32,17 +52,29 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
 from hmpf.imops import imresize, initcrop, rgb2gray
 from hmpf.methods.base import LocalMethod, MethodConfig
 from hmpf.methods.registry import register
 
 DESC_DIM = 64
+
+Descriptor = Literal["kaze", "beblid", "teblid", "orb"]
+#: Binary descriptors' default bit counts (OpenCV's defaults) and the bit counts they offer.
+BINARY_BITS: dict[str, tuple[int, tuple[int, ...]]] = {
+    "beblid": (512, (256, 512)),
+    "teblid": (256, (256, 512)),
+    "orb": (256, (256,)),
+}
+#: BEBLID / TEBLID ``scale_factor`` for KAZE keypoints (OpenCV's documentation).
+KAZE_SCALE_FACTOR = 6.25
+#: Options added after the first index format: left out of the dump while unset (None).
+_LATER_OPTIONS = ("descriptor_bits", "scale_factor")
 
 
 class KazeBaseConfig(MethodConfig):
@@ -56,6 +88,53 @@ class KazeBaseConfig(MethodConfig):
     max_keypoints: int | None = Field(500, ge=1, description="strongest kept; None = all")
     match_threshold: float = Field(20.0, gt=0, le=100, description="percent of the SSD range")
     max_ratio: float = Field(0.7, gt=0, le=1)
+    descriptor: Descriptor = Field(
+        "kaze", description="kaze (64 floats) or a binary one on the same keypoints"
+    )
+    descriptor_bits: Literal[256, 512] | None = Field(
+        None, description="binary descriptors only; None = OpenCV's default"
+    )
+    scale_factor: float | None = Field(
+        None, gt=0, description="beblid / teblid sampling window; None = 6.25 (KAZE keypoints)"
+    )
+
+    @model_validator(mode="after")
+    def _descriptor_options(self) -> KazeBaseConfig:
+        d = self.descriptor
+        if (
+            self.descriptor_bits is not None
+            and self.descriptor_bits not in BINARY_BITS.get(d, (0, ()))[1]
+        ):
+            raise ValueError(
+                f"descriptor_bits {self.descriptor_bits} is not offered by descriptor {d!r}"
+                + (f" (one of {BINARY_BITS[d][1]})" if d in BINARY_BITS else " (binary only)")
+            )
+        if self.scale_factor is not None and d not in ("beblid", "teblid"):
+            raise ValueError(f"scale_factor applies to beblid / teblid, not to {d!r}")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # The descriptor options at their defaults are left out: the default config dumps (and
+        # so keys caches and records indexes) exactly as before they existed.
+        data: dict[str, Any] = handler(self)
+        if data.get("descriptor") == "kaze":
+            data.pop("descriptor")
+        for k in _LATER_OPTIONS:
+            if data.get(k, 0) is None:
+                data.pop(k)
+        return data
+
+    @property
+    def binary(self) -> bool:
+        return self.descriptor != "kaze"
+
+    @property
+    def bits(self) -> int:
+        """Bits of a binary descriptor (64 floats: 0)."""
+        if not self.binary:
+            return 0
+        return self.descriptor_bits or BINARY_BITS[self.descriptor][0]
 
 
 class KazeConfig(KazeBaseConfig):
@@ -65,7 +144,8 @@ class KazeConfig(KazeBaseConfig):
 
 @dataclass(frozen=True)
 class KazeFeatures:
-    """Keypoints (n, 5: x, y, size, angle, response) and unit descriptors (n, 64), float32."""
+    """Keypoints (n, 5: x, y, size, angle, response), float32, and descriptors: unit float32
+    (n, 64) for KAZE's, packed bits uint8 (n, bits / 8) for a binary one."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
@@ -87,14 +167,21 @@ class KazeSet:
     offsets: np.ndarray
 
     @classmethod
-    def from_features(cls, features: Sequence[KazeFeatures]) -> KazeSet:
+    def from_features(
+        cls,
+        features: Sequence[KazeFeatures],
+        width: int = DESC_DIM,
+        dtype: type[np.generic] = np.float32,
+    ) -> KazeSet:
+        """Pack ``features``; ``width`` and ``dtype`` are the descriptors' (64 float32, or
+        bits / 8 uint8), used when there is no feature."""
         counts = np.array([len(f) for f in features], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         if len(features) == 0:
-            return cls(np.zeros((0, 5), np.float32), np.zeros((0, DESC_DIM), np.float32), offsets)
+            return cls(np.zeros((0, 5), np.float32), np.zeros((0, width), dtype), offsets)
         return cls(
             np.concatenate([f.keypoints for f in features]).astype(np.float32, copy=False),
-            np.concatenate([f.descriptors for f in features]).astype(np.float32, copy=False),
+            np.concatenate([f.descriptors for f in features]).astype(dtype, copy=False),
             offsets,
         )
 
@@ -177,6 +264,42 @@ def nearest_two(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.nda
     return ssd(nearest), ssd(sim.argmax(axis=1)), nearest
 
 
+def hamming_nearest_two(
+    query: np.ndarray, refs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`nearest_two` for packed binary descriptors (uint8 rows of ``b / 8`` bytes).
+
+    Hamming distances ``h`` (exact, ``cv2.batchDistance``) as the SSD of the +-1/sqrt(b)
+    unit vectors the bits stand for: ``SSD = 4 * h / b`` (range [0, 4], as KAZE's). Returns
+    ``(ssd1, ssd2, nearest)``, each (nq,), with :func:`nearest_two`'s conventions (``inf``
+    for a missing neighbour, ``nearest`` 0 without references); ties keep the lower index.
+    """
+    nq, nr = query.shape[0], refs.shape[0]
+    if nr == 0 or nq == 0:
+        inf = np.full(nq, np.inf)
+        return inf, inf.copy(), np.zeros(nq, np.int64)
+    if query.dtype != np.uint8 or refs.dtype != np.uint8 or query.shape[1] != refs.shape[1]:
+        raise ValueError(
+            f"binary descriptors must be uint8 of one width, got {query.dtype} {query.shape} "
+            f"and {refs.dtype} {refs.shape}"
+        )
+    k = min(2, nr)
+    dist, idx = cv2.batchDistance(query, refs, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)
+    unit = 4.0 / (8 * query.shape[1])
+    ssd = dist.astype(np.float64) * unit
+    ssd2 = ssd[:, 1] if k == 2 else np.full(nq, np.inf)
+    return ssd[:, 0], ssd2, idx[:, 0].astype(np.int64)
+
+
+def nearest_two_any(
+    query: np.ndarray, refs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`hamming_nearest_two` for binary (uint8) descriptors, else :func:`nearest_two`."""
+    if query.dtype == np.uint8:
+        return hamming_nearest_two(query, refs)
+    return nearest_two(query, refs)
+
+
 def match_mask(
     ssd1: np.ndarray, ssd2: np.ndarray, *, match_threshold: float = 20.0, max_ratio: float = 0.7
 ) -> np.ndarray:
@@ -227,6 +350,8 @@ class Kaze(LocalMethod):
         super().__init__(config)
         self._detector: Any = None
 
+        self._describer: Any = None
+
     @property
     def detector(self) -> Any:
         if self._detector is None:
@@ -241,28 +366,74 @@ class Kaze(LocalMethod):
             )
         return self._detector
 
+    @property
+    def describer(self) -> Any:
+        """The binary descriptor extractor (``descriptor`` other than ``kaze``)."""
+        if self._describer is None:
+            c: KazeConfig = self.config  # type: ignore[assignment]
+            scale = KAZE_SCALE_FACTOR if c.scale_factor is None else c.scale_factor
+            if c.descriptor == "beblid":
+                size = {
+                    256: cv2.xfeatures2d.BEBLID_SIZE_256_BITS,
+                    512: cv2.xfeatures2d.BEBLID_SIZE_512_BITS,
+                }[c.bits]
+                self._describer = cv2.xfeatures2d.BEBLID.create(scale, size)
+            elif c.descriptor == "teblid":
+                size = {
+                    256: cv2.xfeatures2d.TEBLID_SIZE_256_BITS,
+                    512: cv2.xfeatures2d.TEBLID_SIZE_512_BITS,
+                }[c.bits]
+                self._describer = cv2.xfeatures2d.TEBLID.create(scale, size)
+            else:
+                self._describer = cv2.ORB.create()
+        return self._describer
+
+    def _empty(self) -> KazeFeatures:
+        c: KazeConfig = self.config  # type: ignore[assignment]
+        if c.binary:
+            return KazeFeatures(np.zeros((0, 5), np.float32), np.zeros((0, c.bits // 8), np.uint8))
+        return KazeFeatures(np.zeros((0, 5), np.float32), np.zeros((0, DESC_DIM), np.float32))
+
     def _extract(self, image: np.ndarray) -> KazeFeatures:
         c: KazeConfig = self.config  # type: ignore[assignment]
         grey = imresize(initcrop(rgb2gray(image)), (c.image_size, c.image_size), "lanczos3")
+        # KAZE's descriptors are computed for binary ones too: they give the keypoints their
+        # orientation (KAZE's detect alone leaves the angle at 0).
         kps, desc = self.detector.detectAndCompute(grey, None)
         if desc is None or len(kps) == 0:
-            return KazeFeatures(np.zeros((0, 5), np.float32), np.zeros((0, DESC_DIM), np.float32))
+            return self._empty()
         kp = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], np.float32)
+        order = np.arange(len(kp))
         if c.max_keypoints is not None and len(kp) > c.max_keypoints:
             order = np.argsort(-kp[:, 4], kind="stable")[: c.max_keypoints]
             order.sort()
             kp, desc = kp[order], desc[order]
+        if c.binary:
+            return self._describe_binary(grey, [kps[i] for i in order])
         # Stored at float16 precision (the index keeps float16 descriptors, 2 bytes a value),
         # so in-memory evaluation and the index score exactly the same values.
         return KazeFeatures(half(kp), half(unit_rows(desc)))
+
+    def _describe_binary(self, grey: np.ndarray, kps: list[Any]) -> KazeFeatures:
+        """Binary descriptors of the kept keypoints (the describer may drop some)."""
+        c: KazeConfig = self.config  # type: ignore[assignment]
+        if c.descriptor == "orb":
+            for k in kps:
+                k.octave = 0  # KAZE's octave is not an ORB pyramid level
+        kps, desc = self.describer.compute(grey, kps)
+        if desc is None or len(kps) == 0:
+            return self._empty()
+        kp = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], np.float32)
+        return KazeFeatures(half(kp), np.ascontiguousarray(desc, dtype=np.uint8))
 
     def to_arrays(self, feature: KazeFeatures) -> dict[str, np.ndarray]:
         return {"keypoints": feature.keypoints, "descriptors": feature.descriptors}
 
     def from_arrays(self, arrays: dict[str, np.ndarray]) -> KazeFeatures:
+        c: KazeConfig = self.config  # type: ignore[assignment]
         return KazeFeatures(
             np.asarray(arrays["keypoints"], np.float32),
-            np.asarray(arrays["descriptors"], np.float32),
+            np.asarray(arrays["descriptors"], np.uint8 if c.binary else np.float32),
         )
 
     def _distance(self, ssd1: np.ndarray, ssd2: np.ndarray) -> np.ndarray:
@@ -277,6 +448,9 @@ class Kaze(LocalMethod):
         )
 
     def stack(self, features: Sequence[KazeFeatures]) -> KazeSet:
+        c: KazeConfig = self.config  # type: ignore[assignment]
+        if c.binary:
+            return KazeSet.from_features(features, c.bits // 8, np.uint8)
         return KazeSet.from_features(features)
 
     def scores(
@@ -293,6 +467,9 @@ class Kaze(LocalMethod):
         ``SSD = |q|^2 - 2 s`` (exact for the stored, nearly unit, float16-precision values),
         and an argmax / mask / max pass each query row's best two per reference; padding rows
         (extra coordinate -1e9) never win. No Python loop over references.
+
+        Binary descriptors: one ``cv2.batchDistance`` (Hamming, best two) per reference
+        (:func:`hamming_nearest_two`), then the same distance in one vectorised pass.
         """
         refs = references if isinstance(references, KazeSet) else self.stack(references)
         idx = np.arange(len(refs)) if subset is None else np.asarray(subset, np.int64)
@@ -302,6 +479,8 @@ class Kaze(LocalMethod):
         counts = refs.counts[idx]
         if nq == 0:
             return out
+        if c.binary:
+            return self._scores_binary(query, refs, idx, out)
         # An extra coordinate carries -|d|^2 / 2 for real rows and -1e9 for padding rows, so
         # padding is never among the best two and needs no separate mask.
         q = np.empty((nq, DESC_DIM + 1), dtype=np.float32)
@@ -320,6 +499,26 @@ class Kaze(LocalMethod):
             n_max = int(counts[part[-1]])
             out[part] = self._score_block(q, qn, refs, idx[part], counts[part], n_max)
             s += step
+        return out
+
+    def _scores_binary(
+        self, query: KazeFeatures, refs: KazeSet, idx: np.ndarray, out: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`scores` for binary descriptors (``out``: the no-match distances, filled)."""
+        if query.descriptors.dtype != np.uint8 or refs.descriptors.dtype != np.uint8:
+            raise ValueError(
+                f"descriptor {self.config.descriptor!r}: features must be binary (uint8), got "  # type: ignore[attr-defined]
+                f"{query.descriptors.dtype} and {refs.descriptors.dtype}"
+            )
+        live = np.flatnonzero(refs.counts[idx] > 0)
+        if len(live) == 0:
+            return out
+        nq = query.descriptors.shape[0]
+        ssd1, ssd2 = np.empty((len(live), nq)), np.empty((len(live), nq))
+        for j, i in enumerate(idx[live]):
+            a, b = refs.offsets[i], refs.offsets[i + 1]
+            ssd1[j], ssd2[j], _ = hamming_nearest_two(query.descriptors, refs.descriptors[a:b])
+        out[live] = self._distance(ssd1, ssd2)
         return out
 
     @staticmethod
