@@ -170,6 +170,8 @@ def route_dba(x: np.ndarray, k: int, *, normalise: bool = True) -> np.ndarray:
     for j in range(-k, k + 1):
         w = 1.0 - abs(j) / (k + 1)
         lo, hi = max(0, -j), min(n, n - j)  # rows i with 0 <= i + j < n
+        if hi <= lo:  # |j| >= n: no such row
+            continue
         out[lo:hi] += w * xf[lo + j : hi + j]
         total[lo:hi] += w
     if normalise:
@@ -298,8 +300,9 @@ class Method(ABC):
         """Combine per-image features into the stored set used by :meth:`scores`."""
 
     def stack_references(self, features: Sequence[Any]) -> Any:
-        """The stored reference set from the references' features in route order: :meth:`stack`
-        plus what is computed over the whole set (a global method's ``dba``)."""
+        """The searched reference set from the references' features in route order:
+        :meth:`stack` plus what is computed over the whole set (a global method's ``dba``,
+        :meth:`GlobalMethod.augment_references`)."""
         return self.stack(features)
 
     # -- persistence ------------------------------------------------------------------------
@@ -525,7 +528,15 @@ class GlobalMethod(Method):
             g.fit_references(np.stack([g.raw_descriptor(to_rgb(im)) for im in images]))
 
     def stack_references(self, features: Sequence[np.ndarray]) -> np.ndarray:
-        matrix = self.stack(features)
+        return self.augment_references(self.stack(features))
+
+    def augment_references(self, matrix: np.ndarray) -> np.ndarray:
+        """The searched reference matrix from the stored one (rows in route order): with
+        ``dba``, :func:`route_dba` (same dtype as stored); else ``matrix`` itself.
+
+        An index stores each reference's own descriptor and applies this when it loads
+        (and before it writes a FAISS file), so adding or removing references recomputes
+        the neighbours' means."""
         c = self.config
         k = c.dba if isinstance(c, DbaConfig) else 0
         if k == 0:

@@ -66,8 +66,13 @@ class Gem(CnnMethod, GlobalMethod):
 
     def from_maps(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:
         """The descriptor at float16 precision; whitened (``whiten``) after pooling."""
-        g = self._pooled(maps)
-        return g if self.gem.whiten is None else half(self.finish(g.astype(np.float32)))
+        return self.finish(self._pooled(maps))
+
+    def finish(self, descriptor: np.ndarray) -> np.ndarray:
+        """Whitened (``whiten``) and rounded to float16 precision again."""
+        if self.gem.whiten is None:
+            return descriptor
+        return half(super().finish(np.asarray(descriptor, dtype=np.float32)))
 
     def fit_from_maps(self, samples: Sequence[Mapping[str, np.ndarray]]) -> None:
         """Fit the whitening on the references' pooled descriptors."""

@@ -11,7 +11,6 @@ absolute difference (a deliberate fix, see METHODS.md §8.17).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import ClassVar
 
 import cv2
@@ -80,13 +79,13 @@ class Sad(GlobalMethod):
         """True with ``whiten``: float descriptors compared by Euclidean distance."""
         return self.config.whiten is not None  # type: ignore[attr-defined]
 
-    def stack_references(self, features: Sequence[np.ndarray]) -> np.ndarray:
+    def augment_references(self, matrix: np.ndarray) -> np.ndarray:
         """With ``dba`` on the uint8 thumbnails: the weighted mean of the route neighbours,
         rounded back to uint8 (no L2 normalisation: SAD compares raw grey values)."""
         c: SadConfig = self.config  # type: ignore[assignment]
         if self.whitened or not c.dba:
-            return super().stack_references(features)
-        x = route_dba(self.stack(features), c.dba, normalise=False)
+            return super().augment_references(matrix)
+        x = route_dba(matrix, c.dba, normalise=False)
         return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
