@@ -86,6 +86,9 @@ def derive(bank: ScoreBank, vid: str, base: str, base_params: dict[str, Any], ex
     assert isinstance(m, GlobalMethod)
     db, qs = bank.features[base]
     raw = [np.asarray(r) for r in db]
+    state = bank.methods[base].state_arrays()
+    if state:  # the base method's own fitted parameters (NetVLAD's centroids)
+        m.load_state(state)
     if m.requires_fit():
         m.fit_references(np.stack([raw[i] for i in fit_pick(len(raw))]))
     refs = m.stack_references([m.finish(r) for r in raw])
