@@ -227,3 +227,20 @@ def test_whitening_and_dba_through_an_index(tmp_path):
             assert np.array_equal(hog.state_arrays()[k], v)
         own = np.stack([hog.extract(synthetic_image(i)) for i in range(10)])
         assert np.allclose(r.global_matrix("hog"), route_dba(own, 1), atol=1e-5)
+
+
+def test_gem_whitening_fits_on_the_pooled_descriptors():
+    """GeM (a CNN method, fitted through its forward-pass group) whitens after pooling and
+    keeps float16 precision; the fit equals fit_references on plain GeM's descriptors."""
+    pytest.importorskip("torch")
+    images = [synthetic_image(i) for i in range(5)]
+    params = {"whiten": 3, "whiten_power": 0.25, "whiten_shrink": 0.1}
+    real, derived, plain = (create_method("gem", p) for p in (params, params, {}))
+    from hmpf.methods.base import fit_many
+
+    fit_many({"gem": real}, images)
+    derived.fit_references(np.stack([plain.extract(im) for im in images]))
+    got = real.extract(images[1])
+    assert got.shape == (3,) and np.array_equal(got, got.astype(np.float16).astype(np.float32))
+    assert np.allclose(got, derived.finish(plain.extract(images[1])), atol=2e-3)
+    assert real.cache_key() == derived.cache_key()
