@@ -91,7 +91,12 @@ def derive(bank: ScoreBank, vid: str, base: str, base_params: dict[str, Any], ex
         m.load_state(state)
     if m.requires_fit():
         m.fit_references(np.stack([raw[i] for i in fit_pick(len(raw))]))
-    refs = m.stack_references([m.finish(r) for r in raw])
+    own = [m.finish(r) for r in raw]
+    own_stack = m.stack(own)
+    OWN_BYTES[id(bank), vid] = (
+        own_stack.size * storage_dtype(m, own_stack, "exact").itemsize / len(own)
+    )
+    refs = m.stack_references(own)
     queries = [m.finish(np.asarray(q)) for q in qs]
     bank.methods[vid] = m
     bank.scores[vid] = np.stack([np.asarray(m.scores(q, refs), np.float64) for q in queries])
@@ -118,6 +123,10 @@ def swapped(base: HierarchyConfig, swap: dict[str, str], name: str) -> Hierarchy
     )
 
 
+#: (bank id, variant id) -> bytes per reference an index stores: each reference's own
+#: descriptor (DBA is applied when the index loads, so it adds nothing).
+OWN_BYTES: dict[tuple[int, str], float] = {}
+
 #: Variant id -> its full method parameters (with "type"), filled as variants are made.
 VARIANT_PARAMS: dict[str, dict[str, Any]] = {}
 
@@ -138,6 +147,9 @@ def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
         m = bank.methods[mid]
         db = bank.features[mid][0]
         n = bank.n_db
+        if (id(bank), mid) in OWN_BYTES:
+            total += OWN_BYTES[id(bank), mid]
+            continue
         if m.kind == "global":
             a = np.asarray(db)
             total += a.size * storage_dtype(m, a, "exact").itemsize / n
