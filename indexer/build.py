@@ -348,8 +348,8 @@ def _write_faiss(
         if m.kind != "global":
             continue
         factory, params = opt.factory(mid), opt.params(mid)
-        matrix = cols[mid]
-        assert isinstance(matrix, np.ndarray)
+        assert isinstance(cols[mid], np.ndarray)
+        matrix = m.augment_references(cols[mid])  # type: ignore[attr-defined]  # dba
         metric = _tier1_metric(mid, m, factory)
         if metric is None:
             info[mid] = None

@@ -170,7 +170,7 @@ def prepare(
         data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
     )
     extraction_s = time.perf_counter() - t0
-    db = {m: methods[m].stack(ref.features[m]) for m in methods}
+    db = {m: methods[m].stack_references(ref.features[m]) for m in methods}
     queries = {m: list(qry.features[m]) for m in methods}
     return Prepared(methods, db, queries, fitted, ref, qry, fit_s, extraction_s)
 

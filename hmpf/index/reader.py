@@ -168,10 +168,16 @@ class IndexReader:
         try:
             self.refs = read_ref_table(self._ref_h5)
             self.n = len(self.refs)
-            self._globals = {
+            # Stored: each reference's own descriptor; searched: after the method's
+            # augmentation over the route (dba), which is the stored matrix itself without.
+            self._stored = {
                 mid: read_global(self._ref_h5, mid, mmap)
                 for mid, m in self.methods.items()
                 if m.kind == "global"
+            }
+            self._globals = {
+                mid: self.methods[mid].augment_references(x)  # type: ignore[attr-defined]
+                for mid, x in self._stored.items()
             }
             self._offsets = {
                 mid: read_local_offsets(self._local_h5, mid)
@@ -386,7 +392,7 @@ class IndexReader:
     def columns(self, mid: str) -> Columns:
         """Every image's stored arrays of one method (for add / remove)."""
         if self.methods[mid].kind == "global":
-            return np.asarray(self._globals[mid])
+            return np.asarray(self._stored[mid])
         return read_local_columns(self._local_h5, mid)
 
     def faiss_info(self, mid: str) -> dict[str, Any] | None:

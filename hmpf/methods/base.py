@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpf.imageio import to_rgb
 
@@ -49,9 +49,14 @@ __all__ = [
     "MethodConfig",
     "MetricKind",
     "MetricSpec",
+    "DbaConfig",
+    "ReferenceFitConfig",
+    "apply_whitening",
     "extract_many",
     "fit_many",
+    "fit_whitening",
     "method_groups",
+    "route_dba",
 ]
 
 MetricKind = Literal["l2", "l1", "ip"]
@@ -61,6 +66,117 @@ class MethodConfig(BaseModel):
     """Base of every method's typed configuration: frozen, unknown keys are errors."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DbaConfig(MethodConfig):
+    """Database-side augmentation option of a global method (see :class:`ReferenceFitConfig`)."""
+
+    dba: int = Field(0, ge=0, le=50, description="route neighbours averaged into a reference")
+
+
+class ReferenceFitConfig(DbaConfig):
+    """Options of a global method fitted on (or computed over) the reference set.
+
+    * ``whiten``: PCA-whitening of the descriptor to this many dimensions (at most the number
+      of fitting references minus one), fitted on the references' descriptors
+      (:func:`fit_whitening`), stored with the index; the stored and query descriptors are
+      the whitened, L2-normalised ones (Euclidean distance, FAISS ``l2``).
+    * ``whiten_power``: each principal axis is scaled by ``(eigenvalue + shrink)^-power``:
+      0.5 is full whitening, 0 a plain PCA projection, between them power whitening.
+    * ``whiten_shrink``: added to every eigenvalue, as a fraction of the mean retained
+      eigenvalue (regularises the noisy small ones).
+    * ``dba``: database-side augmentation: a reference's stored descriptor becomes the
+      L2-normalised weighted mean of itself and its +-``dba`` route neighbours (triangular
+      weights ``1 - |j| / (dba + 1)``; :func:`route_dba`); queries are not augmented.
+    """
+
+    whiten: int | None = Field(
+        None, ge=1, le=4096, description="PCA-whitening output size (None: off)"
+    )
+    whiten_power: float = Field(0.5, ge=0.0, le=1.0, description="eigenvalue^-power scaling")
+    whiten_shrink: float = Field(
+        0.0, ge=0.0, le=100.0, description="eigenvalue shrinkage, fraction of the mean"
+    )
+
+    @model_validator(mode="after")
+    def _check_whiten(self) -> ReferenceFitConfig:
+        if self.whiten is None and (self.whiten_power != 0.5 or self.whiten_shrink != 0.0):
+            raise ValueError("whiten_power and whiten_shrink need whiten (the output size)")
+        return self
+
+
+#: Reference-fitting options left out of a method's keys while at their defaults, so that
+#: configs without them keep the keys (cached descriptors, index identities) they had.
+_FIT_DEFAULTS = {"dba": 0, "whiten": None, "whiten_power": 0.5, "whiten_shrink": 0.0}
+
+
+def fit_whitening(
+    x: np.ndarray, dims: int, *, power: float = 0.5, shrink: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """PCA-whitening fitted on the rows of ``x`` (n, D): ``(mean (D,), proj (D, p))``.
+
+    ``p = min(dims, n - 1, D)`` (directions beyond ``n - 1`` carry no variance). Axis ``i``
+    (eigenvalue ``l_i`` of the sample covariance) is scaled by
+    ``(l_i + shrink * mean(l))^-power`` over the ``p`` retained ``l``; tiny eigenvalues
+    are floored at ``1e-9`` of the largest. Apply with :func:`apply_whitening`.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or len(x) < 2:
+        raise ValueError(f"whitening needs at least 2 descriptors, got shape {x.shape}")
+    n, d = x.shape
+    p = min(int(dims), n - 1, d)
+    mean = x.mean(axis=0)
+    xc = x - mean
+    if d <= n:  # covariance eigendecomposition (D x D)
+        ev, vec = np.linalg.eigh(xc.T @ xc / (n - 1))
+        order = np.argsort(ev)[::-1][:p]
+        lam, axes = ev[order], vec[:, order]
+    else:  # thin SVD of the centred data (n x D)
+        _, s, vt = np.linalg.svd(xc, full_matrices=False)
+        lam, axes = s[:p] ** 2 / (n - 1), vt[:p].T
+    lam = np.maximum(lam, 1e-9 * max(float(lam.max()), 1e-30))
+    lam = lam + shrink * float(lam.mean())
+    # Sign convention: the largest-magnitude entry of each axis is positive (deterministic).
+    sign = np.sign(axes[np.abs(axes).argmax(axis=0), np.arange(axes.shape[1])])
+    axes = axes * np.where(sign == 0, 1.0, sign)
+    proj = axes * lam[None, :] ** (-power)
+    return mean.astype(np.float32), proj.astype(np.float32)
+
+
+def apply_whitening(x: np.ndarray, mean: np.ndarray, proj: np.ndarray) -> np.ndarray:
+    """Rows of ``x`` (or one vector) whitened by :func:`fit_whitening`'s output, L2-normalised
+    (float32)."""
+    v = (np.asarray(x, dtype=np.float32) - mean) @ proj
+    return (v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def route_dba(x: np.ndarray, k: int, *, normalise: bool = True) -> np.ndarray:
+    """Database-side augmentation along the route: row ``i`` becomes the weighted mean of
+    rows ``i-k .. i+k`` (those that exist), weight ``1 - |j| / (k + 1)``, L2-normalised
+    (``normalise``) or divided by the weights' sum (otherwise).
+
+    The rows must be in route order (the reference table's order). ``k = 0`` returns ``x``
+    unchanged; otherwise the result is float32.
+    """
+    x = np.asarray(x)
+    if k < 0:
+        raise ValueError(f"dba must be >= 0, got {k}")
+    if k == 0 or len(x) == 0:
+        return x
+    xf = x.astype(np.float32)
+    n = len(xf)
+    out = np.zeros_like(xf)
+    total = np.zeros((n, 1), dtype=np.float32)
+    for j in range(-k, k + 1):
+        w = 1.0 - abs(j) / (k + 1)
+        lo, hi = max(0, -j), min(n, n - j)  # rows i with 0 <= i + j < n
+        if hi <= lo:  # |j| >= n: no such row
+            continue
+        out[lo:hi] += w * xf[lo + j : hi + j]
+        total[lo:hi] += w
+    if normalise:
+        return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+    return out / total
 
 
 @dataclass(frozen=True)
@@ -183,6 +299,12 @@ class Method(ABC):
     def stack(self, features: Sequence[Any]) -> Any:
         """Combine per-image features into the stored set used by :meth:`scores`."""
 
+    def stack_references(self, features: Sequence[Any]) -> Any:
+        """The searched reference set from the references' features in route order:
+        :meth:`stack` plus what is computed over the whole set (a global method's ``dba``,
+        :meth:`GlobalMethod.augment_references`)."""
+        return self.stack(features)
+
     # -- persistence ------------------------------------------------------------------------
     def to_arrays(self, feature: Any) -> dict[str, np.ndarray]:
         """Feature -> named numpy arrays (for the descriptor cache and the index)."""
@@ -223,25 +345,38 @@ class Method(ABC):
             h.update(a.tobytes())
         return h.hexdigest()
 
-    def cache_key(self) -> str:
-        """Stable id of this method's exact output: name, code version, config, fitted state."""
+    def key_config(self, *, per_image: bool = False) -> dict[str, Any]:
+        """The config as it enters the keys: reference-fitting options at their defaults are
+        left out (older keys stay valid); ``per_image`` also leaves out ``dba``, which changes
+        the stored reference set but no image's own feature."""
+        cfg = self.config.model_dump()
+        for k, default in _FIT_DEFAULTS.items():
+            if k in cfg and (cfg[k] == default or (per_image and k == "dba")):
+                del cfg[k]
+        return cfg
+
+    def _key(self, config: dict[str, Any]) -> str:
         payload = json.dumps(
             {
                 "name": self.name,
                 "version": self.version,
-                "config": self.config.model_dump(),
+                "config": config,
                 "state": self.state_digest(),
             },
             sort_keys=True,
         )
         return f"{self.name}-{hashlib.sha256(payload.encode()).hexdigest()[:16]}"
 
+    def cache_key(self) -> str:
+        """Stable id of this method's exact output: name, code version, config, fitted state."""
+        return self._key(self.key_config())
+
     def descriptor_key(self) -> str:
-        """Key of the descriptor cache: :meth:`cache_key` plus how the features are computed
-        when that can change them within rounding (the CNN runtime): cached descriptors of
-        two runtimes are kept apart, while the method's identity (recorded in an index) stays
-        the same."""
-        return self.cache_key()
+        """Key of the descriptor cache: the per-image part of :meth:`cache_key` (no ``dba``)
+        plus how the features are computed when that can change them within rounding (the
+        CNN runtime): cached descriptors of two runtimes are kept apart, while the method's
+        identity (recorded in an index) stays the same."""
+        return self._key(self.key_config(per_image=True))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.config!r})"
@@ -328,6 +463,87 @@ class GlobalMethod(Method):
         if len(features) == 0:
             return np.zeros((0, self.dim), dtype=np.float32)
         return np.stack([np.asarray(f) for f in features])
+
+    # -- reference fitting: PCA-whitening, database-side augmentation ---------------------
+    def _fit_config(self) -> ReferenceFitConfig | None:
+        c = self.config
+        return c if isinstance(c, ReferenceFitConfig) else None
+
+    def _whitening(self) -> dict[str, np.ndarray]:
+        return self.__dict__.setdefault("_whiten_state", {})
+
+    def requires_fit(self) -> bool:
+        c = self._fit_config()
+        return c is not None and c.whiten is not None and not self._whitening()
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        return dict(self._whitening())
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        c = self._fit_config()
+        if c is None or c.whiten is None:
+            super().load_state(arrays)
+            return
+        missing = {"whiten_mean", "whiten_proj"} - set(arrays)
+        if missing:
+            raise ValueError(f"{self.name} whitening state lacks {sorted(missing)}")
+        state = {k: np.asarray(arrays[k], dtype=np.float32) for k in ("whiten_mean", "whiten_proj")}
+        self.__dict__["_whiten_state"] = state
+        self.dim = int(state["whiten_proj"].shape[1])
+
+    def fit_references(self, descriptors: np.ndarray) -> None:
+        """Fit the whitening (``whiten`` in the config) on reference ``descriptors`` (n, D),
+        the method's own unwhitened ones."""
+        c = self._fit_config()
+        if c is None or c.whiten is None:
+            raise ValueError(f"method {self.name!r} has no whitening to fit")
+        mean, proj = fit_whitening(
+            descriptors, c.whiten, power=c.whiten_power, shrink=c.whiten_shrink
+        )
+        self.load_state({"whiten_mean": mean, "whiten_proj": proj})
+
+    def finish(self, descriptor: np.ndarray) -> np.ndarray:
+        """The stored descriptor from the method's own one: whitened when configured."""
+        c = self._fit_config()
+        if c is None or c.whiten is None:
+            return descriptor
+        state = self._whitening()
+        if not state:
+            raise RuntimeError(f"{self.name} whitening is not fitted: fit on the references first")
+        return apply_whitening(descriptor, state["whiten_mean"], state["whiten_proj"])
+
+    def raw_descriptor(self, image: np.ndarray) -> np.ndarray:
+        """The method's own descriptor of an RGB image (before :meth:`finish`); methods that
+        support whitening implement it instead of ``_extract``."""
+        raise NotImplementedError(f"method {self.name!r} implements no raw_descriptor")
+
+    def _extract(self, image: np.ndarray) -> np.ndarray:
+        return self.finish(self.raw_descriptor(image))
+
+    @classmethod
+    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
+        """Fit each method's whitening on its own descriptors of ``images``."""
+        for m in methods:
+            g: GlobalMethod = m  # type: ignore[assignment]
+            g.fit_references(np.stack([g.raw_descriptor(to_rgb(im)) for im in images]))
+
+    def stack_references(self, features: Sequence[np.ndarray]) -> np.ndarray:
+        return self.augment_references(self.stack(features))
+
+    def augment_references(self, matrix: np.ndarray) -> np.ndarray:
+        """The searched reference matrix from the stored one (rows in route order): with
+        ``dba``, :func:`route_dba` (same dtype as stored); else ``matrix`` itself.
+
+        An index stores each reference's own descriptor and applies this when it loads
+        (and before it writes a FAISS file), so adding or removing references recomputes
+        the neighbours' means."""
+        c = self.config
+        k = c.dba if isinstance(c, DbaConfig) else 0
+        if k == 0:
+            return matrix
+        out = route_dba(matrix, k)
+        # Keep the stored precision (float16 descriptors stay float16).
+        return out.astype(matrix.dtype) if matrix.dtype.kind == "f" else out
 
     def scores(
         self, query: np.ndarray, references: np.ndarray, subset: np.ndarray | None = None

@@ -32,12 +32,18 @@ import scipy.fft
 from pydantic import Field
 
 from hmpf.imops import imresize, initcrop, rgb2gray
-from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec, euclidean
+from hmpf.methods.base import (
+    GlobalMethod,
+    MethodConfig,
+    MetricSpec,
+    ReferenceFitConfig,
+    euclidean,
+)
 from hmpf.methods.registry import register
 from hmpf.runtime import compute_threads
 
 
-class GistConfig(MethodConfig):
+class GistConfig(ReferenceFitConfig):
     image_size: int = Field(128, ge=16)
     orientations_per_scale: tuple[int, ...] = (8, 8, 8, 8)
     number_blocks: int = Field(4, ge=1)
@@ -217,7 +223,7 @@ class Gist(GlobalMethod):
         # means[f, block_row, block_col]; column-major block order: block-row index fastest.
         return means.transpose(0, 2, 1).reshape(-1).astype(np.float32)
 
-    def _extract(self, image: np.ndarray) -> np.ndarray:
+    def raw_descriptor(self, image: np.ndarray) -> np.ndarray:
         return self.describe(initcrop(rgb2gray(image)))
 
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:

@@ -23,11 +23,17 @@ from pydantic import Field
 
 from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray
-from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec, euclidean
+from hmpf.methods.base import (
+    GlobalMethod,
+    MethodConfig,
+    MetricSpec,
+    ReferenceFitConfig,
+    euclidean,
+)
 from hmpf.methods.registry import register
 
 
-class HogConfig(MethodConfig):
+class HogConfig(ReferenceFitConfig):
     image_size: int = Field(300, ge=16, description="square resize before HOG (pixels)")
     cell_size: int = Field(30, ge=4)
     block_cells: int = Field(2, ge=1, description="block side in cells")
@@ -64,7 +70,7 @@ class Hog(GlobalMethod):
         cells = c.image_size // c.cell_size
         self.dim = (cells - c.block_cells + 1) ** 2 * c.block_cells**2 * c.bins
 
-    def _extract(self, image: np.ndarray) -> np.ndarray:
+    def raw_descriptor(self, image: np.ndarray) -> np.ndarray:
         c: HogConfig = self.config  # type: ignore[assignment]
         grey = rgb2gray(imresize(initcrop(image), (c.image_size, c.image_size), "lanczos3"))
         return np.asarray(self._hog.compute(grey)).reshape(-1).astype(np.float32)

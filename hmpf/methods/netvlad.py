@@ -30,7 +30,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from hmpf.methods.base import GlobalMethod, MetricSpec, euclidean
+from hmpf.methods.base import DbaConfig, GlobalMethod, MetricSpec, euclidean
 from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, l2_rows
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
@@ -74,7 +74,7 @@ def vlad(
     return l2_rows(flat[None])[0]
 
 
-class NetVladConfig(CnnConfig):
+class NetVladConfig(CnnConfig, DbaConfig):
     layer: str | None = Field(None, description="local-feature map; None = backbone default")
     clusters: int = Field(64, ge=2, le=1024, description="K (fitted backbones only)")
     pca_dim: int | None = Field(

@@ -15,19 +15,32 @@ from typing import ClassVar
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from hmpf.errors import ConfigError
 from hmpf.imops import imresize, initcrop, rgb2gray, round_half_away
-from hmpf.methods.base import GlobalMethod, MethodConfig, MetricSpec
+from hmpf.methods.base import (
+    GlobalMethod,
+    MethodConfig,
+    MetricSpec,
+    ReferenceFitConfig,
+    euclidean,
+    route_dba,
+)
 from hmpf.methods.registry import register
 
 
-class SadConfig(MethodConfig):
+class SadConfig(ReferenceFitConfig):
     width: int = Field(64, ge=8)
     height: int = Field(32, ge=8)
     patch: int = Field(8, ge=2)
     faithful: bool = Field(False, description="one-sided uint8 difference, as the original")
+
+    @model_validator(mode="after")
+    def _check_faithful(self) -> SadConfig:
+        if self.faithful and (self.whiten is not None or self.dba):
+            raise ValueError("faithful SAD takes no whiten / dba (they are not the original's)")
+        return self
 
 
 def patch_normalise(grey: np.ndarray, patch: int) -> np.ndarray:
@@ -56,12 +69,28 @@ class Sad(GlobalMethod):
             raise ConfigError("method 'sad': width and height must be multiples of patch")
         self.dim = c.width * c.height
 
-    def _extract(self, image: np.ndarray) -> np.ndarray:
+    def raw_descriptor(self, image: np.ndarray) -> np.ndarray:
         c: SadConfig = self.config  # type: ignore[assignment]
         grey = rgb2gray(imresize(initcrop(image), (c.height, c.width), "lanczos3"))
         return patch_normalise(grey, c.patch).ravel(order="F")
 
+    @property
+    def whitened(self) -> bool:
+        """True with ``whiten``: float descriptors compared by Euclidean distance."""
+        return self.config.whiten is not None  # type: ignore[attr-defined]
+
+    def augment_references(self, matrix: np.ndarray) -> np.ndarray:
+        """With ``dba`` on the uint8 thumbnails: the weighted mean of the route neighbours,
+        rounded back to uint8 (no L2 normalisation: SAD compares raw grey values)."""
+        c: SadConfig = self.config  # type: ignore[assignment]
+        if self.whitened or not c.dba:
+            return super().augment_references(matrix)
+        x = route_dba(matrix, c.dba, normalise=False)
+        return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
     def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        if self.whitened:
+            return euclidean(queries, references)
         c: SadConfig = self.config  # type: ignore[assignment]
         r = np.ascontiguousarray(references, dtype=np.uint8)
         q = np.ascontiguousarray(queries, dtype=np.uint8)
@@ -78,6 +107,8 @@ class Sad(GlobalMethod):
 
     def faiss_metric(self) -> MetricSpec | None:
         """L1 over ``dim`` (the mean absolute difference); the faithful one-sided difference
-        is no FAISS metric."""
+        is no FAISS metric. Whitened: Euclidean (``l2``)."""
+        if self.whitened:
+            return MetricSpec("l2", 1.0)
         c: SadConfig = self.config  # type: ignore[assignment]
         return None if c.faithful else MetricSpec("l1", 1.0 / self.dim)
