@@ -69,8 +69,6 @@ def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path
         "hog",
         "sad",
         "kaze",
-        "hog_w",  # whitened HOG / Gist (docs/experiments/reference_fitting.md)
-        "gist_w",
     }
     assert len(res["recall_ns"]) == 20 and res["recall_ns"][0] == 1
     for rec in res["single"].values():
