@@ -12,7 +12,8 @@ For every config (a preset name or a YAML file; the first is the baseline):
 * the bytes an index stores per reference (``exact`` precision, from the method's features).
 
 Choice rule (training parts only, as the issue asks): the config with the best mean training
-recall over the protocols, provided its query stays within ``--budget-ms``. Its test recall
+recall over the protocols (with ``--budget-ms``: among those whose measured query stays
+within it; measure on a quiet machine). Its test recall
 is then compared with the baseline's by an exact paired sign test on the pooled test queries.
 """
 
@@ -49,7 +50,13 @@ def main() -> int:
     ap.add_argument("configs", nargs="+", help="preset names or YAML files; first = baseline")
     ap.add_argument("--nordland", action="store_true", help="Nordland summer -> winter too")
     ap.add_argument("--images", type=int, default=10, help="images timed (day_right)")
-    ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument(
+        "--budget-ms",
+        type=float,
+        default=None,
+        help="only configs whose measured query ms is within this (off by default: on a "
+        "shared machine the timings are not the quiet ones the budget is stated in)",
+    )
     ap.add_argument("--cache-dir", default=str(default_cache_dir()))
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     args = ap.parse_args()
@@ -100,7 +107,7 @@ def main() -> int:
             f"| {name} | {row['query_ms']:.1f} | {tr} ({row['train_mean']:.3f}) | {te} "
             f"({row['test_mean']:.3f}) | {t['wins']}/{t['losses']}, p = {t['p']:.3f} |"
         )
-    ok = [n for n in out if out[n]["query_ms"] <= args.budget_ms]
+    ok = [n for n in out if args.budget_ms is None or out[n]["query_ms"] <= args.budget_ms]
     if ok:
         chosen = max(ok, key=lambda n: out[n]["train_mean"])
         t = paired_test(np.array(out[chosen]["test_flags"]), np.array(base["test_flags"]))
