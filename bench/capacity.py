@@ -45,12 +45,20 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
-def rss_mib(pid: int) -> float:
+def rss_mib(pid: int) -> dict[str, float]:
+    """Resident MiB of a process: total, anonymous (its own) and file-backed (memory-mapped
+    index files and libraries: page cache that replicas on one machine share)."""
+    out = {}
     with open(f"/proc/{pid}/status") as fh:
         for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmRSS")
+            key = line.split(":")[0]
+            if key in ("VmRSS", "RssAnon", "RssFile"):
+                out[key] = int(line.split()[1]) / 1024
+    return out
+
+
+def show(r: dict[str, float]) -> str:
+    return f"{r['VmRSS']:.0f} MiB (anonymous {r['RssAnon']:.0f}, file-backed {r['RssFile']:.0f})"
 
 
 def version_bytes(index: Path) -> tuple[int, int]:
@@ -105,7 +113,8 @@ def main() -> None:
     print(
         f"wall per request p50: {statistics.median(walls):.1f} ms (load {os.getloadavg()[0]:.2f})"
     )
-    print(f"resident: {rss_ready:.0f} MiB at ready, {rss_after:.0f} MiB after the queries")
+    print(f"resident at ready: {show(rss_ready)}")
+    print(f"resident after the queries: {show(rss_after)}")
 
 
 if __name__ == "__main__":
