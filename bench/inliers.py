@@ -27,6 +27,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -119,13 +120,17 @@ def add_sparse(bank: ScoreBank, base: HierarchyConfig, cache: FeatureCache) -> d
     return per_pair
 
 
-def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
-    """Mean bytes an index (``exact`` precision) stores per reference for ``config``."""
+def bytes_per_reference(
+    bank: ScoreBank, config: HierarchyConfig, fixed: Mapping[str, float] | None = None
+) -> float:
+    """Mean bytes an index (``exact`` precision) stores per reference for ``config``
+    (``fixed``: method id -> bytes per reference known otherwise, used as given)."""
     total = 0.0
     for mid in config.method_ids:
-        m = bank.methods[mid]
-        db = bank.features[mid][0]
-        n = bank.n_db
+        if fixed is not None and mid in fixed:
+            total += fixed[mid]
+            continue
+        m, db, n = bank.methods[mid], bank.features[mid][0], bank.n_db
         if m.kind == "global":
             a = np.asarray(db)
             total += a.size * storage_dtype(m, a, "exact").itemsize / n

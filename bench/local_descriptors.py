@@ -39,6 +39,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from inliers import bytes_per_reference  # noqa: E402
 
 from hmpf.config import HierarchyConfig, TierConfig, load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
@@ -47,7 +50,6 @@ from hmpf.evaluation.calibrate import paired_test  # noqa: E402
 from hmpf.evaluation.evaluate import EvalData, prepare  # noqa: E402
 from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
 from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.index.storage import storage_dtype  # noqa: E402
 from hmpf.methods import Method, create_method  # noqa: E402
 from hmpf.methods.kaze import match_distance, nearest_two_any  # noqa: E402
 from hmpf.runtime import machine_description  # noqa: E402
@@ -147,22 +149,6 @@ def sparse_inliers(bank: ScoreBank, m: Method, feats: tuple[Any, list[Any]]) -> 
         u = np.unique(np.asarray(c, np.int64))
         mat[qi, u] = m.scores(q, db, u)
     return mat
-
-
-def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
-    """Mean bytes an index (``exact`` precision) stores per reference for ``config``."""
-    total = 0.0
-    for mid in config.method_ids:
-        m, db, n = bank.methods[mid], bank.features[mid][0], bank.n_db
-        if m.kind == "global":
-            a = np.asarray(db)
-            total += a.size * storage_dtype(m, a, "exact").itemsize / n
-            continue
-        for i in range(n):
-            for arr in m.to_arrays(db[i]).values():
-                a = np.asarray(arr)
-                total += (a.size * storage_dtype(m, a, "exact").itemsize + 8) / n
-    return total
 
 
 def time_descriptors(datasets: Path, n_query: int = 10) -> None:

@@ -44,6 +44,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import inliers  # noqa: E402
 
 from hmpf.config import HierarchyConfig, TierConfig, load_config  # noqa: E402
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root  # noqa: E402
@@ -142,23 +145,8 @@ def variant_id(base: str, extra: dict[str, Any]) -> str:
 
 def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
     """Mean bytes an index (``exact`` precision) stores per reference for ``config``."""
-    total = 0.0
-    for mid in config.method_ids:
-        m = bank.methods[mid]
-        db = bank.features[mid][0]
-        n = bank.n_db
-        if (id(bank), mid) in OWN_BYTES:
-            total += OWN_BYTES[id(bank), mid]
-            continue
-        if m.kind == "global":
-            a = np.asarray(db)
-            total += a.size * storage_dtype(m, a, "exact").itemsize / n
-            continue
-        for i in range(n):
-            for arr in m.to_arrays(db[i]).values():
-                a = np.asarray(arr)
-                total += (a.size * storage_dtype(m, a, "exact").itemsize + 8) / n
-    return total
+    own = {mid: v for (b, mid), v in OWN_BYTES.items() if b == id(bank)}
+    return inliers.bytes_per_reference(bank, config, own)
 
 
 def main() -> int:
