@@ -372,18 +372,10 @@ class Kaze(LocalMethod):
         if self._describer is None:
             c: KazeConfig = self.config  # type: ignore[assignment]
             scale = KAZE_SCALE_FACTOR if c.scale_factor is None else c.scale_factor
-            if c.descriptor == "beblid":
-                size = {
-                    256: cv2.xfeatures2d.BEBLID_SIZE_256_BITS,
-                    512: cv2.xfeatures2d.BEBLID_SIZE_512_BITS,
-                }[c.bits]
-                self._describer = cv2.xfeatures2d.BEBLID.create(scale, size)
-            elif c.descriptor == "teblid":
-                size = {
-                    256: cv2.xfeatures2d.TEBLID_SIZE_256_BITS,
-                    512: cv2.xfeatures2d.TEBLID_SIZE_512_BITS,
-                }[c.bits]
-                self._describer = cv2.xfeatures2d.TEBLID.create(scale, size)
+            if c.descriptor in ("beblid", "teblid"):  # BEBLID / TEBLID: one API, two models
+                name = c.descriptor.upper()
+                size = getattr(cv2.xfeatures2d, f"{name}_SIZE_{c.bits}_BITS")
+                self._describer = getattr(cv2.xfeatures2d, name).create(scale, size)
             else:
                 self._describer = cv2.ORB.create()
         return self._describer
