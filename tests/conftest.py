@@ -98,17 +98,22 @@ def synthetic_image(seed: int, size: tuple[int, int] = (120, 160)) -> np.ndarray
     return img
 
 
+def write_synthetic_images(folder: Path, n: int, seed: int = 0, prefix: str = "img") -> Path:
+    """Write ``n`` synthetic PNGs (``synthetic_image(seed + i)``) as ``{prefix}{i:03d}.png``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        img = cv2.cvtColor(synthetic_image(seed + i), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(folder / f"{prefix}{i:03d}.png"), img)
+    return folder
+
+
 @pytest.fixture
 def image_folder(tmp_path: Path):
     """Factory: write ``n`` synthetic PNGs (seeds offset by ``seed``) into a new folder."""
 
     def make(name: str, n: int, seed: int = 0) -> Path:
-        folder = tmp_path / name
-        folder.mkdir()
-        for i in range(n):
-            img = synthetic_image(seed + i)
-            cv2.imwrite(str(folder / f"img{i:03d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        return folder
+        (tmp_path / name).mkdir()
+        return write_synthetic_images(tmp_path / name, n, seed)
 
     return make
 

@@ -13,7 +13,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
-from conftest import SMALL_INDEX_CONFIG, synthetic_image
+from conftest import SMALL_INDEX_CONFIG, synthetic_image, write_synthetic_images
 
 import hmpf.features
 import indexer.build
@@ -39,14 +39,6 @@ def config_file(tmp_path: Path) -> Path:
     return p
 
 
-def _write(folder: Path, n: int, seed: int = 0, prefix: str = "img") -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    for i in range(n):
-        img = cv2.cvtColor(synthetic_image(seed + i), cv2.COLOR_RGB2BGR)
-        cv2.imwrite(str(folder / f"{prefix}{i:03d}.png"), img)
-    return folder
-
-
 def _datasets(version: Path) -> dict[str, np.ndarray]:
     out = {}
     for name in ("references.h5", "local.h5"):
@@ -64,8 +56,8 @@ def _cli(*args: object) -> int:
 
 
 def test_build_add_remove_list_gc(tmp_path, config_file, capsys):
-    a = _write(tmp_path / "a", 6)
-    b = _write(tmp_path / "b", 3, seed=50, prefix="new")
+    a = write_synthetic_images(tmp_path / "a", 6)
+    b = write_synthetic_images(tmp_path / "b", 3, seed=50, prefix="new")
     index = tmp_path / "index"
     assert (
         _cli(
@@ -86,8 +78,8 @@ def test_build_add_remove_list_gc(tmp_path, config_file, capsys):
     s = add(index, b, options=OPTS)
     assert (s.version, s.images, s.extracted, s.reused) == ("v0002", 9, 3, 6)
     # add == a clean build of the union
-    union = _write(tmp_path / "union", 6)
-    _write(union, 3, seed=50, prefix="new")
+    union = write_synthetic_images(tmp_path / "union", 6)
+    write_synthetic_images(union, 3, seed=50, prefix="new")
     clean = tmp_path / "clean"
     build(config_file, union, clean, options=OPTS)
     got, want = _datasets(index / "v0002"), _datasets(clean / "v0001")
@@ -129,7 +121,7 @@ def test_version_flag_and_index_version_do_not_collide(tmp_path, capsys):
 
 def test_verify_names_the_corrupt_file(tmp_path, config_file, capsys):
     index = tmp_path / "index"
-    build(config_file, _write(tmp_path / "a", 4), index, options=OPTS)
+    build(config_file, write_synthetic_images(tmp_path / "a", 4), index, options=OPTS)
     assert _cli("verify", "--index", index) == 0
     f = index / "v0001" / "local.h5"
     data = bytearray(f.read_bytes())
@@ -142,7 +134,7 @@ def test_verify_names_the_corrupt_file(tmp_path, config_file, capsys):
 
 
 def test_metadata_is_stored(tmp_path, config_file):
-    a = _write(tmp_path / "a", 3)
+    a = write_synthetic_images(tmp_path / "a", 3)
     csv = tmp_path / "meta.csv"
     csv.write_text(
         "name,lat,lon,timestamp,sequence\n"
@@ -167,7 +159,7 @@ def test_metadata_is_stored(tmp_path, config_file):
     ],
 )
 def test_bad_metadata_rejected_before_work(tmp_path, config_file, csv_text, match):
-    a = _write(tmp_path / "a", 2)
+    a = write_synthetic_images(tmp_path / "a", 2)
     csv = tmp_path / "meta.csv"
     csv.write_text(csv_text)
     with pytest.raises(DatasetError, match=match):
@@ -180,7 +172,7 @@ def test_bad_folder_and_config_rejected_before_work(tmp_path, config_file, capsy
     index = tmp_path / "index"
     with pytest.raises(DatasetError, match="holds no image"):
         build(config_file, tmp_path / "empty", index, options=OPTS)
-    dup = _write(tmp_path / "dup", 1)
+    dup = write_synthetic_images(tmp_path / "dup", 1)
     (dup / "IMG000.PNG").write_bytes((dup / "img000.png").read_bytes())
     with pytest.raises(DatasetError, match="duplicate image names"):
         build(config_file, dup, index, options=OPTS)
@@ -194,7 +186,7 @@ def test_bad_folder_and_config_rejected_before_work(tmp_path, config_file, capsy
 
 
 def test_unreadable_image_skipped_or_strict(tmp_path, config_file):
-    a = _write(tmp_path / "a", 3)
+    a = write_synthetic_images(tmp_path / "a", 3)
     (a / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
     s = build(config_file, a, tmp_path / "index", options=OPTS)
     assert s.images == 3 and [x["name"] for x in s.skipped] == ["broken.jpg"]
@@ -224,7 +216,7 @@ def _broken_images(folder: Path) -> dict[str, str]:
 
 
 def test_unreadable_images_found_up_front_with_load_image_reasons(tmp_path):
-    folder = _write(tmp_path / "a", 2)
+    folder = write_synthetic_images(tmp_path / "a", 2)
     reasons = _broken_images(folder)
     bad = indexer.inputs.check_images(sorted(folder.iterdir())).unreadable
     assert {p.name: exc.reason for p, exc in bad.items()} == reasons
@@ -235,7 +227,7 @@ def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkey
     """One read per file gives both the digest (hmpf.features.file_digest's) and the
     verdict; a file that cannot be read gets the old "unreadable:<OS error>" digest and
     load_image's reason."""
-    folder = _write(tmp_path / "a", 2)
+    folder = write_synthetic_images(tmp_path / "a", 2)
     reasons = _broken_images(folder)
     paths = [*sorted(folder.iterdir()), folder / "gone.png"]
     reads: list[str] = []
@@ -260,7 +252,7 @@ def test_check_images_reads_each_file_once_for_digest_and_probe(tmp_path, monkey
 def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file, monkeypatch):
     """The unreadable images are found before extraction: one pass over the readable ones
     (not one restarted pass per unreadable image), and --strict names every one."""
-    folder = _write(tmp_path / "a", 3)
+    folder = write_synthetic_images(tmp_path / "a", 3)
     reasons = _broken_images(folder)
     calls = []
     real = indexer.build.extract_images
@@ -282,7 +274,7 @@ def test_unreadable_images_skipped_in_one_extraction_pass(tmp_path, config_file,
 
 
 def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_file, monkeypatch):
-    folder = _write(tmp_path / "a", 2)
+    folder = write_synthetic_images(tmp_path / "a", 2)
     (folder / "late.jpg").write_bytes(b"\xff\xd8 broken only after the check")
     monkeypatch.setattr(indexer.inputs, "probe_image", lambda data, source="<bytes>": None)
     with pytest.raises(IndexBuildError, match="late.jpg.*passed the check before extraction"):
@@ -291,7 +283,7 @@ def test_image_failing_after_the_check_is_an_error_naming_it(tmp_path, config_fi
 
 
 def test_add_rejects_known_names(tmp_path, config_file):
-    a = _write(tmp_path / "a", 2)
+    a = write_synthetic_images(tmp_path / "a", 2)
     build(config_file, a, tmp_path / "index", options=OPTS)
     with pytest.raises(IndexBuildError, match="already in the index"):
         add(tmp_path / "index", a, options=OPTS)
@@ -344,17 +336,24 @@ def test_fitted_state_persists(tmp_path, monkeypatch):
 
     monkeypatch.setattr(hmpf.features, "fit_methods", fake_fit)
     cfg = parse_config({"tiers": [{"methods": ["toyfit_index_test", "gist"], "k": 1}]})
-    a = _write(tmp_path / "a", 3)
+    a = write_synthetic_images(tmp_path / "a", 3)
     build(cfg, a, tmp_path / "index", options=OPTS)
     with IndexReader(tmp_path / "index") as r:
         assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 3.0))
         assert r.manifest["methods"]["toyfit_index_test"]["state_sha256"]
-    add(tmp_path / "index", _write(tmp_path / "b", 2, seed=9, prefix="b"), options=OPTS)
+    add(
+        tmp_path / "index",
+        write_synthetic_images(tmp_path / "b", 2, seed=9, prefix="b"),
+        options=OPTS,
+    )
     with IndexReader(tmp_path / "index") as r:  # kept as they are without --refit
         assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 3.0))
     assert calls == [3]
     add(
-        tmp_path / "index", _write(tmp_path / "c", 1, seed=20, prefix="c"), options=OPTS, refit=True
+        tmp_path / "index",
+        write_synthetic_images(tmp_path / "c", 1, seed=20, prefix="c"),
+        options=OPTS,
+        refit=True,
     )
     with IndexReader(tmp_path / "index") as r:
         assert np.array_equal(r.methods["toyfit_index_test"].mean, np.full(4, 6.0))
@@ -363,7 +362,7 @@ def test_fitted_state_persists(tmp_path, monkeypatch):
 
 
 def test_approximate_faiss_small_map_equals_exact(tmp_path, config_file):
-    a = _write(tmp_path / "a", 12)
+    a = write_synthetic_images(tmp_path / "a", 12)
     build(config_file, a, tmp_path / "exact", options=OPTS)
     opts = BuildOptions(
         workers=1, progress=False, faiss={"*": "IVF2,Flat"}, faiss_params={"*": "nprobe=1"}
@@ -380,7 +379,7 @@ def test_approximate_faiss_small_map_equals_exact(tmp_path, config_file):
 
 
 def test_faiss_factory_from_config_and_flag_override(tmp_path, config_file):
-    a = _write(tmp_path / "a", 8)
+    a = write_synthetic_images(tmp_path / "a", 8)
     cfg = tmp_path / "ivf.yaml"
     cfg.write_text(
         config_file.read_text() + '\nindex:\n  faiss: {"*": "IVF2,Flat"}\n'
@@ -400,7 +399,7 @@ def test_faiss_params_flag_for_all_and_for_one_method(tmp_path, config_file):
     """``--faiss-params nprobe=1`` (the help's own form) applies to every tier-1 method;
     ``gist=nprobe=2`` to gist only. It used to be read as a method named ``nprobe``."""
     index = tmp_path / "index"
-    a = _write(tmp_path / "a", 12)
+    a = write_synthetic_images(tmp_path / "a", 12)
     args = ["build", "--config", config_file, "--images", a, "--index", index, "--workers", 1]
     args += ["--quiet", "--faiss", "IVF2,Flat", "--faiss-params", "nprobe=1"]
     args += ["--faiss-params", "gist=nprobe=2"]

@@ -23,7 +23,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
-from conftest import SMALL_INDEX_CONFIG, synthetic_image
+from conftest import SMALL_INDEX_CONFIG, synthetic_image, write_synthetic_images
 from fastapi.testclient import TestClient
 
 import indexer.maintenance
@@ -37,14 +37,6 @@ from service.settings import load_settings
 
 CONFIG = SMALL_INDEX_CONFIG
 OPTS = BuildOptions(workers=1, progress=False)
-
-
-def _write(folder: Path, n: int, seed: int = 0, prefix: str = "img") -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    for i in range(n):
-        img = cv2.cvtColor(synthetic_image(seed + i), cv2.COLOR_RGB2BGR)
-        cv2.imwrite(str(folder / f"{prefix}{i:03d}.png"), img)
-    return folder
 
 
 def _flip(path: Path, dataset: str, row: int = 0) -> None:
@@ -75,8 +67,8 @@ def clean(tmp_path_factory: pytest.TempPathFactory) -> Path:
     config = base / "config.yaml"
     config.write_text(CONFIG)
     index = base / "index"
-    build(config, _write(base / "a", 6), index, options=OPTS)
-    add(index, _write(base / "b", 3, seed=50, prefix="new"), options=OPTS)
+    build(config, write_synthetic_images(base / "a", 6), index, options=OPTS)
+    add(index, write_synthetic_images(base / "b", 3, seed=50, prefix="new"), options=OPTS)
     return index
 
 
@@ -165,7 +157,7 @@ def test_remove_and_add_refuse_a_corrupt_parent(
     with pytest.raises(IndexCorruptError, match="references.h5: sha256 differs"):
         remove(index, ["img000.png"])
     with pytest.raises(IndexCorruptError, match="references.h5: sha256 differs"):
-        add(index, _write(tmp_path / "c", 2, seed=80, prefix="more"), options=OPTS)
+        add(index, write_synthetic_images(tmp_path / "c", 2, seed=80, prefix="more"), options=OPTS)
     assert _cli("remove", "--index", index, "img001.png") == 2
     assert "sha256 differs" in capsys.readouterr().err
     assert layout.list_versions(index) == ["v0001", "v0002"]
@@ -238,7 +230,7 @@ def test_large_files_are_verified_piece_by_piece_as_strongly_as_whole(
     config = tmp_path / "config.yaml"
     config.write_text(CONFIG)
     index = tmp_path / "index"
-    build(config, _write(tmp_path / "a", 4), index, options=OPTS)
+    build(config, write_synthetic_images(tmp_path / "a", 4), index, options=OPTS)
     version = index / "v0001"
     entry = layout.read_manifest(version)["files"][layout.LOCAL_H5]
     data = (version / layout.LOCAL_H5).read_bytes()

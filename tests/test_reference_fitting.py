@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from conftest import synthetic_image
+from conftest import synthetic_image, write_synthetic_images
 
 from hmpf.config import parse_config
 from hmpf.datasets import list_images
@@ -182,14 +180,6 @@ def test_fit_and_extraction_equal_the_bench_route(gardens_point):
         assert real.cache_key() == derived.cache_key()
 
 
-def _write(folder: Path, n: int, seed: int = 0, prefix: str = "img") -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    for i in range(n):
-        img = cv2.cvtColor(synthetic_image(seed + i), cv2.COLOR_RGB2BGR)
-        cv2.imwrite(str(folder / f"{prefix}{i:03d}.png"), img)
-    return folder
-
-
 def test_whitening_and_dba_through_an_index(tmp_path):
     cfg = parse_config(
         {
@@ -200,7 +190,7 @@ def test_whitening_and_dba_through_an_index(tmp_path):
             "tiers": [{"methods": ["hog", "gist"], "k": 1}],
         }
     )
-    a = _write(tmp_path / "a", 8)
+    a = write_synthetic_images(tmp_path / "a", 8)
     build(cfg, a, tmp_path / "index", options=OPTS)
     images = [synthetic_image(i) for i in range(8)]
     with IndexReader(tmp_path / "index") as r:
@@ -220,7 +210,11 @@ def test_whitening_and_dba_through_an_index(tmp_path):
         assert np.allclose(raw, np.sort(brute)[:3], atol=1e-4)
         state = hog.state_arrays()
     # A reload keeps the fitted state; adding references recomputes the DBA over the route.
-    add(tmp_path / "index", _write(tmp_path / "b", 2, seed=8, prefix="z"), options=OPTS)
+    add(
+        tmp_path / "index",
+        write_synthetic_images(tmp_path / "b", 2, seed=8, prefix="z"),
+        options=OPTS,
+    )
     with IndexReader(tmp_path / "index") as r:
         hog = r.methods["hog"]
         for k, v in state.items():
