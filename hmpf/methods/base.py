@@ -105,9 +105,17 @@ class ReferenceFitConfig(DbaConfig):
         return self
 
 
-#: Reference-fitting options left out of a method's keys while at their defaults, so that
-#: configs without them keep the keys (cached descriptors, index identities) they had.
-_FIT_DEFAULTS = {"dba": 0, "whiten": None, "whiten_power": 0.5, "whiten_shrink": 0.0}
+#: Options added after a method's first release (reference fitting, multi-scale and
+#: multi-crop pooling), left out of its keys while at their defaults, so that configs without
+#: them keep the keys (cached descriptors, index identities) they had.
+_KEY_DEFAULTS: dict[str, Any] = {
+    "dba": 0,
+    "whiten": None,
+    "whiten_power": 0.5,
+    "whiten_shrink": 0.0,
+    "scales": (1.0,),
+    "crops": 0,
+}
 
 
 def fit_whitening(
@@ -346,11 +354,11 @@ class Method(ABC):
         return h.hexdigest()
 
     def key_config(self, *, per_image: bool = False) -> dict[str, Any]:
-        """The config as it enters the keys: reference-fitting options at their defaults are
-        left out (older keys stay valid); ``per_image`` also leaves out ``dba``, which changes
-        the stored reference set but no image's own feature."""
+        """The config as it enters the keys: later options (:data:`_KEY_DEFAULTS`) at their
+        defaults are left out (older keys stay valid); ``per_image`` also leaves out ``dba``,
+        which changes the stored reference set but no image's own feature."""
         cfg = self.config.model_dump()
-        for k, default in _FIT_DEFAULTS.items():
+        for k, default in _KEY_DEFAULTS.items():
             if k in cfg and (cfg[k] == default or (per_image and k == "dba")):
                 del cfg[k]
         return cfg

@@ -26,7 +26,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from hmpf.backbones import Backbone, backbone_class, load_backbone, require_torch
 from hmpf.imageio import to_rgb
@@ -36,6 +36,7 @@ from hmpf.runtime import cnn_runtime, compute_threads
 __all__ = [
     "CnnConfig",
     "CnnMethod",
+    "MultiScaleConfig",
     "kmeans",
     "l2_rows",
 ]
@@ -60,6 +61,44 @@ class CnnConfig(MethodConfig):
     input_size: tuple[int, int] | None = None
     device: str = "cpu"
     batch_size: int = Field(16, ge=1)
+
+
+class MultiScaleConfig(CnnConfig):
+    """Multi-scale pooling of a global CNN descriptor (issue 18).
+
+    ``scales``: the input size (``input_size`` or the method's default) times each scale,
+    rounded to whole 32-pixel cells (at least 32), one forward pass per scale and image; the
+    method pools the maps of every scale into one descriptor (GeM: the mean of the
+    per-scale L2-normalised descriptors, L2-normalised again; NetVLAD: one VLAD over the local
+    features of every scale). ``(1.0,)``, the default, is the single-scale method (same keys
+    and features as before the option existed).
+    """
+
+    scales: tuple[float, ...] = Field(
+        (1.0,), min_length=1, max_length=4, description="input-size factors, one pass each"
+    )
+
+    @field_validator("scales")
+    @classmethod
+    def _check_scales(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if any(not 0.25 <= s <= 4.0 for s in v):
+            raise ValueError("every scale must be within [0.25, 4]")
+        if len(set(v)) != len(v):
+            raise ValueError("scales must be distinct")
+        return v
+
+
+def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    """``size`` (rows, cols) times ``scale`` in whole 32-pixel cells (halves rounded up, at
+    least one cell); exactly ``size`` at scale 1."""
+    if scale == 1.0:
+        return (int(size[0]), int(size[1]))
+    return tuple(max(32, int(n * scale / 32.0 + 0.5) * 32) for n in size)  # type: ignore[return-value]
+
+
+def scale_suffix(i: int) -> str:
+    """Suffix of the maps of a method's ``i``-th scale in a maps dict (none for the first)."""
+    return "" if i == 0 else f"@{i}"
 
 
 class CnnMethod(Method):
@@ -95,11 +134,27 @@ class CnnMethod(Method):
         size = self.cnn.input_size
         return tuple(size) if size is not None else self.default_input_size()  # type: ignore[return-value]
 
+    def scales(self) -> tuple[float, ...]:
+        """Input-size factors, one forward pass each (:class:`MultiScaleConfig`)."""
+        return tuple(getattr(self.cnn, "scales", (1.0,)))
+
+    def input_sizes(self) -> list[tuple[int, int]]:
+        """The network input of each scale (the first is :meth:`input_size` at scale 1)."""
+        return [scaled_size(self.input_size(), s) for s in self.scales()]
+
+    def scale_maps(self, maps: Mapping[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+        """One ``{layer: map}`` per scale, from a maps dict of :func:`forward_group`."""
+        return [
+            {layer: maps[layer + scale_suffix(i)] for layer in self.layers()}
+            for i in range(len(self.scales()))
+        ]
+
     def group_key(self) -> tuple[Any, ...]:
-        """Methods with equal keys share one forward pass per image."""
+        """Methods with equal keys share one forward pass per image (per scale)."""
         c = self.cnn
         opts = tuple(sorted((k, repr(v)) for k, v in c.backbone_options.items()))
-        return (c.backbone, c.weights, opts, c.device, self.input_size())
+        key: tuple[Any, ...] = (c.backbone, c.weights, opts, c.device, self.input_size())
+        return key if self.scales() == (1.0,) else (*key, self.scales())
 
     def runtime(self) -> str:
         """Where the forward pass runs: ``onnx`` when that is the process's runtime
@@ -162,40 +217,45 @@ def _batches(n: int, size: int) -> Iterator[slice]:
 def forward_group(
     methods: Sequence[CnnMethod], images: Sequence[np.ndarray], timing: list[float] | None = None
 ) -> Iterator[dict[str, np.ndarray]]:
-    """Maps of every layer the ``methods`` need, one dict per image, one pass per image.
+    """Maps of every layer the ``methods`` need, one dict per image, one pass per image and
+    scale (the maps of scale ``i > 0`` under ``layer + scale_suffix(i)``).
 
-    All ``methods`` must share :meth:`CnnMethod.group_key` (hence one :meth:`CnnMethod.runtime`).
-    When ``timing`` is given, the preprocessing + forward time per image (ms) is appended to it
-    for every image.
+    All ``methods`` must share :meth:`CnnMethod.group_key` (hence one :meth:`CnnMethod.runtime`
+    and one set of scales). When ``timing`` is given, the preprocessing + forward time per
+    image (ms, every scale) is appended to it for every image.
     """
     require_torch()  # an install hint, not a ModuleNotFoundError traceback
     import torch
 
     head = methods[0]
     net = head.backbone()
-    size = head.input_size()
+    sizes = head.input_sizes()
     layers = sorted({layer for m in methods for layer in m.layers()})
     batch_size = max(m.cnn.batch_size for m in methods)
     onnx = None
     if head.runtime() == "onnx":
         from hmpf.backbones.onnx_runtime import onnx_maps
 
-        onnx = onnx_maps(net, layers, size)
+        onnx = [onnx_maps(net, layers, size) for size in sizes]
     else:
         torch.set_num_threads(compute_threads())
     for sl in _batches(len(images), batch_size):
         t0 = time.perf_counter()
-        x = np.stack([net.preprocess(to_rgb(im), size) for im in images[sl]])
-        if onnx is not None:
-            arrays = onnx(x)
-        else:
-            with torch.inference_mode():
-                out = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
-                arrays = {k: v.float().cpu().numpy() for k, v in out.items()}
+        rgb = [to_rgb(im) for im in images[sl]]
+        out: list[dict[str, np.ndarray]] = [{} for _ in rgb]
+        for i, size in enumerate(sizes):
+            x = np.stack([net.preprocess(im, size) for im in rgb])
+            if onnx is not None:
+                arrays = onnx[i](x)
+            else:
+                with torch.inference_mode():
+                    maps = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
+                    arrays = {k: v.float().cpu().numpy() for k, v in maps.items()}
+            for j, d in enumerate(out):
+                d.update({k + scale_suffix(i): v[j] for k, v in arrays.items()})
         if timing is not None:
-            timing.extend([(time.perf_counter() - t0) * 1e3 / x.shape[0]] * x.shape[0])
-        for i in range(x.shape[0]):
-            yield {k: v[i] for k, v in arrays.items()}
+            timing.extend([(time.perf_counter() - t0) * 1e3 / len(rgb)] * len(rgb))
+        yield from out
 
 
 # -- small numeric helpers shared by the CNN methods ----------------------------------------

@@ -19,6 +19,10 @@ METHODS.md §2.5. Two ways to get its parameters:
 * ``efficientnet_lite1`` / ``efficientnet_lite2``: the same on their stage 6 (192-d / 208-d)
   at 320 x 544 / 352 x 608 (Lite0's input scaled by the variants' ImageNet sizes).
 
+With ``scales`` (issue 18, multi-scale pooling; :class:`~hmpf.methods.cnn.MultiScaleConfig`)
+the local features of every input scale are pooled into one VLAD (and the centroids fitted on
+all of them).
+
 Distance: Euclidean, lower is better.
 """
 
@@ -31,7 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from hmpf.methods.base import DbaConfig, GlobalMethod, MetricSpec, euclidean
-from hmpf.methods.cnn import CnnConfig, CnnMethod, kmeans, l2_rows
+from hmpf.methods.cnn import CnnConfig, CnnMethod, MultiScaleConfig, kmeans, l2_rows
 from hmpf.methods.kaze import half
 from hmpf.methods.registry import register
 
@@ -74,7 +78,7 @@ def vlad(
     return l2_rows(flat[None])[0]
 
 
-class NetVladConfig(CnnConfig, DbaConfig):
+class NetVladConfig(MultiScaleConfig, DbaConfig):
     layer: str | None = Field(None, description="local-feature map; None = backbone default")
     clusters: int = Field(64, ge=2, le=1024, description="K (fitted backbones only)")
     pca_dim: int | None = Field(
@@ -132,8 +136,10 @@ class NetVlad(CnnMethod, GlobalMethod):
         self._state = {k: np.asarray(v) for k, v in arrays.items()}
 
     def _local(self, maps: Mapping[str, np.ndarray]) -> np.ndarray:
-        a = maps[self.layers()[0]]  # (C, h, w)
-        return l2_rows(a.reshape(a.shape[0], -1).T)  # preL2, (h*w, C)
+        """PreL2 local features, (sum of h*w over the scales, C)."""
+        layer = self.layers()[0]
+        per = [m[layer].reshape(m[layer].shape[0], -1).T for m in self.scale_maps(maps)]
+        return l2_rows(per[0] if len(per) == 1 else np.concatenate(per))
 
     def fit_from_maps(self, samples: Sequence[Mapping[str, np.ndarray]]) -> None:
         cfg = self.nv
