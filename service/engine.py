@@ -53,8 +53,9 @@ T = TypeVar("T")
 JobResult = tuple[bool, Any]
 
 #: Combined quality (z-score over the final candidates) an answer needs when neither the
-#: settings nor the index's config give a threshold. Measured with configs/default.yaml on the
-#: three Gardens Point protocols pooled (600 queries, +-2 frames): every answer at or above 2.9
+#: settings nor the index's config give a threshold. Measured with configs/default-lite0.yaml
+#: (the default until 2026-11-26, not measured again for the new one) on the three Gardens
+#: Point protocols pooled (600 queries, +-2 frames): every answer at or above 2.9
 #: was right, but only 1.3 % reach it (2.5: precision 0.906, 8.8 % accepted; 2.0: 0.886,
 #: 33.5 %). A conservative default; hmpf-calibrate chooses one per route.
 DEFAULT_ACCEPT_THRESHOLD = 2.9
