@@ -89,6 +89,30 @@ def sign(a: list[bool], b: list[bool]) -> dict[str, Any]:
     return paired_test(np.asarray(a, bool), np.asarray(b, bool))
 
 
+def take_ms(report: dict[str, Any], path: Path) -> None:
+    """Replace the rows' ms per query by those of the ``--time-only`` run in ``path``."""
+    timed = json.loads(path.read_text())
+    for name, row in report["rows"].items():
+        if name in timed["rows"]:
+            row["query_ms_measured_here"] = row.get("query_ms")
+            row["query_ms"] = timed["rows"][name]["query_ms"]
+            row["query_ms_from"] = str(path)
+    keys = ("machine", "load_start", "load_end", "images_timed")
+    report["ms_from"] = {"file": str(path), **{k: timed.get(k) for k in keys}}
+
+
+def caption(report: dict[str, Any]) -> str:
+    timed = report.get("ms_from", report)
+    src = f", {timed['file']}" if "file" in timed else ""
+    return (
+        "recall@1 (+-2 frames) on the test parts; ms: query extraction on one thread (median of "
+        f"{timed['images_timed']} day_right images{src}; load average "
+        f"{timed['load_start'][0]:.1f} at start); bytes / ref: exact precision, GP dr -> nr test "
+        "part (NL: Nordland test part); test vs default: pooled GP test queries, won / lost, "
+        "sign test p"
+    )
+
+
 def table(out: dict[str, Any]) -> list[str]:
     """The markdown table of ``out`` (row name -> figures)."""
     lines = [
@@ -140,9 +164,28 @@ def main() -> int:
     ap.add_argument("--cache-dir", default=str(default_cache_dir()))
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     ap.add_argument("--table", type=Path, default=None, help="print the table of this JSON")
+    ap.add_argument(
+        "--reuse",
+        type=Path,
+        nargs="*",
+        default=[],
+        help="earlier --out files: their rows (accuracy, bytes, ms) are taken as measured there "
+        "instead of measured again (Nordland too where the earlier row has it)",
+    )
+    ap.add_argument(
+        "--ms-from",
+        type=Path,
+        default=None,
+        help="a --time-only run's --out: its ms per query replace the ones measured here (one "
+        "timing run for every row, e.g. on a quieter machine)",
+    )
     args = ap.parse_args()
     if args.table is not None:
-        print("\n".join(table(json.loads(args.table.read_text())["rows"])))
+        report = json.loads(args.table.read_text())
+        if args.ms_from is not None:
+            take_ms(report, args.ms_from)
+        print(f"{caption(report)}\n")
+        print("\n".join(table(report["rows"])))
         return 0
     unknown = set(args.nordland_configs) - set(names)
     if unknown:
@@ -160,6 +203,13 @@ def main() -> int:
         "rows": {},
     }
     rows: dict[str, Any] = report["rows"]
+    reused: dict[str, Any] = {}
+    for f in args.reuse:
+        earlier = json.loads(f.read_text())
+        for name, row in earlier["rows"].items():
+            if name in chosen and "test" in row and not args.time_only:
+                reused[name] = {**row, "reused_from": str(f)}
+    report["reused"] = {n: r["reused_from"] for n, r in reused.items()}
 
     def save() -> None:
         if args.out:
@@ -174,9 +224,14 @@ def main() -> int:
     else:
         cache = FeatureCache(args.cache_dir)
         nl_wanted = [n for n in chosen if n in args.nordland_configs]
-        full, parts = load_protocols(bool(nl_wanted), NORDLAND_BLOCK)
+        nl_todo = [n for n in nl_wanted if NL not in reused.get(n, {}).get("test", {})]
+        full, parts = load_protocols(bool(nl_todo), NORDLAND_BLOCK)
         # Gardens Point for every config first; Nordland (slow for CNN configs) after.
         for name in chosen:
+            if name in reused:
+                rows[name] = reused[name]
+                print(f"{name}: reused from {reused[name]['reused_from']}", flush=True)
+                continue
             config = load_config(names[name])
             row, flags = measure(config, full, parts, cache, timing, protocols=GP, whole=False)
             row["flags"] = {
@@ -191,6 +246,8 @@ def main() -> int:
             )
             save()
         for name in nl_wanted:
+            if NL in rows[name]["test"]:
+                continue  # reused with Nordland
             config = load_config(names[name])
             nl_row, flags = measure(config, full, parts, cache, None, protocols=[NL], whole=False)
             row = rows[name]
@@ -204,14 +261,11 @@ def main() -> int:
                 flush=True,
             )
             save()
+    if args.ms_from is not None:
+        take_ms(report, args.ms_from)
     report["load_end"] = list(os.getloadavg())
     save()
-    print(
-        f"\nrecall@1 (+-2 frames) on the test parts; ms: query extraction on one thread (median "
-        f"of {args.images} day_right images); bytes / ref: exact precision, GP dr -> nr test part "
-        f"(NL: Nordland test part); test vs default: pooled GP test queries, won / lost, sign "
-        f"test p\n"
-    )
+    print(f"\n{caption(report)}\n")
     print("\n".join(table(rows)))
     print(f"\nLoad average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     return 0
