@@ -78,11 +78,17 @@ def all_configs() -> dict[str, str]:
 
 
 def reference_bytes(config: HierarchyConfig, data: EvalData, cache: FeatureCache) -> float:
-    """Bytes per reference an index of ``data``'s references stores for ``config``."""
-    prep = prepare(build_methods(config), data, cache=cache)
+    """Bytes per reference an index of ``data``'s references stores for ``config``: each
+    reference's own descriptors (an index applies ``dba`` when it loads, so the config is
+    measured with ``dba`` removed: the augmented means are not what is stored)."""
+    dump = config.model_dump()
+    for params in dump["methods"].values():
+        params.pop("dba", None)
+    stored = HierarchyConfig.model_validate(dump)
+    prep = prepare(build_methods(stored), data, cache=cache)
     feats = {m: (prep.db[m], prep.queries[m]) for m in prep.methods}
     bank = ScoreBank(dict(prep.methods), {}, np.asarray(data.gt, bool), data, feats)
-    return bytes_per_reference(bank, config)
+    return bytes_per_reference(bank, stored)
 
 
 def sign(a: list[bool], b: list[bool]) -> dict[str, Any]:
@@ -224,13 +230,16 @@ def main() -> int:
     else:
         cache = FeatureCache(args.cache_dir)
         nl_wanted = [n for n in chosen if n in args.nordland_configs]
-        nl_todo = [n for n in nl_wanted if NL not in reused.get(n, {}).get("test", {})]
-        full, parts = load_protocols(bool(nl_todo), NORDLAND_BLOCK)
+        full, parts = load_protocols(bool(nl_wanted), NORDLAND_BLOCK)
         # Gardens Point for every config first; Nordland (slow for CNN configs) after.
         for name in chosen:
-            if name in reused:
-                rows[name] = reused[name]
-                print(f"{name}: reused from {reused[name]['reused_from']}", flush=True)
+            if name in reused:  # accuracy as measured there; bytes (cheap) measured again
+                rows[name] = row = reused[name]
+                config = load_config(names[name])
+                row["bytes_gp"] = reference_bytes(config, parts[GP[0]][1], cache)
+                if NL in row["test"] and NL in parts:
+                    row["bytes_nl"] = reference_bytes(config, parts[NL][1], cache)
+                print(f"{name}: reused from {row['reused_from']}", flush=True)
                 continue
             config = load_config(names[name])
             row, flags = measure(config, full, parts, cache, timing, protocols=GP, whole=False)
