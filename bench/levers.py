@@ -175,8 +175,8 @@ def main() -> int:
         type=Path,
         nargs="*",
         default=[],
-        help="earlier --out files: their rows (accuracy, bytes, ms) are taken as measured there "
-        "instead of measured again (Nordland too where the earlier row has it)",
+        help="earlier --out files: their rows (accuracy, ms) are taken as measured there instead "
+        "of measured again (Nordland too where the row has it); the first file with a row wins",
     )
     ap.add_argument(
         "--ms-from",
@@ -213,7 +213,7 @@ def main() -> int:
     for f in args.reuse:
         earlier = json.loads(f.read_text())
         for name, row in earlier["rows"].items():
-            if name in chosen and "test" in row and not args.time_only:
+            if name in chosen and name not in reused and "test" in row and not args.time_only:
                 reused[name] = {**row, "reused_from": str(f)}
     report["reused"] = {n: r["reused_from"] for n, r in reused.items()}
 
