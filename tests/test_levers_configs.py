@@ -1,5 +1,6 @@
-"""bench/levers/: every lever config parses, builds known methods and differs from the default
-only where its lever says (the table in docs/experiments/levers.md is measured from them)."""
+"""bench/levers/: every lever config parses, builds known methods, keeps the default's
+two-tier structure, and no two rows are the same hierarchy (docs/experiments/levers.md is
+measured from them)."""
 
 from __future__ import annotations
 
