@@ -45,6 +45,63 @@ from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
 NORDLAND = ("nordland_64x32/summer", "nordland_64x32/winter")
 
 
+def load_protocols(
+    nordland: bool = False, nordland_block: int = 20
+) -> tuple[dict[str, EvalData], dict[str, tuple[EvalData, EvalData]]]:
+    """The Gardens Point protocols (and Nordland summer -> winter), whole and ``blocks``-split
+    (20 frames; Nordland's stretch ``nordland_block``): (whole, (training, test) parts)."""
+    root = dataset_root()
+    protocols = dict(GARDENS_POINT_PROTOCOLS)
+    if nordland:
+        protocols["nordland_s_w"] = NORDLAND
+    full = {n: EvalData.frames(root / r, root / q, 2) for n, (r, q) in protocols.items()}
+    parts = {
+        n: split_data(d, block=nordland_block if n not in GARDENS_POINT_PROTOCOLS else 20)
+        for n, d in full.items()
+    }
+    return full, parts
+
+
+def timing_images(n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """``n`` day_right images timed (evenly spaced) and the images methods are fitted on for
+    timing (every 7th day_right frame)."""
+    refs = list_images(dataset_root() / "gardens_point" / "day_right")
+    pick = np.linspace(0, len(refs) - 1, n).round().astype(int)
+    return [load_image(refs[i]) for i in pick], [load_image(p) for p in refs[::7]]
+
+
+def measure(
+    config: HierarchyConfig,
+    full: dict[str, EvalData],
+    parts: dict[str, tuple[EvalData, EvalData]],
+    cache: FeatureCache,
+    timing: tuple[list[np.ndarray], list[np.ndarray]] | None,
+    *,
+    protocols: list[str] | None = None,
+    whole: bool = True,
+) -> tuple[dict[str, Any], dict[str, dict[str, np.ndarray]]]:
+    """One config's row: passes, ``query_ms`` (with ``timing`` = (timed, fitting) images),
+    recall@1 per protocol on the training and test parts (and with ``whole`` the whole Gardens
+    Point protocols), their means and the pooled correct flags; and the flags per part and
+    protocol. ``protocols``: those of ``parts`` to evaluate (default all)."""
+    names = list(parts) if protocols is None else protocols
+    row: dict[str, Any] = {"passes": passes(config)}
+    if timing is not None:
+        row["query_ms"] = query_ms(config, *timing)
+    by_part: dict[str, dict[str, np.ndarray]] = {}
+    for i, part in enumerate(("train", "test", "whole") if whole else ("train", "test")):
+        flags = {
+            p: correct_flags(config, parts[p][i] if part != "whole" else full[p], cache)
+            for p in names
+            if part != "whole" or p in GARDENS_POINT_PROTOCOLS
+        }
+        row[part] = {p: float(f.mean()) for p, f in flags.items()}
+        row[f"{part}_mean"] = float(np.mean(list(row[part].values())))
+        row[f"{part}_flags"] = np.concatenate(list(flags.values())).tolist()
+        by_part[part] = flags
+    return row, by_part
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("configs", nargs="+", help="preset names or YAML files; first = baseline")
@@ -62,30 +119,14 @@ def main() -> int:
     args = ap.parse_args()
     set_cnn_runtime("onnx")
     print(f"Machine: {machine_description()}", flush=True)
-    root = dataset_root()
-    refs = list_images(root / "gardens_point" / "day_right")
-    pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)
-    images = [load_image(refs[i]) for i in pick]
-    fit = [load_image(p) for p in refs[::7]]
+    timing = timing_images(args.images)
     cache = FeatureCache(args.cache_dir)
-    protocols = dict(GARDENS_POINT_PROTOCOLS)
-    if args.nordland:
-        protocols["nordland_s_w"] = NORDLAND
-    full = {n: EvalData.frames(root / r, root / q, 2) for n, (r, q) in protocols.items()}
-    parts = {n: split_data(d) for n, d in full.items()}
+    full, parts = load_protocols(args.nordland)
+    protocols = list(parts)
     out: dict[str, Any] = {}
     for name in args.configs:
         config: HierarchyConfig = load_config(name)
-        row: dict[str, Any] = {"passes": passes(config), "query_ms": query_ms(config, images, fit)}
-        for i, part in enumerate(("train", "test", "whole")):
-            flags = {
-                p: correct_flags(config, parts[p][i] if part != "whole" else full[p], cache)
-                for p in protocols
-                if part != "whole" or p in GARDENS_POINT_PROTOCOLS
-            }
-            row[part] = {p: float(f.mean()) for p, f in flags.items()}
-            row[f"{part}_mean"] = float(np.mean(list(row[part].values())))
-            row[f"{part}_flags"] = np.concatenate(list(flags.values())).tolist()
+        row, _ = measure(config, full, parts, cache, timing)
         out[name] = row
         print(
             f"{name}: {row['query_ms']:.1f} ms/query, train {row['train_mean']:.3f}, "
