@@ -27,8 +27,9 @@ def test_lever_config_parses_and_builds(path: Path) -> None:
     methods = build_methods(config)
     assert set(methods) == set(config.method_ids)
     assert all(isinstance(m, Method) for m in methods.values())
-    # Every lever is the default's two-tier structure (plus at most one final-tier method).
-    default = load_config("default")
+    # Every lever is the default's two-tier structure (plus at most one final-tier method);
+    # the levers are measured against default-lite0 (the default until 2026-11-26).
+    default = load_config("default-lite0")
     assert [t.k for t in config.tiers] == [t.k for t in default.tiers]
     assert config.weights == default.weights
     assert config.tiers[0].methods == default.tiers[0].methods
@@ -42,4 +43,5 @@ def test_lever_configs_differ_from_the_default_and_each_other() -> None:
 
     keys = {p.stem: key(str(p)) for p in LEVERS}
     keys["default"] = key("default")
+    keys["default-lite0"] = key("default-lite0")
     assert len(set(keys.values())) == len(keys), "two rows would measure the same hierarchy"
