@@ -398,32 +398,35 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
 
 
 def test_extended_pool_lets_a_route_pick_the_new_levers(gardens_point: Path, tmp_path: Path):
-    """``--pool calibration-pool-extended``: whitened HOG / Gist (fitted on the references)
-    are searchable, and a config using them carries their parameters and loads."""
+    """``--pool calibration-pool-extended``: whitened HOG / Gist (fitted on the references),
+    multi-scale GeM and BEBLID inlier verification are searchable, and a config using them
+    carries their parameters and loads."""
     sub = link_route(gardens_point, tmp_path, N_IMAGES)
     out = tmp_path / "cal"
+    levers = {"hog_w": "hog", "gist_w": "gist", "gem_ms": "gem", "inliers_b": "inliers"}
     cmd = [
         sys.executable, "-m", "hmpf.cli.calibrate", "--quiet",
         "--reference", str(sub["day_right"]), "--query", str(sub["night_right"]),
         "--block", "10", "--pool", "calibration-pool-extended", "--out", str(out),
         "--cache-dir", str(tmp_path / "c"), "--k1", "3", "6", "--k2", "2",
         "--samples", "20", "--refine", "2", "--seed", "3",
-        "--methods", "hog", "hog_w", "gist_w",
+        "--methods", "hog", *levers,
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     rep = json.loads((out / "calibration.json").read_text())
-    assert set(rep["costs"]["match_ms"]) == {"hog", "hog_w", "gist_w"}
+    assert set(rep["costs"]["match_ms"]) == {"hog", *levers}
     board = (out / "leaderboard.md").read_text()
-    assert "hog_w" in board and "gist_w" in board  # searched
+    assert all(mid in board for mid in levers)  # searched
     cfg = load_config(out / "calibrated.yaml")
-    assert set(cfg.method_ids) <= {"hog", "hog_w", "gist_w"}
+    assert set(cfg.method_ids) <= {"hog", *levers}
+    pool = load_config("calibration-pool-extended")
     for mid in set(cfg.method_ids) - {"hog"}:
-        name, params = cfg.method_spec(mid)
-        assert name == mid.removesuffix("_w") and params["whiten"] == 4096
-    assert set(load_config("calibration-pool").method_ids) < set(
-        load_config("calibration-pool-extended").method_ids
-    )
+        assert cfg.method_spec(mid) == pool.method_spec(mid)
+        assert cfg.method_spec(mid)[0] == levers[mid]
+    assert pool.method_spec("gem_ms")[1]["scales"] == [1.0, 0.5]
+    assert pool.method_spec("inliers_b")[1]["descriptor"] == "beblid"
+    assert set(load_config("calibration-pool").method_ids) < set(pool.method_ids)
 
 
 def test_fixed_cost_model_round_trips_and_is_used(banks):
