@@ -139,7 +139,7 @@ class CnnMethod(Method):
         return tuple(getattr(self.cnn, "scales", (1.0,)))
 
     def input_sizes(self) -> list[tuple[int, int]]:
-        """The network input of each scale (the first is :meth:`input_size` at scale 1)."""
+        """The network input of each scale (:meth:`input_size` itself at scale 1)."""
         return [scaled_size(self.input_size(), s) for s in self.scales()]
 
     def scale_maps(self, maps: Mapping[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
