@@ -124,8 +124,8 @@ def caption(report: dict[str, Any]) -> str:
         "recall@1 (+-2 frames) on the test parts; ms: query extraction on one thread (median of "
         f"{timed['images_timed']} day_right images{src}; load average "
         f"{timed['load_start'][0]:.1f} at start); bytes / ref: exact precision, GP dr -> nr test "
-        "part (NL: Nordland test part); test vs default: pooled GP test queries, won / lost, "
-        "sign test p"
+        f"part (NL: Nordland test part); test vs {BASELINE}: pooled GP test queries, won / "
+        "lost, sign test p"
     )
 
 
@@ -133,7 +133,7 @@ def table(out: dict[str, Any]) -> list[str]:
     """The markdown table of ``out`` (row name -> figures)."""
     lines = [
         "| config | GP dr -> nr | GP dl -> nr | GP dl -> dr | Nordland 64x32 | ms / query "
-        "| bytes / ref | training mean (GP) | test mean (GP) | test vs default |",
+        f"| bytes / ref | training mean (GP) | test mean (GP) | test vs {BASELINE} |",
         "|---|---|---|---|---|---:|---:|---:|---:|---|",
     ]
     base = out.get(BASELINE)
