@@ -82,7 +82,9 @@ class AcceptanceSettings(BaseModel):
     :meth:`~hmpf.confidence.ConfidenceModel.to_dict`), an answer gets ``p_correct``, the
     calibrated probability that it is right, and is accepted when ``p_correct >=
     model_threshold``; ``sequence_model`` / ``sequence_threshold`` do the same for the
-    sequence filter's estimates (sequence features). Written by ``hmpf-calibrate`` (the
+    sequence filter's estimates (sequence features), and ``sequence_stay_threshold`` the
+    lower bar of an estimate accepted on the previous frame that moved on consistently
+    (hysteresis, :mod:`hmpf.acceptance`). Written by ``hmpf-calibrate`` (the
     thresholds that gave ``precision`` on its training split); not part of the index's
     identity (:meth:`HierarchyConfig.digest` ignores it). A model that does not load
     (another format version, missing or extra features, non-finite numbers) makes the
@@ -98,10 +100,20 @@ class AcceptanceSettings(BaseModel):
     model_threshold: float | None = Field(default=None, ge=0, le=1)
     sequence_model: dict[str, Any] | None = None
     sequence_threshold: float | None = Field(default=None, ge=0, le=1)
+    sequence_stay_threshold: float | None = Field(default=None, ge=0, le=1)
 
     @model_validator(mode="after")
     def _models(self) -> AcceptanceSettings:
         from hmpf.confidence import ConfidenceModel
+
+        stay = self.sequence_stay_threshold
+        if stay is not None:
+            if self.sequence_model is None or self.sequence_threshold is None:
+                raise ValueError("acceptance.sequence_stay_threshold needs a sequence_model")
+            if stay > self.sequence_threshold:
+                raise ValueError(
+                    "acceptance.sequence_stay_threshold must not exceed sequence_threshold"
+                )
 
         for name, model, threshold in (
             ("model", self.model, self.model_threshold),
@@ -296,4 +308,39 @@ def load_config(path_or_name: str | Path) -> HierarchyConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{label}: invalid YAML: {exc}") from None
-    return parse_config(data, label)
+    return with_shipped_acceptance(parse_config(data, label))
+
+
+#: Folder (under ``hmpf/presets/``) of the confidence models the bundled presets ship.
+SHIPPED_ACCEPTANCE = "acceptance"
+
+
+def shipped_acceptance() -> dict[str, AcceptanceSettings]:
+    """The shipped acceptance settings by hierarchy digest: each
+    ``hmpf/presets/acceptance/<preset>.json`` (written by ``bench/shipped_acceptance.py``)
+    holds the ``digest`` of the hierarchy its models were fitted for and the ``acceptance``
+    section. Keyed by digest, not name: a preset edited since its model was fitted gets no
+    stale model, and a YAML file equal to a preset gets the preset's."""
+    folder = _presets_dir().joinpath(SHIPPED_ACCEPTANCE)
+    out: dict[str, AcceptanceSettings] = {}
+    if not folder.is_dir():
+        return out
+    for entry in sorted(folder.iterdir(), key=lambda e: e.name):
+        if not entry.name.endswith(".json"):
+            continue
+        try:
+            data = json.loads(entry.read_text())
+            out[str(data["digest"])] = AcceptanceSettings.model_validate(data["acceptance"])
+        except (OSError, ValueError, KeyError, TypeError, ValidationError) as exc:
+            raise ConfigError(f"shipped acceptance {entry.name}: {exc}") from None
+    return out
+
+
+def with_shipped_acceptance(config: HierarchyConfig) -> HierarchyConfig:
+    """``config`` with the shipped acceptance of its hierarchy (:func:`shipped_acceptance`)
+    when it has no ``acceptance`` section of its own (``hmpf-calibrate``'s models override
+    the shipped ones); else ``config`` itself."""
+    if config.acceptance is not None:
+        return config
+    shipped = shipped_acceptance().get(config.digest())
+    return config if shipped is None else config.model_copy(update={"acceptance": shipped})

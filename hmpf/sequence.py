@@ -22,6 +22,16 @@ a window):
   plus the Combined score of the final candidates; the log-likelihood of a reference is
   ``evidence_weight * z + combined_weight * combined``, ``z`` the tier-1 score as a z-score
   over the map (a frame whose scores are all alike says little).
+* **not in the map**: besides the references, one hypothesis *off*: the vehicle is on no
+  mapped route (a road the map does not hold). Each frame an on-map vehicle leaves with
+  probability ``leave`` and an off-map one comes back with probability ``enter`` (anywhere:
+  that mass joins the background, reset to the frame's proposals). Every score above is
+  relative (the map's references against each other), so what tells the two apart is the
+  frame's *absolute* evidence (:attr:`Evidence.absolute`: how the query's raw score at its
+  single-frame answer compares with what unrelated references score there): the on-map
+  part's total mass is weighed against the off mass by the likelihood ratio
+  ``exp(off_slope * (absolute - off_center))``; a frame without it (NaN) moves the off mass
+  by the motion alone. With ``leave = 0`` the off mass stays 0: the filter of the paper.
 
 The belief is sparse: at most ``hypotheses`` explicit references with their probabilities,
 and a *background* mass spread evenly over the rest. New hypotheses come from the frame's
@@ -31,7 +41,11 @@ likelihood is estimated on a fixed random sample of references. A frame's work i
 evidence itself, tier 1 over the whole database, is the hierarchy's work).
 
 The estimate (:class:`Estimate`) is the reference whose route neighbourhood (``+- window``
-references) holds the most probability; that mass is its confidence.
+references) holds the most probability; that mass (a share of the whole belief, the off
+hypothesis included) is its confidence, and ``off_map`` the off hypothesis's probability.
+For a caller's acceptance with hysteresis the state also carries the previous frame's
+estimate (``last_ref``: the new estimate is ``continuous`` when it follows on from it along
+its route) and the caller's previous decision (``held``, set by :meth:`SequenceFilter.hold`).
 
 Everything here is pure: :meth:`SequenceFilter.update` takes a :class:`FilterState` and
 returns a new one, which :meth:`SequenceFilter.pack` packs into a few hundred bytes (the
@@ -52,6 +66,7 @@ import numpy as np
 from hmpf.errors import HmpfError
 
 __all__ = [
+    "OFF_LLR_CLIP",
     "Estimate",
     "Evidence",
     "FilterParams",
@@ -64,6 +79,11 @@ __all__ = [
 
 class StateError(HmpfError):
     """A packed filter state that cannot be read (corrupt, or for another map)."""
+
+
+#: The off hypothesis's log-likelihood ratio per frame is clipped to +-this
+#: (:meth:`FilterParams.off_loglr`): one frame never settles it beyond odds of ~5e8.
+OFF_LLR_CLIP = 20.0
 
 
 # -- the routes of a map -----------------------------------------------------------------------
@@ -262,6 +282,26 @@ class FilterParams:
     default because it keeps re-locking independent of the map's size. ``lock_mass`` is the
     posterior mass that gave 99 % precision on those training drives (0.9918, rounded).
 
+    The off hypothesis's settings were chosen on training data only (``default`` hierarchy,
+    Gardens Point day_right's training blocks as the map, 100 references; absolute evidence
+    from its :class:`~hmpf.confidence.ReferenceProfile`): the absolute evidence at the
+    single-frame answer was, as 5 / 50 / 95 % quantiles, -0.03 / 1.37 / 2.93 for the right
+    answers of night_right's 100 training queries (wrong ones: -0.72 / 0.68 / 1.98), 2.40 /
+    3.50 / 5.54 for day_left's, and -3.27 / -1.72 / -0.48 for 200 foreign frames (Nordland
+    winter thumbnails, four stretches of 50, dark frames left out): night frames on the map
+    score little above unrelated references, so the centre sits below them. On 40 drives
+    per protocol of 20 frames on the map, 30 foreign, 30 back (:func:`off_map_report`), a
+    grid over leave 0.001, enter 0.1, centre -1 / -0.5 / 0, slope 0.5 / 1 / 2 (the rest of
+    the planned grid was not run) chose centre -0.5, slope 2: 0.92 of the foreign frames put
+    off the map (0.82 with centre -1, 0.95 with centre 0 but 0.05 of the night frames on the
+    map put off it), none of them accepted (0.13 without the off hypothesis), 0.015 of the
+    night frames on the map put off it and none of day_left's, back on the map in a median
+    1.5 frames, and the accepted share of the plain traverses unchanged (0.27 night, 0.40
+    day_left). Foreign thumbnails are an easy "elsewhere"; a road that looks like the map's
+    scores higher. Without absolute evidence (NaN) the off mass rests at ``leave / (leave +
+    enter)`` = 0.0099, which caps the estimate's mass at 0.990: a caller without a profile
+    should set ``leave = 0``.
+
     Attributes:
         max_steps: the fastest speed, in references per frame (the vehicle up to this many
             times faster than the mapping run); a hypothesis has a speed from 0 (stopped)
@@ -285,6 +325,14 @@ class FilterParams:
             goes to the frame's proposed references rather than evenly over the map (sensor
             resetting, Lenser and Veloso 2000): re-locking after a jump then costs the same
             number of frames on a map of any size. 0: evenly, the plain forward filter.
+        leave: probability per frame that an on-map vehicle leaves the mapped routes (the
+            "off" hypothesis). 0: no off hypothesis, the filter of the paper (exactly).
+        enter: probability per frame that an off-map vehicle comes back onto the map,
+            anywhere (that mass joins the background). The start's off mass is the motion's
+            stationary share ``leave / (leave + enter)``.
+        off_center, off_slope: the log-likelihood ratio of a frame's evidence under "on the
+            map" against "off the map" is ``off_slope * (absolute - off_center)``, clipped to
+            +-:data:`OFF_LLR_CLIP` (``absolute``: :attr:`Evidence.absolute`; NaN: ratio 1).
     """
 
     max_steps: int = 4
@@ -301,6 +349,10 @@ class FilterParams:
     junction_m: float = 10.0
     junction: float = 0.2
     reset: float = 0.5
+    leave: float = 0.001
+    enter: float = 0.1
+    off_center: float = -0.5
+    off_slope: float = 2.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -327,6 +379,25 @@ class FilterParams:
             raise HmpfError("junction in [0, 1) and lock_mass in (0, 1] are required")
         if self.junction_m < 0:
             raise HmpfError("junction_m must be >= 0")
+        if not (0 <= self.leave < 1 and 0 < self.enter <= 1):
+            raise HmpfError("leave must be in [0, 1) and enter in (0, 1]")
+        if self.off_slope < 0:
+            raise HmpfError("off_slope must be >= 0")
+
+    @property
+    def off_prior(self) -> float:
+        """The off hypothesis's mass at the start of a drive: the stationary share of the
+        leave / enter motion, ``leave / (leave + enter)`` (0 with ``leave = 0``)."""
+        return self.leave / (self.leave + self.enter)
+
+    def off_loglr(self, absolute: float) -> float:
+        """Log-likelihood ratio of a frame's evidence, on the map against off it:
+        ``off_slope * (absolute - off_center)`` clipped to +-:data:`OFF_LLR_CLIP`; 0 (no
+        information) for a NaN ``absolute``."""
+        if not math.isfinite(absolute):
+            return 0.0
+        llr = self.off_slope * (absolute - self.off_center)
+        return min(max(llr, -OFF_LLR_CLIP), OFF_LLR_CLIP)
 
     @classmethod
     def from_mapping(cls, values: dict[str, Any] | None) -> FilterParams:
@@ -362,6 +433,11 @@ class Evidence:
             ones the hierarchy ran over; the others read 0); None: every reference. The
             tier-1 z-score takes its mean and spread over these (over the map's sample
             without them).
+        absolute: the frame's absolute evidence: how the query's raw tier-1 score at its
+            single-frame answer compares with what unrelated references score there
+            (:meth:`hmpf.confidence.ReferenceProfile.z` of ``result.tiers[0].raw`` at
+            ``result.match``): several sigma for a right answer on the map, ~0-2 for a frame
+            from elsewhere. NaN: unknown (the off hypothesis learns nothing from the frame).
     """
 
     tier1: tuple[np.ndarray, ...]
@@ -369,10 +445,17 @@ class Evidence:
     final: np.ndarray
     combined: np.ndarray
     scored: np.ndarray | None = None
+    absolute: float = float("nan")
 
     @classmethod
     def from_result(
-        cls, result: Any, n: int, *, proposals: int = 50, allowed: np.ndarray | None = None
+        cls,
+        result: Any,
+        n: int,
+        *,
+        proposals: int = 50,
+        allowed: np.ndarray | None = None,
+        absolute: float = float("nan"),
     ) -> Evidence:
         """The evidence of a :class:`~hmpf.hierarchy.HierarchyResult`.
 
@@ -382,6 +465,8 @@ class Evidence:
             proposals: how many best tier-1 references to propose.
             allowed: with a GPS prior, the reference ids the hierarchy ran over (its indices
                 are positions in it); references outside score 0.
+            absolute: the frame's :attr:`absolute` evidence (the caller computes it: it
+                needs the map's :class:`~hmpf.confidence.ReferenceProfile`).
         """
         tier = result.tiers[0]
         arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
@@ -402,7 +487,7 @@ class Evidence:
                 x[allowed] = a
                 full.append(x)
             arrays, top, final = full, allowed[top], allowed[final]
-        return cls(tuple(arrays), top.astype(np.int64), final, comb, allowed)
+        return cls(tuple(arrays), top.astype(np.int64), final, comb, allowed, float(absolute))
 
     def tier1_at(self, refs: np.ndarray) -> np.ndarray:
         """Mean tier-1 score at ``refs`` (NaN read as 0)."""
@@ -413,7 +498,8 @@ class Evidence:
 
 @dataclass(frozen=True)
 class FilterState:
-    """The belief after some frames: explicit hypotheses plus an even background.
+    """The belief after some frames: explicit hypotheses plus an even background, and the
+    "not on the map" hypothesis.
 
     A hypothesis is a position along a route, in half references, and a speed, in half
     references per frame: one integer ``key = (2 * ref + half) * speeds + speed``
@@ -423,27 +509,37 @@ class FilterState:
         keys: (H,) hypothesis keys, unique and sorted.
         prob: (H,) their probabilities.
         background: probability spread evenly over every reference and speed
-            (``1 - prob.sum()``).
+            (``1 - prob.sum() - off``).
         frames: frames seen since the start.
+        off: probability that the vehicle is on no mapped route (``prob``, ``background``
+            and ``off`` sum to 1).
+        last_ref: the previous frame's estimate (-1: none: the start, or after a gap
+            beyond ``max_gap``), for :attr:`Estimate.continuous`.
+        held: the caller's acceptance of the previous frame's estimate
+            (:meth:`SequenceFilter.hold`), handed on as :attr:`Estimate.held`.
     """
 
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
     background: float = 1.0
     frames: int = 0
+    off: float = 0.0
+    last_ref: int = -1
+    held: bool = False
 
-    # Format 2: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
-    # unknown), then the keys (u32) and their log probabilities (f16). Format 1 had no
-    # speeds byte: a state of a map with another max_steps read silently wrong.
-    _MAGIC = b"HQS2"
-    _HEAD = "<IfHB"
+    # Format 3: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
+    # unknown), off (f32), last_ref (i32), held (u8), then the keys (u32) and their log
+    # probabilities (f16). Format 2 had no off / last_ref / held (refused: a track of it
+    # restarts); format 1 had no speeds byte either.
+    _MAGIC = b"HQS3"
+    _HEAD = "<IfHBfiB"
 
     def to_bytes(self, keep: int = 64, *, speeds: int = 0) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
-        background), keys as uint32 and probabilities as float16 logs. ``speeds``
-        (:attr:`FilterParams.speeds` of the map; 0: not said) goes into the header, so that
-        :meth:`from_bytes` can refuse a state of a map with other speeds
-        (:meth:`SequenceFilter.pack` passes it)."""
+        background), keys as uint32 and probabilities as float16 logs; ``off`` as float32,
+        ``last_ref`` and ``held`` exactly. ``speeds`` (:attr:`FilterParams.speeds` of the
+        map; 0: not said) goes into the header, so that :meth:`from_bytes` can refuse a
+        state of a map with other speeds (:meth:`SequenceFilter.pack` passes it)."""
         if keep < 0:
             raise HmpfError("keep must be >= 0")
         if not 0 <= speeds <= 0xFF:
@@ -454,9 +550,21 @@ class FilterState:
             raise HmpfError("a packed state holds at most 65535 hypotheses with keys < 2**32")
         if not 0 <= self.frames <= 0xFFFFFFFF:
             raise HmpfError("a packed state counts at most 2**32 - 1 frames")
-        background = max(0.0, 1.0 - float(prob.sum()))
+        if not -1 <= self.last_ref <= 0x7FFFFFFF:
+            raise HmpfError("a packed state's last_ref is -1 or a reference below 2**31")
+        if not (math.isfinite(self.off) and 0 <= self.off <= 1):
+            raise HmpfError("a packed state's off mass must be in [0, 1]")
+        off = float(self.off)
+        background = max(0.0, 1.0 - float(prob.sum()) - off)
         head = self._MAGIC + struct.pack(
-            self._HEAD, self.frames, background, len(keys), int(speeds)
+            self._HEAD,
+            self.frames,
+            background,
+            len(keys),
+            int(speeds),
+            off,
+            int(self.last_ref),
+            int(bool(self.held)),
         )
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
         return head + keys.astype("<u4").tobytes() + logs.tobytes()
@@ -464,13 +572,16 @@ class FilterState:
     @classmethod
     def from_bytes(cls, data: bytes, n_keys: int, *, speeds: int = 0) -> FilterState:
         """Read :meth:`to_bytes`; ``n_keys`` = :attr:`SequenceFilter.n_keys` of the map it
-        is for (a key beyond it is refused); ``speeds`` = its :attr:`FilterParams.speeds`
-        (refused when the state says other speeds; 0, or a state that does not say: not
-        checked). :meth:`SequenceFilter.unpack` passes both."""
+        is for (a key beyond it is refused, and so is a ``last_ref`` beyond its references
+        when the speeds are known); ``speeds`` = its :attr:`FilterParams.speeds` (refused
+        when the state says other speeds; 0, or a state that does not say: not checked).
+        :meth:`SequenceFilter.unpack` passes both. An older format is refused."""
         size = len(cls._MAGIC) + struct.calcsize(cls._HEAD)
         if len(data) < size or not data.startswith(cls._MAGIC):
+            if data[:3] == cls._MAGIC[:3]:
+                raise StateError("sequence state of an older format (start the track again)")
             raise StateError("not a sequence state")
-        frames, background, h, packed_speeds = struct.unpack(
+        frames, background, h, packed_speeds, off, last_ref, held = struct.unpack(
             cls._HEAD, data[len(cls._MAGIC) : size]
         )
         if len(data) != size + 6 * h:
@@ -483,13 +594,26 @@ class FilterState:
         logs = np.frombuffer(data, "<f2", h, size + 4 * h).astype(np.float64)
         if (keys >= n_keys).any() or (h > 1 and (np.diff(keys) <= 0).any()):
             raise StateError("sequence state names hypotheses that are not in this map")
-        if not (np.isfinite(logs).all() and math.isfinite(background) and background >= 0):
+        s = speeds or packed_speeds
+        n_refs = n_keys // (2 * s) if s else n_keys
+        if not -1 <= last_ref < n_refs or held not in (0, 1):
+            raise StateError("sequence state has an invalid last estimate")
+        finite = np.isfinite(logs).all() and math.isfinite(background) and math.isfinite(off)
+        if not (finite and background >= 0 and off >= 0):
             raise StateError("sequence state has invalid probabilities")
         prob = np.exp(np.minimum(logs, 0.0))
-        total = float(prob.sum()) + background
+        total = float(prob.sum()) + background + off
         if total <= 0:
             raise StateError("sequence state has no probability")
-        return cls(keys, prob / total, background / total, int(frames))
+        return cls(
+            keys,
+            prob / total,
+            background / total,
+            int(frames),
+            off / total,
+            int(last_ref),
+            bool(held),
+        )
 
 
 @dataclass(frozen=True)
@@ -498,10 +622,17 @@ class Estimate:
 
     Attributes:
         ref: the estimated reference (-1 before the first frame).
-        mass: probability within ``+- window`` route references of it (its confidence).
+        mass: probability within ``+- window`` route references of it (its confidence; a
+            share of the whole belief, so it drops as ``off_map`` grows).
         locked: ``mass >= lock_mass``.
         frames: frames seen since the start.
         speed: the most probable speed there (references per frame).
+        off_map: probability that the vehicle is on no mapped route.
+        continuous: the estimate follows on from the previous frame's (on its route, within
+            ``window + ceil(max_steps * steps / 2) + 1`` route steps of it); False without
+            a previous estimate.
+        held: the caller's acceptance of the previous frame (:meth:`SequenceFilter.hold`),
+            False after a gap beyond ``max_gap``.
     """
 
     ref: int
@@ -509,6 +640,9 @@ class Estimate:
     locked: bool
     frames: int
     speed: float = float("nan")
+    off_map: float = 0.0
+    continuous: bool = False
+    held: bool = False
 
 
 # -- the filter ----------------------------------------------------------------------------------
@@ -567,35 +701,72 @@ class SequenceFilter:
         :class:`StateError`."""
         return FilterState.from_bytes(data, self.n_keys, speeds=self.params.speeds)
 
-    def start(self) -> FilterState:
-        """The belief at the start of a drive: anywhere, at any speed."""
-        return FilterState()
+    def start(self, frames: int = 0) -> FilterState:
+        """The belief at the start of a drive: anywhere, at any speed; off the map with the
+        motion's stationary share (:attr:`FilterParams.off_prior`, 0 with ``leave = 0``)."""
+        off = self.params.off_prior
+        return FilterState(background=1.0 - off, frames=frames, off=off)
 
     def update(
         self, state: FilterState, evidence: Evidence, steps: int = 1
     ) -> tuple[FilterState, Estimate]:
         """One frame: move the belief ``steps`` frames on (1: the next frame; more: frames
-        were dropped; 0: the same instant again), weigh it with ``evidence``."""
+        were dropped; 0: the same instant again), weigh it with ``evidence``. The new state
+        remembers the estimate (``last_ref``) and keeps ``held`` until :meth:`hold`."""
         predicted = self.predict(state, steps)
         posterior = self.correct(predicted, evidence)
-        return posterior, self.estimate(posterior)
+        est = self.estimate(posterior, last_ref=predicted.last_ref, steps=steps)
+        return replace(posterior, last_ref=est.ref), est
+
+    def hold(self, state: FilterState, accepted: bool) -> FilterState:
+        """``state`` with the caller's acceptance of its estimate, handed on to the next
+        frame's :attr:`Estimate.held` (for an acceptance rule with hysteresis)."""
+        return replace(state, held=bool(accepted))
 
     # -- the two halves ---------------------------------------------------------------------
     def predict(self, state: FilterState, steps: int = 1) -> FilterState:
-        """Motion (``steps`` frames) and the chance of a jump."""
+        """Motion (``steps`` frames), the chance of a jump, and of leaving or re-entering
+        the map. A gap beyond ``max_gap`` starts again (:meth:`start`, the frames kept)."""
         p = self.params
         if steps < 0:
             raise HmpfError("steps must be >= 0")
-        if steps > p.max_gap or not len(state.keys):
-            return FilterState(background=1.0, frames=state.frames)
+        if steps > p.max_gap:
+            return self.start(state.frames)
+        survive, off = self._leave_enter(state.off, steps)
+        if not len(state.keys):
+            return replace(state, background=1.0 - off, off=off)
         keys, prob, background = state.keys, state.prob, state.background
         for _ in range(steps):
             keys, prob, left = self._move(keys, prob)
             background += left  # past a route's end: anywhere
         lost = 1.0 - (1.0 - p.jump) ** steps
+        on = 1.0 - state.off
+        prob, background = prob * (1.0 - lost), background * (1.0 - lost) + lost * on
+        if survive == 1.0 and off == state.off:  # no off hypothesis (leave = 0): as before
+            return FilterState(
+                keys, prob, background, state.frames, off, state.last_ref, state.held
+            )
+        entered = max(0.0, (1.0 - off) - on * survive)  # came back onto the map: anywhere
         return FilterState(
-            keys, prob * (1.0 - lost), background * (1.0 - lost) + lost, state.frames
+            keys,
+            prob * survive,
+            background * survive + entered,
+            state.frames,
+            off,
+            state.last_ref,
+            state.held,
         )
+
+    def _leave_enter(self, off: float, steps: int) -> tuple[float, float]:
+        """(share of the on-map mass that stays on the map all ``steps`` frames, the off
+        mass after them): per frame ``leave`` of the on-map mass leaves, ``enter`` of the
+        off mass comes back."""
+        p = self.params
+        survive = 1.0
+        for _ in range(steps):
+            survive *= 1.0 - p.leave
+            off = off * (1.0 - p.enter) + (1.0 - off) * p.leave
+        return survive, off
 
     def _move(self, keys: np.ndarray, prob: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """One frame's motion: (keys, probabilities, the mass that left its route's end)."""
@@ -675,14 +846,38 @@ class SequenceFilter:
         post = prior * lik
         bg = even / n_keys * bg_sum
         total = float(post.sum()) + bg
+        on, off = self._on_off(predicted, evidence)
         if not total > 0 or not math.isfinite(total):
-            return FilterState(background=1.0, frames=predicted.frames + 1)
-        post, bg = post / total, bg / total
+            return replace(
+                predicted,
+                keys=np.zeros(0, np.int64),
+                prob=np.zeros(0),
+                background=on,
+                frames=predicted.frames + 1,
+                off=off,
+            )
+        # Within the map the posterior is as without the off hypothesis; the map as a whole
+        # holds ``on`` of it.
+        if off:
+            post, bg = post * (on / total), bg * (on / total)
+        else:  # no off hypothesis: exactly the filter without it
+            post, bg = post / total, bg / total
         if len(keys) > p.hypotheses:
             keep = np.sort(np.argpartition(-post, p.hypotheses - 1)[: p.hypotheses])
             bg += float(post.sum() - post[keep].sum())
             keys, post = keys[keep], post[keep]
-        return FilterState(keys, post, bg, predicted.frames + 1)
+        return FilterState(
+            keys, post, bg, predicted.frames + 1, off, predicted.last_ref, predicted.held
+        )
+
+    def _on_off(self, predicted: FilterState, evidence: Evidence) -> tuple[float, float]:
+        """(on-map, off-map) posterior mass: the on-map prior mass weighed by the frame's
+        likelihood ratio (:meth:`FilterParams.off_loglr`) against the off mass."""
+        off = float(predicted.off)
+        if off <= 0.0:
+            return 1.0, 0.0
+        on = max(0.0, 1.0 - off) * math.exp(self.params.off_loglr(evidence.absolute))
+        return on / (on + off), off / (on + off)
 
     def _at_scored(self, evidence: Evidence) -> np.ndarray:
         """Mean tier-1 score at the scored references (at most as many as the map's sample,
@@ -693,11 +888,16 @@ class SequenceFilter:
             scored = scored[np.linspace(0, len(scored) - 1, m).round().astype(np.int64)]
         return evidence.tier1_at(scored)
 
-    def estimate(self, state: FilterState) -> Estimate:
+    def estimate(
+        self, state: FilterState, *, last_ref: int | None = None, steps: int = 1
+    ) -> Estimate:
         """The reference with the most probability within ``+- window`` along its route
-        (every speed counted)."""
+        (every speed counted), whether it follows on from ``last_ref`` (default: the
+        state's) after ``steps`` frames (:meth:`continuous`), and the state's ``off`` and
+        ``held``. :meth:`update` passes the previous frame's estimate and its steps."""
+        prev = state.last_ref if last_ref is None else int(last_ref)
         if not len(state.keys):
-            return Estimate(-1, 0.0, False, state.frames)
+            return Estimate(-1, 0.0, False, state.frames, off_map=state.off, held=state.held)
         routes, w = self.routes, self.params.window
         refs_all = self.refs_of(state.keys)
         refs, inv = np.unique(refs_all, return_inverse=True)
@@ -715,7 +915,26 @@ class SequenceFilter:
         mine = refs_all == ref
         speed = float(self._split(state.keys[mine][np.argmax(state.prob[mine])])[2]) / 2
         m = float(min(1.0, mass[best]))
-        return Estimate(ref, m, m >= self.params.lock_mass, state.frames, speed)
+        return Estimate(
+            ref,
+            m,
+            m >= self.params.lock_mass,
+            state.frames,
+            speed,
+            float(state.off),
+            self.continuous(prev, ref, steps),
+            bool(state.held),
+        )
+
+    def continuous(self, prev: int, ref: int, steps: int = 1) -> bool:
+        """Whether ``ref`` follows on from the previous estimate ``prev`` after ``steps``
+        frames: on the same route, within ``window + ceil(max_steps * steps / 2) + 1`` route
+        steps ahead or behind (False when ``prev`` < 0)."""
+        if prev < 0 or ref < 0:
+            return False
+        p = self.params
+        reach = p.window + math.ceil(p.max_steps * max(steps, 0) / 2) + 1
+        return bool(self.routes.separation(prev, ref) <= reach)
 
     def run(
         self, evidences: Sequence[Evidence], steps: Sequence[int] | None = None

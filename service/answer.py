@@ -7,13 +7,12 @@ is accepted), the final ranking, each tier's candidates and the GPS prior's repo
 when locked). Numbers that are not finite (a method that scored NaN) are reported as ``None``,
 never as a number that looks real, and a match without a finite score is never accepted.
 
-*Acceptance* (:class:`~service.engine.Acceptance`): with a confidence model in the index's
-config, a match gets ``p_correct`` (:meth:`hmpf.confidence.ConfidenceModel.predict` of
-:func:`hmpf.confidence.answer_features`) and ``accepted = p_correct >= threshold``
-(``accepted_by = "p_correct"``); without one ``p_correct`` is None and the z rule decides
-(``"quality"``; a sequence estimate: ``"lock"``). The features need reference ids along the
-routes, so a result run under a GPS prior (its indices are positions in the allowed ids) is
-first put back on the whole map (:func:`on_references`).
+*Acceptance* is decided by the core's one policy (:class:`hmpf.acceptance.Policy`, the
+version's ``loaded.acceptance``), the same code every evaluation runs: ``p_correct`` from the
+version's confidence model (every bundled preset ships one) and ``accepted``, or the
+quality / lock rule for a config without a model. The features need reference ids along
+the routes, so a result run under a GPS prior (its indices are positions in the allowed ids)
+is first put back on the whole map (:func:`on_references`).
 """
 
 from __future__ import annotations
@@ -24,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from hmpf.confidence import answer_features
+from hmpf.acceptance import Decision
 from hmpf.hierarchy import HierarchyResult, TierResult
+from hmpf.sequence import Estimate
 from service.engine import Loaded, confidence
 from service.schemas import (
     AcceptedBy,
@@ -39,7 +39,7 @@ from service.schemas import (
 )
 from service.track import Step
 
-__all__ = ["localize_response", "on_references", "with_sequence"]
+__all__ = ["localize_response", "on_references", "sequence_decision", "with_sequence"]
 
 
 def localize_response(
@@ -136,65 +136,51 @@ def on_references(result: HierarchyResult, allowed: np.ndarray | None, n: int) -
     )
 
 
-#: The features of a frame without a result (the GPS prior left no reference): no evidence.
-_NO_RESULT = HierarchyResult(-1, float("nan"), np.zeros(0, np.int64), np.zeros(0))
-
-
 def with_sequence(
     response: LocalizeResponse,
     loaded: Loaded,
     step: Step,
     track: str,
     result: HierarchyResult | None = None,
+    decision: Decision | None = None,
 ) -> LocalizeResponse:
     """``response`` in sequence mode: the frame's :class:`~service.track.Step` as its
     ``sequence`` report (``track``: the signed token to hand back), and the estimate as the
     ``match``; the single-frame match stays the answer only when the filter has no estimate
     (a frame out of order, an empty belief).
 
-    The estimate is accepted when ``p_correct`` of the version's sequence model (over the
-    frame's features with the estimate's, ``result``: the frame's result on reference ids,
-    :func:`on_references`; None: no result) reaches its threshold, else, without a sequence
-    model, when the filter is locked.
+    The estimate is accepted as the one policy decides (:func:`sequence_decision`: the
+    version's sequence model over the frame's features with the estimate's, ``result``: the
+    frame's result on reference ids, :func:`on_references`, None: no result; or the lock
+    rule; with hysteresis, never off the map). ``decision``: the one already made for this
+    estimate (and recorded in the track); None: made here.
     """
     est = step.estimate
     mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
     estimate = None
+    if est is None or est.ref < 0:
+        decision = None
     if est is not None and est.ref >= 0:  # -1: the belief holds no hypothesis
-        acc = loaded.acceptance
-        if acc.sequence_model is not None and acc.sequence_threshold is not None:
-            feats = answer_features(
-                _NO_RESULT if result is None else result,
-                loaded.sequence.routes,
-                estimate=est,
-                profile=loaded.profile,
-            )
-            p = _probability(acc.sequence_model.predict(feats))
-            estimate = _reference_match(
-                loaded,
-                est.ref,
-                score=None,
-                confidence=mass,
-                accepted=p is not None and p >= acc.sequence_threshold,
-                p_correct=p,
-                accepted_by="p_correct",
-            )
-        else:
-            estimate = _reference_match(
-                loaded,
-                est.ref,
-                score=None,
-                confidence=mass,
-                accepted=est.locked,
-                accepted_by="lock",
-            )
+        if decision is None:
+            decision = sequence_decision(loaded, est, result)
+        estimate = _reference_match(
+            loaded,
+            est.ref,
+            score=None,
+            confidence=mass,
+            accepted=decision.accepted,
+            p_correct=decision.p_correct,
+            accepted_by=decision.accepted_by,
+        )
     use = estimate is not None
     report = SequenceReport(
         status=step.status,
         reset_reason=step.reason,
         match=estimate,
         mass=mass,
-        locked=est is not None and est.ref >= 0 and est.locked,
+        locked=decision is not None and decision.accepted,
+        off_map=decision is not None and decision.off_map,
+        off_map_probability=0.0 if est is None else _unit(est.off_map),
         frames=0 if est is None else est.frames,
         speed=None if est is None else _finite(est.speed),
         steps=step.steps,
@@ -209,38 +195,36 @@ def with_sequence(
     )
 
 
-def _probability(p: float | np.ndarray) -> float | None:
-    """A model's prediction as ``p_correct`` (None unless finite and in [0, 1])."""
-    v = float(p)
-    return v if math.isfinite(v) and 0.0 <= v <= 1.0 else None
+def sequence_decision(
+    loaded: Loaded, estimate: Estimate, result: HierarchyResult | None
+) -> Decision:
+    """The policy's decision on a sequence ``estimate`` (``result``: the frame's result on
+    reference ids, :func:`on_references`; None: no result)."""
+    return loaded.acceptance.sequence(result, estimate, loaded.sequence.routes, loaded.profile)
+
+
+def _unit(x: float) -> float:
+    """``x`` clipped to [0, 1] (NaN: 0)."""
+    return min(1.0, max(0.0, float(x))) if math.isfinite(x) else 0.0
 
 
 def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match | None:
     if result.match < 0:
         return None
     score = _finite(result.quality)
-    acc = loaded.acceptance
-    p = None
-    rule: AcceptedBy
-    if acc.model is None or acc.model_threshold is None:
-        accepted, rule = score is not None and score >= acc.threshold, "quality"
-    else:
-        if score is not None:  # a match without a finite score gets no probability
-            feats = answer_features(
-                on_references(result, refs.allowed, len(refs.names)),
-                loaded.sequence.routes,
-                profile=loaded.profile,
-            )
-            p = _probability(acc.model.predict(feats))
-        accepted, rule = p is not None and p >= acc.model_threshold, "p_correct"
+    decision = loaded.acceptance.single(
+        on_references(result, refs.allowed, len(refs.names)),
+        loaded.sequence.routes,
+        loaded.profile,
+    )
     return _reference_match(
         loaded,
         refs.id_of(result.match),
         score=score,
         confidence=confidence(result.quality, len(result.final_candidates)),
-        accepted=accepted,
-        p_correct=p,
-        accepted_by=rule,
+        accepted=decision.accepted,
+        p_correct=decision.p_correct,
+        accepted_by=decision.accepted_by,
     )
 
 

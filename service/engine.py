@@ -31,14 +31,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from hmpf.confidence import (
-    FEATURES,
-    PROFILE_FEATURES,
-    SEQUENCE_FEATURES,
-    ConfidenceModel,
-    ModelError,
-    ReferenceProfile,
-)
+from hmpf.acceptance import DEFAULT_ACCEPT_THRESHOLD, Policy
+from hmpf.confidence import ReferenceProfile
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
@@ -51,14 +45,6 @@ log = logging.getLogger("hmpf.service")
 T = TypeVar("T")
 #: What one job of a lane ended with: (True, its value) or (False, the exception it raised).
 JobResult = tuple[bool, Any]
-
-#: Combined quality (z-score over the final candidates) an answer needs when neither the
-#: settings nor the index's config give a threshold. Measured with configs/default-lite0.yaml
-#: (the default until 2026-11-26, not measured again for the new one) on the three Gardens
-#: Point protocols pooled (600 queries, +-2 frames): every answer at or above 2.9
-#: was right, but only 1.3 % reach it (2.5: precision 0.906, 8.8 % accepted; 2.0: 0.886,
-#: 33.5 %). A conservative default; hmpf-calibrate chooses one per route.
-DEFAULT_ACCEPT_THRESHOLD = 2.9
 
 
 def confidence(quality: float, n: int) -> float:
@@ -79,43 +65,8 @@ class Prior:
     radius_m: float
 
 
-@dataclass(frozen=True)
-class Acceptance:
-    """How a version's answers are accepted: the z rule's ``threshold`` (Combined quality),
-    and, when the index's config has them, the calibrated confidence models with their
-    thresholds (``p_correct >= threshold``; :mod:`hmpf.confidence`)."""
-
-    threshold: float
-    model: ConfidenceModel | None = None
-    model_threshold: float | None = None
-    sequence_model: ConfidenceModel | None = None
-    sequence_threshold: float | None = None
-
-    @classmethod
-    def of(cls, reader: IndexReader, threshold: float | None) -> Acceptance:
-        """The version's rules; ``threshold`` (the settings') overrides the config's z one.
-
-        Raises:
-            ModelError: a model over features the service cannot give it (a single-frame
-                model that needs sequence features, unknown ones).
-        """
-        acc = reader.config.acceptance
-        chosen = threshold if threshold is not None else (acc.threshold if acc else None)
-        z = DEFAULT_ACCEPT_THRESHOLD if chosen is None else float(chosen)
-        if acc is None:
-            return cls(z)
-        model, seq = acc.confidence_model(), acc.confidence_model(sequence=True)
-        for name, m, known in (
-            ("model", model, (*FEATURES, "ref_z")),
-            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES),
-        ):
-            extra = [] if m is None else [f for f in m.features if f not in known]
-            if extra:
-                raise ModelError(
-                    f"{reader.path}: acceptance.{name} needs features an answer of its kind "
-                    f"does not have ({', '.join(extra)}); recalibrate"
-                )
-        return cls(z, model, acc.model_threshold, seq, acc.sequence_threshold)
+#: How a version's answers are accepted: the core's one policy (:mod:`hmpf.acceptance`).
+Acceptance = Policy
 
 
 @dataclass
@@ -124,8 +75,9 @@ class Loaded:
 
     ``sequence`` is the sequence filter over the version's routes and ``binding`` the digest
     that ties a vehicle's track token to this version (:mod:`service.track`); ``acceptance``
-    the rules that decide ``accepted`` (the z threshold, the confidence models) and
-    ``profile`` the references' profile the models read (None when none needs it).
+    the rules that decide ``accepted`` (:class:`hmpf.acceptance.Policy`) and ``profile`` the
+    references' profile (absolute evidence: the models and the filter's off-map state read
+    it; None only for a version opened without it).
     """
 
     reader: IndexReader
@@ -148,16 +100,22 @@ class Loaded:
         :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload answers 409)."""
         reader = IndexReader(root, verify=True)
         try:
-            acceptance = Acceptance.of(reader, threshold)
-            acc = reader.config.acceptance
-            profile = reader.reference_profile() if acc is not None and acc.needs_profile else None
+            params = reader.config.sequence_params()
+            acceptance = Policy.of(
+                reader.config.acceptance,
+                threshold=threshold,
+                lock_mass=params.lock_mass,
+                label=str(reader.path),
+            )
+            # Always: the models read it, and the sequence filter's off-map state weighs
+            # each frame's absolute evidence with it.
+            profile = reader.reference_profile()
         except BaseException:
             reader.close()
             raise
         meta = reader.refs.meta
         lat, lon = meta.get("lat"), meta.get("lon")
         has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
-        params = reader.config.sequence_params()
         return cls(
             reader,
             reader.hierarchy(),

@@ -4,7 +4,10 @@ An :class:`ImageQuery` is built on the event loop when the request has been read
 on a query thread with the request's lease on an index version: it decodes the image, runs
 the hierarchy (restricted to the GPS prior, if any), times each stage and returns the answer.
 In sequence mode it also keeps the frame's evidence for the filter (:attr:`ImageQuery.evidence`,
-with the version it ran on), which the request runs once its frames are answered, in order.
+with the version it ran on), which the request runs once its frames are answered, in order;
+its absolute evidence (:func:`hmpf.evaluation.sequence.absolute_evidence`, what the filter's
+"not in the map" hypothesis weighs) is read from the version's reference profile at the
+single-frame answer (NaN when the version has none).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hmpf.errors import HmpfError
+from hmpf.evaluation.sequence import absolute_evidence
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Evidence
 from service.answer import localize_response, on_references
@@ -88,18 +92,18 @@ class ImageQuery:
             timing["fusion"] = result.fusion_ms
         if self.sequence:
             self.loaded = loaded
-            self.evidence = (
-                NO_EVIDENCE
-                if result is None
-                else Evidence.from_result(
+            self.evidence = NO_EVIDENCE
+            if result is not None:
+                on_refs = on_references(result, allowed, loaded.reader.n)
+                self.evidence = Evidence.from_result(
                     result,
                     loaded.reader.n,
                     proposals=loaded.sequence.params.proposals,
                     allowed=allowed,
+                    absolute=absolute_evidence(on_refs, getattr(loaded, "profile", None)),
                 )
-            )
-            if result is not None and loaded.acceptance.sequence_model is not None:
-                self.result = on_references(result, allowed, loaded.reader.n)
+                if loaded.acceptance.sequence_model is not None:
+                    self.result = on_refs
         answer = localize_response(loaded, result, allowed, self.params, timing)
         answer.timing_ms["total"] = _ms_since(self.submitted)
         return answer

@@ -174,13 +174,21 @@ class SequenceReport(BaseModel):
     )
     match: Match | None = Field(
         description="the filter's estimate (score null, confidence = posterior mass; "
-        "accepted: p_correct >= the sequence model's threshold when the index has one, else "
-        "locked); None when out of order"
+        "accepted by the one acceptance policy: p_correct >= the sequence model's threshold, "
+        "or the lower stay threshold while an accepted estimate moves on consistently; "
+        "never while off the map); None when out of order"
     )
     mass: float = Field(ge=0, le=1, description="posterior probability near the estimate")
     locked: bool = Field(
-        description="mass >= the filter's lock_mass (without a sequence model: the estimate "
-        "is accepted)"
+        description="the same as `match.accepted` (kept for older clients; act on `match.accepted`)"
+    )
+    off_map: bool = Field(
+        False,
+        description="the filter believes the vehicle is not on a mapped route "
+        "(off_map_probability >= 0.5): the estimate is not accepted",
+    )
+    off_map_probability: float = Field(
+        0.0, ge=0, le=1, description="posterior probability of the 'not in the map' state"
     )
     frames: int = Field(
         description="frames the track has seen since it (re)started (0 when out of order: "
@@ -241,6 +249,13 @@ class ModelInfo(BaseModel):
 
     features: list[str] = Field(description="the answer features it reads, in order")
     threshold: float = Field(ge=0, le=1, description="accepted when p_correct >= this")
+    stay_threshold: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="sequence model: an estimate accepted on the previous frame that moved "
+        "on consistently stays accepted while p_correct >= this (hysteresis)",
+    )
 
 
 class AcceptanceInfo(BaseModel):
@@ -255,8 +270,14 @@ class AcceptanceInfo(BaseModel):
     )
     sequence_model: ModelInfo | None = Field(
         None,
-        description="sequence-mode confidence model (null: none, estimates accepted when locked)",
+        description="sequence-mode confidence model (null: none, the `lock` rule: posterior "
+        "mass >= lock_mass, or >= unlock_mass while held)",
     )
+    sequence_rule: Literal["p_correct", "lock"] = Field(
+        "lock", description="the sequence-mode rule"
+    )
+    lock_mass: float | None = Field(None, description="the lock rule's threshold")
+    unlock_mass: float | None = Field(None, description="the lock rule's stay threshold")
 
 
 class BuildInfo(BaseModel):

@@ -17,12 +17,18 @@ state        ...    :meth:`hmpf.sequence.SequenceFilter.pack` (at most 64 hypoth
 mac          32     HMAC-SHA256 of the payload with the service's sequence key
 ===========  =====  ========================================================================
 
-About 460 bytes, 620 characters. The key is a setting (``sequence_key``) or, by default, a
-random key in a file inside the index folder (:func:`load_or_create_key`), so every replica
-on the same index, and a restarted server, accept each other's tokens.
+About 480 bytes, 640 characters (the state: format 3, with the "not in the map" mass, the
+last estimate and the caller's last acceptance; a token of an older state format was made
+with other filter settings, so its binding differs and the track restarts, ``index_changed``).
+The key is a setting (``sequence_key``) or, by default, a random key in a file inside the
+index folder (:func:`load_or_create_key`), so every replica on the same index, and a
+restarted server, accept each other's tokens.
 
 :func:`follow` is one frame of a vehicle: it checks the token's binding and age, turns the
-frame's timestamp into the number of frames moved (:func:`frame_steps`) and runs the filter.
+frame's timestamp into the number of frames moved (:func:`frame_steps`) and runs the filter;
+with the caller's acceptance rule (``accept``) it records the decision in the state
+(:meth:`~hmpf.sequence.SequenceFilter.hold`), so the next frame's estimate knows it
+(:attr:`~hmpf.sequence.Estimate.held`).
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ import math
 import os
 import secrets
 import struct
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -290,6 +297,7 @@ def follow(
     now: float,
     max_age_s: float,
     dropped: int = 0,
+    accept: Callable[[Estimate], bool] | None = None,
 ) -> Step:
     """One frame of a vehicle: check its previous track, move and weigh the belief.
 
@@ -303,6 +311,10 @@ def follow(
         now: the server's time (epoch seconds), stamped into the new track.
         max_age_s: a track issued longer ago than this restarts (``expired``).
         dropped: frames known to be lost since ``prev`` (failed images of a batch).
+        accept: the caller's acceptance of the new estimate (e.g. with hysteresis on
+            :attr:`~hmpf.sequence.Estimate.held` and ``continuous``); its decision is
+            packed into the track (:meth:`~hmpf.sequence.SequenceFilter.hold`). None: the
+            state's decision is left as it was (False from the start).
     """
     ts = float("nan") if timestamp is None else float(timestamp)
     status: Status = "started" if prev is None else "tracking"
@@ -323,5 +335,7 @@ def follow(
     else:
         state, steps, interval = filt.start(), 1, float("nan")
     state, est = filt.update(state, evidence, steps)
+    if accept is not None:
+        state = filt.hold(state, bool(accept(est)))
     track = Track(binding, vehicle, now, ts, interval, filt.pack(state, KEEP))
     return Step(status, reason, est, steps, track)

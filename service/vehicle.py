@@ -18,8 +18,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from hmpf.acceptance import Decision
 from hmpf.errors import ConfigError
-from service.answer import with_sequence
+from hmpf.sequence import Estimate
+from service.answer import sequence_decision, with_sequence
+from service.engine import Loaded
 from service.errors import ApiError
 from service.metrics import Metrics
 from service.query import ImageQuery
@@ -55,6 +58,20 @@ class VehicleRequest:
     token: str | None
     prev: Track | None
     timestamp: float | None
+
+
+class _Decider:
+    """The one policy's decision on a frame's estimate (:func:`sequence_decision`): recorded
+    in the vehicle's track (``follow``'s ``accept``, the hysteresis of the next frame) and
+    kept for the frame's answer, so both say the same."""
+
+    def __init__(self, loaded: Loaded, query: ImageQuery) -> None:
+        self.loaded, self.query = loaded, query
+        self.decision: Decision | None = None
+
+    def __call__(self, estimate: Estimate) -> bool:
+        self.decision = sequence_decision(self.loaded, estimate, self.query.result)
+        return self.decision.accepted
 
 
 def _refused(exc: TrackRefused) -> ApiError:
@@ -144,6 +161,7 @@ class Tracker:
                 continue
             t = time.perf_counter()
             loaded = query.loaded
+            accept = _Decider(loaded, query)
             try:
                 step = follow(
                     loaded.sequence,
@@ -155,6 +173,7 @@ class Tracker:
                     now=time.time(),
                     max_age_s=self.settings.track_max_age_s,
                     dropped=dropped,
+                    accept=accept,
                 )
             except TrackRefused as exc:
                 self.metrics.sequence_refused.labels(exc.reason).inc()
@@ -163,7 +182,7 @@ class Tracker:
                 prev, token = step.track, codec.encode(step.track)
             dropped = 0
             assert token is not None  # issued above unless out of order (which had one)
-            answer = with_sequence(answer, loaded, step, token, query.result)
+            answer = with_sequence(answer, loaded, step, token, query.result, accept.decision)
             seconds = time.perf_counter() - t
             answer.timing_ms["sequence"] = seconds * 1e3
             locked = answer.sequence is not None and answer.sequence.locked

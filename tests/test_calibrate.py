@@ -512,7 +512,7 @@ def test_calibrate_fits_confidence_models_that_load_and_round_trip(banks, tmp_pa
         assert model.features == names and thr is not None and 0 <= thr <= 1
         assert tr[mode]["threshold"] == thr
         te = rep["test"]["confidence"][mode]
-        assert te["model"]["rule"] == "model" and 0 <= te["model"]["accepted"] <= 1
+        assert te["model"]["rule"] == "p_correct" and 0 <= te["model"]["accepted"] <= 1
         assert te["model"]["ece"] is not None and 0 <= te["model"]["ece"] <= 1
         base = te["z" if mode == "single" else "mass"]
         assert base["n"] == te["model"]["n"] and "ece" not in base
@@ -541,7 +541,7 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
     assert acc is not None and acc.model is not None
     rep = evaluate(config, train_data, cache=cache, skip_curves=[weak], sequence=True)
     single = rep["acceptance"]["single"]
-    assert single["rule"] == "model" and single["threshold"] == acc.model_threshold
+    assert single["rule"] == "p_correct" and single["threshold"] == acc.model_threshold
     p = np.array(single["p_correct"])
     assert p.shape == (train.n_query,) and ((p > 0) & (p < 1)).all()
     assert single["accepted_answers"] == (p >= acc.model_threshold).tolist()
@@ -556,11 +556,11 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
     assert p[0] == pytest.approx(acc.confidence_model().predict(f0))
     assert set(acc.confidence_model().features) == set(SINGLE_FEATURES)
     seq = rep["acceptance"]["sequence"]
-    expected = "model" if acc.sequence_model is not None else "mass"
+    expected = "p_correct" if acc.sequence_model is not None else "lock"
     assert seq["rule"] == expected and len(seq["p_correct"]) == train.n_query
     text = format_report(rep)
-    assert "acceptance (single, rule model: p_correct >=" in text
-    # Without a model: the z rule decides, p_correct is null (never a made-up number).
+    assert "acceptance (single, rule p_correct: p_correct >=" in text
+    # Without a model: the quality (z) rule decides, p_correct is null (never made up).
     plain = config.model_copy(
         update={
             "acceptance": acc.model_copy(
@@ -575,17 +575,22 @@ def test_eval_report_applies_the_configs_model_or_says_which_rule_decided(banks)
     )
     rep2 = evaluate(plain, train_data, cache=cache, skip_curves=[weak], sequence=True)
     s2, q2 = rep2["acceptance"]["single"], rep2["acceptance"]["sequence"]
-    assert s2["rule"] == "z" and s2["p_correct"] == [None] * train.n_query
+    assert s2["rule"] == "quality" and s2["p_correct"] == [None] * train.n_query
     assert s2["threshold"] == acc.threshold and "ece" not in s2
     quality = np.nan_to_num(np.array(rep2["hierarchy"]["quality"], dtype=float), nan=-np.inf)
     assert s2["accepted_answers"] == (quality >= acc.threshold).tolist()
-    assert q2["rule"] == "mass" and q2["threshold"] == plain.sequence_params().lock_mass
-    assert "rule z: Combined z >=" in format_report(rep2)
-    # No acceptance settings at all: rule "none".
+    assert q2["rule"] == "lock" and q2["threshold"] == plain.sequence_params().lock_mass
+    assert "rule quality: Combined z >=" in format_report(rep2)
+    # No acceptance settings at all: the quality rule at the built-in threshold, as the
+    # service (one policy: hmpf.acceptance).
+    from hmpf.acceptance import DEFAULT_ACCEPT_THRESHOLD
+
     bare = evaluate(
         config.model_copy(update={"acceptance": None}), train_data, cache=cache, skip_curves=[weak]
     )
-    assert bare["acceptance"]["single"]["rule"] == "none"
+    b = bare["acceptance"]["single"]
+    assert b["rule"] == "quality" and b["threshold"] == DEFAULT_ACCEPT_THRESHOLD
+    assert b["accepted_answers"] == (quality >= DEFAULT_ACCEPT_THRESHOLD).tolist()
     assert "sequence" not in bare["acceptance"]
 
 

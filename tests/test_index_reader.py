@@ -231,6 +231,8 @@ def test_hmpf_eval_index(gp_subset, built, tmp_path, capsys):
     assert "Combined recall@1" in capsys.readouterr().out
     rep = json.loads(out.read_text())
     assert len(rep["hierarchy"]["matches"]) == 4
-    # The index's config has no confidence model: no made-up probability, the rule is named.
+    # The index's config has no confidence model: no made-up probability; the quality rule
+    # decides, as in the service (one policy, hmpf.acceptance).
     single = rep["acceptance"]["single"]
-    assert single["p_correct"] == [None] * 4 and single["rule"] in ("z", "none")
+    assert single["p_correct"] == [None] * 4 and single["rule"] == "quality"
+    assert len(single["accepted_answers"]) == 4

@@ -29,7 +29,9 @@ from hmpf.sequence import (
 # Explicit parameters (the defaults are being tuned elsewhere): tests depend on these values.
 # evidence_weight is per standard deviation of a frame's tier-1 scores over the map; the
 # synthetic frames below have a standard deviation of ~0.25, so 0.75 weighs them as the
-# earlier raw weight of 3.0 did (the bounds were first measured with that).
+# earlier raw weight of 3.0 did (the bounds were first measured with that). leave = 0: no
+# "not in the map" hypothesis, the filter these bounds were measured on (and the dense
+# forward algorithm below); tests/test_sequence_off_map.py tests the off hypothesis.
 PARAMS = FilterParams(
     max_steps=4,
     accel=0.05,
@@ -45,6 +47,7 @@ PARAMS = FilterParams(
     junction_m=10.0,
     junction=0.2,
     reset=0.0,
+    leave=0.0,
 )
 
 EARTH_R = 6371000.0
@@ -1081,7 +1084,7 @@ def test_state_bytes_round_trip() -> None:
     err = np.abs(np.log(back.prob) - logs)
     assert (err <= np.maximum(np.abs(logs), 1.0) * 2.0**-10).all(), err.max()
     assert back.frames == state.frames == 30
-    assert back.prob.sum() + back.background == pytest.approx(1.0)
+    assert back.prob.sum() + back.background + back.off == pytest.approx(1.0)
     assert back.background == pytest.approx(1.0 - state.prob[top].sum(), abs=1e-3)
     e1, e2 = f.estimate(state), f.estimate(back)
     assert (e1.ref, e1.locked, e1.speed, e1.frames) == (e2.ref, e2.locked, e2.speed, e2.frames)
@@ -1103,7 +1106,7 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
     f, state = driven_state()
     data = f.pack(state)
     assert data == state.to_bytes(64, speeds=PARAMS.speeds) and data[14] == PARAMS.speeds
-    assert len(f.pack(state, keep=10)) == 15 + 60
+    assert len(f.pack(state, keep=10)) == 24 + 60
     back = f.unpack(data)
     ref = FilterState.from_bytes(data, f.n_keys)  # the old call: speeds not checked
     np.testing.assert_array_equal(back.keys, ref.keys)
@@ -1139,10 +1142,11 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
 def test_state_bytes_size() -> None:
     _, state = driven_state()
     for keep in (0, 1, 10, 64, 200):
-        # magic, frames, background, hypotheses, speeds; 4 + 2 bytes a hypothesis
-        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 6 * keep
-        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 15 + 6 * keep
-    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 399
+        # magic, frames, background, hypotheses, speeds, off, last_ref, held; 4 + 2 bytes a
+        # hypothesis
+        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 4 + 4 + 1 + 6 * keep
+        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 24 + 6 * keep
+    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 408
     # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
     # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
     with pytest.raises(HmpfError):
@@ -1151,7 +1155,7 @@ def test_state_bytes_size() -> None:
     with pytest.raises(HmpfError):
         big.to_bytes()
     many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
-    assert len(many.to_bytes(keep=65535)) == 15 + 6 * 65535
+    assert len(many.to_bytes(keep=65535)) == 24 + 6 * 65535
     with pytest.raises(HmpfError):
         many.to_bytes(keep=70000)
     with pytest.raises(HmpfError):
@@ -1168,11 +1172,23 @@ def pack(
     background: float = 0.5,
     frames: int = 3,
     speeds: int = 0,
-    magic: bytes = b"HQS2",
+    magic: bytes = b"HQS3",
+    off: float = 0.0,
+    last_ref: int = -1,
+    held: int = 0,
 ) -> bytes:
     """The packed format written out: magic, frames (u32), background (f32), hypotheses
-    (u16), speeds (u8), keys (u32), log probabilities (f16), little-endian."""
-    head = magic + struct.pack("<IfHB", frames, background, len(keys), speeds)
+    (u16), speeds (u8), off (f32), last_ref (i32), held (u8), keys (u32), log probabilities
+    (f16), little-endian."""
+    head = magic + struct.pack(
+        "<IfHBfiB", frames, background, len(keys), speeds, off, last_ref, held
+    )
+    return head + np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
+
+
+def pack_v2(keys: list[int], logs: list[float], background: float = 0.5) -> bytes:
+    """Format 2 (before the off hypothesis): magic, frames, background, hypotheses, speeds."""
+    head = b"HQS2" + struct.pack("<IfHB", 3, background, len(keys), 0)
     return head + np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
 
 
@@ -1183,12 +1199,14 @@ def pack(
         b"HQS1",
         b"garbage that is long enough to be read as a header",
         bytes(range(256)),
-        b"HQS3" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        b"HQS4" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        pack_v2([1, 2], [-1, -2]),  # format 2 (no off, last_ref, held): refused
+        pack_v2([], [], background=1.0),
         # format 1 (no speeds byte): refused, not misread
         b"HQS1" + struct.pack("<IfH", 3, 0.5, 2) + np.array([1, 2], "<u4").tobytes() + bytes(4),
         pack([1, 2], [-1, -2])[:-1],  # truncated
         pack([1, 2], [-1, -2]) + b"\0",  # trailing bytes
-        pack([1, 2], [-1, -2])[:15],  # header only, says 2 hypotheses
+        pack([1, 2], [-1, -2])[:24],  # header only, says 2 hypotheses
         pack([1, 1000], [-1, -2]),  # key beyond n_keys (= 1000)
         pack([999, 1000], [-1, -2]),
         pack([5, 3], [-1, -2]),  # unsorted
@@ -1200,6 +1218,13 @@ def pack(
         pack([1, 2], [-1, -2], background=float("inf")),
         pack([1, 2], [-1, -2], background=-0.1),
         pack([], [], background=0.0),  # no probability at all
+        pack([1, 2], [-1, -2], off=float("nan")),
+        pack([1, 2], [-1, -2], off=float("inf")),
+        pack([1, 2], [-1, -2], off=-0.1),
+        pack([1, 2], [-1, -2], last_ref=-2),
+        pack([1, 2], [-1, -2], last_ref=1000),  # beyond n_keys (speeds not said)
+        pack([1, 2], [-1, -2], speeds=5, last_ref=100),  # beyond 1000 // (2 * 5) references
+        pack([1, 2], [-1, -2], held=2),
     ],
 )
 def test_state_from_bytes_refuses(data: bytes) -> None:
@@ -1211,6 +1236,19 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
     st = FilterState.from_bytes(pack([1, 999], [-1, -2], background=0.0), 1000)
     assert list(st.keys) == [1, 999] and st.frames == 3 and st.background == 0.0
     np.testing.assert_allclose(st.prob, np.exp([-1, -2]) / np.exp([-1, -2]).sum(), rtol=1e-3)
+    assert (st.off, st.last_ref, st.held) == (0.0, -1, False)
+    # off, last_ref and held are read back; the three masses are renormalised together
+    logs = [math.log(0.6)] * 2  # 0.6 + 0.6 + 0.4 + 0.4 = 2: every mass halved
+    st = FilterState.from_bytes(pack([1, 2], logs, 0.4, off=0.4, last_ref=99, held=1), 1000)
+    assert (st.last_ref, st.held) == (99, True)
+    assert st.off == pytest.approx(0.2, rel=1e-3) and st.background == pytest.approx(0.2, rel=1e-3)
+    np.testing.assert_allclose(st.prob, [0.3, 0.3], rtol=1e-3)
+    # last_ref: a reference of the map (1000 keys at 5 speeds: 100 references)
+    assert FilterState.from_bytes(pack([1], [0], speeds=5, last_ref=99), 1000).last_ref == 99
+    with pytest.raises(StateError, match="last estimate"):
+        FilterState.from_bytes(pack([1], [0], last_ref=100), 1000, speeds=5)
+    with pytest.raises(StateError, match="older format"):
+        FilterState.from_bytes(pack_v2([1], [0]), 1000)
     # the speeds byte: checked when both the state and the reader say them
     for packed, expected in ((9, 9), (0, 9), (9, 0), (0, 0), (255, 255)):
         data = pack([1, 2], [-1, -2], speeds=packed)

@@ -5,12 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hmpf.confidence import ReferenceProfile
 from hmpf.evaluation.sequence import (
     Drive,
     dropped_drive,
+    evidences_of,
     jump_drives,
+    leave_drives,
     lock_frames,
     lock_threshold,
+    off_map_report,
     sequence_report,
     sequence_settings,
     speed_drive,
@@ -108,3 +112,54 @@ def test_lock_threshold_hand_computed():
 def test_drive_dataclass_defaults():
     d = Drive.along([3, 4, 5])
     assert d.steps.tolist() == [1, 1, 1] and d.splice is None
+
+
+def _raw_results(n: int, m: int, rng: np.random.Generator) -> list[HierarchyResult]:
+    """``n`` in-map queries (query i shows reference i, raw score 1 there) then ``m`` frames
+    from elsewhere (raw scores of clutter, its best reference random), over ``n``
+    references."""
+    out = []
+    for i in range(n + m):
+        raw = rng.uniform(0.0, 0.5, n)
+        peak = i if i < n else int(np.argmax(raw))
+        if i < n:
+            raw[max(0, i - 1) : i + 2] += 0.3
+            raw[i] = 1.0
+        score = raw / raw.max()
+        final = np.argsort(-score)[:5]
+        tier = TierResult(["m"], None, {"m": score}, final, 0.0, {"m": raw})
+        out.append(HierarchyResult(peak, 2.0, final, np.linspace(2.0, -0.5, 5), [tier]))
+    return out
+
+
+def test_evidences_of_reads_the_absolute_evidence_with_a_profile():
+    rng = np.random.default_rng(3)
+    results = _raw_results(40, 5, rng)
+    profile = ReferenceProfile(("m",), (1.0,), np.full((1, 40), 0.25), np.full((1, 40), 0.15))
+    evs = evidences_of(results, 40, 10, profile)
+    for r, e in zip(results, evs, strict=True):
+        raw = r.tiers[0].raw["m"][r.match]
+        assert e.absolute == pytest.approx((raw - 0.25) / 0.15)
+    assert min(e.absolute for e in evs[:40]) == pytest.approx(0.75 / 0.15)
+    assert max(e.absolute for e in evs[40:]) < 0.25 / 0.15
+    assert all(np.isnan(e.absolute) for e in evidences_of(results, 40, 10))
+
+
+def test_leave_drives_and_the_off_map_report():
+    rng = np.random.default_rng(4)
+    for d in leave_drives(100, 60, 20, 10, 15, 20, rng):
+        assert d.away == (10, 25) and d.splice == 25 and len(d.frames) == 45
+        assert (d.frames[10:25] >= 100).all() and (d.frames[:10] < 100).all()
+        assert np.diff(d.frames[10:25]).tolist() == [1] * 14 and d.frames[25] >= d.frames[9] + 1
+    assert leave_drives(10, 60, 5, 10, 15, 20, rng) == []  # the route is too short
+    n, m = 120, 60
+    results = _raw_results(n, m, np.random.default_rng(5))
+    gt = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) <= 2
+    profile = ReferenceProfile(("m",), (1.0,), np.full((1, n), 0.25), np.full((1, n), 0.15))
+    params = FilterParams(off_center=3.0, off_slope=1.0)
+    rep = off_map_report(results[:n], results[n:], gt, RouteMap.from_metadata(n), params, profile)
+    w, wo = rep["with_off"], rep["without_off"]
+    assert rep["n_drives"] == 40 and rep["absolute"]["away"]["p95"] < 3.0
+    assert w["away_off_map"] > 0.8 and wo["away_off_map"] == 0.0
+    assert w["on_map_off_map"] < 0.1 and w["away_accepted"] <= wo["away_accepted"]
+    assert w["frames_back_on_map"]["median"] <= 2 and w["frames_to_relock"]["median"] <= 10

@@ -465,20 +465,36 @@ def test_batch_answers_carry_p_correct(
 def test_hmpf_eval_on_the_index_gives_the_services_p_correct(
     client: TestClient, keys: dict[str, str], night: list[Path], model_index: Path
 ) -> None:
-    """hmpf-eval --index applies the version's model with the same absolute evidence (the
-    reader's reference profile) as the service: the same p_correct per frame."""
+    """hmpf-eval --index runs the service's policy (hmpf.acceptance) with the same absolute
+    evidence (the reader's reference profile): the same p_correct and the same accepted per
+    frame, single frame and in sequence mode (the frames driven in order, one vehicle)."""
     from hmpf.evaluation.evaluate import evaluate_index
 
-    frames = [night[i] for i in TEST]
+    order = list(range(0, 12))
+    frames = [night[i] for i in order]
     reader = IndexReader(model_index)
     try:
         gt = np.zeros((len(frames), reader.n), dtype=bool)
-        for j, i in enumerate(TEST):
+        for j, i in enumerate(order):
             gt[j, max(0, i - TOLERANCE) : i + TOLERANCE + 1] = True
-        rep = evaluate_index(reader, frames, gt, "frames +-2")
+        rep = evaluate_index(reader, frames, gt, "frames +-2", sequence=True)
     finally:
         reader.close()
-    single = rep["acceptance"]["single"]
-    assert single["rule"] == "model"
-    served = [_post(client, keys, f)["match"]["p_correct"] for f in frames]
-    assert single["p_correct"] == pytest.approx(served, rel=1e-9, abs=1e-12)
+    single, seq = rep["acceptance"]["single"], rep["acceptance"]["sequence"]
+    assert single["rule"] == "p_correct" and seq["rule"] == "p_correct"
+    answers = [_post(client, keys, f)["match"] for f in frames]
+    assert single["p_correct"] == pytest.approx([a["p_correct"] for a in answers], abs=1e-12)
+    assert single["accepted_answers"] == [a["accepted"] for a in answers]
+    track, served, off = None, [], []
+    for i, f in enumerate(frames):
+        fields: dict[str, Any] = {"vehicle_id": "car-parity", "timestamp": float(i)}
+        if track is not None:
+            fields["track"] = track
+        body = _post(client, keys, f, **fields)
+        track = body["sequence"]["track"]
+        served.append(body["sequence"]["match"])
+        off.append(body["sequence"]["off_map"])
+    # The token carries the belief as float16 logs: probabilities agree to ~1e-3.
+    assert seq["p_correct"] == pytest.approx([m["p_correct"] for m in served], abs=5e-3)
+    assert seq["accepted_answers"] == [m["accepted"] for m in served]
+    assert seq["off_map"] == off

@@ -29,6 +29,17 @@ calibration.json.
 The time budget is enforced on a cost model measured on this machine, so the winner may differ
 between machines; ``--costs FILE`` (an earlier ``calibration.json``) fixes the cost model, and
 with it the choice, on any machine.
+
+``--config NAME_OR_YAML --fit-only`` searches nothing: it fits the acceptance of that
+hierarchy (a preset name or a YAML file) as it is, on the same training part and by the same
+step as the search's winner (the z threshold, the models, with ``--sequence`` the filter's
+settings), measures the test part the same way and writes the same three files:
+calibrated.yaml is the given config with its ``acceptance:`` (with ``--sequence`` also its
+``sequence:``) replaced, so its digest, and any index built for it, stays the same;
+leaderboard.md says it was a fit-only run and gives the digest. ``--methods`` and ``--name``
+restrict or rename the searched hierarchy and are errors with ``--fit-only``; the search's
+other flags (``--pool``, budget, cost model, search space) are ignored. ``--config``
+without ``--fit-only`` is an error too: the search chooses among the methods of ``--pool``.
 """
 
 from __future__ import annotations
@@ -59,6 +70,7 @@ if TYPE_CHECKING:
     from hmpf.evaluation.study import CostModel, ScoreBank
 
 DEFAULT_POOL = "calibration-pool"  # a preset name (hmpf/presets/calibration-pool.yaml)
+DEFAULT_NAME = "calibrated"
 
 
 def add_split_args(p: argparse.ArgumentParser) -> None:
@@ -118,14 +130,33 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="hmpf-calibrate",
         description="Search hierarchies on a training split under a time budget; write the "
-        "best as a config with its acceptance threshold.",
+        "best as a config with its acceptance threshold. With --config NAME --fit-only: no "
+        "search, fit the acceptance of that hierarchy as it is.",
     )
     add_version(p)
     add_split_args(p)
-    p.add_argument("--pool", default=DEFAULT_POOL, help="config whose methods may be used")
-    p.add_argument("--methods", nargs="*", help="use only these pool methods")
+    p.add_argument(
+        "--pool",
+        default=DEFAULT_POOL,
+        help="config whose methods the search may use (ignored with --fit-only)",
+    )
+    p.add_argument("--methods", nargs="*", help="use only these pool methods (not with --fit-only)")
+    p.add_argument(
+        "--config",
+        help="with --fit-only: the hierarchy (a preset name or a YAML file) whose acceptance is "
+        "fitted as it is; only with --fit-only (the search chooses among --pool's methods)",
+    )
+    p.add_argument(
+        "--fit-only",
+        action="store_true",
+        help="no search: fit the acceptance of --config (its z threshold, models and, with "
+        "--sequence, the filter's settings) and write it with the config's digest unchanged; "
+        "the search's flags (--pool, budget, costs, search space) are then ignored",
+    )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--name", default="calibrated", help="name of the written config")
+    p.add_argument(
+        "--name", help=f"name of the written config (default {DEFAULT_NAME}; not with --fit-only)"
+    )
     p.add_argument("--budget-ms", type=float, default=150.0, help="per-query time budget (ms)")
     p.add_argument("--db-size", type=int, help="charge tier 1 for this many references")
     p.add_argument(
@@ -190,6 +221,26 @@ def _pool_and_methods(args: argparse.Namespace) -> tuple[HierarchyConfig, tuple[
     return pool, methods
 
 
+def mode_error(args: argparse.Namespace) -> str | None:
+    """Why the mode flags do not go together (``--fit-only`` and ``--config``), or None."""
+    if args.fit_only and args.config is None:
+        return "--fit-only needs --config (the hierarchy whose acceptance is fitted)"
+    if args.config is not None and not args.fit_only:
+        return (
+            "--config is only read with --fit-only (fit that hierarchy's acceptance as it is); "
+            "the search chooses among the methods of --pool"
+        )
+    if args.fit_only:
+        pairs = (("--methods", args.methods), ("--name", args.name))
+        given = [flag for flag, value in pairs if value is not None]
+        if given:
+            return (
+                f"{', '.join(given)} not with --fit-only: it keeps --config as it is "
+                "(its methods and name are part of its digest)"
+            )
+    return None
+
+
 def _check_args(args: argparse.Namespace) -> None:
     if not 0 < args.target_precision <= 1:
         raise HmpfError("--target-precision must be in (0, 1]")
@@ -205,14 +256,7 @@ def _write(args: argparse.Namespace, config: HierarchyConfig, report: dict[str, 
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ground_truth = report["protocol"]["ground_truth"]
-    win = report["train"]["winner"]
-    header = (
-        f"Written by hmpf-calibrate (seed {args.seed}, budget {args.budget_ms:g} ms/query).\n"
-        f"Route: {args.reference} -> {args.query}, {args.split} split, {ground_truth}.\n"
-        f"Training recall@1 {win['recall_at_1']:.3f}, modelled {win['model_ms']:.1f} ms/query."
-    )
-    write_config(config, out / "calibrated.yaml", header)
+    write_config(config, out / "calibrated.yaml", _header(args, report))
     md = leaderboard_markdown(report)
     (out / "leaderboard.md").write_text(md)
     (out / "calibration.json").write_text(json.dumps(report, indent=1))
@@ -220,12 +264,72 @@ def _write(args: argparse.Namespace, config: HierarchyConfig, report: dict[str, 
     print(f"wrote {out / 'calibrated.yaml'}, {out / 'leaderboard.md'}, {out / 'calibration.json'}")
 
 
+def _header(args: argparse.Namespace, report: dict[str, Any]) -> str:
+    """calibrated.yaml's comment: how it was written, on which route, its training figures."""
+    route = (
+        f"Route: {args.reference} -> {args.query}, {args.split} split, "
+        f"{report['protocol']['ground_truth']}."
+    )
+    tr = report["train"]
+    if report.get("mode") == "fit-only":
+        return (
+            f"Written by hmpf-calibrate --fit-only (seed {args.seed}): the acceptance of "
+            f"{args.config}, no search.\n{route}\n"
+            f"Training recall@1 {tr['recall_at_1']:.3f}; config digest {report['digest']}."
+        )
+    win = tr["winner"]
+    return (
+        f"Written by hmpf-calibrate (seed {args.seed}, budget {args.budget_ms:g} ms/query).\n"
+        f"{route}\n"
+        f"Training recall@1 {win['recall_at_1']:.3f}, modelled {win['model_ms']:.1f} ms/query."
+    )
+
+
+def _protocol(args: argparse.Namespace, train: ScoreBank) -> dict[str, Any]:
+    """The report's ``protocol``: the route, its ground truth and split, the pool or config."""
+    source = {"config": args.config} if args.fit_only else {"pool": args.pool}
+    return {
+        "reference": args.reference,
+        "query": args.query,
+        "ground_truth": train.data.ground_truth,
+        "split": args.split,
+        "block": args.block,
+        **source,
+    }
+
+
+def run_fit_only(args: argparse.Namespace) -> int:
+    """``--fit-only``: score the split for --config, fit its acceptance, write."""
+    from hmpf.config import load_config
+    from hmpf.evaluation.calibrate import fit_only
+
+    _check_args(args)
+    given = load_config(args.config)
+    train, test = load_banks(args, given)
+    config, report = fit_only(
+        given,
+        train,
+        test,
+        seed=args.seed,
+        target_precision=args.target_precision,
+        sequence=args.sequence,
+        model=not args.no_model,
+        outside=not args.no_outside,
+    )
+    report["protocol"] = _protocol(args, train)
+    _write(args, config, report)
+    return 0
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
-    """The command's body: check the flags, score the split, search, write."""
+    """The command's body: check the flags, score the split, search (or, ``--fit-only``,
+    fit the given config), write."""
     from tqdm import tqdm
 
     from hmpf.evaluation.calibrate import SearchSpace, calibrate
 
+    if args.fit_only:
+        return run_fit_only(args)
     _check_args(args)
     costs = load_costs(args.costs) if args.costs else None
     pool, methods = _pool_and_methods(args)
@@ -250,7 +354,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             seed=args.seed,
             target_precision=args.target_precision,
             db_size=args.db_size,
-            name=args.name,
+            name=args.name or DEFAULT_NAME,
             top=args.top,
             progress=_bar_update(bar),
             costs=costs,
@@ -258,20 +362,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
             model=not args.no_model,
             outside=not args.no_outside,
         )
-    report["protocol"] = {
-        "reference": args.reference,
-        "query": args.query,
-        "ground_truth": train.data.ground_truth,
-        "split": args.split,
-        "block": args.block,
-        "pool": args.pool,
-    }
+    report["protocol"] = _protocol(args, train)
     _write(args, config, report)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    error = mode_error(args)
+    if error is not None:
+        parser.error(error)  # usage, the message and exit 2, as argparse's own errors
     return run("hmpf-calibrate", lambda: run_calibrate(args))
 
 

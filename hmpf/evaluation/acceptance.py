@@ -29,10 +29,12 @@ trust the model's in-sample fit (as ``bench/confidence.py``).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
+from hmpf.acceptance import Decision, Policy
 from hmpf.confidence import (
     ConfidenceModel,
     ModelError,
@@ -46,7 +48,7 @@ from hmpf.config import AcceptanceSettings, HierarchyConfig
 from hmpf.evaluation.sequence import Drive, drive, evidences_of
 from hmpf.evaluation.study import ScoreBank
 from hmpf.hierarchy import HierarchyResult
-from hmpf.sequence import FilterParams, RouteMap, SequenceFilter
+from hmpf.sequence import Estimate, FilterParams, RouteMap, SequenceFilter
 
 __all__ = [
     "FOLDS",
@@ -57,8 +59,13 @@ __all__ = [
     "Answers",
     "acceptance_figures",
     "apply_acceptance",
+    "decide",
     "fit_acceptance",
+    "RoutePart",
+    "fit_pooled",
     "outside_answers",
+    "route_out_of_fold",
+    "stay_threshold",
     "outside_floor",
     "sequence_answers",
     "single_answers",
@@ -76,7 +83,9 @@ OUTSIDE_SHARE = 0.1
 
 class Answers:
     """Answers of one part: per answer its features, whether it is right, today's score
-    (Combined z, or the posterior mass in sequence mode) and its query index."""
+    (Combined z, or the posterior mass in sequence mode) and its query index; in sequence
+    mode also each answer's :class:`~hmpf.sequence.Estimate` and the drive it belongs to
+    (the policy's hysteresis carries a decision from one frame of a drive to the next)."""
 
     def __init__(
         self,
@@ -84,11 +93,15 @@ class Answers:
         correct: np.ndarray,
         score: np.ndarray,
         query: np.ndarray,
+        estimates: list[Estimate] | None = None,
+        drive: np.ndarray | None = None,
     ) -> None:
         self.features = features
         self.correct = np.asarray(correct, dtype=bool)
         self.score = np.asarray(score, dtype=np.float64)
         self.query = np.asarray(query, dtype=np.int64)
+        self.estimates = estimates
+        self.drive = None if drive is None else np.asarray(drive, dtype=np.int64)
 
     def __len__(self) -> int:
         return len(self.features)
@@ -123,17 +136,30 @@ def sequence_answers(
     n_q = len(results)
     truth = np.zeros((n_q, routes.n), dtype=bool) if gt is None else np.asarray(gt, bool)
     drives = [Drive.along(np.arange(n_q))] if drives is None else drives
+    evs = evidences_of(results, routes.n, params.proposals, profile)
+    if profile is None:  # no absolute evidence: no off hypothesis (as sequence_report)
+        params = params.with_(leave=0.0)
     filt = SequenceFilter(routes, params)
-    evs = evidences_of(results, routes.n, params.proposals)
     feats, correct, mass, query = [], [], [], []
-    for d in drives:
+    estimates: list[Estimate] = []
+    which: list[int] = []
+    for i, d in enumerate(drives):
         run = drive(filt, evs, d, truth)
         for q, est, ok in zip(d.frames, run.estimates, run.correct, strict=True):
             feats.append(answer_features(results[int(q)], routes, estimate=est, profile=profile))
             correct.append(bool(ok))
             mass.append(est.mass)
             query.append(int(q))
-    return Answers(feats, np.array(correct, bool), np.array(mass, float), np.array(query, int))
+            estimates.append(est)
+            which.append(i)
+    return Answers(
+        feats,
+        np.array(correct, bool),
+        np.array(mass, float),
+        np.array(query, int),
+        estimates,
+        np.array(which, int),
+    )
 
 
 def _folds(query: np.ndarray, nq: int | None = None) -> np.ndarray:
@@ -183,23 +209,29 @@ def outside_answers(
         if params is not None:
             run = sequence_answers(results, sub.gt, routes, params, profile=prof)
             pick = np.isin(run.query, out)
+            assert run.estimates is not None and run.drive is not None
             seq.append(
                 Answers(
                     [f for f, k in zip(run.features, pick, strict=True) if k],
                     np.zeros(int(pick.sum()), bool),
                     run.score[pick],
                     run.query[pick],
+                    [e for e, k in zip(run.estimates, pick, strict=True) if k],
+                    run.drive[pick] + g * 1_000_000,
                 )
             )
     return _concat(single), (_concat(seq) if params is not None else None)
 
 
 def _concat(parts: Sequence[Answers]) -> Answers:
+    seq = bool(parts) and all(a.estimates is not None and a.drive is not None for a in parts)
     return Answers(
         [f for a in parts for f in a.features],
         np.concatenate([a.correct for a in parts]) if parts else np.zeros(0, bool),
         np.concatenate([a.score for a in parts]) if parts else np.zeros(0),
         np.concatenate([a.query for a in parts]) if parts else np.zeros(0, np.int64),
+        [e for a in parts for e in (a.estimates or [])] if seq else None,
+        np.concatenate([a.drive for a in parts if a.drive is not None]) if seq else None,
     )
 
 
@@ -300,41 +332,199 @@ def acceptance_figures(
     return out
 
 
+def decide(policy: Policy, answers: Answers, *, sequence: bool = False) -> list[Decision]:
+    """The policy's decision on every answer (:mod:`hmpf.acceptance`, what the service runs).
+
+    Sequence mode needs the answers' estimates (:func:`sequence_answers`); within a drive, a
+    frame is *held* when the previous frame's estimate was accepted (the service carries the
+    same bit in the vehicle's track)."""
+    if not sequence:
+        return [
+            policy.single_from(f, q) for f, q in zip(answers.features, answers.score, strict=True)
+        ]
+    if answers.estimates is None or answers.drive is None:
+        raise ModelError("sequence decisions need the answers' estimates (sequence_answers)")
+    out: list[Decision] = []
+    prev_drive, held = None, False
+    for f, est, d in zip(answers.features, answers.estimates, answers.drive, strict=True):
+        if d != prev_drive:
+            prev_drive, held = d, False
+        dec = policy.sequence_from(f, est, held=held)
+        out.append(dec)
+        held = dec.accepted
+    return out
+
+
 def apply_acceptance(
-    acceptance: AcceptanceSettings | None,
+    acceptance: AcceptanceSettings | Policy | None,
     answers: Answers,
     *,
     sequence: bool = False,
     lock_mass: float | None = None,
 ) -> dict[str, Any]:
-    """A config's acceptance applied to ``answers``.
+    """A config's acceptance (or a :class:`~hmpf.acceptance.Policy`) applied to ``answers``
+    through the one policy (:func:`decide`).
 
-    Returns ``rule`` ("model": ``p_correct >= model_threshold`` (or ``sequence_threshold``);
-    "z": Combined quality >= ``threshold``; "mass" (sequence mode without a sequence model):
-    posterior mass >= ``lock_mass``, the filter's lock threshold; "none": nothing to decide
-    with), ``p_correct`` per answer (None without a model, never a made-up number),
-    ``accepted_answers`` per answer (None under "none"), and the figures at the rule's threshold
-    (:func:`acceptance_figures`; ECE only for the model).
+    Returns ``rule`` (``p_correct``, ``quality`` or ``lock``, as the service's
+    ``accepted_by``), ``p_correct`` per answer (None without a model, never a made-up
+    number), ``accepted_answers`` and ``off_map`` per answer, and the figures at the rule's
+    threshold (:func:`acceptance_figures`; ECE only for a model).
     """
-    model = None if acceptance is None else acceptance.confidence_model(sequence=sequence)
-    if model is not None and acceptance is not None:
-        threshold = acceptance.sequence_threshold if sequence else acceptance.model_threshold
-        assert threshold is not None  # validated at load
-        p = np.asarray(model.predict(feature_matrix(answers.features, model.features)))
-        figs = acceptance_figures(p, answers.correct, threshold)
-        return {
-            "rule": "model",
-            "p_correct": [float(x) for x in p],
-            "accepted_answers": (p >= threshold).tolist(),
-            **figs,
-        }
-    p_none: list[float | None] = [None] * len(answers)
-    if sequence:
-        rule, fallback = "mass", lock_mass
+    policy = (
+        acceptance
+        if isinstance(acceptance, Policy)
+        else Policy.of(acceptance, lock_mass=0.99 if lock_mass is None else lock_mass)
+    )
+    decisions = decide(policy, answers, sequence=sequence)
+    rule = policy.sequence_rule if sequence else policy.single_rule
+    accepted = np.array([d.accepted for d in decisions], dtype=bool)
+    p = [d.p_correct for d in decisions]
+    if rule == "p_correct":
+        threshold = policy.sequence_threshold if sequence else policy.model_threshold
+        probs = np.array([np.nan if x is None else x for x in p], dtype=np.float64)
+        figs = acceptance_figures(probs, answers.correct, float(threshold or 0.0))
     else:
-        rule, fallback = "z", None if acceptance is None else acceptance.threshold
-    if fallback is None:
-        return {"rule": "none", "p_correct": p_none, "accepted_answers": [None] * len(answers)}
-    figs = acceptance_figures(answers.score, answers.correct, fallback, probability=False)
-    acc = np.nan_to_num(answers.score, nan=-np.inf) >= fallback
-    return {"rule": rule, "p_correct": p_none, "accepted_answers": acc.tolist(), **figs}
+        threshold = policy.lock_mass if sequence else policy.threshold
+        figs = acceptance_figures(answers.score, answers.correct, threshold, probability=False)
+    # The decisions, not the bare threshold, say what was accepted (hysteresis, off map).
+    n = int(accepted.sum())
+    figs["accepted"] = float(accepted.mean()) if len(accepted) else 0.0
+    figs["n_accepted"] = n
+    figs["precision"] = float(answers.correct[accepted].mean()) if n else None
+    return {
+        "rule": rule,
+        "p_correct": p,
+        "accepted_answers": accepted.tolist(),
+        "off_map": [d.off_map for d in decisions],
+        **figs,
+    }
+
+
+# -- one model for many routes: the models the bundled presets ship ------------------------------
+
+
+class RoutePart:
+    """One route's training answers for a pooled fit: the in-map answers and the answers to
+    queries from places the map does not hold (:func:`outside_answers`)."""
+
+    def __init__(self, name: str, answers: Answers, outside: Answers | None = None) -> None:
+        self.name = name
+        self.answers = answers
+        self.outside = outside
+
+
+def _pooled(
+    parts: Sequence[RoutePart], names: Sequence[str], outside_share: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(X, y, weight, route of each row, whether a row is an in-map answer) of ``parts``:
+    each route's in-map answers weigh 1 together (routes of different lengths count alike)
+    and its out-of-map answers ``outside_share`` of the route's total."""
+    xs, ys, ws, gs, ins = [], [], [], [], []
+    for g, part in enumerate(parts):
+        n = len(part.answers)
+        if n == 0:
+            continue
+        xs.append(feature_matrix(part.answers.features, names))
+        ys.append(part.answers.correct.astype(np.float64))
+        ws.append(np.full(n, 1.0 / n))
+        gs.append(np.full(n, g))
+        ins.append(np.ones(n, bool))
+        m = 0 if part.outside is None else len(part.outside)
+        if m and outside_share > 0:
+            assert part.outside is not None
+            xs.append(feature_matrix(part.outside.features, names))
+            ys.append(np.zeros(m))
+            ws.append(np.full(m, outside_share / (1 - outside_share) / m))
+            gs.append(np.full(m, g))
+            ins.append(np.zeros(m, bool))
+    if not xs:
+        raise ModelError("no training answers")
+    return (
+        np.vstack(xs),
+        np.concatenate(ys),
+        np.concatenate(ws),
+        np.concatenate(gs),
+        np.concatenate(ins),
+    )
+
+
+def route_out_of_fold(
+    parts: Sequence[RoutePart], names: Sequence[str], *, outside_share: float = OUTSIDE_SHARE
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Leave-one-route-out predictions of every training answer: each route's answers
+    predicted by the model fitted on the other routes. Returns (p, y, route, in-map)."""
+    X, y, w, g, inside = _pooled(parts, names, outside_share)
+    oof = np.empty(len(y))
+    for r in np.unique(g):
+        hold = g == r
+        if y[~hold].min() == y[~hold].max():
+            raise ModelError("a fold's other routes hold only right or only wrong answers")
+        model = ConfidenceModel.fit(X[~hold], y[~hold], names, l2=L2, sample_weight=w[~hold])
+        oof[hold] = model.predict(X[hold])
+    return oof, y, g, inside
+
+
+def fit_pooled(
+    parts: Sequence[RoutePart],
+    names: Sequence[str],
+    target: float,
+    *,
+    outside_share: float = OUTSIDE_SHARE,
+) -> tuple[ConfidenceModel, float, dict[str, Any]]:
+    """One model over several routes' training answers (each route weighing alike), its
+    threshold for ``target`` precision chosen on leave-one-route-out predictions (a model
+    that must hold on routes it never saw is thresholded as if each route were unseen), and
+    bounded so that at most ``1 - target`` of the out-of-map answers are accepted; with the
+    training figures at that threshold."""
+    if len(parts) < 2:
+        raise ModelError("a pooled fit needs at least two routes")
+    X, y, w, _, inside = _pooled(parts, names, outside_share)
+    if y.min() == y.max():
+        raise ModelError("the training answers are all right or all wrong")
+    model = ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w)
+    oof, _, g, _ = route_out_of_fold(parts, names, outside_share=outside_share)
+    floor = outside_floor(oof[~inside], 1.0 - target) if (~inside).any() else 0.0
+    threshold = threshold_for_precision(oof[inside], y[inside].astype(bool), target, floor=floor)
+    p_all = np.asarray(model.predict(X))
+    train = acceptance_figures(p_all[inside], y[inside].astype(bool), threshold)
+    train["out_of_fold"] = acceptance_figures(oof[inside], y[inside].astype(bool), threshold)
+    train["routes"] = [p.name for p in parts]
+    if (~inside).any():
+        train["outside"] = {
+            "n": int((~inside).sum()),
+            "share": outside_share,
+            "floor": floor,
+            "accepted": float(np.mean(p_all[~inside] >= threshold)),
+            "accepted_out_of_fold": float(np.mean(oof[~inside] >= threshold)),
+        }
+    return model, threshold, train
+
+
+def stay_threshold(
+    policy: Policy, drives: Sequence[Answers], target: float, *, candidates: int = 200
+) -> float:
+    """The lowest stay threshold (hysteresis, :attr:`Policy.sequence_stay_threshold`), at
+    most the policy's ``sequence_threshold``, whose decisions over the in-map training
+    ``drives`` (:func:`sequence_answers`) keep ``target`` precision. The candidates are
+    quantiles of the drives' ``p_correct`` below the threshold."""
+    if policy.sequence_model is None or policy.sequence_threshold is None:
+        raise ModelError("a stay threshold needs a sequence model")
+    enter = float(policy.sequence_threshold)
+    both = _concat(list(drives))
+    p = np.asarray(
+        policy.sequence_model.predict(feature_matrix(both.features, policy.sequence_model.features))
+    )
+    below = (
+        np.unique(np.quantile(p[p < enter], np.linspace(0, 1, candidates)))
+        if (p < enter).any()
+        else np.zeros(0)
+    )
+    best = enter
+    for s in np.sort(below)[::-1]:  # from the threshold down: stop at the first failure
+        trial = replace(policy, sequence_stay_threshold=float(s))
+        dec = decide(trial, both, sequence=True)
+        acc = np.array([d.accepted for d in dec], bool)
+        if acc.any() and both.correct[acc].mean() < target:
+            break
+        best = float(s)
+    return best

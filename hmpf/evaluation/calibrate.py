@@ -17,6 +17,11 @@ budget can be enforced. It is deterministic given its seed and cost model:
 
 The acceptance threshold (:func:`acceptance_threshold`) is the lowest Combined quality at
 which the training answers reach the target precision.
+
+The acceptance of one hierarchy (its z threshold, with sequence mode the filter's settings,
+and its confidence models) is fitted by :func:`fit_config_acceptance`, the step
+:func:`calibrate` runs for the search's winner and :func:`fit_only` for a given config as it
+is (``hmpf-calibrate --config NAME --fit-only``: no search; the config's digest is kept).
 """
 
 from __future__ import annotations
@@ -59,10 +64,14 @@ from hmpf.runtime import machine_description
 from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = [
+    "AcceptanceFit",
     "SearchSpace",
     "Trial",
     "acceptance_threshold",
+    "calibrate",
     "describe",
+    "fit_config_acceptance",
+    "fit_only",
     "paired_test",
     "precision_recall_at",
     "search",
@@ -407,12 +416,12 @@ def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) 
     }
 
 
-def _accept(
-    win: Trial, pool: HierarchyConfig, name: str, target_precision: float
-) -> tuple[HierarchyConfig, dict[str, Any]]:
-    """The winner's config with its acceptance threshold, and the threshold's figures."""
-    assert win.outcome is not None
-    acc = acceptance_threshold(win.outcome.quality, win.outcome.correct, target_precision)
+def _z_acceptance(
+    outcome: HierarchyOutcome, target_precision: float
+) -> tuple[AcceptanceSettings, dict[str, Any]]:
+    """The acceptance by the Combined z threshold of a hierarchy's training answers, and the
+    threshold's figures (:func:`acceptance_threshold`)."""
+    acc = acceptance_threshold(outcome.quality, outcome.correct, target_precision)
     note = (
         f"lowest Combined quality giving {target_precision:.0%} precision on the training "
         f"split ({acc['n_accepted']} of {acc['n_queries']} answers accepted)"
@@ -423,7 +432,111 @@ def _accept(
     acceptance = AcceptanceSettings(
         threshold=round(acc["threshold"], 6), precision=target_precision, note=note
     )
-    return win.config(pool, name=name).model_copy(update={"acceptance": acceptance}), acc
+    return acceptance, acc
+
+
+@dataclass
+class AcceptanceFit:
+    """A hierarchy's acceptance fitted on a training part (:func:`fit_config_acceptance`).
+
+    Attributes:
+        config: the hierarchy with its ``acceptance`` (and, in sequence mode, its
+            ``sequence``) replaced; everything else as given, so its digest is unchanged.
+        acceptance: the z threshold's training figures (:func:`acceptance_threshold`).
+        sequence_params: the sequence filter's chosen settings (sequence mode), or None.
+        sequence: their training figures (sequence mode), or None.
+        confidence: the confidence models' training figures, or None without models.
+    """
+
+    config: HierarchyConfig
+    acceptance: dict[str, Any]
+    sequence_params: FilterParams | None = None
+    sequence: dict[str, Any] | None = None
+    confidence: dict[str, Any] | None = None
+
+
+def fit_config_acceptance(
+    config: HierarchyConfig,
+    train: ScoreBank,
+    *,
+    target_precision: float = 0.99,
+    seed: int = 0,
+    sequence: bool = False,
+    model: bool = True,
+    outside: bool = True,
+    outcome: HierarchyOutcome | None = None,
+) -> AcceptanceFit:
+    """Fit ``config``'s acceptance on the training part ``train`` (a bank holding its
+    methods): the step the search runs for its winner, and ``--fit-only`` for a given config.
+
+    The z threshold is the lowest Combined quality reaching ``target_precision`` on the
+    training answers (:func:`acceptance_threshold`); with ``sequence`` the sequence filter's
+    settings and lock threshold are chosen too (from the config's own ``sequence:`` as the
+    base; written as ``sequence:``); with ``model`` the confidence models are fitted
+    (:func:`_fit_models`, with ``outside`` on the training part's out-of-map answers too).
+    Any acceptance the config had is replaced as a whole.
+
+    Args:
+        outcome: ``config``'s outcome on ``train`` when already known (the search's trial).
+    """
+    missing = [m for m in config.method_ids if m not in train.methods]
+    if missing:
+        raise ConfigError(f"the training bank does not hold {', '.join(missing)}")
+    if outcome is None:
+        outcome = train.run(config)
+    acceptance, acc = _z_acceptance(outcome, target_precision)
+    config = config.model_copy(update={"acceptance": acceptance})
+    fit = AcceptanceFit(config, acc)
+    if sequence:
+        fit.sequence_params, fit.sequence = train.tune_sequence(
+            config, target_precision=target_precision, seed=seed
+        )
+        fit.config = config.model_copy(update={"sequence": sequence_settings(fit.sequence_params)})
+    if model:
+        fit.config, fit.confidence = _fit_models(
+            fit.config, train, target_precision, fit.sequence_params, outside=outside
+        )
+    return fit
+
+
+def _train_figures(fit: AcceptanceFit) -> dict[str, Any]:
+    """The acceptance's training figures as the report's ``train`` entries."""
+    out: dict[str, Any] = {"acceptance": fit.acceptance}
+    if fit.sequence is not None:
+        out["sequence"] = fit.sequence
+    if fit.confidence is not None:
+        out["confidence"] = fit.confidence
+    return out
+
+
+def _test_figures(
+    fit: AcceptanceFit,
+    pool: HierarchyConfig,
+    test: ScoreBank,
+    *,
+    seed: int = 0,
+    costs: CostModel | None = None,
+) -> dict[str, Any]:
+    """The fitted hierarchy on the test part: against its best single method and flat
+    fusion (:func:`compare_on`), its answers at the training thresholds, its measured (and,
+    with ``costs``, modelled) time per query, sequence mode and the models' figures."""
+    config = fit.config
+    cmp = compare_on(test, pool, config)
+    out = cmp.pop("outcome")
+    report: dict[str, Any] = {
+        "n_reference": test.n_db,
+        "n_query": test.n_query,
+        **cmp,
+        "acceptance": precision_recall_at(out.quality, out.correct, fit.acceptance["threshold"]),
+        "measured_ms": measure_query_ms(config, test),
+    }
+    if costs is not None:
+        report["model_ms"] = costs.query_ms(config, out.mean_inputs)
+    if fit.sequence_params is not None:
+        report["sequence"] = test.sequence(config, fit.sequence_params, seed=seed)
+    if fit.confidence is not None:
+        report["confidence"] = _test_models(config, test, fit.sequence_params)
+    return report
 
 
 def _space_dict(space: SearchSpace) -> dict[str, Any]:
@@ -458,7 +571,8 @@ def calibrate(
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """Search, pick the threshold, check on the test part; returns (config, report).
 
-    With ``model`` (default), the confidence models are fitted on the training part too
+    The winner's acceptance is fitted by :func:`fit_config_acceptance`. With ``model``
+    (default), the confidence models are fitted on the training part too
     (:func:`_fit_models`): ``acceptance.model`` / ``model_threshold`` and, with
     ``sequence``, ``sequence_model`` / ``sequence_threshold``; the z threshold stays (the
     fallback for a reader without a model). With ``outside`` (default) the models also learn
@@ -490,19 +604,18 @@ def calibrate(
         )
     search_s = time.perf_counter() - t0
     win = ranked[0]
-    config, acc = _accept(win, pool, name, target_precision)
-    seq_params, seq_train = None, None
-    if sequence:
-        seq_params, seq_train = train.tune_sequence(
-            config, target_precision=target_precision, seed=seed
-        )
-        config = config.model_copy(update={"sequence": sequence_settings(seq_params)})
-    confidence_train: dict[str, Any] | None = None
-    if model:
-        config, confidence_train = _fit_models(
-            config, train, target_precision, seq_params, outside=outside
-        )
+    fit = fit_config_acceptance(
+        win.config(pool, name=name),
+        train,
+        target_precision=target_precision,
+        seed=seed,
+        sequence=sequence,
+        model=model,
+        outside=outside,
+        outcome=win.outcome,
+    )
     report: dict[str, Any] = {
+        "mode": "search",
         "machine": machine_description(),
         "seed": seed,
         "budget_ms": budget_ms,
@@ -514,31 +627,71 @@ def calibrate(
             "n_reference": train.n_db,
             "n_query": train.n_query,
             "winner": win.to_dict(),
-            "acceptance": acc,
             "leaderboard": [t.to_dict() for t in ranked[:top]],
+            **_train_figures(fit),
         },
-        "config": config.model_dump(mode="json"),
+        "config": fit.config.model_dump(mode="json"),
     }
-    if seq_train is not None:
-        report["train"]["sequence"] = seq_train
-    if confidence_train is not None:
-        report["train"]["confidence"] = confidence_train
     if test is not None:
-        cmp = compare_on(test, pool, config)
-        out = cmp.pop("outcome")
-        report["test"] = {
-            "n_reference": test.n_db,
-            "n_query": test.n_query,
-            **cmp,
-            "acceptance": precision_recall_at(out.quality, out.correct, acc["threshold"]),
-            "measured_ms": measure_query_ms(config, test),
-            "model_ms": costs.query_ms(config, out.mean_inputs),
-        }
-        if seq_params is not None:
-            report["test"]["sequence"] = test.sequence(config, seq_params, seed=seed)
-        if confidence_train is not None:
-            report["test"]["confidence"] = _test_models(config, test, seq_params)
-    return config, report
+        report["test"] = _test_figures(fit, pool, test, seed=seed, costs=costs)
+    return fit.config, report
+
+
+def fit_only(
+    config: HierarchyConfig,
+    train: ScoreBank,
+    test: ScoreBank | None,
+    *,
+    seed: int = 0,
+    target_precision: float = 0.99,
+    sequence: bool = False,
+    model: bool = True,
+    outside: bool = True,
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """Fit the acceptance of ``config`` as it is (no search) and check it on the test part;
+    returns (config, report), as :func:`calibrate` but for a given hierarchy.
+
+    The banks must hold the config's methods (built from ``config`` itself, or from a pool
+    with the same settings). The returned config is ``config`` with its acceptance (with
+    ``sequence``, also its ``sequence:``) replaced by :func:`fit_config_acceptance`: its
+    digest, which ignores both, is the input's. The test part is measured as the search's
+    winner's is (no cost model: no modelled time).
+    """
+    t0 = time.perf_counter()
+    outcome = train.run(config)
+    fit = fit_config_acceptance(
+        config,
+        train,
+        target_precision=target_precision,
+        seed=seed,
+        sequence=sequence,
+        model=model,
+        outside=outside,
+        outcome=outcome,
+    )
+    hierarchy = describe(
+        [t.methods for t in config.tiers], [t.k for t in config.tiers], config.tier_weights
+    )
+    report: dict[str, Any] = {
+        "mode": "fit-only",
+        "machine": machine_description(),
+        "seed": seed,
+        "digest": fit.config.digest(),
+        "fit_s": time.perf_counter() - t0,
+        "train": {
+            "n_reference": train.n_db,
+            "n_query": train.n_query,
+            "hierarchy": hierarchy,
+            "recall_at_1": outcome.recall_at_1,
+            "tier_top1": outcome.tier_top1,
+            "tier_recall": outcome.tier_recall,
+            **_train_figures(fit),
+        },
+        "config": fit.config.model_dump(mode="json"),
+    }
+    if test is not None:
+        report["test"] = _test_figures(fit, config, test, seed=seed)
+    return fit.config, report
 
 
 def _fit_models(
@@ -613,7 +766,11 @@ def _test_models(
     if seq_params is not None:
         seq = sequence_answers(results, test.gt, routes, seq_params, profile=profile)
         out["sequence"] = {
-            "model": _figures(apply_acceptance(config.acceptance, seq, sequence=True)),
+            "model": _figures(
+                apply_acceptance(
+                    config.acceptance, seq, sequence=True, lock_mass=seq_params.lock_mass
+                )
+            ),
             "mass": acceptance_figures(
                 seq.score, seq.correct, seq_params.lock_mass, probability=False
             ),
@@ -622,11 +779,19 @@ def _test_models(
 
 
 def _figures(applied: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in applied.items() if k not in ("p_correct", "accepted_answers")}
+    per_answer = ("p_correct", "accepted_answers", "off_map")
+    return {k: v for k, v in applied.items() if k not in per_answer}
 
 
 def leaderboard_markdown(report: dict[str, Any]) -> str:
-    """The report as Markdown: leaderboard, winner, threshold and the test check."""
+    """The report as Markdown: leaderboard (or, fit-only, the given hierarchy), threshold
+    and the test check."""
+    head = _fit_only_head(report) if report.get("mode") == "fit-only" else _search_head(report)
+    return "\n".join([*head, *_acceptance_lines(report), *_test_lines(report)]) + "\n"
+
+
+def _search_head(report: dict[str, Any]) -> list[str]:
+    """The search's summary and its leaderboard."""
     tr = report["train"]
     lines = [
         f"# Calibration ({report['machine']})",
@@ -641,8 +806,27 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
     ]
     for i, c in enumerate(tr["leaderboard"], start=1):
         lines.append(f"| {i} | {c['hierarchy']} | {c['recall_at_1']:.3f} | {c['model_ms']:.1f} |")
+    return lines
+
+
+def _fit_only_head(report: dict[str, Any]) -> list[str]:
+    """What a fit-only run fitted: the given hierarchy, no search."""
+    tr = report["train"]
+    return [
+        f"# Acceptance fit, no search ({report['machine']})",
+        "",
+        f"Fit only: the acceptance of the given hierarchy {tr['hierarchy']} (config digest "
+        f"{report['digest'][:16]}, unchanged), fitted on {tr['n_query']} training queries "
+        f"against {tr['n_reference']} references (training recall@1 "
+        f"{tr['recall_at_1']:.3f}) in {report['fit_s']:.0f} s; seed {report['seed']}.",
+    ]
+
+
+def _acceptance_lines(report: dict[str, Any]) -> list[str]:
+    """The z threshold, the sequence filter's choice and the confidence models."""
+    tr = report["train"]
     acc = tr["acceptance"]
-    lines += [
+    lines = [
         "",
         f"Acceptance threshold {acc['threshold']:.3f} (target precision {acc['target']:.0%}, "
         f"{'reached' if acc['reached'] else 'NOT reached'} on training: precision "
@@ -655,25 +839,31 @@ def leaderboard_markdown(report: dict[str, Any]) -> str:
             f"settings): lock threshold {tr['sequence']['lock_mass']:.3f} for "
             f"{tr['sequence']['target_precision']:.0%} precision.",
         ]
-    lines += _confidence_lines(report)
+    return lines + _confidence_lines(report)
+
+
+def _test_lines(report: dict[str, Any]) -> list[str]:
+    """The test part's sequence mode and its check against single methods and flat fusion."""
     te = report.get("test")
-    if te and te.get("sequence"):
+    if not te:
+        return []
+    lines: list[str] = []
+    if te.get("sequence"):
         lines += ["", "Sequence mode on the test split:", "", "```"]
         lines += [*format_sequence_report(te["sequence"]), "```"]
-    if te:
-        ta = te["acceptance"]
-        lines += [
-            "",
-            f"Test split ({te['n_query']} queries, {te['n_reference']} references): "
-            f"calibrated recall@1 {te['recall_at_1']:.3f}, best single method "
-            f"({te['best_single']}) {te['best_single_recall_at_1']:.3f}, flat fusion of its "
-            f"methods {te['flat_recall_at_1']:.3f} (queries won/lost against them "
-            f"{_wl(te['vs_best_single'])} and {_wl(te['vs_flat'])}); at the threshold precision "
-            f"{_fmt(ta['precision'])}, recall {ta['recall']:.3f}; "
-            f"{te['measured_ms']['total_ms']:.1f} ms per query measured end to end "
-            f"(modelled {te['model_ms']:.1f}).",
-        ]
-    return "\n".join(lines) + "\n"
+    ta = te["acceptance"]
+    modelled = f" (modelled {te['model_ms']:.1f})" if "model_ms" in te else ""
+    lines += [
+        "",
+        f"Test split ({te['n_query']} queries, {te['n_reference']} references): "
+        f"calibrated recall@1 {te['recall_at_1']:.3f}, best single method "
+        f"({te['best_single']}) {te['best_single_recall_at_1']:.3f}, flat fusion of its "
+        f"methods {te['flat_recall_at_1']:.3f} (queries won/lost against them "
+        f"{_wl(te['vs_best_single'])} and {_wl(te['vs_flat'])}); at the threshold precision "
+        f"{_fmt(ta['precision'])}, recall {ta['recall']:.3f}; "
+        f"{te['measured_ms']['total_ms']:.1f} ms per query measured end to end{modelled}.",
+    ]
+    return lines
 
 
 def _confidence_lines(report: dict[str, Any]) -> list[str]:

@@ -415,28 +415,40 @@ def evaluate(
         "fitted_methods": prep.fitted,
     }
     routes = RouteMap.from_metadata(n_db)
+    profile = _once(
+        lambda: ReferenceProfile.build(prep.methods, prep.db, config.tiers[0].methods, routes)
+    )
     if sequence:
-        report["sequence"] = _sequence(results, gt, routes, config)
+        report["sequence"] = _sequence(results, gt, routes, config, profile())
     report["acceptance"] = acceptance_report(
-        results,
-        gt,
-        routes,
-        config,
-        sequence=sequence,
-        profile=lambda: ReferenceProfile.build(
-            prep.methods, prep.db, config.tiers[0].methods, routes
-        ),
+        results, gt, routes, config, sequence=sequence, profile=profile
     )
     return report
 
 
+def _once(build: Callable[[], ReferenceProfile]) -> Callable[[], ReferenceProfile]:
+    """``build``, called at most once."""
+    made: list[ReferenceProfile] = []
+
+    def get() -> ReferenceProfile:
+        if not made:
+            made.append(build())
+        return made[0]
+
+    return get
+
+
 def _sequence(
-    results: Sequence[HierarchyResult], gt: np.ndarray, routes: RouteMap, config: HierarchyConfig
+    results: Sequence[HierarchyResult],
+    gt: np.ndarray,
+    routes: RouteMap,
+    config: HierarchyConfig,
+    profile: ReferenceProfile | None = None,
 ) -> dict[str, Any]:
     from hmpf.evaluation.sequence import sequence_report
 
     t0 = time.perf_counter()
-    rep = sequence_report(results, gt, routes, config.sequence_params())
+    rep = sequence_report(results, gt, routes, config.sequence_params(), profile=profile)
     rep["wall_s"] = time.perf_counter() - t0
     return rep
 
@@ -456,19 +468,22 @@ def acceptance_report(
     only when a model needs it.
 
     ``single`` (and with ``sequence`` ``sequence``: the queries driven once, in order):
-    ``rule`` (``model``, ``z``, ``mass`` or ``none``), per answer ``p_correct`` (None without
-    a model) and ``accepted_answers``, and at the rule's threshold ``accepted`` (share),
-    ``precision`` and, for the model, ``ece``.
+    ``rule`` (``p_correct``, ``quality`` or ``lock``: the one policy the service runs,
+    :mod:`hmpf.acceptance`), per answer ``p_correct`` (None without a model),
+    ``accepted_answers`` and ``off_map``, and ``accepted`` (share), ``precision`` and, for
+    the model, ``ece``.
     """
+    from hmpf.acceptance import Policy
     from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
 
-    acc = config.acceptance
-    prof = profile() if acc is not None and acc.needs_profile and profile else None
-    out = {"single": apply_acceptance(acc, single_answers(results, gt, routes, prof))}
+    params = config.sequence_params()
+    policy = Policy.of(config.acceptance, lock_mass=params.lock_mass)
+    # The sequence filter's off-map state reads the profile too.
+    prof = profile() if profile and (policy.needs_profile or sequence) else None
+    out = {"single": apply_acceptance(policy, single_answers(results, gt, routes, prof))}
     if sequence:
-        params = config.sequence_params()
         seq = sequence_answers(results, gt, routes, params, profile=prof)
-        out["sequence"] = apply_acceptance(acc, seq, sequence=True, lock_mass=params.lock_mass)
+        out["sequence"] = apply_acceptance(policy, seq, sequence=True)
     return out
 
 
@@ -519,7 +534,9 @@ def evaluate_index(
         "timing_ms": {"hierarchy_per_query": hierarchy_s * 1e3 / max(1, len(queries))},
     }
     if sequence:
-        report["sequence"] = _sequence(results, gt, reader.route_map(), reader.config)
+        report["sequence"] = _sequence(
+            results, gt, reader.route_map(), reader.config, reader.reference_profile()
+        )
     report["acceptance"] = acceptance_report(
         results,
         gt,
@@ -604,15 +621,14 @@ def _acceptance_lines(report: dict[str, Any]) -> list[str]:
     """One line per mode: the rule that decided and its figures."""
     lines = []
     for mode, a in report.get("acceptance", {}).items():
-        if a["rule"] == "none":
-            lines.append(f"acceptance ({mode}): none (the config has no acceptance settings)")
-            continue
         prec = "n/a" if a["precision"] is None else f"{a['precision']:.3f}"
         ece = f", ECE {a['ece']:.3f}" if a.get("ece") is not None else ""
-        what = {"model": "p_correct", "z": "Combined z", "mass": "posterior mass"}[a["rule"]]
+        what = {"p_correct": "p_correct", "quality": "Combined z", "lock": "posterior mass"}
+        off = a.get("off_map") or []
+        away = f", said off the map {sum(off)}/{len(off)}" if mode == "sequence" and off else ""
         lines.append(
-            f"acceptance ({mode}, rule {a['rule']}: {what} >= {a['threshold']:.4g}): "
-            f"accepted {a['accepted']:.3f}, precision {prec}{ece}"
+            f"acceptance ({mode}, rule {a['rule']}: {what[a['rule']]} >= "
+            f"{a['threshold']:.4g}): accepted {a['accepted']:.3f}, precision {prec}{ece}{away}"
         )
     return lines
 

@@ -13,6 +13,11 @@ answers each frame from the hierarchy's evidence of that frame and of the frames
   (half as fast);
 * **dropped frames**: a share of the frames left out at random, the gap known to the filter.
 
+:func:`off_map_report` drives a vehicle that *leaves* the map (a stretch of the route, then
+frames from a place the map does not hold, then the route again, :func:`leave_drives`): the
+share of the frames away that the filter puts off the map, the in-map frames it wrongly puts
+there, and the frames it needs to come back after re-entering.
+
 Every frame counts, the first frames of a drive included. A drive *locks* at the first frame
 from which its estimate is right for ``hold`` frames in a row (or to the end of the drive).
 
@@ -25,12 +30,15 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Estimate, Evidence, FilterParams, RouteMap, SequenceFilter
+
+if TYPE_CHECKING:
+    from hmpf.confidence import ReferenceProfile
 
 __all__ = [
     "SPEEDS",
@@ -38,8 +46,12 @@ __all__ = [
     "DriveResult",
     "drive",
     "evidences_of",
+    "absolute_evidence",
+    "format_off_map_report",
     "format_sequence_report",
+    "leave_drives",
     "lock_frames",
+    "off_map_report",
     "lock_threshold",
     "sequence_report",
     "sequence_settings",
@@ -62,12 +74,16 @@ class Drive:
         frames: (T,) query index shown at each step.
         steps: (T,) frames elapsed since the previous step (1: the next frame; >1: frames
             were dropped; 0: the vehicle sent the same instant again).
-        splice: the step at which the drive jumps to a distant stretch (None: no jump).
+        splice: the step at which the drive jumps to a distant stretch (None: no jump); for
+            a drive that leaves the map, the step at which it is back on the map.
+        away: for a drive that leaves the map, its steps off the map, ``(first, end)``
+            (None: it never leaves).
     """
 
     frames: np.ndarray
     steps: np.ndarray
     splice: int | None = None
+    away: tuple[int, int] | None = None
 
     @classmethod
     def along(cls, frames: Sequence[int] | np.ndarray, splice: int | None = None) -> Drive:
@@ -85,9 +101,28 @@ class DriveResult:
     locked: np.ndarray  # (T,) the estimate is locked (accepted)
 
 
-def evidences_of(results: Sequence[HierarchyResult], n: int, proposals: int) -> list[Evidence]:
-    """Each query's :class:`Evidence` from its hierarchy result (``n`` references)."""
-    return [Evidence.from_result(r, n, proposals=proposals) for r in results]
+def absolute_evidence(result: HierarchyResult, profile: ReferenceProfile | None) -> float:
+    """A result's :attr:`~hmpf.sequence.Evidence.absolute`: the profile's z-score
+    (:meth:`~hmpf.confidence.ReferenceProfile.z`) of tier 1's raw scores at the single-frame
+    answer; NaN without a profile, an answer or raw scores."""
+    if profile is None or result.match < 0 or not result.tiers:
+        return float("nan")
+    return profile.z(result.tiers[0].raw, int(result.match))
+
+
+def evidences_of(
+    results: Sequence[HierarchyResult],
+    n: int,
+    proposals: int,
+    profile: ReferenceProfile | None = None,
+) -> list[Evidence]:
+    """Each query's :class:`Evidence` from its hierarchy result (``n`` references), with
+    its absolute evidence when a ``profile`` of the map's references is given
+    (:func:`absolute_evidence`; without one: NaN, the off hypothesis learns nothing)."""
+    return [
+        Evidence.from_result(r, n, proposals=proposals, absolute=absolute_evidence(r, profile))
+        for r in results
+    ]
 
 
 def drive(
@@ -165,6 +200,36 @@ def jump_drives(
     return out
 
 
+def leave_drives(
+    nq: int,
+    n_away: int,
+    count: int,
+    before: int,
+    away: int,
+    after: int,
+    rng: np.random.Generator,
+) -> list[Drive]:
+    """Drives that leave the map and come back: ``before`` frames of the route, ``away``
+    consecutive frames of a place the map does not hold, then ``after`` frames of the route
+    from where the vehicle left it or further on (it drove a detour). The route's queries
+    are frames ``0 .. nq - 1``, the frames away ``nq .. nq + n_away - 1`` (the caller
+    stacks their evidence after the queries'). :attr:`Drive.away` is the stretch away,
+    :attr:`Drive.splice` the step back on the map."""
+    if before < 1 or away < 1 or after < 1 or nq < before + after or n_away < away:
+        return []
+    out: list[Drive] = []
+    for _ in range(count):
+        a = int(rng.integers(0, nq - before - after + 1))
+        b = int(rng.integers(a + before, nq - after + 1))
+        f = nq + int(rng.integers(0, n_away - away + 1))
+        frames = np.concatenate(
+            [np.arange(a, a + before), np.arange(f, f + away), np.arange(b, b + after)]
+        )
+        d = Drive.along(frames, splice=before + away)
+        out.append(Drive(d.frames, d.steps, d.splice, (before, before + away)))
+    return out
+
+
 def dropped_drive(nq: int, share: float, rng: np.random.Generator) -> Drive:
     """The whole traverse with ``share`` of the frames left out (the gap known)."""
     keep = np.sort(np.flatnonzero(rng.random(nq) >= share))
@@ -214,15 +279,20 @@ def sequence_report(
     jumps: int = 100,
     dropped: float = 0.25,
     speeds: Sequence[float] = SPEEDS,
+    profile: ReferenceProfile | None = None,
 ) -> dict[str, Any]:
     """Sequence-mode figures of one route's query traverse (``results`` in route order):
     the estimate's recall@1 beside the single-frame one, the accepted (locked) answers'
     share and precision, frames to lock after a start and after a jump, recall by speed
-    ratio and by frames of history, and with dropped frames."""
+    ratio and by frames of history, and with dropped frames. Without a ``profile`` (no
+    absolute evidence) the filter runs without the off hypothesis (``leave = 0``: it could
+    not tell it, and its resting mass would cap every estimate's)."""
     gt = np.asarray(gt, dtype=bool)
     nq = len(results)
+    if profile is None:
+        params = params.with_(leave=0.0)
     filt = SequenceFilter(routes, params)
-    evs = evidences_of(results, routes.n, params.proposals)
+    evs = evidences_of(results, routes.n, params.proposals, profile)
     rng = np.random.default_rng(seed)
     single = np.array([r.match >= 0 and bool(gt[q, r.match]) for q, r in enumerate(results)])
     full = drive(filt, evs, Drive.along(np.arange(nq)), gt)
@@ -268,6 +338,118 @@ def sequence_report(
             "mass": [round(e.mass, 4) for e in full.estimates],
         },
     }
+
+
+def _first(mask: np.ndarray, start: int) -> int | None:
+    """Frames from ``start`` (1 = the first) until ``mask`` holds; None when it never does."""
+    hit = np.flatnonzero(np.asarray(mask, dtype=bool)[start:])
+    return int(hit[0]) + 1 if len(hit) else None
+
+
+def _leave_figures(runs: Sequence[DriveResult], after: int) -> dict[str, Any]:
+    """The figures of drives that leave the map (see :func:`off_map_report`)."""
+    away, on, accepted = [], [], []
+    detect, back, relock = [], [], []
+    for r in runs:
+        assert r.drive.away is not None and r.drive.splice is not None
+        lo, hi = r.drive.away
+        off = np.array([e.off_map >= 0.5 for e in r.estimates])
+        inside = np.ones(len(off), dtype=bool)
+        inside[lo:hi] = False
+        away.append(off[lo:hi])
+        on.append(off[inside])
+        accepted.append(r.locked[lo:hi])
+        detect.append(_first(off[:hi], lo))
+        back.append(_first(~off, hi))
+        relock.append(lock_frames(r.correct, hi))
+    return {
+        "away_off_map": float(np.mean(np.concatenate(away))) if runs else 0.0,
+        "away_accepted": float(np.mean(np.concatenate(accepted))) if runs else 0.0,
+        "on_map_off_map": float(np.mean(np.concatenate(on))) if runs else 0.0,
+        "frames_to_detect": _summary(detect, hi - lo if runs else 0),
+        "frames_back_on_map": _summary(back, after),
+        "frames_to_relock": _summary(relock, after),
+    }
+
+
+def off_map_report(
+    results: Sequence[HierarchyResult],
+    away_results: Sequence[HierarchyResult],
+    gt: np.ndarray,
+    routes: RouteMap,
+    params: FilterParams,
+    profile: ReferenceProfile | None,
+    *,
+    seed: int = 0,
+    count: int = 40,
+    before: int = 20,
+    away: int = 30,
+    after: int = 30,
+) -> dict[str, Any]:
+    """Drives that leave the map and come back (:func:`leave_drives`): the route's queries
+    (``results`` in route order, ground truth ``gt``) and frames of a place the map does not
+    hold (``away_results``, in driving order, run on the same map), absolute evidence from
+    ``profile``.
+
+    Figures, with ``params`` and with the same drives through the filter without the off
+    hypothesis (``leave = 0``, ``"without_off"``): ``away_off_map``, the share of the frames
+    away whose ``off_map`` is >= 0.5; ``away_accepted``, the share of them whose estimate
+    is locked (an answer accepted where there is none); ``on_map_off_map``, the share of the
+    frames on the map put off it (``off_map`` >= 0.5); and, as :func:`sequence_report`'s
+    frames-to-lock summaries, the frames from leaving until ``off_map`` >= 0.5
+    (``frames_to_detect``), from re-entering until it is < 0.5 (``frames_back_on_map``) and
+    until the estimate is right :data:`HOLD` frames in a row (``frames_to_relock``).
+    """
+    gt = np.asarray(gt, dtype=bool)
+    nq, na = len(results), len(away_results)
+    both = np.vstack([gt, np.zeros((na, gt.shape[1]), dtype=bool)])
+    evs = evidences_of([*results, *away_results], routes.n, params.proposals, profile)
+    rng = np.random.default_rng(seed)
+    after = min(after, nq - before)
+    drives = leave_drives(nq, na, count, before, away, after, rng)
+    out: dict[str, Any] = {"n_drives": len(drives), "before": before, "away": away}
+    out["after"] = after
+    for key, p in (("with_off", params), ("without_off", params.with_(leave=0.0))):
+        filt = SequenceFilter(routes, p)
+        out[key] = _leave_figures([drive(filt, evs, d, both) for d in drives], after)
+    absolute = np.array([e.absolute for e in evs])
+    out["absolute"] = {
+        "map": _quantiles(absolute[:nq]),
+        "away": _quantiles(absolute[nq:]),
+    }
+    return out
+
+
+def _quantiles(x: np.ndarray) -> dict[str, float]:
+    """5 / 25 / 50 / 75 / 95 % quantiles of the finite values (empty: {})."""
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return {}
+    q = np.percentile(x, [5, 25, 50, 75, 95])
+    return {f"p{k}": round(float(v), 3) for k, v in zip((5, 25, 50, 75, 95), q, strict=True)}
+
+
+def format_off_map_report(rep: dict[str, Any]) -> list[str]:
+    """:func:`off_map_report` as text lines."""
+
+    def frames(x: dict[str, Any]) -> str:
+        if not x["n"]:
+            return "no drives"
+        return f"median {x['median']:.0f}, p95 {x['p95']:.0f}, never {x['never']}"
+
+    lines = [
+        f"leaving the map     {rep['n_drives']} drives: {rep['before']} frames on the map, "
+        f"{rep['away']} away, {rep['after']} back"
+    ]
+    for key, name in (("with_off", "off hypothesis"), ("without_off", "without it")):
+        r = rep[key]
+        lines.append(
+            f"  {name:<17} away put off the map {r['away_off_map']:.3f}, accepted "
+            f"{r['away_accepted']:.3f}; on the map put off {r['on_map_off_map']:.3f}; "
+            f"back on the map {frames(r['frames_back_on_map'])}; re-lock "
+            f"{frames(r['frames_to_relock'])}"
+        )
+    return lines
 
 
 def format_sequence_report(rep: dict[str, Any]) -> list[str]:
@@ -368,6 +550,9 @@ def tune_sequence(
     for values in itertools.product(*grid.values()):
         setting = dict(zip(grid, values, strict=True))
         params = base.with_(**setting)
+        # No absolute evidence here: the filter runs without the off hypothesis (its resting
+        # mass would cap every estimate's); the settings returned keep the base's.
+        inner = params.with_(leave=0.0)
         row: dict[str, Any] = {**setting, "recall": [], "jump_recall": [], "relock_10": []}
         runs: list[DriveResult] = []
         for i, (results, gt, routes, drives, jumps) in enumerate(prepared):
@@ -375,7 +560,7 @@ def tune_sequence(
             if key not in evidence:
                 evidence[key] = evidences_of(results, routes.n, params.proposals)
             evs = evidence[key]
-            filt = SequenceFilter(routes, params)
+            filt = SequenceFilter(routes, inner)
             s_runs = [drive(filt, evs, d, gt) for d in drives]
             j_runs = [drive(filt, evs, d, gt) for d in jumps]
             relock = [lock_frames(r.correct, r.drive.splice or 0) for r in j_runs]

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.confidence import ReferenceProfile
-from hmpf.config import HierarchyConfig, build_methods, parse_config
+from hmpf.config import HierarchyConfig, build_methods, parse_config, with_shipped_acceptance
 from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
@@ -224,7 +224,9 @@ class IndexReader:
                 f"expected {expected.name!r} ({expected.digest()[:12]}); rebuild the index "
                 "with this config or point at the matching index"
             )
-        return config
+        # A version built without acceptance (before its preset shipped a model) gets the
+        # shipped model of its hierarchy: the identity (digest) is the same.
+        return with_shipped_acceptance(config)
 
     def _load_methods(self) -> dict[str, Method]:
         methods = build_methods(self.config)

@@ -105,15 +105,4 @@ def _index_info(engine: Engine) -> dict[str, Any]:
 
 
 def _acceptance(acc: Acceptance) -> dict[str, Any]:
-    def model(m: Any, threshold: float | None) -> dict[str, Any] | None:
-        if m is None or threshold is None:
-            return None
-        return {"features": list(m.features), "threshold": threshold}
-
-    single = model(acc.model, acc.model_threshold)
-    return {
-        "rule": "quality" if single is None else "p_correct",
-        "threshold": acc.threshold,
-        "model": single,
-        "sequence_model": model(acc.sequence_model, acc.sequence_threshold),
-    }
+    return acc.describe()

@@ -1,0 +1,339 @@
+"""The confidence models a bundled preset ships: fitted on every route we have, checked on
+routes they never saw.
+
+    python bench/shipped_acceptance.py [--config default] [--foreign 200] [--write]
+        [--out results/shipped_acceptance_default.json]
+
+Each route (Gardens Point's three protocols, Nordland summer -> winter; all with the same
+preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames). On the
+*training* parts, pooled with each route weighing alike (:func:`fit_pooled`):
+
+* the single-frame model (:data:`SINGLE_FEATURES`) and the sequence model
+  (:data:`SEQUENCE_FEATURES`), each trained with the route's own out-of-map answers
+  (:func:`outside_answers`: each stretch of queries answered with its references removed);
+* their thresholds for 99 % precision, chosen on *leave-one-route-out* predictions and
+  bounded so that at most 1 % of the out-of-map answers are accepted;
+* the sequence model's stay threshold (hysteresis, :func:`stay_threshold`) on the training
+  drives.
+
+Then, per held-out route (**leave one route out**: the models fitted on the other routes
+only) and for the shipped fit (all routes), on the route's *test* part:
+
+* in the map: the share of single-frame and sequence answers accepted, their precision,
+  the sequence model's ECE, lock flips per 100 frames on the drive (accepted -> not or back,
+  after the first acceptance) and the sequence recall@1;
+* off the map: ``--foreign`` frames of another data set (Nordland winter against the
+  Gardens Point maps, Gardens Point night_right against the Nordland map), single frame and
+  driven in order in sequence mode: the share accepted and the mean ``p_correct``;
+* a drive that leaves the map and comes back (40 in-map frames, 60 foreign frames, the rest
+  of the test part): accepted frames while away, frames until the first acceptance after
+  coming back.
+
+The Gardens Point protocols share traverses (day_right, night_right appear in two each), so a
+held-out Gardens Point protocol is not a new place; the Nordland fold is (another country,
+camera and season). With ``--write`` the shipped fit goes to
+``hmpf/presets/acceptance/<config>.json`` (with the hierarchy's digest, which
+:func:`hmpf.config.with_shipped_acceptance` matches).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hmpf.acceptance import Policy
+from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
+from hmpf.evaluation.acceptance import (
+    SINGLE_FEATURES,
+    Answers,
+    RoutePart,
+    apply_acceptance,
+    decide,
+    fit_pooled,
+    outside_answers,
+    sequence_answers,
+    single_answers,
+    stay_threshold,
+)
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.sequence import Drive, training_drives
+from hmpf.evaluation.study import ScoreBank, split_data
+from hmpf.features import FeatureCache
+from hmpf.runtime import default_cache_dir, machine_description
+from hmpf.sequence import FilterParams, RouteMap
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Route name -> (reference folder, query folder, the foreign frames' folder).
+ROUTES = {
+    **{k: (r, q, "nordland_64x32/winter") for k, (r, q) in GARDENS_POINT_PROTOCOLS.items()},
+    "nordland_s_w": (
+        "nordland_64x32/summer",
+        "nordland_64x32/winter",
+        "gardens_point/night_right",
+    ),
+}
+#: The sequence model's features: the estimate's log-odds, its absolute evidence, whether
+#: it agrees with the single-frame answer, and the frame's own single-frame evidence.
+SEQUENCE_FEATURES = ("sequence_logit", "sequence_ref_z", "sequence_agrees", "ref_z")
+TARGET = 0.99
+TOLERANCE = 2
+BLOCK = 20
+#: The leave-and-return drive: in-map frames, then foreign frames, then the rest in-map.
+AWAY = (40, 60)
+
+
+def spread(n: int, count: int) -> np.ndarray:
+    """``count`` indices spread evenly over ``range(n)`` (all when ``count >= n``)."""
+    if count >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, count).round().astype(np.int64))
+
+
+class Route:
+    """One route's banks: training part, and test part with foreign frames appended."""
+
+    def __init__(
+        self, name: str, config: HierarchyConfig, cache: FeatureCache, foreign: int
+    ) -> None:
+        ref, qry, other = ROUTES[name]
+        root = dataset_root()
+        data = EvalData.frames(root / ref, root / qry, TOLERANCE)
+        train, test = split_data(data, block=BLOCK)
+        frames = list_images(root / other)
+        away = [frames[i] for i in spread(len(frames), foreign)]
+        gt = np.vstack([test.gt, np.zeros((len(away), len(test.reference)), bool)])
+        both = EvalData(test.reference, [*test.query, *away], gt, test.ground_truth)
+        self.name = name
+        self.train = ScoreBank.build(config, train, cache=cache)
+        self.test = ScoreBank.build(config, both, cache=cache)
+        self.n_test = len(test.query)
+        self.n_foreign = len(away)
+        self.config = config
+
+
+def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RoutePart, Answers]:
+    """The route's single-frame and sequence training answers (with its out-of-map ones) and
+    its in-map training drives."""
+    bank, config = route.train, route.config
+    routes = RouteMap.from_metadata(bank.n_db)
+    results = bank.results(config)
+    profile = bank.profile(config)
+    single = single_answers(results, bank.gt, routes, profile)
+    drives = sequence_answers(
+        results, bank.gt, routes, params, training_drives(bank.n_query), profile
+    )
+    out_single, out_seq = outside_answers(bank, config, profile, params)
+    return (
+        RoutePart(route.name, single, out_single),
+        RoutePart(route.name, drives, out_seq),
+        drives,
+    )
+
+
+def flips(accepted: np.ndarray) -> int:
+    """Changes of ``accepted`` after its first True."""
+    a = np.asarray(accepted, dtype=bool)
+    first = np.flatnonzero(a)
+    if not len(first):
+        return 0
+    return int(np.sum(a[first[0] + 1 :] != a[first[0] : -1]))
+
+
+def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, Any]:
+    """The policy on the route's test part (in the map, off it, and leaving and coming
+    back)."""
+    bank, config = route.test, route.config
+    routes = RouteMap.from_metadata(bank.n_db)
+    results = bank.results(config)
+    profile = bank.profile(config)
+    nq, nf = route.n_test, route.n_foreign
+    inside = np.arange(nq)
+    away = np.arange(nq, nq + nf)
+    out: dict[str, Any] = {}
+    single = single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile)
+    s = apply_acceptance(policy, single)
+    out["single"] = _figures(s, single)
+    seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
+    q = apply_acceptance(policy, seq, sequence=True)
+    acc = np.array(q["accepted_answers"], bool)
+    out["sequence"] = {
+        **_figures(q, seq),
+        "recall_at_1": float(seq.correct.mean()),
+        "flips_per_100": 100.0 * flips(acc) / len(acc),
+    }
+    f_single = single_answers([results[i] for i in away], None, routes, profile)
+    fs = apply_acceptance(policy, f_single)
+    f_seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(away)], profile)
+    fq = apply_acceptance(policy, f_seq, sequence=True)
+    out["foreign"] = {
+        "n": nf,
+        "single_accepted": fs["accepted"],
+        "single_mean_p": _mean_p(fs),
+        "sequence_accepted": fq["accepted"],
+        "sequence_mean_p": _mean_p(fq),
+        "sequence_off_map": float(np.mean(fq["off_map"])),
+    }
+    a, b = AWAY
+    frames = np.concatenate([inside[:a], away[:b], inside[a:]])
+    trip = sequence_answers(results, bank.gt, routes, params, [Drive.along(frames)], profile)
+    dec = decide(policy, trip, sequence=True)
+    accepted = np.array([d.accepted for d in dec], bool)
+    off = np.array([d.off_map for d in dec], bool)
+    is_away = np.isin(frames, away)
+    back = np.flatnonzero(accepted[a + b :])
+    right = trip.correct
+    out["leave_and_return"] = {
+        "away_accepted": float(accepted[is_away].mean()),
+        "away_said_off_map": float(off[is_away].mean()),
+        "frames_to_accept_after_return": int(back[0]) + 1 if len(back) else None,
+        "precision_in_map": (
+            float(right[accepted & ~is_away].mean()) if (accepted & ~is_away).any() else None
+        ),
+        "accepted_in_map": float(accepted[~is_away].mean()),
+    }
+    return out
+
+
+def _mean_p(rep: dict[str, Any]) -> float | None:
+    p = [x for x in rep["p_correct"] if x is not None]
+    return float(np.mean(p)) if p else None
+
+
+def _figures(rep: dict[str, Any], answers: Answers) -> dict[str, Any]:
+    return {
+        "rule": rep["rule"],
+        "n": len(answers),
+        "accepted": rep["accepted"],
+        "precision": rep["precision"],
+        "ece": rep.get("ece"),
+        "right": float(answers.correct.mean()),
+    }
+
+
+def fit(
+    singles: list[RoutePart], seqs: list[RoutePart], drives: list[Answers]
+) -> tuple[Policy, dict[str, Any]]:
+    """The pooled models of ``singles`` / ``seqs`` and their thresholds, as a policy."""
+    model, thr, s_train = fit_pooled(singles, SINGLE_FEATURES, TARGET)
+    smodel, sthr, q_train = fit_pooled(seqs, SEQUENCE_FEATURES, TARGET)
+    policy = Policy(
+        model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
+    )
+    stay = stay_threshold(policy, drives, TARGET)
+    policy = replace(policy, sequence_stay_threshold=stay)
+    return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
+
+
+def settings_of(policy: Policy, note: str) -> AcceptanceSettings:
+    assert policy.model is not None and policy.sequence_model is not None
+    return AcceptanceSettings(
+        threshold=policy.threshold,
+        precision=TARGET,
+        note=note,
+        model=policy.model.to_dict(),
+        model_threshold=policy.model_threshold,
+        sequence_model=policy.sequence_model.to_dict(),
+        sequence_threshold=policy.sequence_threshold,
+        sequence_stay_threshold=policy.sequence_stay_threshold,
+    )
+
+
+def goals(report: dict[str, Any]) -> list[str]:
+    """The issue's goals, judged on the held-out folds (Markdown lines)."""
+    lines = [
+        "| held-out route | single accepted (prec.) | sequence accepted (prec.) | seq. ECE | "
+        "flips/100 | seq. recall@1 | foreign accepted single / seq. | foreign mean p | "
+        "away accepted | back after |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in report["folds"].items():
+        s, q, f, t = r["single"], r["sequence"], r["foreign"], r["leave_and_return"]
+
+        def pr(x: Any) -> str:
+            return "n/a" if x is None else f"{x:.3f}"
+
+        lines.append(
+            f"| {name} | {s['accepted']:.3f} ({pr(s['precision'])}) | {q['accepted']:.3f} "
+            f"({pr(q['precision'])}) | {pr(q['ece'])} | {q['flips_per_100']:.1f} | "
+            f"{q['recall_at_1']:.3f} | {f['single_accepted']:.3f} / "
+            f"{f['sequence_accepted']:.3f} | {pr(f['single_mean_p'])} / "
+            f"{pr(f['sequence_mean_p'])} | {t['away_accepted']:.3f} | "
+            f"{t['frames_to_accept_after_return']} |"
+        )
+    return lines
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default="default", help="the bundled preset")
+    ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
+    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
+    ap.add_argument("--write", action="store_true", help="write the preset's shipped models")
+    ap.add_argument("--out", help="JSON report (default results/shipped_acceptance_<config>)")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    config = load_config(args.config).model_copy(update={"acceptance": None})
+    params = config.sequence_params()
+    cache = FeatureCache(default_cache_dir())
+    routes = [Route(n, config, cache, args.foreign) for n in args.routes.split(",")]
+    print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+    parts = [training_part(r, params) for r in routes]
+    report: dict[str, Any] = {
+        "config": args.config,
+        "digest": config.digest(),
+        "machine": machine_description(),
+        "target_precision": TARGET,
+        "single_features": list(SINGLE_FEATURES),
+        "sequence_features": list(SEQUENCE_FEATURES),
+        "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
+        "folds": {},
+        "shipped": {},
+    }
+    for i, route in enumerate(routes):
+        rest = [p for j, p in enumerate(parts) if j != i]
+        policy, train = fit([p[0] for p in rest], [p[1] for p in rest], [p[2] for p in rest])
+        report["folds"][route.name] = {
+            **evaluate(route, policy, params),
+            "train": train,
+            "thresholds": policy.describe(),
+        }
+        print(f"fold {route.name} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    policy, train = fit([p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts])
+    report["shipped"]["train"] = train
+    report["shipped"]["thresholds"] = policy.describe()
+    for route in routes:
+        report["shipped"][route.name] = evaluate(route, policy, params)
+    report["wall_s"] = time.perf_counter() - t0
+    out = Path(args.out or ROOT / "results" / f"shipped_acceptance_{args.config}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=1, default=str))
+    print("\n".join(goals(report)))
+    if args.write:
+        note = (
+            f"shipped with preset {args.config!r}: fitted by bench/shipped_acceptance.py on "
+            f"the training parts of {', '.join(r.name for r in routes)} (each route alike), "
+            "thresholds on leave-one-route-out predictions for 99 % precision"
+        )
+        target = ROOT / "hmpf" / "presets" / "acceptance" / f"{args.config}.json"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        doc = {
+            "preset": args.config,
+            "digest": config.digest(),
+            "routes": [r.name for r in routes],
+            "acceptance": settings_of(policy, note).model_dump(exclude_none=True),
+        }
+        target.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {target}")
+    print(f"wrote {out} ({report['wall_s']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
