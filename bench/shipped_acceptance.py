@@ -13,8 +13,7 @@ preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 fr
   (:func:`outside_answers`: each stretch of queries answered with its references removed);
 * their thresholds for 99 % precision, chosen on *leave-one-route-out* predictions and
   bounded so that at most 1 % of the out-of-map answers are accepted;
-* the sequence model's stay threshold (hysteresis, :func:`stay_threshold`) on the training
-  drives.
+* the sequence model's stay threshold (hysteresis): :data:`hmpf.acceptance.STAY_P`.
 
 Then, per held-out route (**leave one route out**: the models fitted on the other routes
 only) and for the shipped fit (all routes), on the route's *test* part:
@@ -40,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from hmpf.acceptance import Policy
+from hmpf.acceptance import STAY_P, Policy
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -55,12 +55,12 @@ from hmpf.evaluation.acceptance import (
     Answers,
     RoutePart,
     apply_acceptance,
+    concat_answers,
     decide,
     fit_pooled,
     outside_answers,
     sequence_answers,
     single_answers,
-    stay_threshold,
 )
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import Drive, training_drives
@@ -70,19 +70,32 @@ from hmpf.runtime import default_cache_dir, machine_description
 from hmpf.sequence import FilterParams, RouteMap
 
 ROOT = Path(__file__).resolve().parent.parent
-#: Route name -> (reference folder, query folder, the foreign frames' folder).
+#: Route name -> (reference folder, query folder, the foreign frames' folder for the test,
+#: the foreign frames' folder for training: other frames of another data set).
 ROUTES = {
-    **{k: (r, q, "nordland_64x32/winter") for k, (r, q) in GARDENS_POINT_PROTOCOLS.items()},
+    **{
+        k: (r, q, "nordland_64x32/winter", "nordland_64x32/summer")
+        for k, (r, q) in GARDENS_POINT_PROTOCOLS.items()
+    },
     "nordland_s_w": (
         "nordland_64x32/summer",
         "nordland_64x32/winter",
         "gardens_point/night_right",
+        "gardens_point/day_left",
     ),
 }
+#: Nordland's first frames used: 800 (400 per part) keep a run within the two cores' hour
+#: with the default's CNN passes over 64 x 32 thumbnails; ``--nordland-frames 0``: all.
+NORDLAND_FRAMES = 800
+#: Foreign training frames per map (spread over their folder, offset from the test's).
+TRAIN_FOREIGN = 100
 #: The sequence model's features: the estimate's log-odds, its absolute evidence, whether
 #: it agrees with the single-frame answer, and the frame's own single-frame evidence.
 SEQUENCE_FEATURES = ("sequence_logit", "sequence_ref_z", "sequence_agrees", "ref_z")
 TARGET = 0.99
+#: Weight of a route's off-map training answers, as a share of all its answers: the models'
+#: ``p_correct`` is for a stream of frames of which this share comes from off the map.
+OFF_SHARE = float(os.environ.get("HMPF_OFF_SHARE", "0.1"))
 TOLERANCE = 2
 BLOCK = 20
 #: The leave-and-return drive: in-map frames, then foreign frames, then the rest in-map.
@@ -100,40 +113,69 @@ class Route:
     """One route's banks: training part, and test part with foreign frames appended."""
 
     def __init__(
-        self, name: str, config: HierarchyConfig, cache: FeatureCache, foreign: int
+        self,
+        name: str,
+        config: HierarchyConfig,
+        cache: FeatureCache,
+        foreign: int,
+        limit: int | None = None,
     ) -> None:
-        ref, qry, other = ROUTES[name]
+        ref, qry, other, train_other = ROUTES[name]
         root = dataset_root()
         data = EvalData.frames(root / ref, root / qry, TOLERANCE)
+        if limit is not None and limit < len(data.reference):  # the route's first frames
+            data = EvalData(
+                data.reference[:limit], data.query[:limit], data.gt[:limit, :limit],
+                data.ground_truth,
+            )  # fmt: skip
         train, test = split_data(data, block=BLOCK)
         frames = list_images(root / other)
         away = [frames[i] for i in spread(len(frames), foreign)]
         gt = np.vstack([test.gt, np.zeros((len(away), len(test.reference)), bool)])
         both = EvalData(test.reference, [*test.query, *away], gt, test.ground_truth)
+        t_frames = list_images(root / train_other)
+        # offset by half a step from the test's spread (another data set's other frames)
+        t_away = [
+            t_frames[min(len(t_frames) - 1, i + 3)] for i in spread(len(t_frames), TRAIN_FOREIGN)
+        ]
+        t_gt = np.vstack([train.gt, np.zeros((len(t_away), len(train.reference)), bool)])
+        t_both = EvalData(train.reference, [*train.query, *t_away], t_gt, train.ground_truth)
         self.name = name
-        self.train = ScoreBank.build(config, train, cache=cache)
+        self.train = ScoreBank.build(config, t_both, cache=cache)
+        self.n_train = len(train.query)
         self.test = ScoreBank.build(config, both, cache=cache)
         self.n_test = len(test.query)
         self.n_foreign = len(away)
         self.config = config
 
 
-def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RoutePart, Answers]:
-    """The route's single-frame and sequence training answers (with its out-of-map ones) and
-    its in-map training drives."""
-    bank, config = route.train, route.config
+def limit_of(name: str, nordland_frames: int) -> int | None:
+    """The frames of route ``name`` used (None: all)."""
+    return nordland_frames or None if name.startswith("nordland") else None
+
+
+def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RoutePart]:
+    """The route's single-frame and sequence training answers, each with its out-of-map
+    ones (:func:`outside_answers` and frames of another data set)."""
+    full, config = route.train, route.config
+    nq = route.n_train
+    bank = full.rows(np.arange(nq))
     routes = RouteMap.from_metadata(bank.n_db)
-    results = bank.results(config)
+    all_results = full.results(config)
+    results = all_results[:nq]
     profile = bank.profile(config)
     single = single_answers(results, bank.gt, routes, profile)
-    drives = sequence_answers(
-        results, bank.gt, routes, params, training_drives(bank.n_query), profile
-    )
+    drives = sequence_answers(results, bank.gt, routes, params, training_drives(nq), profile)
     out_single, out_seq = outside_answers(bank, config, profile, params)
+    assert out_seq is not None
+    # Frames of another data set against the map: off the map, every answer wrong.
+    away = np.arange(nq, full.n_query)
+    f_single = single_answers([all_results[i] for i in away], None, routes, profile)
+    f_single.query = away
+    f_seq = sequence_answers(all_results, full.gt, routes, params, [Drive.along(away)], profile)
     return (
-        RoutePart(route.name, single, out_single),
-        RoutePart(route.name, drives, out_seq),
-        drives,
+        RoutePart(route.name, single, concat_answers([out_single, f_single])),
+        RoutePart(route.name, drives, concat_answers([out_seq, f_seq])),
     )
 
 
@@ -217,16 +259,14 @@ def _figures(rep: dict[str, Any], answers: Answers) -> dict[str, Any]:
     }
 
 
-def fit(
-    singles: list[RoutePart], seqs: list[RoutePart], drives: list[Answers]
-) -> tuple[Policy, dict[str, Any]]:
+def fit(singles: list[RoutePart], seqs: list[RoutePart]) -> tuple[Policy, dict[str, Any]]:
     """The pooled models of ``singles`` / ``seqs`` and their thresholds, as a policy."""
-    model, thr, s_train = fit_pooled(singles, SINGLE_FEATURES, TARGET)
-    smodel, sthr, q_train = fit_pooled(seqs, SEQUENCE_FEATURES, TARGET)
+    model, thr, s_train = fit_pooled(singles, SINGLE_FEATURES, TARGET, outside_share=OFF_SHARE)
+    smodel, sthr, q_train = fit_pooled(seqs, SEQUENCE_FEATURES, TARGET, outside_share=OFF_SHARE)
     policy = Policy(
         model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
     )
-    stay = stay_threshold(policy, drives, TARGET)
+    stay = min(STAY_P, sthr)
     policy = replace(policy, sequence_stay_threshold=stay)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
 
@@ -275,6 +315,12 @@ def main() -> int:
     ap.add_argument("--config", default="default", help="the bundled preset")
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
     ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
+    ap.add_argument(
+        "--nordland-frames",
+        type=int,
+        default=NORDLAND_FRAMES,
+        help="Nordland's first frames used (0: all 3576)",
+    )
     ap.add_argument("--write", action="store_true", help="write the preset's shipped models")
     ap.add_argument("--out", help="JSON report (default results/shipped_acceptance_<config>)")
     args = ap.parse_args()
@@ -282,7 +328,10 @@ def main() -> int:
     config = load_config(args.config).model_copy(update={"acceptance": None})
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
-    routes = [Route(n, config, cache, args.foreign) for n in args.routes.split(",")]
+    routes = [
+        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames))
+        for n in args.routes.split(",")
+    ]
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     parts = [training_part(r, params) for r in routes]
     report: dict[str, Any] = {
@@ -293,19 +342,20 @@ def main() -> int:
         "single_features": list(SINGLE_FEATURES),
         "sequence_features": list(SEQUENCE_FEATURES),
         "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
+        "nordland_frames": args.nordland_frames or "all",
         "folds": {},
         "shipped": {},
     }
     for i, route in enumerate(routes):
         rest = [p for j, p in enumerate(parts) if j != i]
-        policy, train = fit([p[0] for p in rest], [p[1] for p in rest], [p[2] for p in rest])
+        policy, train = fit([p[0] for p in rest], [p[1] for p in rest])
         report["folds"][route.name] = {
             **evaluate(route, policy, params),
             "train": train,
             "thresholds": policy.describe(),
         }
         print(f"fold {route.name} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    policy, train = fit([p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts])
+    policy, train = fit([p[0] for p in parts], [p[1] for p in parts])
     report["shipped"]["train"] = train
     report["shipped"]["thresholds"] = policy.describe()
     for route in routes:

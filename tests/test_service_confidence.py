@@ -222,12 +222,16 @@ def test_answers_carry_p_correct_and_the_model_decides(
     info = client.get("/v1/index", headers={"X-API-Key": keys["vehicle"]}).json()
     assert info["acceptance"] == {
         "rule": "p_correct",
+        "sequence_rule": "p_correct",
         "threshold": 2.0,
         "model": {"features": list(SINGLE), "threshold": models["threshold"]},
         "sequence_model": {
             "features": list(SEQUENCE),
             "threshold": models["sequence_threshold"],
+            "stay_threshold": None,
         },
+        "lock_mass": 0.99,
+        "unlock_mass": 0.9,
     }
     doc = client.get("/openapi.json").json()["components"]["schemas"]["Match"]["properties"]
     for name in ("p_correct", "accepted_by"):

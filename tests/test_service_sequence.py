@@ -250,7 +250,8 @@ def test_openapi_documents_sequence_mode(client) -> None:
     assert "locked" in answer["match"]["description"]
     report = schemas["SequenceReport"]["properties"]
     assert set(report) == {
-        "status", "reset_reason", "match", "mass", "locked", "frames", "speed", "steps", "track"
+        "status", "reset_reason", "match", "mass", "locked", "off_map", "off_map_probability",
+        "frames", "speed", "steps", "track",
     }  # fmt: skip
     assert all(p.get("description") for p in report.values())
     assert "track" in schemas["BatchResponse"]["properties"]

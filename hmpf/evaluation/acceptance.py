@@ -29,7 +29,6 @@ trust the model's in-sample fit (as ``bench/confidence.py``).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -59,13 +58,13 @@ __all__ = [
     "Answers",
     "acceptance_figures",
     "apply_acceptance",
+    "concat_answers",
     "decide",
     "fit_acceptance",
     "RoutePart",
     "fit_pooled",
     "outside_answers",
     "route_out_of_fold",
-    "stay_threshold",
     "outside_floor",
     "sequence_answers",
     "single_answers",
@@ -220,10 +219,11 @@ def outside_answers(
                     run.drive[pick] + g * 1_000_000,
                 )
             )
-    return _concat(single), (_concat(seq) if params is not None else None)
+    return concat_answers(single), (concat_answers(seq) if params is not None else None)
 
 
-def _concat(parts: Sequence[Answers]) -> Answers:
+def concat_answers(parts: Sequence[Answers]) -> Answers:
+    """The answers of ``parts`` one after the other."""
     seq = bool(parts) and all(a.estimates is not None and a.drive is not None for a in parts)
     return Answers(
         [f for a in parts for f in a.features],
@@ -417,8 +417,11 @@ def _pooled(
     parts: Sequence[RoutePart], names: Sequence[str], outside_share: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(X, y, weight, route of each row, whether a row is an in-map answer) of ``parts``:
-    each route's in-map answers weigh 1 together (routes of different lengths count alike)
+    each route's in-map answers weigh alike in total (routes of different lengths count
+    alike), the mean route's answer 1 (so the regularisation weighs as in a one-route fit),
     and its out-of-map answers ``outside_share`` of the route's total."""
+    sizes = [len(p.answers) for p in parts if len(p.answers)]
+    per_route = float(np.mean(sizes)) if sizes else 0.0
     xs, ys, ws, gs, ins = [], [], [], [], []
     for g, part in enumerate(parts):
         n = len(part.answers)
@@ -426,7 +429,7 @@ def _pooled(
             continue
         xs.append(feature_matrix(part.answers.features, names))
         ys.append(part.answers.correct.astype(np.float64))
-        ws.append(np.full(n, 1.0 / n))
+        ws.append(np.full(n, per_route / n))
         gs.append(np.full(n, g))
         ins.append(np.ones(n, bool))
         m = 0 if part.outside is None else len(part.outside)
@@ -434,7 +437,7 @@ def _pooled(
             assert part.outside is not None
             xs.append(feature_matrix(part.outside.features, names))
             ys.append(np.zeros(m))
-            ws.append(np.full(m, outside_share / (1 - outside_share) / m))
+            ws.append(np.full(m, per_route * outside_share / (1 - outside_share) / m))
             gs.append(np.full(m, g))
             ins.append(np.zeros(m, bool))
     if not xs:
@@ -449,14 +452,35 @@ def _pooled(
 
 
 def route_out_of_fold(
-    parts: Sequence[RoutePart], names: Sequence[str], *, outside_share: float = OUTSIDE_SHARE
+    parts: Sequence[RoutePart],
+    names: Sequence[str],
+    *,
+    outside_share: float = OUTSIDE_SHARE,
+    by: str = "routes",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Leave-one-route-out predictions of every training answer: each route's answers
-    predicted by the model fitted on the other routes. Returns (p, y, route, in-map)."""
+    """Out-of-fold predictions of every training answer. ``by="routes"``: each route's
+    answers predicted by the model fitted on the other routes (leave one route out);
+    ``"folds"``: each of :data:`FOLDS` stretches of consecutive queries of each route by
+    the model fitted on everything else (as :func:`fit_acceptance`, pooled). Returns (p, y,
+    route, in-map)."""
     X, y, w, g, inside = _pooled(parts, names, outside_share)
+    if by == "routes":
+        groups = g
+    elif by == "folds":
+        folds = []
+        for p in parts:
+            if not len(p.answers):
+                continue
+            nq = int(p.answers.query.max()) + 1
+            folds.append(_folds(p.answers.query, nq))
+            if p.outside is not None and len(p.outside) and outside_share > 0:
+                folds.append(_folds(np.minimum(p.outside.query, nq - 1), nq))
+        groups = g * FOLDS + np.concatenate(folds)
+    else:
+        raise ModelError(f"unknown out-of-fold scheme {by!r}")
     oof = np.empty(len(y))
-    for r in np.unique(g):
-        hold = g == r
+    for r in np.unique(groups):
+        hold = groups == r
         if y[~hold].min() == y[~hold].max():
             raise ModelError("a fold's other routes hold only right or only wrong answers")
         model = ConfidenceModel.fit(X[~hold], y[~hold], names, l2=L2, sample_weight=w[~hold])
@@ -470,24 +494,28 @@ def fit_pooled(
     target: float,
     *,
     outside_share: float = OUTSIDE_SHARE,
+    outside_floor_rate: float | None = None,
+    oof: str = "folds",
 ) -> tuple[ConfidenceModel, float, dict[str, Any]]:
     """One model over several routes' training answers (each route weighing alike), its
-    threshold for ``target`` precision chosen on leave-one-route-out predictions (a model
-    that must hold on routes it never saw is thresholded as if each route were unseen), and
-    bounded so that at most ``1 - target`` of the out-of-map answers are accepted; with the
-    training figures at that threshold."""
+    threshold for ``target`` precision chosen on out-of-fold predictions (``oof``, see
+    :func:`route_out_of_fold`: stretches of each route, or leave one route out), and, with
+    ``outside_floor_rate``, bounded so that at most that share of the out-of-map
+    answers are accepted; with the training figures at that threshold."""
     if len(parts) < 2:
         raise ModelError("a pooled fit needs at least two routes")
     X, y, w, _, inside = _pooled(parts, names, outside_share)
     if y.min() == y.max():
         raise ModelError("the training answers are all right or all wrong")
     model = ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w)
-    oof, _, g, _ = route_out_of_fold(parts, names, outside_share=outside_share)
-    floor = outside_floor(oof[~inside], 1.0 - target) if (~inside).any() else 0.0
-    threshold = threshold_for_precision(oof[inside], y[inside].astype(bool), target, floor=floor)
+    pred, _, _, _ = route_out_of_fold(parts, names, outside_share=outside_share, by=oof)
+    bound = (~inside).any() and outside_floor_rate is not None
+    floor = outside_floor(pred[~inside], float(outside_floor_rate or 0.0)) if bound else 0.0
+    threshold = threshold_for_precision(pred[inside], y[inside].astype(bool), target, floor=floor)
     p_all = np.asarray(model.predict(X))
     train = acceptance_figures(p_all[inside], y[inside].astype(bool), threshold)
-    train["out_of_fold"] = acceptance_figures(oof[inside], y[inside].astype(bool), threshold)
+    train["out_of_fold"] = acceptance_figures(pred[inside], y[inside].astype(bool), threshold)
+    train["out_of_fold"]["by"] = oof
     train["routes"] = [p.name for p in parts]
     if (~inside).any():
         train["outside"] = {
@@ -495,36 +523,6 @@ def fit_pooled(
             "share": outside_share,
             "floor": floor,
             "accepted": float(np.mean(p_all[~inside] >= threshold)),
-            "accepted_out_of_fold": float(np.mean(oof[~inside] >= threshold)),
+            "accepted_out_of_fold": float(np.mean(pred[~inside] >= threshold)),
         }
     return model, threshold, train
-
-
-def stay_threshold(
-    policy: Policy, drives: Sequence[Answers], target: float, *, candidates: int = 200
-) -> float:
-    """The lowest stay threshold (hysteresis, :attr:`Policy.sequence_stay_threshold`), at
-    most the policy's ``sequence_threshold``, whose decisions over the in-map training
-    ``drives`` (:func:`sequence_answers`) keep ``target`` precision. The candidates are
-    quantiles of the drives' ``p_correct`` below the threshold."""
-    if policy.sequence_model is None or policy.sequence_threshold is None:
-        raise ModelError("a stay threshold needs a sequence model")
-    enter = float(policy.sequence_threshold)
-    both = _concat(list(drives))
-    p = np.asarray(
-        policy.sequence_model.predict(feature_matrix(both.features, policy.sequence_model.features))
-    )
-    below = (
-        np.unique(np.quantile(p[p < enter], np.linspace(0, 1, candidates)))
-        if (p < enter).any()
-        else np.zeros(0)
-    )
-    best = enter
-    for s in np.sort(below)[::-1]:  # from the threshold down: stop at the first failure
-        trial = replace(policy, sequence_stay_threshold=float(s))
-        dec = decide(trial, both, sequence=True)
-        acc = np.array([d.accepted for d in dec], bool)
-        if acc.any() and both.correct[acc].mean() < target:
-            break
-        best = float(s)
-    return best

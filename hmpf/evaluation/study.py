@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -206,6 +206,14 @@ class ScoreBank:
         k = np.asarray(keep, dtype=np.int64)
         scores = {m: s[:, k] for m, s in self.scores.items()}
         return ScoreBank(self.methods, scores, self.gt[:, k], self.data)
+
+    def rows(self, keep: np.ndarray) -> ScoreBank:
+        """The bank of the queries ``keep`` only (the same map and fitted methods)."""
+        k = np.asarray(keep, dtype=np.int64)
+        scores = {m: s[k] for m, s in self.scores.items()}
+        data = replace(self.data, query=[self.data.query[i] for i in k], gt=self.data.gt[k])
+        feats = {m: (db, [qs[i] for i in k]) for m, (db, qs) in self.features.items()}
+        return ScoreBank(self.methods, scores, self.gt[k], data, feats)
 
     def profile(self, config: HierarchyConfig) -> ReferenceProfile:
         """The :class:`~hmpf.confidence.ReferenceProfile` of this part's references for
