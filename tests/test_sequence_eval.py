@@ -163,3 +163,44 @@ def test_leave_drives_and_the_off_map_report():
     assert w["away_off_map"] > 0.8 and wo["away_off_map"] == 0.0
     assert w["on_map_off_map"] < 0.1 and w["away_accepted"] <= wo["away_accepted"]
     assert w["frames_back_on_map"]["median"] <= 2 and w["frames_to_relock"]["median"] <= 10
+
+
+def test_hmpf_eval_sequence_with_foreign_frames_drives_off_the_map_and_back(
+    gardens_point: Path, nordland: Path, tmp_path: Path, capsys
+) -> None:
+    """``hmpf-eval --sequence --foreign DIR``: real frames (Gardens Point day_left ->
+    day_right, 60 each; 40 Nordland winter thumbnails as the place off the map), the
+    default preset (whose tier-1 evidence the off state's likelihood was set on; with a
+    handcrafted tier 1 these frames score -0.2 to -0.3 against unrelated references, near
+    ``off_center``, and are not put off the map): the report says how the drives that
+    leave and come back went, and the off state is what puts the frames away off the map
+    (without it, none is)."""
+    import json
+    import shutil
+
+    from hmpf.cli.eval import main as eval_main
+
+    folders = {}
+    for name, src, n in (
+        ("refs", gardens_point / "day_left", 60),
+        ("qrys", gardens_point / "day_right", 60),
+        ("away", nordland / "winter", 40),
+    ):
+        folders[name] = tmp_path / name
+        folders[name].mkdir()
+        frames = sorted(src.iterdir())
+        for p in frames[:n] if name != "away" else frames[1000 : 1000 + n]:
+            shutil.copy(p, folders[name] / p.name)
+    out = tmp_path / "r.json"
+    args = ["--config", "default", "--reference", str(folders["refs"])]
+    args += ["--query", str(folders["qrys"]), "--tolerance", "2", "--no-cache", "--quiet"]
+    args += ["--workers", "1", "--sequence", "--foreign", str(folders["away"])]
+    assert eval_main([*args, "--json", str(out)]) == 0
+    assert "leaving the map and coming back" in capsys.readouterr().out
+    rep = json.loads(out.read_text())["off_map"]
+    with_off, without = rep["with_off"], rep["without_off"]
+    assert rep["n_drives"] > 0
+    assert with_off["away_off_map"] > 0.5 and without["away_off_map"] == 0.0
+    assert with_off["away_accepted"] <= without["away_accepted"]
+    with pytest.raises(SystemExit):  # --foreign needs --sequence
+        eval_main([a for a in args if a != "--sequence"])

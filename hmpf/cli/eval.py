@@ -80,6 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="methods whose whole-database curve is not computed",
     )
     add_sequence_arg(p)
+    p.add_argument(
+        "--foreign",
+        metavar="DIR",
+        help="with --sequence: frames of places the map does not hold (in driving order); "
+        "drives then leave the map and come back (the off-map state's figures)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     commands = p.add_subparsers(dest="command", title="commands", metavar="COMMAND")
     sub = commands.add_parser(
@@ -175,6 +181,7 @@ def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
     refs = list_images(args.reference)[: args.limit]
     qrys = list_images(args.query)[: args.limit]
     gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
+    foreign = list_images(args.foreign) if args.foreign else []
     return evaluate(
         config,
         EvalData(refs, qrys, gt, desc),
@@ -183,6 +190,7 @@ def _evaluate_route(args: argparse.Namespace) -> dict[str, Any]:
         skip_curves=args.skip_curves,
         progress=not args.quiet,
         sequence=args.sequence,
+        foreign=foreign,
     )
 
 
@@ -211,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         return run(experiments.PROG, lambda: experiments.run_experiments(args))
     if args.query is None:
         parser.error("--query is required")
+    if args.foreign and (not args.sequence or args.index is not None):
+        parser.error("--foreign needs --sequence and --reference (not --index)")
     if args.index is None and (args.config is None or args.reference is None):
         parser.error("--config and --reference are required (or --index DIR)")
     return run(PROG, lambda: run_eval(args))

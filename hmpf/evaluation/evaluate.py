@@ -351,6 +351,7 @@ def evaluate(
     skip_curves: Sequence[str] = (),
     progress: bool = False,
     sequence: bool = False,
+    foreign: Sequence[Path] = (),
 ) -> dict[str, Any]:
     """Evaluate every method alone, the hierarchy and flat fusion; returns the JSON report.
 
@@ -358,7 +359,9 @@ def evaluate(
     recall@N is omitted and flat fusion then uses the remaining methods; the report says so).
     With ``sequence`` the queries are also driven in order as one vehicle along the
     references (one route, file order) through the sequence filter of ``config``
-    (:mod:`hmpf.evaluation.sequence`).
+    (:mod:`hmpf.evaluation.sequence`); with ``foreign`` (frames of places the map does not
+    hold, in driving order) also drives that leave the map and come back
+    (:func:`~hmpf.evaluation.sequence.off_map_report`, report key ``off_map``).
     """
     gt = data.gt
     prep = prepare(build_methods(config), data, cache=cache, workers=workers, progress=progress)
@@ -420,6 +423,16 @@ def evaluate(
     )
     if sequence:
         report["sequence"] = _sequence(results, gt, routes, config, profile())
+    if sequence and foreign:
+        from hmpf.evaluation.sequence import off_map_report
+
+        away = EvalData(data.reference, list(foreign), np.zeros((len(foreign), n_db), bool), "")
+        p2 = prepare(build_methods(config), away, cache=cache, workers=workers, progress=progress)
+        scorers = (feature_scorer(p2.methods, p2.query(qi), p2.db) for qi in range(len(foreign)))
+        away_results, _ = run_queries(Hierarchy(config, p2.methods), scorers, n_db)
+        report["off_map"] = off_map_report(
+            results, away_results, gt, routes, config.sequence_params(), profile()
+        )
     report["acceptance"] = acceptance_report(
         results, gt, routes, config, sequence=sequence, profile=profile
     )
@@ -636,8 +649,13 @@ def _acceptance_lines(report: dict[str, Any]) -> list[str]:
 def _sequence_lines(report: dict[str, Any]) -> list[str]:
     if "sequence" not in report:
         return []
-    from hmpf.evaluation.sequence import format_sequence_report
+    from hmpf.evaluation.sequence import format_off_map_report, format_sequence_report
 
-    return ["", "sequence mode (queries driven in order as one vehicle):"] + [
+    lines = ["", "sequence mode (queries driven in order as one vehicle):"] + [
         "  " + line for line in format_sequence_report(report["sequence"])
     ]
+    if "off_map" in report:
+        lines += ["", "leaving the map and coming back (--foreign frames):"] + [
+            "  " + line for line in format_off_map_report(report["off_map"])
+        ]
+    return lines
