@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.acceptance import STAY_P, Policy
+from hmpf.confidence import expected_calibration_error
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -203,7 +204,7 @@ def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, An
     nq, nf = route.n_test, route.n_foreign
     inside = np.arange(nq)
     away = np.arange(nq, nq + nf)
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"gp": route.name.startswith("gp_")}
     single = single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile)
     s = apply_acceptance(policy, single)
     out["single"] = _figures(s, single)
@@ -214,6 +215,8 @@ def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, An
         **_figures(q, seq),
         "recall_at_1": float(seq.correct.mean()),
         "flips_per_100": 100.0 * flips(acc) / len(acc),
+        "p_correct": q["p_correct"],
+        "correct": seq.correct.tolist(),
     }
     f_single = single_answers([results[i] for i in away], None, routes, profile)
     fs = apply_acceptance(policy, f_single)
@@ -245,6 +248,22 @@ def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, An
         ),
         "accepted_in_map": float(accepted[~is_away].mean()),
     }
+    return out
+
+
+def pooled_ece(runs: Any) -> dict[str, float]:
+    """Sequence-mode ECE over the routes' test parts pooled: every route, and the Gardens
+    Point routes only."""
+    out = {}
+    for label, keep in (("all", lambda r: True), ("gardens_point", lambda r: r["gp"])):
+        p, c = [], []
+        for r in runs:
+            if keep(r):
+                p += [np.nan if x is None else x for x in r["sequence"]["p_correct"]]
+                c += r["sequence"]["correct"]
+        pa = np.asarray(p, dtype=np.float64)
+        ok = np.isfinite(pa)
+        out[label] = expected_calibration_error(pa[ok], np.asarray(c, dtype=bool)[ok])
     return out
 
 
@@ -365,11 +384,20 @@ def main() -> int:
     report["shipped"]["thresholds"] = policy.describe()
     for route in routes:
         report["shipped"][route.name] = evaluate(route, policy, params)
+    for key, runs in (
+        ("folds", report["folds"]),
+        ("shipped", {k: v for k, v in report["shipped"].items() if k in report["folds"]}),
+    ):
+        report[f"pooled_sequence_ece_{key}"] = pooled_ece(runs.values())
     report["wall_s"] = time.perf_counter() - t0
     out = Path(args.out or ROOT / "results" / f"shipped_acceptance_{args.config}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1, default=str))
     print("\n".join(goals(report)))
+    print(
+        "pooled sequence ECE (test parts): held-out folds "
+        f"{report['pooled_sequence_ece_folds']}, shipped {report['pooled_sequence_ece_shipped']}"
+    )
     if args.write:
         note = (
             f"shipped with preset {args.config!r}: fitted by bench/shipped_acceptance.py on "

@@ -30,7 +30,8 @@ def examples() -> dict[str, dict[str, Any]]:
     (single frame) and ``An answer in sequence mode``."""
     text = README.read_text()
     out = {}
-    for key, lead in (("single", "An answer (`POST /v1/localize`)"), ("sequence", "An answer in sequence mode")):  # fmt: skip
+    leads = (("single", "An answer (`POST /v1/localize`)"), ("sequence", "An answer in sequence"))
+    for key, lead in leads:
         at = text.index(lead)
         block = re.search(r"```json\n(.*?)\n```", text[at:], re.S)
         assert block is not None, f"no JSON block after {lead!r}"
