@@ -39,15 +39,21 @@ def examples() -> dict[str, dict[str, Any]]:
     return out
 
 
+#: Keys whose entries are method ids (the example's hierarchy is not the test index's).
+BY_METHOD = ("scores", "extract_per_method")
+
+
 def shape(x: Any, path: str = "") -> set[str]:
-    """Every key path in ``x`` (lists: their first entry; "..." ignored)."""
+    """Every key path in ``x`` (lists: their first entry; "..." ignored; the entries of
+    :data:`BY_METHOD` not)."""
     keys: set[str] = set()
     if isinstance(x, dict):
         for k, v in x.items():
             if k == "...":
                 continue
             keys.add(f"{path}.{k}")
-            keys |= shape(v, f"{path}.{k}")
+            if k not in BY_METHOD:
+                keys |= shape(v, f"{path}.{k}")
     elif isinstance(x, list) and x and x[0] != "...":
         keys |= shape(x[0], f"{path}[]")
     return keys

@@ -101,12 +101,15 @@ def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
             "print(meta['License-Expression'], meta.get_all('License-File'))\n"
             "import sys, hmpf.client\n"  # the client: a base dependency (httpx), no torch
             "print([d.split('>')[0] for d in meta.get_all('Requires-Dist') if ';' not in d])\n"
-            "print(hmpf.client.__file__, 'torch' in sys.modules)\n",
+            "print(hmpf.client.__file__, 'torch' in sys.modules)\n"
+            "from importlib.resources import files\n"  # the shipped confidence models
+            "print(files('hmpf').joinpath('presets/acceptance/default.json').is_file())\n",
         ],
         work,
         env,
     )
-    where, presets, license_, base_deps, client = out.splitlines()
+    where, presets, license_, base_deps, client, shipped = out.splitlines()
+    assert shipped == "True", "the default preset's shipped models are package data"
     venv = bindir.parent.resolve()
     assert Path(where).resolve().is_relative_to(venv), where  # the wheel's copy, not ROOT
     assert not Path(where).resolve().is_relative_to(ROOT)
