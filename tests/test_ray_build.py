@@ -87,6 +87,9 @@ def cluster() -> Iterator[Any]:
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     temp = tempfile.mkdtemp(prefix="hmpf-ray-")  # short: Ray's socket paths have a limit
+    # Ray writes the current cluster's address into <system temp>/ray even with a temp_dir
+    # of its own, and fails when that folder does not exist yet (a fresh machine).
+    os.makedirs(os.path.join(tempfile.gettempdir(), "ray"), exist_ok=True)
     common = {
         "object_store_memory": 200 * 1024 * 1024,
         "temp_dir": temp,

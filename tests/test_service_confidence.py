@@ -224,14 +224,18 @@ def test_answers_carry_p_correct_and_the_model_decides(
         "rule": "p_correct",
         "sequence_rule": "p_correct",
         "threshold": 2.0,
-        "model": {"features": list(SINGLE), "threshold": models["threshold"]},
+        "model": {
+            "features": list(SINGLE),
+            "threshold": models["threshold"],
+            "stay_threshold": None,
+        },
         "sequence_model": {
             "features": list(SEQUENCE),
             "threshold": models["sequence_threshold"],
             "stay_threshold": None,
         },
-        "lock_mass": 0.99,
-        "unlock_mass": 0.9,
+        "lock_mass": 0.9,  # the version's sequence settings (see _build_version)
+        "unlock_mass": 0.9,  # the lock rule's stay bar, never above lock_mass
     }
     doc = client.get("/openapi.json").json()["components"]["schemas"]["Match"]["properties"]
     for name in ("p_correct", "accepted_by"):
