@@ -76,7 +76,7 @@ function showAnswer(a) {
   }
   if (a.sequence) {
     const s = a.sequence;
-    field(dl, "sequence", `${s.status}, ${s.frames} frames, mass ${fmt(s.mass, 2)}, ${s.locked ? "locked" : "not locked"}`);
+    field(dl, "sequence", `${s.status}, ${s.frames} frames, mass ${fmt(s.mass, 2)}, ${s.off_map ? "off the map" : s.locked ? "accepted" : "not accepted"}`);
   }
   if (a.prior) field(dl, "prior", a.prior.applied ? `${a.prior.references} references within ${a.prior.radius_m} m` : a.prior.reason);
   field(dl, "index", a.index_version);
