@@ -42,6 +42,7 @@ __all__ = [
     "ModelError",
     "ReferenceProfile",
     "Reliability",
+    "absolute_evidence",
     "answer_features",
     "expected_calibration_error",
     "feature_matrix",
@@ -330,6 +331,16 @@ class ReferenceProfile:
             if math.isfinite(x) and math.isfinite(mu) and math.isfinite(sd) and sd > 0:
                 vals.append(self.sign[i] * (x - mu) / sd)
         return float(min(vals)) if vals else float("nan")
+
+
+def absolute_evidence(result: HierarchyResult, profile: ReferenceProfile | None) -> float:
+    """A result's absolute evidence (the sequence filter's
+    :attr:`~hmpf.sequence.Evidence.absolute`): the profile's z-score
+    (:meth:`ReferenceProfile.z`) of tier 1's raw scores at the single-frame answer (the
+    result on reference ids); NaN without a profile, an answer or raw scores."""
+    if profile is None or result.match < 0 or not result.tiers:
+        return float("nan")
+    return profile.z(result.tiers[0].raw, int(result.match))
 
 
 def feature_matrix(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> np.ndarray:

@@ -5,7 +5,7 @@ on a query thread with the request's lease on an index version: it decodes the i
 the hierarchy (restricted to the GPS prior, if any), times each stage and returns the answer.
 In sequence mode it also keeps the frame's evidence for the filter (:attr:`ImageQuery.evidence`,
 with the version it ran on), which the request runs once its frames are answered, in order;
-its absolute evidence (:func:`hmpf.evaluation.sequence.absolute_evidence`, what the filter's
+its absolute evidence (:func:`hmpf.confidence.absolute_evidence`, what the filter's
 "not in the map" hypothesis weighs) is read from the version's reference profile at the
 single-frame answer (NaN when the version has none).
 """
@@ -17,8 +17,8 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
+from hmpf.confidence import absolute_evidence
 from hmpf.errors import HmpfError
-from hmpf.evaluation.sequence import absolute_evidence
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Evidence
 from service.answer import localize_response, on_references
@@ -100,7 +100,7 @@ class ImageQuery:
                     loaded.reader.n,
                     proposals=loaded.sequence.params.proposals,
                     allowed=allowed,
-                    absolute=absolute_evidence(on_refs, getattr(loaded, "profile", None)),
+                    absolute=absolute_evidence(on_refs, loaded.profile),
                 )
                 if loaded.acceptance.sequence_model is not None:
                     self.result = on_refs

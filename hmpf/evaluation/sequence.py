@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hmpf.confidence import absolute_evidence
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Estimate, Evidence, FilterParams, RouteMap, SequenceFilter
 
@@ -46,7 +47,6 @@ __all__ = [
     "DriveResult",
     "drive",
     "evidences_of",
-    "absolute_evidence",
     "format_off_map_report",
     "format_sequence_report",
     "leave_drives",
@@ -99,15 +99,6 @@ class DriveResult:
     estimates: list[Estimate]
     correct: np.ndarray  # (T,) the estimate is right
     locked: np.ndarray  # (T,) the estimate is locked (accepted)
-
-
-def absolute_evidence(result: HierarchyResult, profile: ReferenceProfile | None) -> float:
-    """A result's :attr:`~hmpf.sequence.Evidence.absolute`: the profile's z-score
-    (:meth:`~hmpf.confidence.ReferenceProfile.z`) of tier 1's raw scores at the single-frame
-    answer; NaN without a profile, an answer or raw scores."""
-    if profile is None or result.match < 0 or not result.tiers:
-        return float("nan")
-    return profile.z(result.tiers[0].raw, int(result.match))
 
 
 def evidences_of(
