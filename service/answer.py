@@ -158,9 +158,9 @@ def with_sequence(
     est = step.estimate
     mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
     estimate = None
-    if est is None or est.ref < 0:
+    if est is None or est.ref < 0:  # out of order, or the belief holds no hypothesis
         decision = None
-    if est is not None and est.ref >= 0:  # -1: the belief holds no hypothesis
+    else:
         if decision is None:
             decision = sequence_decision(loaded, est, result)
         estimate = _reference_match(
