@@ -212,11 +212,11 @@ def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match 
     if result.match < 0:
         return None
     score = _finite(result.quality)
-    decision = loaded.acceptance.single(
-        on_references(result, refs.allowed, len(refs.names)),
-        loaded.sequence.routes,
-        loaded.profile,
-    )
+    acc = loaded.acceptance
+    # Only a model reads route distances: without one the match and its quality decide,
+    # which need no spreading over the whole map.
+    on_map = result if acc.model is None else on_references(result, refs.allowed, len(refs.names))
+    decision = acc.single(on_map, loaded.sequence.routes, loaded.profile)
     return _reference_match(
         loaded,
         refs.id_of(result.match),

@@ -306,19 +306,21 @@ def run_fit_only(args: argparse.Namespace) -> int:
     _check_args(args)
     given = load_config(args.config)
     train, test = load_banks(args, given)
-    config, report = fit_only(
-        given,
-        train,
-        test,
-        seed=args.seed,
-        target_precision=args.target_precision,
-        sequence=args.sequence,
-        model=not args.no_model,
-        outside=not args.no_outside,
-    )
+    config, report = fit_only(given, train, test, **_acceptance_args(args))
     report["protocol"] = _protocol(args, train)
     _write(args, config, report)
     return 0
+
+
+def _acceptance_args(args: argparse.Namespace) -> dict[str, Any]:
+    """What the search and ``--fit-only`` both pass to the acceptance fit."""
+    return {
+        "seed": args.seed,
+        "target_precision": args.target_precision,
+        "sequence": args.sequence,
+        "model": not args.no_model,
+        "outside": not args.no_outside,
+    }
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
@@ -351,16 +353,12 @@ def run_calibrate(args: argparse.Namespace) -> int:
             test,
             space,
             budget_ms=args.budget_ms,
-            seed=args.seed,
-            target_precision=args.target_precision,
             db_size=args.db_size,
             name=args.name or DEFAULT_NAME,
             top=args.top,
             progress=_bar_update(bar),
             costs=costs,
-            sequence=args.sequence,
-            model=not args.no_model,
-            outside=not args.no_outside,
+            **_acceptance_args(args),
         )
     report["protocol"] = _protocol(args, train)
     _write(args, config, report)
