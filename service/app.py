@@ -34,7 +34,7 @@ from hmpf.cli.common import package_version
 from service.auth import KeyStore
 from service.engine import Engine
 from service.errors import install_handlers
-from service.limits import BodyDeadline, BodyLimit
+from service.limits import ActiveLimit, BodyDeadline, BodyLimit, HeadLimit
 from service.metrics import Metrics
 from service.openapi import document_limits
 from service.reloader import CurrentWatch, update_behind
@@ -75,6 +75,10 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
     install_handlers(app)
     app.add_middleware(BodyLimit, limit_for=_body_limits(settings))
     app.add_middleware(BodyDeadline, timeout_s=settings.body_timeout_s)
+    app.add_middleware(
+        ActiveLimit, limit=settings.max_connections, retry_after_s=settings.retry_after_s
+    )
+    app.add_middleware(HeadLimit, limit=settings.max_header_bytes)
     app.middleware("http")(metrics.middleware)
     app.include_router(
         localize.router,

@@ -93,7 +93,16 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(1, ge=1)
     # -- connections (service/server.py) ------------------------------------------------------
     max_connections: int = Field(
-        128, ge=1, description="connections open at once; a request on one more gets 503"
+        128,
+        ge=1,
+        description="requests in progress at once; one more gets 503 with Retry-After "
+        "(/healthz, /readyz and /metrics are always answered)",
+    )
+    max_idle_connections: int = Field(
+        64,
+        ge=1,
+        description="connections carrying no request (new ones before their headers, kept-alive "
+        "ones between requests); one more closes the one idle the longest",
     )
     header_timeout_s: float = Field(
         10.0,
@@ -106,7 +115,7 @@ class Settings(BaseSettings):
     )
     keep_alive_s: int = Field(5, ge=1, description="an idle kept-alive connection is closed")
     max_header_bytes: int = Field(
-        16 * 1024, ge=1024, description="request line and headers; more is a 400"
+        16 * 1024, ge=1024, description="request line and headers; more is a 431"
     )
     # -- answers -----------------------------------------------------------------------------
     accept_threshold: float | None = Field(

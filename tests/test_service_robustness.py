@@ -10,8 +10,10 @@ answered (or dropped) before it would reach the engine. Logs are read from the r
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import re
+import select
 import socket
 import threading
 import time
@@ -271,20 +273,102 @@ def test_a_client_slow_to_send_its_body_gets_408(tmp_path: Path, multipart: bool
         assert not [ln for ln in lines if "Traceback" in ln], "\n".join(lines)
 
 
-def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
-    with LiveServer(tmp_path, max_connections=2) as live:
+def test_requests_beyond_the_limit_get_503_but_probes_are_answered(tmp_path: Path) -> None:
+    with LiveServer(tmp_path, max_connections=2, retry_after_s=3) as live:
         held = [live.connect() for _ in range(2)]
         try:
             for s in held:  # two uploads in progress
                 s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
             time.sleep(0.2)
-            r = httpx.get(live.url + "/healthz", timeout=5)
-            assert r.status_code == 503
+            r = httpx.post(live.url + "/v1/localize", content=b"x", timeout=5)
+            assert r.status_code == 503, r.text
+            assert r.json()["error"]["code"] == "overloaded"
+            assert r.headers["retry-after"] == "3"
+            for probe in ("/healthz", "/readyz", "/metrics"):
+                assert httpx.get(live.url + probe, timeout=5).status_code == 200, probe
         finally:
             for s in held:
                 s.close()
-        ok = wait_for(lambda: httpx.get(live.url + "/healthz", timeout=5).status_code == 200)
-        assert ok
+        answered = wait_for(
+            lambda: (
+                httpx.post(live.url + "/v1/localize", content=b"x", timeout=5).status_code != 503
+            )
+        )
+        assert answered
+
+
+def _closed_by_server(s: socket.socket) -> bool:
+    s.setblocking(False)
+    try:
+        return s.recv(1) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+    finally:
+        s.setblocking(True)
+
+
+def test_idle_connections_do_not_lock_anyone_out(tmp_path: Path) -> None:
+    """One client holding (and re-opening) far more idle connections than allowed: the
+    probes and real requests are answered all along; the oldest idle connections are closed,
+    so at most ``max_idle_connections`` stay open."""
+    limit = 16
+    with LiveServer(tmp_path, max_idle_connections=limit, max_connections=8) as live:
+        idle = [live.connect() for _ in range(200)]
+        try:
+            time.sleep(0.3)
+            open_now = [s for s in idle if not _closed_by_server(s)]
+            assert len(open_now) <= limit, len(open_now)
+            assert len(open_now) >= limit // 2  # the newest ones are kept, not all cut
+            statuses = []
+            deadline = time.monotonic() + 3
+            while time.monotonic() < deadline:
+                for s in list(idle):  # keep re-opening the ones the server closed
+                    if _closed_by_server(s):
+                        s.close()
+                        idle.remove(s)
+                        idle.append(live.connect())
+                for probe in ("/healthz", "/readyz"):
+                    statuses.append(httpx.get(live.url + probe, timeout=5).status_code)
+                r = httpx.post(live.url + "/v1/localize", content=b"x", timeout=5)
+                statuses.append(r.status_code)
+                assert r.json()["error"]["code"] == "unsupported_media_type", r.text
+            assert len(statuses) >= 6 and set(statuses) <= {200, 415}, statuses
+        finally:
+            for s in idle:
+                s.close()
+    assert any("idle connections" in ln for ln in live.log.lines())
+
+
+@pytest.mark.parametrize("pieces", [1, 8])
+def test_headers_over_the_limit_get_431_however_they_arrive(tmp_path: Path, pieces: int) -> None:
+    """In one write, h11 parses headers of any size up to a socket read; in pieces, h11 stops
+    at its buffer limit: a 431 JSON error either way, the connection closed."""
+    with LiveServer(tmp_path, max_header_bytes=4096) as live, live.connect() as s:
+        head = b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 20_000 + b"\r\n\r\n"
+        step = -(-len(head) // pieces)
+        for i in range(0, len(head), step):
+            s.sendall(head[i : i + step])
+            if pieces > 1 and select.select([s], [], [], 0.1)[0]:
+                break  # answered (and closing): the rest would be reset
+        answer, _ = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 431 "), answer[:200]
+        assert b'"request_header_too_large"' in answer
+        assert b"content-type: application/json" in answer.lower()
+    with LiveServer(tmp_path, max_header_bytes=4096) as live:  # under it: answered
+        r = httpx.get(live.url + "/healthz", headers={"X-Big": "a" * 3000}, timeout=5)
+        assert r.status_code == 200
+
+
+def test_a_garbled_request_gets_a_json_400(tmp_path: Path) -> None:
+    with LiveServer(tmp_path) as live, live.connect() as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost x no colon\r\n\r\n")
+        answer, _ = read_answer(s, within=5)
+        assert answer.startswith(b"HTTP/1.1 400 "), answer
+        head, _, body = answer.partition(b"\r\n\r\n")
+        assert b"content-type: application/json" in head.lower()
+        assert json.loads(body)["error"]["code"] == "bad_request"
 
 
 # -- the decode budget -----------------------------------------------------------------------------
