@@ -15,6 +15,9 @@ from service.track import MAX_TOKEN_CHARS
 #: Characters of a ``vehicle_id``, spelled out: JSON Schema's regex dialect (ECMA-262) reads
 #: ``\w`` as ASCII, Python's and pydantic's as any Unicode letter.
 VEHICLE_ID_PATTERN = r"^[A-Za-z0-9_.:@-]+$"
+#: The largest ``timestamp`` either way, seconds (about 31,700 years from its epoch): any
+#: epoch a camera uses fits, and differences of two stay exact to 0.2 ms.
+MAX_TIMESTAMP_S = 1e12
 
 __all__ = [
     "AcceptanceInfo",
@@ -30,6 +33,7 @@ __all__ = [
     "LocalizeFields",
     "LocalizeParams",
     "LocalizeResponse",
+    "MAX_TIMESTAMP_S",
     "Match",
     "ModelInfo",
     "PriorReport",
@@ -48,9 +52,15 @@ class LocalizeFields(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    lat: float | None = Field(None, ge=-90, le=90, description="GPS prior: latitude")
-    lon: float | None = Field(None, ge=-180, le=180, description="GPS prior: longitude")
-    radius_m: float | None = Field(None, gt=0, le=20_000_000, description="GPS prior radius")
+    lat: float | None = Field(
+        None, ge=-90, le=90, allow_inf_nan=False, description="GPS prior: latitude"
+    )
+    lon: float | None = Field(
+        None, ge=-180, le=180, allow_inf_nan=False, description="GPS prior: longitude"
+    )
+    radius_m: float | None = Field(
+        None, gt=0, le=20_000_000, allow_inf_nan=False, description="GPS prior radius (metres)"
+    )
     top_k: int = Field(
         5, ge=1, description="ranked candidates returned (at most the service's max_top_k)"
     )
@@ -74,8 +84,11 @@ class LocalizeFields(BaseModel):
     timestamp: float | None = Field(
         None,
         allow_inf_nan=False,
+        ge=-MAX_TIMESTAMP_S,
+        le=MAX_TIMESTAMP_S,
         description="sequence mode: the frame's capture time in seconds (any epoch, the same "
-        "for every frame of the vehicle); tells the filter how many frames were dropped",
+        "for every frame of the vehicle; at most 1e12 either way, so not milliseconds); "
+        "tells the filter how many frames were dropped",
     )
 
 

@@ -61,7 +61,9 @@ from hmpf.sequence import (
 
 __all__ = [
     "KEY_FILE",
+    "MAX_STEPS",
     "MAX_TOKEN_CHARS",
+    "MIN_INTERVAL_S",
     "NO_EVIDENCE",
     "REFUSALS",
     "RESET_REASONS",
@@ -238,11 +240,18 @@ def binding_digest(manifest: dict[str, Any], params: FilterParams) -> bytes:
 #: Weight of the newest frame gap in the running estimate of the frame interval.
 _INTERVAL_WEIGHT = 0.25
 #: Largest number of frames one step may cover (far beyond any filter's ``max_gap``).
-_MAX_STEPS = 10_000
+MAX_STEPS = 10_000
+#: The shortest time between two frames (seconds): frames closer than this are the same
+#: instant, and a learned interval below it (no camera's) is not kept.
+MIN_INTERVAL_S = 1e-6
 
 
 def frame_steps(dt: float, interval: float) -> tuple[int, float]:
     """Frames moved since the last frame, from the time between them, and the new interval.
+
+    Defined for every float pair (NaN, infinities, subnormals and negatives included): a
+    token's interval is whatever an earlier frame's timestamps made it, so nothing here may
+    raise or carry on an interval that the next frame could not use.
 
     Args:
         dt: seconds since the previous frame (NaN: unknown; >= 0).
@@ -250,19 +259,27 @@ def frame_steps(dt: float, interval: float) -> tuple[int, float]:
 
     Returns:
         (steps, interval): 1 when the time is unknown or the first interval is being
-        learned; 0 for the same instant; else ``round(dt / interval)`` (at least 1), the
-        frames dropped in between being ``steps - 1``. The interval follows the vehicle's
-        rate: a running mean of ``dt / steps``, restarted at ``dt`` when a frame comes much
-        sooner than expected (the first gap measured was itself a gap).
+        learned; 0 for the same instant (less than :data:`MIN_INTERVAL_S` apart); else
+        ``round(dt / interval)`` (at least 1, at most :data:`MAX_STEPS`), the frames dropped
+        in between being ``steps - 1``. The interval follows the vehicle's rate: a running
+        mean of ``dt / steps``, restarted at ``dt`` when a frame comes much sooner than
+        expected (the first gap measured was itself a gap). The interval returned is NaN
+        (not known) or a finite number >= :data:`MIN_INTERVAL_S`.
     """
+    known = math.isfinite(interval) and MIN_INTERVAL_S <= interval
+    if not known:
+        interval = math.nan  # not known (or not a camera's: less than a microsecond)
     if not math.isfinite(dt):
         return 1, interval
-    if dt <= 0:
+    if dt < MIN_INTERVAL_S:  # negative, zero or below a microsecond: the same instant
         return 0, interval
-    if not (math.isfinite(interval) and interval > 0) or dt < 0.75 * interval:
+    if not known or dt < 0.75 * interval:
         return 1, dt
-    steps = int(min(_MAX_STEPS, max(1, round(dt / interval))))
-    return steps, (1 - _INTERVAL_WEIGHT) * interval + _INTERVAL_WEIGHT * dt / steps
+    # dt / interval is finite or +inf (both positive, the interval not tiny): capped first,
+    # so that round() never sees an infinity.
+    steps = max(1, round(min(dt / interval, MAX_STEPS)))
+    new = (1 - _INTERVAL_WEIGHT) * interval + _INTERVAL_WEIGHT * (dt / steps)
+    return steps, new if math.isfinite(new) else interval
 
 
 @dataclass(frozen=True)

@@ -38,9 +38,12 @@ from service.track import (
     vehicle_digest,
 )
 
-__all__ = ["Tracker", "VehicleRequest"]
+__all__ = ["SEQUENCE_RETRY_AFTER_S", "Tracker", "VehicleRequest"]
 
 log = logging.getLogger("hmpf.service")
+#: Retry-After (seconds) of a 503 ``sequence_unavailable``: the key is tried again on every
+#: request, so sequence mode comes back as soon as the operator fixes the key file.
+SEQUENCE_RETRY_AFTER_S = 30
 
 
 @dataclass(frozen=True)
@@ -92,8 +95,9 @@ class Tracker:
         """The token codec with the service's key (setting, else the key file).
 
         Raises:
-            ApiError: 503 ``sequence_unavailable`` when there is no key and the key file
-                cannot be created (e.g. a read-only index folder); tried again next time.
+            ApiError: 503 ``sequence_unavailable`` (with Retry-After) when there is no key and
+                the key file cannot be created (e.g. a read-only index folder); tried again
+                next time. The answer names no path (the log does).
         """
         with self._lock:
             if self._codec is None:
@@ -108,8 +112,17 @@ class Tracker:
         try:
             return load_or_create_key(path)
         except ConfigError as exc:
+            # The path is the operator's to know (the log), never a client's (the answer).
             log.error("sequence mode unavailable: %s", exc)
-            raise ApiError(503, "sequence_unavailable", str(exc)) from None
+            raise ApiError(
+                503,
+                "sequence_unavailable",
+                "sequence mode is unavailable: the service has no sequence key (the operator "
+                "sets HMPF_SEQUENCE_KEY, or HMPF_SEQUENCE_KEY_FILE to a writable file; the "
+                "service log says what failed); frames without vehicle_id are answered, retry "
+                "sequence mode later",
+                {"Retry-After": str(SEQUENCE_RETRY_AFTER_S)},
+            ) from None
 
     def open(self, params: LocalizeParams) -> VehicleRequest | None:
         """The request's sequence mode (None without a ``vehicle_id``), its token checked.
@@ -178,6 +191,12 @@ class Tracker:
             except TrackRefused as exc:
                 self.metrics.sequence_refused.labels(exc.reason).inc()
                 raise _refused(exc) from None
+            except (ArithmeticError, ValueError) as exc:
+                # A bug's last line of defence: a track the filter cannot continue is refused
+                # (the vehicle starts a new one on a 422), never a 500 on every later frame.
+                log.warning("track of a vehicle refused: the filter failed on it", exc_info=exc)
+                self.metrics.sequence_refused.labels("malformed").inc()
+                raise _refused(TrackRefused("malformed", "track: cannot be continued")) from None
             if step.status != "out_of_order":
                 prev, token = step.track, codec.encode(step.track)
             dropped = 0
