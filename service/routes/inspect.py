@@ -11,10 +11,12 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Form, Query, UploadFile
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 from pydantic import BaseModel, Field
 
@@ -28,7 +30,13 @@ from service.routes.localize import FormRoute
 from service.schemas import ErrorBody, ReferenceList
 from service.settings import Settings
 
-__all__ = ["STATIC", "router"]
+__all__ = ["MAX_REFERENCE_CHARS", "MAX_ROW_DIGITS", "STATIC", "resolve_reference", "router"]
+
+#: The longest reference (name or row id) a request may give.
+MAX_REFERENCE_CHARS = 512
+#: The most digits of a row id (an int64's 19 digits; leading zeros beyond are refused).
+MAX_ROW_DIGITS = 19
+_ROW_ID = re.compile(rf"[0-9]{{1,{MAX_ROW_DIGITS}}}")
 
 #: The page's files (in the wheel: package data of ``service``).
 STATIC = Path(__file__).resolve().parent.parent / "static"
@@ -88,7 +96,16 @@ def _num(x: float) -> float | None:
     response_class=Response,
     responses={**_binary("image/jpeg", "the thumbnail"), **_NOT_FOUND},
 )
-def thumbnail(reference: str, key: VehicleKey, engine: EngineDep) -> Response:
+def thumbnail(
+    reference: Annotated[
+        str,
+        PathParam(
+            min_length=1, max_length=MAX_REFERENCE_CHARS, description="reference name or row id"
+        ),
+    ],
+    key: VehicleKey,
+    engine: EngineDep,
+) -> Response:
     """A reference's thumbnail (JPEG, longest side 160 px), by name or row id."""
     loaded = engine.lease()
     try:
@@ -111,13 +128,18 @@ def thumbnail(reference: str, key: VehicleKey, engine: EngineDep) -> Response:
 
 
 def resolve_reference(loaded: Loaded, reference: str) -> int:
-    """The row of ``reference``: a name of the index, else a row id (404 for neither)."""
+    """The row of ``reference``: a name of the index, else a row id (404 for neither).
+
+    A row id is ASCII digits only, at most :data:`MAX_ROW_DIGITS` of them: ``str.isdigit``
+    also passes ``²`` (which ``int`` refuses) and ``int`` also reads other scripts' digits
+    and refuses more than 4,300 digits, so neither decides alone.
+    """
     names = loaded.reader.refs.names
     try:
         return names.index(reference)
     except ValueError:
         pass
-    if reference.isdigit() and int(reference) < len(names):
+    if _ROW_ID.fullmatch(reference) and int(reference) < len(names):
         return int(reference)
     raise ApiError(
         404,
@@ -130,7 +152,8 @@ def resolve_reference(loaded: Loaded, reference: str) -> int:
 async def evidence(
     key: VehicleKey,
     reference: Annotated[
-        str, Query(min_length=1, max_length=512, description="reference name or row id")
+        str,
+        Query(min_length=1, max_length=MAX_REFERENCE_CHARS, description="reference name or row id"),
     ],
     form: Annotated[EvidenceForm, Form(media_type="multipart/form-data")],
     engine: EngineDep,
