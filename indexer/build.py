@@ -49,6 +49,7 @@ from hmpf.index.ann import (
     set_search_params,
 )
 from hmpf.index.layout import IndexBuildError, IndexCorruptError
+from hmpf.index.models import write_models
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import (
     Precision,
@@ -489,6 +490,7 @@ class VersionTransaction:
         name = layout.next_version_name(self.root)
         try:
             sizes, faiss_info = _write_data(out, new)
+            models = write_models(out, new.methods)  # the CNN models queries run (ONNX)
             thumb_bytes = 0
             if new.thumbnails is not None:
                 thumb_bytes = thumbnails.write_thumbnails(out / thumbnails.FILE, new.thumbnails)
@@ -507,7 +509,7 @@ class VersionTransaction:
                 bytes_per_method=sizes,
                 bytes_thumbnails=thumb_bytes,
             )
-            manifest = _manifest(name, self.operation, new, faiss_info)
+            manifest = _manifest(name, self.operation, new, faiss_info, models)
             manifest["summary"] = asdict(summary)
             manifest["files"] = _file_entries(out)
             summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
@@ -561,8 +563,10 @@ def _manifest(
     operation: str,
     new: NewVersion,
     faiss_info: Mapping[str, dict[str, Any] | None],
+    models: Sequence[dict[str, Any]] = (),
 ) -> dict[str, Any]:
-    """``manifest.json`` of version ``name`` without ``summary`` and ``files`` (added last)."""
+    """``manifest.json`` of version ``name`` without ``summary`` and ``files`` (added last);
+    ``models``: the exported CNN models stored (:func:`hmpf.index.models.write_models`)."""
     refs, config = new.refs, new.config
     sources = sorted(set(refs.sources))
     return {
@@ -577,6 +581,7 @@ def _manifest(
             for mid, m in new.methods.items()
         },
         "packages": layout.package_versions(),
+        "models": list(models),
         "platform": {"machine": platform.machine(), "system": platform.system(), "argv": sys.argv},
         "options": new.options.identity(),
         "images": {

@@ -118,19 +118,22 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 
 def _limit_threads(n: int) -> None:
-    """Cap BLAS/OpenMP pools (threadpoolctl) and torch's inter-op pool for the workers."""
+    """Cap BLAS/OpenMP pools (threadpoolctl) and, when torch is loaded, its pool for the
+    workers."""
     try:
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(n)
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency of the extra
         pass
-    try:
-        import torch
+    # torch is not imported for this: the CNN methods run the index's ONNX models without it
+    # (a serving install has no torch), and where a query does run torch (an index without
+    # stored models, HMPF_CNN_RUNTIME=torch) the forward pass sets its threads itself.
+    import sys
 
+    torch = sys.modules.get("torch")
+    if torch is not None:
         torch.set_num_threads(n)
-    except ImportError:  # pragma: no cover
-        pass
 
 
 def _body_limits(settings: Settings) -> Callable[[str], int]:

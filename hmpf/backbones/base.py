@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -33,14 +33,27 @@ if TYPE_CHECKING:
 __all__ = [
     "Backbone",
     "MapsModuleBackbone",
+    "Preprocess",
     "available_backbones",
     "backbone_class",
     "load_backbone",
     "register_backbone",
     "require_torch",
     "rgb3",
+    "torch_available",
     "weights_file",
 ]
+
+
+#: One image (H x W x 3 RGB uint8) and an input size (rows, cols) -> the network input.
+Preprocess = Callable[[np.ndarray, tuple[int, int]], np.ndarray]
+
+
+def torch_available() -> bool:
+    """True when torch is installed (found, not imported: importing it takes seconds)."""
+    import importlib.util
+
+    return importlib.util.find_spec("torch") is not None
 
 
 def require_torch() -> None:
@@ -93,6 +106,13 @@ class Backbone(ABC):
     @abstractmethod
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
         """(B, 3, rows, cols) -> {layer: (B, C, h, w)} for every requested layer."""
+
+    @classmethod
+    def preprocessor(cls, options: Mapping[str, Any]) -> Preprocess | None:
+        """:meth:`preprocess` as a function that needs no loaded network (numpy / OpenCV
+        only), for serving from a version's exported models without torch; None when the
+        preprocessing needs the loaded backbone. Backbones with :attr:`onnx` provide it."""
+        return None
 
     def for_export(self, size: tuple[int, int]) -> Backbone:
         """The backbone to export to ONNX at input ``size`` (rows, cols): this one, or a copy
@@ -155,10 +175,29 @@ def register_backbone(cls: type[Backbone]) -> type[Backbone]:
     return cls
 
 
-def _registry() -> dict[str, type[Backbone]]:
-    # Import the modules that register backbones (lazy: torch is an optional extra).
-    from hmpf.backbones import caffenet, efficientnet, vgg16, vgg_m  # noqa: F401
+#: Backbones whose modules define torch modules when imported, so they exist only with torch.
+_TORCH_MODULES = {
+    "caffenet": "hmpf.backbones.caffenet",
+    "vgg16": "hmpf.backbones.vgg16",
+    "vgg_m_1024": "hmpf.backbones.vgg_m",
+}
 
+
+def _registry(name: str | None = None) -> dict[str, type[Backbone]]:
+    """The registered backbones: EfficientNet's always (its module imports without torch, so
+    a server runs its exported models with ONNX Runtime alone, torch not even imported), the
+    torch-only ones (:data:`_TORCH_MODULES`) when ``name`` is one of them or, with None,
+    every one torch is installed for. Imported lazily: torch is an optional extra."""
+    import importlib
+
+    from hmpf.backbones import efficientnet  # noqa: F401
+
+    if name in _TORCH_MODULES:
+        require_torch()
+        importlib.import_module(_TORCH_MODULES[name])
+    elif name is None and torch_available():
+        for module in _TORCH_MODULES.values():
+            importlib.import_module(module)
     return _BACKBONES
 
 
@@ -167,10 +206,11 @@ def available_backbones() -> list[str]:
 
 
 def backbone_class(name: str) -> type[Backbone]:
-    """The registered backbone class ``name`` (nothing is loaded)."""
-    registry = _registry()
+    """The registered backbone class ``name`` (nothing is loaded; torch is imported only for
+    a backbone that is defined with it)."""
+    registry = _registry(name)
     if name not in registry:
-        raise UnknownMethodError(name, sorted(registry), kind="backbone")
+        raise UnknownMethodError(name, sorted(_registry()), kind="backbone")
     return registry[name]
 
 
@@ -190,9 +230,9 @@ def load_backbone(
 ) -> Backbone:
     """The backbone ``name`` with ``weights`` on ``device``, loaded once per process."""
     require_torch()
-    registry = _registry()
+    registry = _registry(name)
     if name not in registry:
-        raise UnknownMethodError(name, sorted(registry), kind="backbone")
+        raise UnknownMethodError(name, sorted(_registry()), kind="backbone")
     opts = dict(options or {})
     wkey = str(Path(weights).expanduser().resolve()) if weights else None
     key = (name, wkey, device, tuple(sorted((k, repr(v)) for k, v in opts.items())))

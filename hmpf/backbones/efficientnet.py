@@ -42,14 +42,14 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import cv2
 import numpy as np
 
-from hmpf.backbones.base import Backbone, register_backbone, weights_file
+from hmpf.backbones.base import Backbone, Preprocess, register_backbone, weights_file
 from hmpf.errors import ConfigError, MissingDependencyError
 
 if TYPE_CHECKING:
@@ -59,6 +59,17 @@ _MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 _STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 _STAGES = ("s1", "s2", "s3", "s4", "s5", "s6", "s7")
 _STRIDES = {"s1": 2, "s2": 4, "s3": 8, "s4": 16, "s5": 16, "s6": 32, "s7": 32, "head": 32}
+
+
+def imagenet_input(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The network input of one RGB ``uint8`` image at ``size`` (rows, cols): resized with
+    ``INTER_AREA``, scaled to [0, 1], normalised with the ImageNet mean and standard deviation,
+    channels first (3 x rows x cols float32). numpy and OpenCV only: the same function feeds
+    torch and ONNX Runtime, with or without torch installed."""
+    rows, cols = size
+    img = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_AREA)
+    x = (img.astype(np.float32) / 255.0 - _MEAN) / _STD
+    return np.ascontiguousarray(x.transpose(2, 0, 1))
 
 
 @functools.cache
@@ -209,10 +220,11 @@ class EfficientNetLite0(Backbone):
         return type(self)(model, self.device)
 
     def preprocess(self, image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        rows, cols = size
-        img = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_AREA)
-        x = (img.astype(np.float32) / 255.0 - _MEAN) / _STD
-        return np.ascontiguousarray(x.transpose(2, 0, 1))
+        return imagenet_input(image, size)
+
+    @classmethod
+    def preprocessor(cls, options: Mapping[str, Any]) -> Preprocess:
+        return imagenet_input
 
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
         import torch

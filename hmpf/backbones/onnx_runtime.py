@@ -22,6 +22,9 @@ up to 33; ``tests/test_cnn_runtime.py``).
   an error. Files are written to a temporary name and renamed, so concurrent processes never
   read half a file. When the cache folder is not writable the model goes to a temporary
   folder for this process (a warning says so).
+* Index versions: a build copies the exported models into the version
+  (:func:`export_model`, :mod:`hmpf.index.models`), and a reader runs them from there
+  (:class:`StoredModel`) with onnxruntime alone: no torch, no onnx, no export, no cache.
 * Sessions: one per (model, compute threads) per process, with ``intra_op_num_threads`` =
   :func:`hmpf.runtime.compute_threads` (1 in extraction workers, the service's per-worker
   threads), sequential execution, and no spinning of idle pool threads (a waiting worker
@@ -34,6 +37,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import tempfile
 import threading
 import warnings
@@ -55,8 +59,10 @@ __all__ = [
     "EXPORT_VERSION",
     "OPSET",
     "OnnxMaps",
+    "StoredModel",
     "clear_sessions",
     "export_key",
+    "export_model",
     "model_path",
     "onnx_maps",
     "require_onnxruntime",
@@ -76,13 +82,19 @@ _WEIGHTS: weakref.WeakKeyDictionary[Backbone, str] = weakref.WeakKeyDictionary()
 _FALLBACK_DIR: Path | None = None
 
 
-def require_onnxruntime() -> None:
-    """Raise :class:`MissingDependencyError` with an install hint when onnxruntime or onnx
-    is missing."""
+def require_onnxruntime(export: bool = True) -> None:
+    """Raise :class:`MissingDependencyError` with an install hint when onnxruntime (or, to
+    ``export``, onnx) is missing."""
     try:
-        import onnx  # noqa: F401
+        if export:
+            import onnx  # noqa: F401
         import onnxruntime  # noqa: F401
     except ImportError:
+        if not export:
+            raise MissingDependencyError(
+                "the CNN methods run their exported models with onnxruntime: pip install "
+                "'hmpf[onnx]' (or 'hmpf[serve]', or make install)"
+            ) from None
         raise MissingDependencyError(
             "the onnx CNN runtime needs onnxruntime and onnx: pip install 'hmpf[cnn]' (or "
             "make install), or set HMPF_CNN_RUNTIME=torch"
@@ -299,6 +311,59 @@ def onnx_maps(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> On
         maps = OnnxMaps(session, layers, path)
         _SESSIONS[key] = maps
         return maps
+
+
+def export_model(net: Backbone, layers: Sequence[str], size: tuple[int, int], dest: Path) -> str:
+    """Write ``net``'s exported model for ``layers`` at ``size`` to ``dest`` (a copy of the
+    cached export, exported first when needed: the model the extraction of this process
+    runs). Returns its :func:`export_key`."""
+    maps = onnx_maps(net, layers, size)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(maps.path, dest)
+    return export_key(net, layers, (int(size[0]), int(size[1])))
+
+
+class StoredModel:
+    """An exported model kept outside the cache (in an index version, where the manifest's
+    sha256 vouches for it): ``path`` computes ``layers`` at input ``size``.
+
+    Running it needs onnxruntime only (no torch, no onnx). Sessions are made on first use, one
+    per :func:`~hmpf.runtime.compute_threads` value, and live as long as this object (the
+    reader that holds it).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        layers: Sequence[str],
+        size: tuple[int, int],
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.layers = list(layers)
+        self.size = (int(size[0]), int(size[1]))
+        #: what else is known of it (an index manifest's entry: export key, exporter...)
+        self.info: dict[str, Any] = dict(info or {})
+        self._lock = threading.Lock()
+        self._sessions: dict[int, onnxruntime.InferenceSession] = {}
+
+    def __repr__(self) -> str:
+        return f"StoredModel({str(self.path)!r}, {self.layers}, {self.size})"
+
+    def covers(self, layers: Sequence[str]) -> bool:
+        return set(layers) <= set(self.layers)
+
+    def maps(self, layers: Sequence[str]) -> OnnxMaps:
+        """The session computing ``layers`` (a subset of this model's outputs)."""
+        if not self.covers(layers):
+            raise ValueError(f"{self.path} computes {self.layers}, not {sorted(layers)}")
+        require_onnxruntime(export=False)
+        threads = compute_threads()
+        with self._lock:
+            session = self._sessions.get(threads)
+            if session is None:
+                session = self._sessions[threads] = _session(self.path, threads)
+        return OnnxMaps(session, list(layers), self.path)
 
 
 def clear_sessions() -> None:

@@ -13,6 +13,7 @@
         state.h5              fitted parameters per method (only when a method has any)
         thumbnails.h5         small JPEG per reference (format 1.1; hmpf.index.thumbnails)
         faiss/<method>.faiss  tier-1 FAISS index per global method
+        onnx/<model>.onnx     exported CNN models the queries run (hmpf.index.models)
 
 A version is written into ``.build/out``, every file fsynced, renamed to ``<name>``, and only
 then ``CURRENT`` is replaced atomically, so an interrupted writer never changes what readers
@@ -96,7 +97,15 @@ _VERSION_RE = re.compile(r"^v(\d{4,})$")
 #: The two OpenCV wheels hmpf runs on (same cv2 module; either satisfies an index).
 OPENCV_DISTS = ("opencv-python-headless", "opencv-contrib-python-headless")
 #: Distributions whose versions a build records in the manifest (``packages``).
-RECORDED_PACKAGES = ("hmpf", "numpy", "h5py", "faiss-cpu", *OPENCV_DISTS, "torch")
+RECORDED_PACKAGES = (
+    "hmpf",
+    "numpy",
+    "h5py",
+    "faiss-cpu",
+    *OPENCV_DISTS,
+    "torch",
+    "onnxruntime",
+)
 
 
 def installed_version(dist: str) -> str | None:

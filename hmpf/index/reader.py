@@ -32,7 +32,7 @@ dataset where HDF5 cannot see it, is an :class:`IndexCorruptError` naming the fi
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
@@ -46,6 +46,7 @@ from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
 from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
+from hmpf.index.models import attach_models, torch_needed
 from hmpf.index.storage import (
     open_h5,
     read_global,
@@ -67,8 +68,10 @@ log = logging.getLogger("hmpf.index")
 
 #: Packages whose major version changes what the methods compute (OpenCV: HOG, KAZE, image
 #: ops; torch: the CNN methods) or how the index files are read (FAISS): a different major
-#: version than the build's is an error. Other differences (minor versions, numpy, h5py) are
-#: logged as warnings.
+#: version than the build's is an error. Other differences (minor versions, numpy, h5py,
+#: onnxruntime) are logged as warnings. torch counts only where a query runs a forward pass
+#: in it: a version whose CNN methods run their stored ONNX models (:mod:`hmpf.index.models`,
+#: the default runtime) does not depend on torch, which need not even be installed.
 STRICT_PACKAGES = (*layout.OPENCV_DISTS, "torch", "faiss-cpu")
 
 
@@ -93,8 +96,13 @@ def _major(version: str) -> str:
     return version.split(".")[0]
 
 
-def check_packages(built_with: Mapping[str, str], where: Path) -> list[str]:
+def check_packages(
+    built_with: Mapping[str, str], where: Path, unused: Collection[str] = ()
+) -> list[str]:
     """Compare the build's package versions (manifest ``packages``) with the installed ones.
+
+    ``unused``: packages the reader does not run (torch, when every CNN forward pass runs a
+    stored ONNX model), not compared.
 
     Returns:
         the differences that were only logged as warnings.
@@ -106,7 +114,7 @@ def check_packages(built_with: Mapping[str, str], where: Path) -> list[str]:
     """
     notes: list[str] = []
     for dist, built in sorted(built_with.items()):
-        if dist in ("python", "hmpf") or not isinstance(built, str):
+        if dist in ("python", "hmpf") or dist in unused or not isinstance(built, str):
             continue
         here = layout.installed_version(dist)
         if here is None and dist.startswith("opencv"):  # the other OpenCV wheel is fine
@@ -158,9 +166,13 @@ class IndexReader:
         self.manifest = layout.read_manifest(self.path)
         #: seconds spent checking the files' sha256 (None: not checked, ``verify=False``)
         self.verify_seconds = layout.check_files(self.path, self.manifest) if verify else None
-        check_packages(self.manifest.get("packages", {}), self.path)
         self.config = self._check_config(expected_config)
         self.methods: dict[str, Method] = self._load_methods()
+        # The CNN methods run the version's exported models (ONNX Runtime, no torch), or, in a
+        # version built before versions stored them, the torch model.
+        attach_models(self.path, self.manifest, self.methods)
+        unused = () if torch_needed(self.methods) else ("torch",)
+        check_packages(self.manifest.get("packages", {}), self.path, unused)
         self._files: list[Any] = []
         self._ref_h5 = self._open(layout.REFERENCES_H5)
         has_local = any(m.kind == "local" for m in self.methods.values())

@@ -16,6 +16,11 @@ default on the CPU, for backbones that export (:attr:`~hmpf.backbones.base.Backb
 :mod:`hmpf.backbones.onnx_runtime`); ``torch``, the reference implementation, with
 ``HMPF_CNN_RUNTIME=torch`` (:func:`hmpf.runtime.set_cnn_runtime`), on other devices and for
 the other backbones. Both give the same maps within float32 rounding.
+
+Methods loaded from an index version run the ONNX models stored in it
+(:meth:`CnnMethod.use_stored_models`, :mod:`hmpf.index.models`) on the ``onnx`` runtime,
+prepared by the backbone's numpy / OpenCV preprocessing: torch is not imported, so a server
+needs none (torch is imported lazily, only where a forward pass runs or exports in it).
 """
 
 from __future__ import annotations
@@ -23,15 +28,21 @@ from __future__ import annotations
 import time
 from abc import abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from hmpf.backbones import Backbone, backbone_class, load_backbone, require_torch
+from hmpf.backbones.base import Preprocess, torch_available
+from hmpf.errors import MissingDependencyError
 from hmpf.imageio import to_rgb
 from hmpf.methods.base import GroupOutput, Method, MethodConfig
 from hmpf.runtime import cnn_runtime, compute_threads
+
+if TYPE_CHECKING:
+    from hmpf.backbones.onnx_runtime import OnnxMaps, StoredModel
 
 __all__ = [
     "CnnConfig",
@@ -110,6 +121,11 @@ class CnnMethod(Method):
 
     Config = CnnConfig
     batched = True
+    #: The exported models of the index version this method was loaded from, by input size
+    #: (:meth:`use_stored_models`); None for a method not loaded from an index.
+    stored_models: dict[tuple[int, int], StoredModel] | None = None
+    #: The version folder those models come from (named in errors).
+    stored_from: Path | None = None
 
     @property
     def cnn(self) -> CnnConfig:
@@ -128,7 +144,8 @@ class CnnMethod(Method):
         """Names of the backbone maps :meth:`from_maps` reads."""
 
     def default_input_size(self) -> tuple[int, int]:
-        return self.backbone().default_input_size
+        # The class attribute: the network itself (torch) is not needed to know it.
+        return backbone_class(self.cnn.backbone).default_input_size
 
     def input_size(self) -> tuple[int, int]:
         size = self.cnn.input_size
@@ -164,6 +181,23 @@ class CnnMethod(Method):
             if backbone_class(self.cnn.backbone).onnx:
                 return "onnx"
         return "torch"
+
+    def use_stored_models(self, models: Mapping[tuple[int, int], StoredModel], where: Path) -> None:
+        """Run the forward passes from ``models`` (an index version's exported models, by input
+        size) when the runtime is ``onnx``: ONNX Runtime alone, torch is not imported.
+        ``where``, the version folder, is named when a model is missing there."""
+        self.stored_models = {(int(k[0]), int(k[1])): v for k, v in models.items()}
+        self.stored_from = Path(where)
+
+    def stored_for(self, layers: Sequence[str]) -> list[StoredModel] | None:
+        """The stored model of each input size computing ``layers``, None unless every size
+        has one."""
+        if self.stored_models is None:
+            return None
+        out = [self.stored_models.get(size) for size in self.input_sizes()]
+        if any(m is None or not m.covers(layers) for m in out):
+            return None
+        return out  # type: ignore[return-value]
 
     def descriptor_key(self) -> str:
         """:meth:`cache_key`, plus ``-onnx`` when ONNX Runtime computes the maps: descriptors
@@ -224,30 +258,47 @@ def forward_group(
     and one set of scales). When ``timing`` is given, the preprocessing + forward time per
     image (ms, every scale) is appended to it for every image.
     """
-    require_torch()  # an install hint, not a ModuleNotFoundError traceback
-    import torch
-
     head = methods[0]
-    net = head.backbone()
     sizes = head.input_sizes()
     layers = sorted({layer for m in methods for layer in m.layers()})
     batch_size = max(m.cnn.batch_size for m in methods)
-    onnx = None
-    if head.runtime() == "onnx":
-        from hmpf.backbones.onnx_runtime import onnx_maps
-
-        onnx = [onnx_maps(net, layers, size) for size in sizes]
+    onnx: list[OnnxMaps] | None = None
+    stored = head.stored_for(layers) if head.runtime() == "onnx" else None
+    if stored is not None:
+        # The index version's own exported models, in ONNX Runtime: torch is never imported
+        # on this path (a server may have none), and the input is prepared by the backbone's
+        # numpy / OpenCV preprocessing, the function its torch model is fed by.
+        c = head.cnn
+        prep = backbone_class(c.backbone).preprocessor(c.backbone_options)
+        if prep is None:  # pragma: no cover - every backbone that exports has one
+            raise MissingDependencyError(f"backbone {c.backbone!r} preprocesses in torch")
+        preprocess: Preprocess = prep
+        onnx = [m.maps(layers) for m in stored]
+        net = None
     else:
-        torch.set_num_threads(compute_threads())
+        _require_torch_for(head, layers)
+        net = head.backbone()
+        preprocess = net.preprocess
+        if head.runtime() == "onnx":
+            from hmpf.backbones.onnx_runtime import onnx_maps
+
+            onnx = [onnx_maps(net, layers, size) for size in sizes]
+        else:
+            import torch  # imported here: only the torch runtime needs it (an optional extra)
+
+            torch.set_num_threads(compute_threads())
     for sl in _batches(len(images), batch_size):
         t0 = time.perf_counter()
         rgb = [to_rgb(im) for im in images[sl]]
         out: list[dict[str, np.ndarray]] = [{} for _ in rgb]
         for i, size in enumerate(sizes):
-            x = np.stack([net.preprocess(im, size) for im in rgb])
+            x = np.stack([preprocess(im, size) for im in rgb])
             if onnx is not None:
                 arrays = onnx[i](x)
             else:
+                import torch
+
+                assert net is not None
                 with torch.inference_mode():
                     maps = net.forward_maps(torch.from_numpy(x).to(net.device), layers)
                     arrays = {k: v.float().cpu().numpy() for k, v in maps.items()}
@@ -256,6 +307,30 @@ def forward_group(
         if timing is not None:
             timing.extend([(time.perf_counter() - t0) * 1e3 / len(rgb)] * len(rgb))
         yield from out
+
+
+def _require_torch_for(head: CnnMethod, layers: Sequence[str]) -> None:
+    """torch, needed to run ``head``'s group without a stored model: an install hint, or for a
+    method loaded from an index version that stores no model for it (built before versions
+    carried them, or run with ``HMPF_CNN_RUNTIME=torch``), what to do about that version."""
+    if torch_available():
+        return
+    c = head.cnn
+    if head.stored_from is not None and head.runtime() == "onnx":
+        raise MissingDependencyError(
+            f"{head.stored_from}: this index version stores no exported model of "
+            f"{c.backbone} {list(layers)} at {head.input_sizes()} (it was built before index "
+            "versions carried their ONNX models), and torch is not installed to export one; "
+            "rebuild the index with this hmpf-index (`hmpf-index build`), or install torch "
+            "(pip install 'hmpf[cnn]')"
+        )
+    if head.stored_from is not None:
+        raise MissingDependencyError(
+            f"HMPF_CNN_RUNTIME={cnn_runtime()} runs {c.backbone} in torch, which is not "
+            "installed: pip install 'hmpf[cnn]', or serve with HMPF_CNN_RUNTIME=onnx (the "
+            f"default) from the models stored in {head.stored_from}"
+        )
+    require_torch()
 
 
 # -- small numeric helpers shared by the CNN methods ----------------------------------------
