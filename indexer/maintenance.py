@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +14,26 @@ from hmpf.index import layout
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError
 from hmpf.index.reader import IndexReader, resolve_version
 
-__all__ = ["gc", "info", "list_versions", "use", "verify", "verify_all"]
+__all__ = [
+    "STALE_TMP_MAX_AGE_S",
+    "STALE_TMP_MIN_AGE_S",
+    "gc",
+    "info",
+    "stale_temporary_files",
+    "list_versions",
+    "use",
+    "verify",
+    "verify_all",
+]
+
+#: A writer's temporary file in the index folder younger than this is never deleted.
+STALE_TMP_MIN_AGE_S = 60.0
+#: One older than this is deleted even if a process with its pid runs.
+STALE_TMP_MAX_AGE_S = 24 * 3600.0
+#: The temporary files writers make in the index folder itself, named after their process:
+#: ``.CURRENT.<pid>.tmp`` (:func:`hmpf.index.layout.set_current`) and
+#: ``.sequence-key.<pid>.<hex>.tmp`` (the service's sequence key, :mod:`service.track`).
+_WRITER_TMP = re.compile(r"^\.(?:CURRENT|sequence-key)\.(\d{1,10})(?:\.[0-9a-f]+)?\.tmp$")
 
 
 def verify(index: str | Path, version: str | None = None) -> list[str]:
@@ -125,9 +147,12 @@ def info(index: str | Path, version: str | None = None) -> dict[str, Any]:
 def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
     """Delete old versions (never the current one; also keep the ``keep`` newest others).
 
-    Also deletes an abandoned ``.build`` folder. Each folder is first renamed out of the way
-    (``.deleting-<name>``, atomic, fsynced) and only then deleted, so a ``gc`` killed
-    midway leaves every version whole or gone; the next ``gc`` deletes what it left.
+    Also deletes an abandoned ``.build`` folder, and the temporary files a killed writer left
+    in the index folder (:func:`stale_temporary_files`: e.g. ``.CURRENT.<pid>.tmp`` of a
+    process killed between the fsync and the replace of ``CURRENT``). Each folder is first
+    renamed out of the way (``.deleting-<name>``, atomic, fsynced) and only then deleted, so
+    a ``gc`` killed midway leaves every version whole or gone; the next ``gc`` deletes what
+    it left.
 
     Returns:
         the deleted paths (their names before the rename).
@@ -143,13 +168,63 @@ def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
         if (root / layout.BUILD_DIR).exists():
             paths.append(root / layout.BUILD_DIR)
         leftovers = sorted(root.glob(layout.DELETING + "*"))
+        stale = stale_temporary_files(root)
         if not dry_run:
             for p in leftovers:
                 shutil.rmtree(p)
             for p in paths:
                 shutil.rmtree(_move_away(p))
+            for p in stale:
+                p.unlink(missing_ok=True)
             layout.fsync_dir(root)
-    return [str(p) for p in paths + leftovers]
+    return [str(p) for p in paths + leftovers + stale]
+
+
+def stale_temporary_files(root: Path, now: float | None = None) -> list[Path]:
+    """The writers' temporary files in ``root`` that no live writer can still hold.
+
+    ``.CURRENT.<pid>.tmp`` and ``.sequence-key.<pid>.<hex>.tmp`` live for the milliseconds of
+    one write and fsync; a writer killed before its rename leaves one behind. Such a file is
+    stale when it is older than :data:`STALE_TMP_MIN_AGE_S` and no process with its pid runs
+    here, or older than :data:`STALE_TMP_MAX_AGE_S` whatever runs. Why this is sound:
+
+    * ``CURRENT`` is switched only under the writer lock, which ``gc`` holds: no
+      ``.CURRENT`` file can be in use while it runs, whatever its pid says. The rules still
+      hold for a writer that does not take the lock (and for the service's key file, made
+      without it): deleting a live writer's file makes its rename fail (nothing is changed,
+      it reports an error), never half a file published.
+    * The minimum age covers a writer in another container on the same folder, whose pid
+      this process cannot see (it looks dead); the maximum age covers a dead writer's pid
+      since reused by another process (it looks alive).
+    """
+    now = time.time() if now is None else now
+    out = []
+    for p in sorted(root.iterdir()) if root.is_dir() else []:
+        m = _WRITER_TMP.match(p.name)
+        if m is None or not p.is_file():
+            continue
+        try:
+            age = now - p.stat().st_mtime
+        except FileNotFoundError:
+            continue  # its writer finished meanwhile
+        if age > STALE_TMP_MAX_AGE_S or (age > STALE_TMP_MIN_AGE_S and not _running(int(m[1]))):
+            out.append(p)
+    return out
+
+
+def _running(pid: int) -> bool:
+    """Whether a process with this pid runs (and is visible) here."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except OverflowError:
+        return False
+    return True
 
 
 def _move_away(path: Path) -> Path:
