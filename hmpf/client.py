@@ -60,6 +60,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "API_KEY_HEADER",
+    "TRACK_HEADER",
+    "VEHICLE_ID_HEADER",
     "AsyncClient",
     "BatchOptions",
     "Client",
@@ -74,6 +76,9 @@ __all__ = [
 
 #: The header that carries the API key.
 API_KEY_HEADER = "X-API-Key"
+#: Headers of sequence mode (never the URL: it ends up in logs).
+VEHICLE_ID_HEADER = "X-Vehicle-Id"
+TRACK_HEADER = "X-Track"
 #: An image as the client takes it: a file path, encoded bytes, or an RGB / grey uint8 array.
 ImageInput = str | os.PathLike[str] | bytes | bytearray | memoryview | np.ndarray
 #: Transport errors worth another try: timeouts, refused / reset connections, a connection
@@ -249,10 +254,16 @@ class _Core:
         self, method: str, path: str, options: Mapping[str, Any], **kw: Any
     ) -> httpx.Request:
         params: dict[str, Any] = {k: v for k, v in options.items() if v is not None}
-        vehicle = options.get("vehicle_id")
-        if vehicle is not None and "track" not in params and vehicle in self.tracks:
-            params["track"] = self.tracks[vehicle]
+        # the vehicle's id and track token travel in headers: URLs end up in logs
+        vehicle = params.pop("vehicle_id", None)
+        track = params.pop("track", None)
+        if vehicle is not None and track is None:
+            track = self.tracks.get(vehicle)
         headers = {**self.headers, **kw.pop("headers", {})}
+        if vehicle is not None:
+            headers[VEHICLE_ID_HEADER] = vehicle
+        if track is not None:
+            headers[TRACK_HEADER] = track
         return httpx.Request(
             method,
             self.url + path,
@@ -263,7 +274,8 @@ class _Core:
         )
 
     def localize(self, image: ImageInput, options: LocalizeOptions) -> _Call:
-        """``POST /v1/localize``: the image as the raw body, the fields in the query string."""
+        """``POST /v1/localize``: the image as the raw body, the fields in the query string (the
+        vehicle's id and track in headers)."""
         _check_options("localize", options, LocalizeOptions.__optional_keys__)
         data, content_type = encode_image(image, self.array_format)
         request = self._request(
@@ -272,7 +284,8 @@ class _Core:
         return _Call(request, LocalizeResponse, options.get("vehicle_id"))
 
     def batch(self, images: Iterable[ImageInput], options: BatchOptions) -> _Call:
-        """``POST /v1/localize/batch``: multipart ``images`` fields, the fields in the query."""
+        """``POST /v1/localize/batch``: multipart ``images`` fields, the fields in the query
+        (the vehicle's id and track in headers)."""
         _check_options("localize_batch", options, BatchOptions.__optional_keys__)
         files = []
         for i, image in enumerate(images):

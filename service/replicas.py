@@ -24,7 +24,14 @@ output for two replicas). What the configuration does:
   again; the service keeps no state between requests, so a frame sent twice is answered the
   same way twice); a bad request 400, a slow client 408, a replica that does not answer in
   ``--server-timeout`` seconds 504 (not retried: the query may still be running);
-* every answer names the replica that gave it (``X-Hmpf-Replica``).
+* every answer names the replica that gave it (``X-Hmpf-Replica``);
+* HAProxy, not the replica, faces the clients' connections: it waits ``timeout http-request``
+  for a request's headers and holds idle client connections itself. Towards each replica it
+  keeps at most ``--server-maxconn`` requests in progress (default 96, under the replica's
+  ``max_connections`` of 128; more wait in HAProxy's queue up to ``timeout queue``) and at
+  most 32 idle connections (``pool-max-conn``, under the replica's ``max_idle_connections``
+  of 64), so a replica neither refuses HAProxy's requests nor closes its pooled connections.
+  Raise the replica's two settings with these if you raise them.
 
 ``reload`` posts ``POST /v1/index/reload`` to each replica directly (a reload sent through the
 balancer reaches one replica only); with ``watch_current_s`` set on the replicas (the
@@ -73,6 +80,10 @@ class HaproxyOptions:
     server_timeout_s: float = 60.0
     #: connections HAProxy accepts at once
     maxconn: int = 4096
+    #: requests in progress on one replica at once (keep it under its max_connections)
+    server_maxconn: int = 96
+    #: idle connections HAProxy keeps to one replica (under its max_idle_connections)
+    server_pool: int = 32
     #: stats page address (``host:port``), or None for none
     stats: str | None = None
 
@@ -120,6 +131,7 @@ frontend stats
     stats refresh 5s
 """
     )
+    limits = f"maxconn {options.server_maxconn} pool-max-conn {options.server_pool}"
     return f"""\
 # hmpf-serve replicas behind HAProxy (written by `python -m service.replicas haproxy`;
 # docs/replicas.md). Every replica serves the same index folder with the same keys file and
@@ -155,7 +167,7 @@ backend replicas
     balance leastconn
     option httpchk GET /readyz
     http-check expect status 200
-    default-server check inter {_ms(options.check_interval_s)} fall 2 rise 2
+    default-server check inter {_ms(options.check_interval_s)} fall 2 rise 2 {limits}
     http-response set-header X-Hmpf-Replica %[srv_name]
 {servers}
 {stats}"""
@@ -265,6 +277,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     h.add_argument("--check-interval", type=float, default=HaproxyOptions.check_interval_s)
     h.add_argument("--server-timeout", type=float, default=HaproxyOptions.server_timeout_s)
+    h.add_argument(
+        "--server-maxconn",
+        type=int,
+        default=HaproxyOptions.server_maxconn,
+        help="requests in progress on one replica at once (under its max_connections)",
+    )
     h.add_argument("--stats", metavar="HOST:PORT", help="serve HAProxy's stats page there")
     h.add_argument("--out", type=Path, required=True, help="folder to write into")
     run = sub.add_parser(
@@ -293,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
             replicas=tuple(args.replica or HaproxyOptions.replicas),
             check_interval_s=args.check_interval,
             server_timeout_s=args.server_timeout,
+            server_maxconn=args.server_maxconn,
             stats=args.stats,
         )
         print(write_haproxy(options, args.out))

@@ -33,6 +33,9 @@ __all__ = [
     "LocalizeFields",
     "LocalizeParams",
     "LocalizeResponse",
+    "TRACK_HEADER",
+    "VEHICLE_ID_HEADER",
+    "VehicleFields",
     "MAX_TIMESTAMP_S",
     "Match",
     "ModelInfo",
@@ -48,7 +51,8 @@ __all__ = [
 
 class LocalizeFields(BaseModel):
     """Optional fields of a localisation request as one source gives them: the query string
-    or the multipart form fields (a field may come from either, not from both)."""
+    or the multipart form fields (a field may come from either, not from both). The vehicle's
+    id and track are :class:`VehicleFields` (headers or form, not the query string)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -64,23 +68,6 @@ class LocalizeFields(BaseModel):
     top_k: int = Field(
         5, ge=1, description="ranked candidates returned (at most the service's max_top_k)"
     )
-    vehicle_id: str | None = Field(
-        None,
-        min_length=1,
-        max_length=128,
-        pattern=VEHICLE_ID_PATTERN,
-        description="the vehicle sending the frame (1-128 ASCII letters, digits and "
-        "`_ . : @ -`): turns on sequence mode (the answer follows the vehicle's frames; see "
-        "`sequence` in the response)",
-    )
-    track: str | None = Field(
-        None,
-        min_length=1,
-        max_length=MAX_TOKEN_CHARS,
-        description="sequence mode: `sequence.track` of this vehicle's previous answer "
-        "(omit on the first frame); a token of another vehicle, or altered, is refused (422 "
-        "invalid_track)",
-    )
     timestamp: float | None = Field(
         None,
         allow_inf_nan=False,
@@ -92,7 +79,38 @@ class LocalizeFields(BaseModel):
     )
 
 
-class LocalizeParams(LocalizeFields):
+#: Headers of sequence mode: a vehicle's id and its track token never travel in the URL
+#: (servers, proxies and browsers log URLs; the token is a bearer token for the track).
+VEHICLE_ID_HEADER = "X-Vehicle-Id"
+TRACK_HEADER = "X-Track"
+
+
+class VehicleFields(BaseModel):
+    """Sequence mode's identity and state: in the headers :data:`VEHICLE_ID_HEADER` and
+    :data:`TRACK_HEADER`, or as multipart form fields; never in the query string."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    vehicle_id: str | None = Field(
+        None,
+        min_length=1,
+        max_length=128,
+        pattern=VEHICLE_ID_PATTERN,
+        description="the vehicle sending the frame (1-128 ASCII letters, digits and "
+        "`_ . : @ -`): turns on sequence mode (the answer follows the vehicle's frames; see "
+        "`sequence` in the response). Header `X-Vehicle-Id` or a form field, not the URL",
+    )
+    track: str | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_TOKEN_CHARS,
+        description="sequence mode: `sequence.track` of this vehicle's previous answer "
+        "(omit on the first frame); a token of another vehicle, or altered, is refused (422 "
+        "invalid_track). Header `X-Track` or a form field, never the URL (URLs are logged)",
+    )
+
+
+class LocalizeParams(LocalizeFields, VehicleFields):
     """A request's fields from the query string and the form together, checked as a whole."""
 
     @model_validator(mode="after")

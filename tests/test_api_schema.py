@@ -19,6 +19,8 @@ from service.auth import add_key
 from service.settings import load_settings
 
 FIELDS = {"lat", "lon", "radius_m", "top_k", "vehicle_id", "track", "timestamp"}
+#: The vehicle's id and track: headers or form fields, never query parameters (URLs are logged).
+VEHICLE = {"vehicle_id": "X-Vehicle-Id", "track": "X-Track"}
 MAX_TOP_K, MAX_BATCH, MAX_PIXELS = 7, 3, 1_000_000
 
 
@@ -72,9 +74,9 @@ def _form(doc: dict[str, Any], path: str) -> dict[str, Any]:
     return _deref(doc, body["schema"])
 
 
-def _query(doc: dict[str, Any], path: str) -> dict[str, dict[str, Any]]:
+def _query(doc: dict[str, Any], path: str, where: str = "query") -> dict[str, dict[str, Any]]:
     params = doc["paths"][path]["post"]["parameters"]
-    return {p["name"]: p["schema"] for p in params if p["in"] == "query"}
+    return {p["name"]: p["schema"] for p in params if p["in"] == where}
 
 
 def _png(width: int, height: int) -> bytes:
@@ -105,14 +107,20 @@ def test_every_enforced_field_limit_is_in_the_document(doc, path) -> None:
     """Query parameters and form fields of both routes, with the ranges the code enforces
     (top_k's maximum is this service's ``max_top_k``)."""
     query, form = _query(doc, path), _form(doc, path)["properties"]
-    assert set(query) == FIELDS and FIELDS <= set(form)
+    headers = {
+        name: schema
+        for name, schema in _query(doc, path, "header").items()
+        if name in VEHICLE.values()
+    }
+    assert set(query) == FIELDS - set(VEHICLE) and FIELDS <= set(form)
+    assert set(headers) == set(VEHICLE.values())
     for source in (query, form):
         assert source["top_k"]["minimum"] == 1 and source["top_k"]["maximum"] == MAX_TOP_K
         lat, lon = _non_null(source["lat"]), _non_null(source["lon"])
         assert (lat["minimum"], lat["maximum"]) == (-90, 90)
         assert (lon["minimum"], lon["maximum"]) == (-180, 180)
         assert _non_null(source["radius_m"])["exclusiveMinimum"] == 0
-        vehicle = _non_null(source["vehicle_id"])
+    for vehicle in (_non_null(form["vehicle_id"]), _non_null(headers["X-Vehicle-Id"])):
         assert (vehicle["minLength"], vehicle["maxLength"]) == (1, 128)
         # Spelled out, so that every regex dialect (JSON Schema's ECMA-262, Python's, Rust's)
         # reads the same characters: \w means Unicode letters to some and ASCII to others.
@@ -194,6 +202,7 @@ def test_optional_fields_are_omitted_not_null(client, keys, doc, path) -> None:
     """A query parameter or form field has no null: an optional one is left out. The document
     does not offer null (found by the fuzzer: it sent ``timestamp=null`` and got a 422)."""
     query, form = _query(doc, path), _form(doc, path)["properties"]
+    query |= {f: _query(doc, path, "header")[h] for f, h in VEHICLE.items()}
     for name in FIELDS:
         for schema in (query[name], form[name]):
             assert "anyOf" not in schema and schema.get("type") != "null", (name, schema)

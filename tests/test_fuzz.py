@@ -95,10 +95,10 @@ def _follow_the_rules_in_words(case: schemathesis.Case, frame: bytes) -> schemat
     """A valid (positive) request made to follow the rules the document states in words only
     (JSON Schema cannot say them), so that the server must answer it, and its answer is
     checked against the document: the image is a real frame (random bytes never decode); a
-    field comes from the query or the form, not both; lat, lon and radius_m come together;
-    track (a token the server signs) is left out; timestamp only with a vehicle_id, and not
-    in a batch. A copy: the generated case may be run again (its metadata, positive or
-    negative, is its own)."""
+    field comes from the query or the form (the vehicle's id: the header or the form), not
+    both; lat, lon and radius_m come together; track (a token the server signs) is left out;
+    timestamp only with a vehicle_id, and not in a batch. A copy: the generated case may be
+    run again (its metadata, positive or negative, is its own)."""
     if case.meta is None or case.meta.generation.mode is not GenerationMode.POSITIVE:
         return case
     if not case.operation.path.startswith("/v1/localize"):
@@ -114,7 +114,11 @@ def _follow_the_rules_in_words(case: schemathesis.Case, frame: bytes) -> schemat
         for name in set(body) & set(query):
             del body[name]
     form = body if isinstance(body, dict) else {}
-    given = set(query) | set(form)
+    headers = dict(case.headers or {})
+    headers.pop("X-Track", None)
+    if "X-Vehicle-Id" in headers:
+        form.pop("vehicle_id", None)  # from the header or the form, not both
+    given = set(query) | set(form) | ({"vehicle_id"} if "X-Vehicle-Id" in headers else set())
     drop = {"track"}
     if {"lat", "lon", "radius_m"} & given and not {"lat", "lon", "radius_m"} <= given:
         drop |= {"lat", "lon", "radius_m"}
@@ -128,7 +132,7 @@ def _follow_the_rules_in_words(case: schemathesis.Case, frame: bytes) -> schemat
         case.method,
         case.path,
         path_parameters=dict(case.path_parameters),
-        headers=copy.copy(case.headers),
+        headers=headers,
         cookies=dict(case.cookies),
         query=query,
         body=body,

@@ -5,7 +5,8 @@ built from Gardens Point, real night images posted with httpx (and :class:`hmpf.
 * an over-limit upload streamed without Content-Length is refused before it has been sent;
 * ``/v1/index/reload`` to a new version while clients keep querying: zero failures;
 * more concurrent requests than workers + queue: 503 + Retry-After, no crash;
-* Ctrl-C (SIGINT) stops the server with one line and exit code 130, no traceback.
+* Ctrl-C (SIGINT) stops the server with one line and exit code 130, no traceback;
+* the access log never holds a vehicle's track token or id.
 """
 
 from __future__ import annotations
@@ -105,6 +106,47 @@ def test_streamed_upload_is_refused_before_it_is_complete(server, keys) -> None:
                 break
             reply += part
     assert reply.startswith(b"HTTP/1.1 413"), reply[:200]
+
+
+def test_the_access_log_never_holds_a_track_token_or_a_vehicle_id(
+    server, keys, gardens_point
+) -> None:
+    """The client sends a vehicle's id and track token in headers; a client that puts them
+    in the URL anyway is refused (422) and its log line has them blanked."""
+    vehicle = "car-secret-417"
+    with Client(server.url, keys["vehicle"], timeout=60, retries=0) as client:
+        for i in (10, 11, 12):
+            answer = client.localize(_night(gardens_point, i), vehicle_id=vehicle)
+            assert answer.sequence is not None and answer.vehicle_id == vehicle
+        token = client.tracks[vehicle]
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        path = _night(gardens_point, 13)
+        r = c.post(
+            "/v1/localize",
+            params={"vehicle_id": vehicle, "track": token},
+            content=path.read_bytes(),
+            headers={"X-API-Key": keys["vehicle"], "Content-Type": "image/jpeg"},
+        )
+        assert r.status_code == 422, r.text
+        assert "X-Vehicle-Id header" in r.json()["error"]["message"]
+        r = c.post(  # the same frame with the headers: served
+            "/v1/localize",
+            content=path.read_bytes(),
+            headers={
+                "X-API-Key": keys["vehicle"],
+                "Content-Type": "image/jpeg",
+                "X-Vehicle-Id": vehicle,
+                "X-Track": token,
+            },
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["sequence"]["frames"] == 4
+    time.sleep(0.5)  # the log lines of the last requests
+    log = server.log.read_text(errors="replace")
+    assert "POST /v1/localize" in log  # the access log is on: its lines are checked
+    assert "REDACTED" in log
+    assert token[:24] not in log
+    assert vehicle not in log
 
 
 def test_reload_while_clients_query_has_zero_failures(server, index, keys, gardens_point) -> None:

@@ -242,9 +242,11 @@ def test_openapi_documents_sequence_mode(client) -> None:
     doc = client.get("/openapi.json").json()
     schemas = doc["components"]["schemas"]
     post = doc["paths"]["/v1/localize"]["post"]
-    query = {p["name"]: p for p in post["parameters"] if p["in"] == "query"}
-    for name in ("vehicle_id", "track", "timestamp"):
-        assert "sequence mode" in query[name]["description"], name
+    params = {(p["in"], p["name"]): p for p in post["parameters"]}
+    for where, name in (("header", "X-Vehicle-Id"), ("header", "X-Track"), ("query", "timestamp")):
+        assert "sequence mode" in params[where, name]["description"], name
+    # never in the URL (it ends up in logs)
+    assert not {("query", "vehicle_id"), ("query", "track")} & set(params)
     answer = schemas["LocalizeResponse"]["properties"]
     assert {"match", "match_source", "single", "sequence"} <= set(answer)
     assert "locked" in answer["match"]["description"]

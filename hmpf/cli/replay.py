@@ -179,15 +179,19 @@ class Vehicle:
         """
         from urllib.parse import urlencode
 
-        fields: dict[str, Any] = {"vehicle_id": self.vehicle_id}
-        if self.track:
-            fields["track"] = self.track
+        fields: dict[str, Any] = {}
         if timestamp is not None:
             fields["timestamp"] = repr(timestamp)
-        headers = {"Content-Type": _TYPES.get(path.suffix.lower(), "application/octet-stream")}
+        headers = {
+            "Content-Type": _TYPES.get(path.suffix.lower(), "application/octet-stream"),
+            "X-Vehicle-Id": self.vehicle_id,  # the vehicle and its track never in the URL
+        }
+        if self.track:
+            headers["X-Track"] = self.track
         if self.key:
             headers["X-API-Key"] = self.key
-        target = f"{self.url.rstrip('/')}/v1/localize?{urlencode(fields)}"
+        query = f"?{urlencode(fields)}" if fields else ""
+        target = f"{self.url.rstrip('/')}/v1/localize{query}"
         t = time.perf_counter()
         status, body = self._post(target, path.read_bytes(), headers)
         reply = Reply(frame, path, status, body, (time.perf_counter() - t) * 1e3, timestamp)

@@ -8,7 +8,9 @@
 * the raw body with an image content type (the route after it, hidden from the schema).
 
 The optional fields (:class:`~service.schemas.LocalizeFields`) may come as query parameters
-or, with multipart, as form fields; a field given twice is refused. A batch runs its images
+or, with multipart, as form fields; a field given twice is refused. A vehicle's id and track
+token (:class:`~service.schemas.VehicleFields`) come in the ``X-Vehicle-Id`` and ``X-Track``
+headers or as form fields, never in the URL (422): URLs end up in logs. A batch runs its images
 in up to ``workers`` lanes, one admission slot each, and answers a bad image with its own
 error entry while the others are answered.
 
@@ -24,7 +26,7 @@ from collections import Counter
 from collections.abc import Callable, Coroutine
 from typing import Annotated, Any, NamedTuple, NoReturn
 
-from fastapi import APIRouter, Depends, Form, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, Form, Header, Query, Request, UploadFile
 from fastapi.routing import APIRoute
 from pydantic import Field, ValidationError
 from starlette.exceptions import HTTPException
@@ -56,14 +58,19 @@ from service.images import ACCEPTED_TYPES, check_content_type, check_decode_budg
 from service.metrics import Metrics
 from service.query import ImageQuery
 from service.schemas import (
+    TRACK_HEADER,
+    VEHICLE_ID_HEADER,
+    VEHICLE_ID_PATTERN,
     BatchItem,
     BatchResponse,
     ErrorDetail,
     LocalizeFields,
     LocalizeParams,
     LocalizeResponse,
+    VehicleFields,
 )
 from service.settings import Settings
+from service.track import MAX_TOKEN_CHARS
 from service.vehicle import Tracker
 
 __all__ = ["RAW_BODY_TYPES", "BatchForm", "FormRoute", "LocalizeForm", "MultipartRoute", "router"]
@@ -75,13 +82,13 @@ _MULTIPART = "multipart/form-data"
 RAW_BODY_TYPES = (*ACCEPTED_TYPES, "application/octet-stream")
 
 
-class LocalizeForm(LocalizeFields):
+class LocalizeForm(LocalizeFields, VehicleFields):
     """The multipart form of ``POST /v1/localize``."""
 
     image: UploadFile = Field(description="the camera frame: JPEG, PNG or WebP")
 
 
-class BatchForm(LocalizeFields):
+class BatchForm(LocalizeFields, VehicleFields):
     """The multipart form of ``POST /v1/localize/batch`` (one set of fields for all images)."""
 
     images: list[UploadFile] = Field(
@@ -158,6 +165,43 @@ def _binary_bodies() -> dict[str, Any]:
 
 
 QueryFields = Annotated[LocalizeFields, Query()]
+
+
+async def _vehicle_headers(
+    request: Request,
+    vehicle_id: Annotated[
+        str | None,
+        Header(
+            alias=VEHICLE_ID_HEADER,
+            min_length=1,
+            max_length=128,
+            pattern=VEHICLE_ID_PATTERN,
+            description=VehicleFields.model_fields["vehicle_id"].description,
+        ),
+    ] = None,
+    track: Annotated[
+        str | None,
+        Header(
+            alias=TRACK_HEADER,
+            min_length=1,
+            max_length=MAX_TOKEN_CHARS,
+            description=VehicleFields.model_fields["track"].description,
+        ),
+    ] = None,
+) -> dict[str, str]:
+    """The vehicle's id and track from their headers; 422 for either in the query string
+    (the access log blanks them there: :class:`service.server.RedactAccessLog`)."""
+    for name, header in (("vehicle_id", VEHICLE_ID_HEADER), ("track", TRACK_HEADER)):
+        if name in request.query_params:
+            raise invalid_request(
+                f"{name}: send it in the {header} header (or a multipart form field), "
+                "never in the URL"
+            )
+    given = {"vehicle_id": vehicle_id, "track": track}
+    return {k: v for k, v in given.items() if v is not None}
+
+
+VehicleHeaders = Annotated[dict[str, str], Depends(_vehicle_headers)]
 
 
 class Upload(NamedTuple):
@@ -278,6 +322,7 @@ async def localize(
     key: VehicleKey,
     request: Request,
     query: QueryFields,
+    headers: VehicleHeaders,
     form: Annotated[LocalizeForm, Form(media_type=_MULTIPART)],
     localizer: LocalizerDep,
 ) -> LocalizeResponse:
@@ -286,7 +331,7 @@ async def localize(
     Send it as multipart field ``image`` or as the raw body with an image content type; the
     optional fields as query parameters (either way) or form fields (multipart).
     """
-    params = await _params(request, query, form)
+    params = await _params(request, query, headers, form)
     localizer.check_size(form.image, "image")
     data = await form.image.read()
     localizer.check(params)
@@ -301,10 +346,11 @@ async def localize_raw_body(
     content_type: Annotated[str, Depends(_raw_content_type)],
     request: Request,
     query: QueryFields,
+    headers: VehicleHeaders,
     localizer: LocalizerDep,
 ) -> LocalizeResponse:
     """``/v1/localize`` with the image as the raw body (documented with the multipart route)."""
-    params = await _params(request, query, None)
+    params = await _params(request, query, headers, None)
     localizer.check(params)
     data = await request.body()
     answer: LocalizeResponse = await localizer.answer(params, Upload(data, content_type, "image"))
@@ -315,11 +361,12 @@ async def localize_batch(
     key: VehicleKey,
     request: Request,
     query: QueryFields,
+    headers: VehicleHeaders,
     form: Annotated[BatchForm, Form(media_type=_MULTIPART)],
     localizer: LocalizerDep,
 ) -> BatchResponse:
     """Localise several images (multipart, ``images`` fields); answers in order."""
-    params = await _params(request, query, form, repeatable="images")
+    params = await _params(request, query, headers, form, repeatable="images")
     for i, upload in enumerate(form.images):
         localizer.check_size(upload, f"images[{i}]")
     uploads = [
@@ -371,29 +418,36 @@ router.add_api_route(
 async def _params(
     request: Request,
     query: LocalizeFields,
-    form: LocalizeFields | None,
+    headers: dict[str, str],
+    form: LocalizeForm | BatchForm | None,
     repeatable: str = "",
 ) -> LocalizeParams:
-    """The request's fields from the query string and the form, checked together.
+    """The request's fields from the query string, the vehicle headers and the form, checked
+    together.
 
     FastAPI has validated each source on its own (types, ranges, unknown names) but keeps the
-    last of repeated values; here a field given more than once (in one source or in both,
+    last of repeated values; here a field given more than once (in one source or in two,
     except the ``repeatable`` file field) and a partial GPS prior are refused (422).
     """
-    names = [k for k, _ in request.query_params.multi_items()]
+    names = [k for k, _ in request.query_params.multi_items()] + list(headers)
+    names += [f for h, f in _HEADER_FIELDS.items() if len(request.headers.getlist(h)) > 1]
     if form is not None:
         names += [k for k, _ in (await request.form()).multi_items() if k != repeatable]
     repeated = [name for name, n in Counter(names).items() if n > 1]
     if repeated:
         raise invalid_request(f"{repeated[0]}: given twice")
-    fields = set(LocalizeFields.model_fields)
-    given = query.model_dump(exclude_unset=True)
+    fields = set(LocalizeParams.model_fields)
+    given = query.model_dump(exclude_unset=True) | headers
     if form is not None:
         given |= form.model_dump(exclude_unset=True, include=fields)
     try:
         return LocalizeParams.model_validate(given)
     except ValidationError as exc:
         raise invalid_request(validation_message(exc.errors())) from None
+
+
+#: Header -> the field it carries (a header given twice is a field given twice).
+_HEADER_FIELDS = {VEHICLE_ID_HEADER: "vehicle_id", TRACK_HEADER: "track"}
 
 
 def _batch_item(i: int, ok: bool, value: Any) -> BatchItem:
