@@ -514,7 +514,7 @@ class VersionTransaction:
             manifest["files"] = _file_entries(out)
             summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
             manifest["summary"]["bytes_total"] = summary.bytes_total
-            (out / layout.MANIFEST).write_text(json.dumps(manifest, indent=1))
+            layout.write_manifest(out, manifest)
             layout.fsync_tree(out)
             out.rename(self.root / name)
             layout.fsync_dir(self.root)

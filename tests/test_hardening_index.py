@@ -7,6 +7,7 @@ and the replace of ``CURRENT``), the real ``hmpf-index`` command line.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -14,13 +15,14 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 from conftest import SMALL_INDEX_CONFIG, write_synthetic_images
 
 from hmpf.config import parse_config
-from hmpf.index import layout
+from hmpf.index import IndexReader, layout
 from indexer import maintenance
 from indexer.build import BuildOptions, build
 from indexer.cli import main as index_main
@@ -44,7 +46,7 @@ def _killed_between_fsync_and_replace(root: Path, version: str) -> Path:
         f"""
         import os, signal
         from pathlib import Path
-        from hmpf.index import layout
+        from hmpf.index import IndexReader, layout
         os.replace = lambda *a, **k: os.kill(os.getpid(), signal.SIGKILL)
         layout.set_current(Path({str(root)!r}), {version!r})
         """
@@ -98,3 +100,65 @@ def test_gc_keeps_a_temporary_file_a_live_writer_may_still_hold(index: Path) -> 
     finally:
         live.kill()
         live.wait()
+
+
+# -- the manifest's own checksum -----------------------------------------------------------------
+def _edit(version: Path, change: Any) -> None:
+    """Edit ``manifest.json`` as a person with an editor would (the JSON rewritten as is)."""
+    path = version / layout.MANIFEST
+    manifest = json.loads(path.read_text())
+    change(manifest)
+    path.write_text(json.dumps(manifest, indent=1))
+
+
+def _a_methods_params(manifest: dict[str, Any]) -> None:
+    entry = manifest["methods"]["kaze"]
+    entry["params"] = {**entry.get("params", {}), "max_keypoints": 4000}
+
+
+def test_an_edited_manifest_is_detected_by_verify_and_by_readers(
+    index: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    version = index / "v0001"
+    manifest = layout.read_manifest(version)
+    assert manifest["manifest_sha256"] == layout.manifest_digest(manifest)
+    assert manifest["format_version"] == layout.FORMAT_VERSION
+    assert maintenance.verify(index) == []
+    original = (version / layout.MANIFEST).read_bytes()
+    for change in (
+        _a_methods_params,
+        lambda m: m["config"].__setitem__("name", "renamed"),
+        lambda m: m["packages"].__setitem__("numpy", "0.1"),
+        lambda m: m.__setitem__("operation", "build "),
+    ):
+        (version / layout.MANIFEST).write_bytes(original)
+        _edit(version, change)
+        (problem,) = maintenance.verify(index)
+        assert "manifest.json" in problem and "edited" in problem, problem
+        with pytest.raises(layout.IndexCorruptError, match="edited"):
+            IndexReader(index)
+        assert index_main(["verify", "--index", str(index)]) != 0
+        assert "edited" in capsys.readouterr().out + capsys.readouterr().err
+    # the checksum taken out of a current-format manifest: not an old index, refused too
+    (version / layout.MANIFEST).write_bytes(original)
+    _edit(version, lambda m: m.pop("manifest_sha256"))
+    with pytest.raises(layout.IndexCorruptError, match="manifest_sha256"):
+        IndexReader(index)
+    # a manifest written (sealed) by hmpf itself is sound again
+    manifest = json.loads(original)
+    layout.write_manifest(version, manifest)
+    assert maintenance.verify(index) == []
+    IndexReader(index).close()
+
+
+def test_an_index_from_before_manifest_checksums_is_read_with_a_warning(
+    index: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A 1.1 manifest had no checksum: read as before, with a warning naming the fix."""
+    version = index / "v0001"
+    _edit(version, lambda m: (m.pop("manifest_sha256"), m.update(format_version="1.1")))
+    with caplog.at_level("WARNING", "hmpf.index"):
+        assert maintenance.verify(index) == []
+        with IndexReader(index) as reader:
+            assert reader.n == 3
+    assert "checksum of their own" in caplog.text and "rebuild" in caplog.text

@@ -14,7 +14,7 @@ from hmpf.config import build_methods, parse_config
 from hmpf.features import extract_images
 from hmpf.hierarchy import Hierarchy, feature_scorer
 from hmpf.imageio import load_image
-from hmpf.index import IndexCorruptError, IndexReader, IndexVersionError
+from hmpf.index import IndexCorruptError, IndexReader, IndexVersionError, layout
 from hmpf.index.storage import storage_dtype
 from hmpf.index.tables import Ragged
 from hmpf.methods import create_method
@@ -156,11 +156,11 @@ def test_reader_rejects_other_format_major_and_config(built, tmp_path):
     with pytest.raises(IndexVersionError, match="expected 'other'"):
         IndexReader(idx, expected_config=other)
     data["config"]["resolved"]["tiers"][0]["k"] = 7
-    m.write_text(json.dumps(data))
+    layout.write_manifest(m.parent, data)  # as hmpf writes it (sealed)
     with pytest.raises(IndexCorruptError, match="config hash"):
         IndexReader(idx)
     data["format_version"] = "2.0"
-    m.write_text(json.dumps(data))
+    layout.write_manifest(m.parent, data)  # as hmpf writes it (sealed)
     with pytest.raises(IndexVersionError, match="rebuild"):
         IndexReader(idx)
 
@@ -183,13 +183,13 @@ def test_reader_checks_the_build_package_versions(built, tmp_path, caplog):
     # Another minor version of OpenCV (or another numpy): opened, with a warning.
     packages[cv] = f"{major}.{int(minor) + 1}.0"
     packages["numpy"] = "1.0.0"
-    m.write_text(json.dumps(data))
+    layout.write_manifest(m.parent, data)  # as hmpf writes it (sealed)
     with caplog.at_level(logging.WARNING, logger="hmpf.index"):
         IndexReader(idx).close()
     assert cv in caplog.text and "numpy 1.0.0" in caplog.text
     # Another major version of OpenCV: the stored HOG/Gist/KAZE are not comparable.
     packages[cv] = f"{int(major) + 1}.0.0"
-    m.write_text(json.dumps(data))
+    layout.write_manifest(m.parent, data)  # as hmpf writes it (sealed)
     with pytest.raises(IndexVersionError, match=rf"{cv}==\d"):
         IndexReader(idx)
     # An index built with the other OpenCV wheel of the same version opens without a note.
@@ -197,7 +197,7 @@ def test_reader_checks_the_build_package_versions(built, tmp_path, caplog):
     del packages[cv]
     packages[other] = installed_version(cv)
     packages["numpy"] = np.__version__
-    m.write_text(json.dumps(data))
+    layout.write_manifest(m.parent, data)  # as hmpf writes it (sealed)
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="hmpf.index"):
         IndexReader(idx).close()

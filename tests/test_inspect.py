@@ -95,7 +95,7 @@ def _strip_thumbnails(version: Path) -> None:
     del manifest["files"][thumbnails.FILE]
     del manifest["thumbnails"]
     manifest["format_version"] = "1.0"
-    (version / layout.MANIFEST).write_text(json.dumps(manifest))
+    layout.write_manifest(version, manifest)
 
 
 # -- thumbnails in the index -------------------------------------------------------------------
@@ -181,11 +181,11 @@ def test_a_version_without_thumbnails_loads_and_grows(gardens_point, tmp_path) -
         assert reader.thumbnails is None and reader.thumbnail(0) is None
     manifest = json.loads((root / "v0001" / layout.MANIFEST).read_text())
     manifest["thumbnails"] = {"file": "references.h5x"}  # not a file the manifest covers
-    (root / "v0001" / layout.MANIFEST).write_text(json.dumps(manifest))
+    layout.write_manifest(root / "v0001", manifest)
     with pytest.raises(layout.IndexCorruptError, match="not in its files"):
         IndexReader(root)
     del manifest["thumbnails"]
-    (root / "v0001" / layout.MANIFEST).write_text(json.dumps(manifest))
+    layout.write_manifest(root / "v0001", manifest)
     more = tmp_path / "b"
     more.mkdir()
     new = sorted((gardens_point / "day_right").iterdir())[3]

@@ -24,7 +24,10 @@ Integrity: the manifest lists every data file's size and sha256 (and, for files 
 :data:`CHUNK_BYTES`, the sha256 of each piece, :func:`file_entry`). Whoever reads a version
 checks every file against it first (:func:`check_files`; the reader does unless told not to),
 so no reader serves, evaluates or copies into a new version a byte that differs from what
-was written.
+was written. The manifest itself carries the sha256 of its own canonical content
+(:data:`MANIFEST_SHA256`, :func:`manifest_digest`), checked by :func:`read_manifest`, which
+every reader and ``hmpf-index verify`` go through: a field edited after the build (a method's
+params, the config, the package versions) is refused like a damaged file.
 """
 
 from __future__ import annotations
@@ -67,20 +70,27 @@ __all__ = [
     "installed_version",
     "is_version_name",
     "list_versions",
+    "manifest_digest",
     "next_version_name",
     "package_versions",
     "read_manifest",
     "set_current",
     "sha256_file",
     "write_json_atomic",
+    "write_manifest",
     "writer_lock",
 ]
 
 log = logging.getLogger("hmpf.index")
 
 #: Major.minor of the on-disk format. Readers accept any minor of their major (1.1 added
-#: ``thumbnails.h5``, optional: a 1.0 version has none).
-FORMAT_VERSION = "1.1"
+#: ``thumbnails.h5``, optional: a 1.0 version has none; 1.2 seals the manifest with
+#: :data:`MANIFEST_SHA256`, which a 1.2 manifest must have and an older one may lack).
+FORMAT_VERSION = "1.2"
+#: The manifest's own checksum, one of its fields (:func:`manifest_digest`).
+MANIFEST_SHA256 = "manifest_sha256"
+#: The first format whose manifests carry :data:`MANIFEST_SHA256`.
+_SEALED_FROM = (1, 2)
 MANIFEST = "manifest.json"
 CURRENT = "CURRENT"
 LOCK = ".lock"
@@ -223,8 +233,73 @@ def set_current(root: Path, version: str) -> None:
     fsync_dir(root)
 
 
+def manifest_digest(manifest: Mapping[str, Any]) -> str:
+    """sha256 of a manifest's canonical content: its JSON with sorted keys and no spaces,
+    without :data:`MANIFEST_SHA256` itself (so however the file is indented, the same)."""
+    body = {k: v for k, v in manifest.items() if k != MANIFEST_SHA256}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def write_manifest(version_dir: Path, manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """Write ``manifest.json`` of a version being built, sealed with :data:`MANIFEST_SHA256`.
+
+    The caller fsyncs it with the version (:func:`fsync_tree`). Returns the manifest written
+    (as :func:`read_manifest` will read it).
+    """
+    # As JSON reads it back (tuples as lists, keys as strings), so the digest is of that.
+    sealed: dict[str, Any] = json.loads(json.dumps(dict(manifest)))
+    sealed.pop(MANIFEST_SHA256, None)
+    sealed[MANIFEST_SHA256] = manifest_digest(sealed)
+    (version_dir / MANIFEST).write_text(json.dumps(sealed, indent=1))
+    return sealed
+
+
+#: Manifests already warned about (one warning per version folder and process).
+_UNSEALED_WARNED: set[Path] = set()
+
+
+def _check_seal(version_dir: Path, manifest: Mapping[str, Any]) -> None:
+    """The manifest's own checksum: matching, or absent from an old format (a warning)."""
+    p = version_dir / MANIFEST
+    seal = manifest.get(MANIFEST_SHA256)
+    if seal is None:
+        try:
+            fmt = tuple(int(x) for x in str(manifest["format_version"]).split(".")[:2])
+        except ValueError:
+            fmt = (0, 0)
+        if fmt >= _SEALED_FROM:
+            raise IndexCorruptError(
+                f"{p}: format {manifest['format_version']} but no {MANIFEST_SHA256} (the "
+                "manifest was edited); run `hmpf-index verify`, switch to a sound version "
+                "with `hmpf-index use VERSION`, or rebuild"
+            )
+        if version_dir not in _UNSEALED_WARNED:
+            _UNSEALED_WARNED.add(version_dir)
+            log.warning(
+                "%s: written before manifests had a checksum of their own (format %s): its "
+                "data files are verified, an edit of the manifest itself is not detected; "
+                "rebuild the index (or make a new version: hmpf-index add or remove) to get one",
+                p,
+                manifest["format_version"],
+            )
+        return
+    if seal != manifest_digest(manifest):
+        raise IndexCorruptError(
+            f"{p}: edited after it was written (its content does not match its "
+            f"{MANIFEST_SHA256}); refusing to read it: run `hmpf-index verify`, switch to a "
+            "sound version with `hmpf-index use VERSION`, or rebuild"
+        )
+
+
 def read_manifest(version_dir: Path) -> dict[str, Any]:
-    """Parse ``manifest.json`` of a version, checking the format's major version."""
+    """Parse ``manifest.json`` of a version, checking the format's major version and the
+    manifest's own checksum (:data:`MANIFEST_SHA256`; an old format without one: a warning).
+
+    Raises:
+        IndexCorruptError: missing, unreadable, not a manifest, or edited.
+        IndexVersionError: another major format.
+    """
     p = version_dir / MANIFEST
     try:
         manifest = json.loads(p.read_text())
@@ -240,6 +315,7 @@ def read_manifest(version_dir: Path) -> dict[str, Any]:
             f"{version_dir}: index format {manifest['format_version']}, this hmpf reads "
             f"{FORMAT_VERSION.split('.')[0]}.x; rebuild the index with this version of hmpf-index"
         )
+    _check_seal(version_dir, manifest)
     return manifest
 
 
