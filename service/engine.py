@@ -4,16 +4,17 @@
   the version that is current when it starts and keeps it to the end, so a reload never
   changes the data under a running query. A retired version is closed when its last lease
   ends.
-* A query runs on one of ``workers`` query threads (decoding, the hierarchy); its
-  extraction is split into tasks (one per CNN forward-pass group, one per other method) on a
-  compute pool of ``workers`` threads, each limited to ``threads_per_worker`` torch / OpenCV
-  / BLAS threads. A lone query thus runs its extraction tasks in parallel (up to one core
-  per task), and under load the compute pool bounds the process so that concurrent queries
-  do not oversubscribe the cores. At most ``workers + queue`` slots are admitted at once
-  (a query takes one, a batch at most ``workers``, running its images in that many lanes);
-  beyond that :meth:`Engine.admit` refuses and the API answers 503 + Retry-After. Slots and
-  leases are released by the pool threads when their work ends, so a client that
-  disconnects never frees capacity that is still in use.
+* A query runs on one of ``workers`` query threads (decoding, the hierarchy); its extraction
+  is split into tasks (one per CNN forward-pass group, one per other method) on a compute
+  pool of ``workers`` threads, each limited to ``threads_per_worker`` ONNX Runtime / OpenCV
+  / BLAS threads (the CNN methods run the ONNX models the version stores,
+  :mod:`hmpf.index.models`: a server needs no torch). A lone query thus runs its extraction
+  tasks in parallel (up to one core per task), and under load the compute pool bounds the
+  process so that concurrent queries do not oversubscribe the cores. At most ``workers +
+  queue`` slots are admitted at once (a query takes one, a batch at most ``workers``,
+  running its images in that many lanes); beyond that :meth:`Engine.admit` refuses and the
+  API answers 503 + Retry-After. Slots and leases are released by the pool threads when
+  their work ends, so a client that disconnects never frees capacity that is still in use.
 """
 
 from __future__ import annotations
