@@ -10,8 +10,8 @@
   / BLAS threads (the CNN methods run the ONNX models the version stores,
   :mod:`hmpf.index.models`: a server needs no torch). A lone query thus runs its extraction
   tasks in parallel (up to one core per task), and under load the compute pool bounds the
-  process so that concurrent queries do not oversubscribe the cores. At most ``workers +
-  queue`` slots are admitted at once (a query takes one, a batch at most ``workers``,
+  process so that concurrent queries do not oversubscribe the cores. At most
+  ``workers + queue`` slots are admitted at once (a query takes one, a batch at most ``workers``,
   running its images in that many lanes); beyond that :meth:`Engine.admit` refuses and the
   API answers 503 + Retry-After. Slots and leases are released by the pool threads when
   their work ends, so a client that disconnects never frees capacity that is still in use.
