@@ -43,8 +43,11 @@ camera and season). With ``--write`` the shipped fit goes to
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
+import subprocess
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -147,6 +150,8 @@ class Route:
         t_gt = np.vstack([train.gt, np.zeros((len(t_away), len(train.reference)), bool)])
         t_both = EvalData(train.reference, [*train.query, *t_away], t_gt, train.ground_truth)
         self.name = name
+        #: The route's frames used, and its training and test parts (without foreign frames).
+        self.data, self.train_data, self.test_data = data, train, test
         self.train = ScoreBank.build(config, t_both, cache=cache)
         self.n_train = len(train.query)
         self.test = ScoreBank.build(config, both, cache=cache)
@@ -293,6 +298,58 @@ def fit(singles: list[RoutePart], seqs: list[RoutePart]) -> tuple[Policy, dict[s
     stay = min(STAY_P, sthr)
     policy = replace(policy, sequence_stay_threshold=stay)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
+
+
+def held_out(parts: list[tuple[RoutePart, RoutePart]]) -> list[tuple[Policy, dict[str, Any]]]:
+    """Leave one route out: per route of ``parts`` (:func:`training_part`), the policy
+    fitted (:func:`fit`) on the other routes' training parts only."""
+    out = []
+    for i in range(len(parts)):
+        rest = [p for j, p in enumerate(parts) if j != i]
+        out.append(fit([p[0] for p in rest], [p[1] for p in rest]))
+    return out
+
+
+def out_of_the_box(preset: str) -> tuple[HierarchyConfig, HierarchyConfig, Policy]:
+    """The bundled ``preset`` as a new user gets it: (the config with its shipped
+    acceptance, the same without (to build the score banks), the policy the service runs
+    on it: :meth:`Policy.of` of the shipped acceptance; quality / lock rules when the
+    preset ships no model)."""
+    shipped = load_config(preset)
+    bare = shipped.model_copy(update={"acceptance": None})
+    policy = Policy.of(shipped.acceptance, lock_mass=shipped.sequence_params().lock_mass)
+    return shipped, bare, policy
+
+
+def git_commit() -> dict[str, Any]:
+    """The commit the tree was at, and whether the bench's own code differed from it."""
+
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(
+                ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+            ).stdout.rstrip("\n")  # not strip(): porcelain lines start with a space
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+
+    changed = git("status", "--porcelain", "--", "bench", "hmpf")
+    return {
+        "commit": git("rev-parse", "HEAD") or None,
+        "code_changed_since_commit": [line[3:] for line in changed.splitlines()],
+    }
+
+
+def provenance(preset: str, config: HierarchyConfig) -> dict[str, Any]:
+    """What every figure of a report belongs to: the preset and its config digest, the
+    machine, the date (UTC), the git commit and the command line."""
+    return {
+        "preset": preset,
+        "digest": config.digest(),
+        "machine": machine_description(),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        **git_commit(),
+        "command": " ".join(["python", *sys.argv]),
+    }
 
 
 def settings_of(policy: Policy, note: str) -> AcceptanceSettings:

@@ -30,8 +30,7 @@ def test_spread_picks_evenly_and_all_when_few(oom):
     idx = oom.spread(3576, 200)
     assert len(idx) == 200 and idx[0] == 0 and idx[-1] == 3575
     assert np.all(np.diff(idx) >= 17)
-    with pytest.raises(ValueError):
-        oom.spread(10, 0)
+    assert oom.spread(10, 0).tolist() == []
 
 
 def test_block_parts_match_the_calibrators_split(oom):
@@ -71,54 +70,82 @@ def test_false_accepts_counts_only_out_of_map_queries(oom):
         oom.false_accepts(np.zeros(2, bool), np.zeros(3, bool))
 
 
-def test_decisions_and_table_on_a_synthetic_model(oom):
+def _answers(names, n=60, seed=0, sequence=False):
+    from hmpf.evaluation.acceptance import Answers
+    from hmpf.sequence import Estimate
+
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, len(names)))
+    feats = [dict(zip(names, row, strict=True)) for row in X]
+    est = None
+    if sequence:
+        # A drive: the mass follows the first feature; the second half off the map.
+        est = [
+            Estimate(i, float(1 / (1 + np.exp(-3 * x))), False, i + 1, 1.0,
+                     off_map=0.9 if i >= n // 2 else 0.0, continuous=i > 0)
+            for i, x in enumerate(X[:, 0])
+        ]  # fmt: skip
+    drive = np.zeros(n, int) if sequence else None
+    return Answers(feats, X[:, 0] > 0, X[:, 0], np.arange(n), est, drive), X
+
+
+def test_off_map_rows_count_the_policys_decisions(oom):
+    """The bench reports what the one policy decides, rule names included: a fitted model
+    (p_correct), the quality rule, and in sequence mode the lock with the off-map state."""
+    from hmpf.acceptance import Policy
     from hmpf.confidence import ConfidenceModel
-    from hmpf.evaluation.acceptance import SEQUENCE_MODEL_FEATURES, SINGLE_FEATURES, Answers
+    from hmpf.evaluation.acceptance import SINGLE_FEATURES, apply_acceptance, decide
 
-    rng = np.random.default_rng(0)
+    single, X = _answers(SINGLE_FEATURES)
+    model = ConfidenceModel.fit(X, single.correct, SINGLE_FEATURES)
+    policy = Policy(model=model, model_threshold=0.8)
+    outside = np.arange(len(single)) % 3 != 0
+    row = oom.off_map_rows(apply_acceptance(policy, single), outside)
+    p = model.predict(X)
+    assert row["rule"] == "p_correct"
+    assert row["false_accepts"] == int(((p >= 0.8) & outside).sum()) > 0
+    assert row["n"] == int(outside.sum())
+    assert row["mean_p"] == pytest.approx(p[outside].mean())
+    assert row["mean_p_met"] is False  # 0.39 > 0.1
+    assert row["said_off_map"] == 0.0
 
-    def answers(names, n=50):
-        X = rng.normal(size=(n, len(names)))
-        feats = [dict(zip(names, row, strict=True)) for row in X]
-        return Answers(feats, X[:, 0] > 0, X[:, 0], np.arange(n)), X
+    quality = oom.off_map_rows(apply_acceptance(Policy(threshold=0.5), single), outside)
+    assert quality["rule"] == "quality" and quality["mean_p"] is None
+    assert quality["false_accepts"] == int(((X[:, 0] >= 0.5) & outside).sum())
 
-    single, Xs = answers(SINGLE_FEATURES)
-    seq, Xq = answers(SEQUENCE_MODEL_FEATURES)
-    m1 = ConfidenceModel.fit(Xs, single.correct, SINGLE_FEATURES)
-    m2 = ConfidenceModel.fit(Xq, seq.correct, SEQUENCE_MODEL_FEATURES)
-    fitted = {
-        "variants": {
-            "absolute": {
-                "model": m1,
-                "threshold": 0.8,
-                "sequence_model": m2,
-                "sequence_threshold": 0.9,
-            }
-        },
-        "z": 0.5,
-        "mass": 1.0,
-    }
-    out = oom.decisions(fitted, single, seq)
-    assert [(m, r) for m, r, _, _ in out] == [
-        ("sequence", "model (absolute)"),
-        ("sequence", "mass"),
-        ("single", "model (absolute)"),
-        ("single", "z"),
-    ]
-    assert np.array_equal(out[0][3], m2.predict(Xq) >= 0.9)
-    assert np.array_equal(out[1][3], Xq[:, 0] >= 1.0)
-    assert np.array_equal(out[2][3], m1.predict(Xs) >= 0.8)
-    assert np.array_equal(out[3][3], Xs[:, 0] >= 0.5)
+    seq, Xq = _answers(("sequence_logit",), sequence=True)
+    lock = Policy(lock_mass=0.9, unlock_mass=0.5)
+    rep = apply_acceptance(lock, seq, sequence=True)
+    every = np.ones(len(seq), bool)
+    row = oom.off_map_rows(rep, every)
+    dec = decide(lock, seq, sequence=True)
+    assert row["rule"] == "lock"
+    assert row["false_accepts"] == sum(d.accepted for d in dec) > 0
+    # Off the map (the second half): never accepted, and said so.
+    assert not any(d.accepted for d in dec[len(dec) // 2 :])
+    assert row["said_off_map"] == pytest.approx(0.5)
+
+
+def test_tables_render_every_row(oom):
     rows = [
         {
-            "map": "m",
-            "queries": "q",
-            "mode": mode,
-            "rule": rule,
-            "threshold": thr,
-            "result": oom.false_accepts(acc, np.ones(len(acc), bool)),
+            "map": "m", "models": "shipped", "queries": q, "mode": "single", "rule": "p_correct",
+            **oom.false_accepts(np.array([True, False]), np.array([True, True])),
+            "mean_p": 0.2, "mean_p_met": False, "said_off_map": None,
         }
-        for mode, rule, thr, acc in out
-    ]
+        for q in ("foreign", "removed")
+    ]  # fmt: skip
     text = oom.table(rows)
-    assert text.count("\n") == 5 and "| m | q (50) | single | model (absolute) | 0.8 |" in text
+    assert text.count("\n") == 3
+    assert "| m | shipped | foreign (2) | single | p_correct | 1 | 0.500 (" in text
+    assert text.rstrip().endswith("| no / no |")
+    in_map = [
+        {"map": "m", "n": 100, "models": "held out", "mode": "sequence", "rule": "p_correct",
+         "accepted": 0.9, "precision": 1.0, "ece": 0.04, "flips_per_100": 1.0,
+         "recall_at_1": 0.97, "leave_and_return": "0.000, 3"}
+    ]  # fmt: skip
+    line = oom.in_map_table(in_map).splitlines()[-1]
+    assert line == (
+        "| m (100) | held out | sequence | p_correct | 0.900 | 1.000 | 0.040 | 1.0 | 0.970 "
+        "| 0.000, 3 |"
+    )

@@ -7,8 +7,8 @@ the target precision (:func:`fit_acceptance`); ``hmpf-eval`` applies a config's 
 (:func:`apply_acceptance`) and reports the figures at the config's thresholds
 (:func:`acceptance_figures`).
 
-*Why a fixed feature set.* ``bench/confidence.py`` chose features by greedy forward
-selection on the four training parts pooled (route-balanced out-of-fold log-loss, in-map
+*Why a fixed feature set.* ``bench/confidence.py`` (in its earlier form, before it measured
+the one policy out of the box) chose features by greedy forward selection on the four training parts pooled (route-balanced out-of-fold log-loss, in-map
 answers only); with the absolute evidence among the candidates it chose ``tier1_margin``,
 ``agreement``, ``quality``, ``ref_z`` for single frames and ``sequence_logit``,
 ``sequence_ref_z``, ``tier1_rank`` for sequence mode (docs/experiments/confidence). One
@@ -70,7 +70,8 @@ __all__ = [
     "single_answers",
 ]
 
-#: Single-frame model features (chosen by ``bench/confidence.py`` on the training parts).
+#: Single-frame model features (chosen by the earlier ``bench/confidence.py`` on the
+#: training parts).
 SINGLE_FEATURES = ("tier1_margin", "agreement", "quality", "ref_z")
 #: Sequence model features (idem).
 SEQUENCE_MODEL_FEATURES = ("sequence_logit", "sequence_ref_z", "tier1_rank")
