@@ -39,6 +39,7 @@ from service.metrics import Metrics
 from service.openapi import document_limits
 from service.reloader import CurrentWatch, update_behind
 from service.routes import health, index, inspect, localize
+from service.routes.docs import install_docs
 from service.settings import Settings
 from service.vehicle import Tracker
 
@@ -66,6 +67,8 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         summary="Visual place recognition: which stored reference image does this frame show?",
         version=package_version(),
         lifespan=_lifespan,
+        docs_url=None,  # served from the package, not a CDN (service.routes.docs)
+        redoc_url=None,
     )
     app.state.engine = engine
     app.state.settings = settings
@@ -88,6 +91,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
     app.include_router(inspect.router, form_limits={"max_files": 1, "max_fields": _MAX_FORM_FIELDS})
     app.mount("/inspect/static", StaticFiles(directory=inspect.STATIC), name="inspect-static")
     app.include_router(health.router)
+    install_docs(app)
     document_limits(app, settings)
     return app
 

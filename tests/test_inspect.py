@@ -404,6 +404,42 @@ def test_page_answers_a_night_frame_in_chromium(
         Path(os.environ["HMPF_SCREENSHOT"]).write_bytes(shot)
 
 
+def test_api_docs_load_with_the_network_off(browser_ready, server) -> None:
+    """/docs (Swagger UI) and /redoc render the API from the service alone: every request to
+    another host is refused by the browser. /docs tries none; ReDoc's bundle hard-codes one
+    decorative image (its vendor's logo in the sidebar footer), the only one it may try."""
+    from playwright.sync_api import sync_playwright
+
+    local = server.url.rstrip("/")
+    elsewhere: list[str] = []
+
+    def only_local(route: Any) -> None:
+        if route.request.url.startswith(local + "/"):
+            route.continue_()
+        else:
+            elsewhere.append(route.request.url)
+            route.abort()
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            page = browser.new_page()
+            page.set_default_timeout(60_000)
+            page.route("**/*", only_local)
+            page.goto(local + "/docs")
+            page.wait_for_selector(".swagger-ui .info .title")
+            assert "hmpf" in page.inner_text(".swagger-ui .info .title")
+            page.wait_for_selector("#operations-localize-localize_v1_localize_post")
+            assert elsewhere == [], elsewhere
+            page.goto(local + "/redoc")
+            page.wait_for_selector("h1")
+            assert "hmpf" in page.inner_text("h1")
+            page.wait_for_selector('text="/v1/localize"')
+        finally:
+            browser.close()
+    assert set(elsewhere) <= {"https://cdn.redoc.ly/redoc/logo-mini.svg"}, elsewhere
+
+
 def test_kaze_evidence_draws_keypoint_pairs(gardens_point, tmp_path) -> None:
     """With KAZE in the index the evidence is its keypoint pairs (stored reference
     keypoints against the query's), rendered without a server (a query thread's work)."""
