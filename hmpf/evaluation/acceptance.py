@@ -8,12 +8,13 @@ the target precision (:func:`fit_acceptance`); ``hmpf-eval`` applies a config's 
 (:func:`acceptance_figures`).
 
 *Why a fixed feature set.* ``bench/confidence.py`` (in its earlier form, before it measured
-the one policy out of the box) chose features by greedy forward selection on the four training parts pooled (route-balanced out-of-fold log-loss, in-map
-answers only); with the absolute evidence among the candidates it chose ``tier1_margin``,
-``agreement``, ``quality``, ``ref_z`` for single frames and ``sequence_logit``,
-``sequence_ref_z``, ``tier1_rank`` for sequence mode (docs/experiments/confidence). One
-route's training part (100 answers on Gardens Point) is too small to repeat that choice
-reliably, so the calibrator uses those sets as they are.
+the one policy out of the box) chose features by greedy forward selection on the four
+training parts pooled (route-balanced out-of-fold log-loss, in-map answers only); with the
+absolute evidence among the candidates it chose ``tier1_margin``, ``agreement``,
+``quality``, ``ref_z`` for single frames and ``sequence_logit``, ``sequence_ref_z``,
+``tier1_rank`` for sequence mode (docs/experiments/confidence). One route's training part
+(100 answers on Gardens Point) is too small to repeat that choice reliably, so the
+calibrator uses those sets as they are.
 
 *Out-of-map answers.* Every other feature compares the map's references with each other, so
 a query from a place the map does not hold can look like a right answer; ``ref_z`` says how
