@@ -15,7 +15,7 @@ PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
 
 .PHONY: install run index clean-index eval test test-offline browser haproxy bench lint format clean \
-	container container-test
+	container container-test docs
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -108,6 +108,11 @@ lint: install
 	$(VENV)/bin/ruff format --check hmpf indexer service tests bench
 	$(VENV)/bin/mypy hmpf indexer service
 	$(VENV)/bin/hadolint docker/Dockerfile
+
+## docs: the documentation site from docs/ (mkdocs.yml: MkDocs, Material, mkdocstrings) into site/,
+## offline; --strict: a broken link or any other warning fails the build
+docs: install
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 format: install
 	$(VENV)/bin/ruff format hmpf indexer service tests bench

@@ -1,9 +1,10 @@
-"""The README's example answers have the fields of a real answer, and say what a user gets.
+"""The user guide's example answers have the fields of a real answer, and say what a user gets.
 
-The examples themselves are printed by ``bench/readme_answer.py`` (the default preset over
+The examples (``docs/user-guide.md``, "Answers" and "Sequence mode"; they were the README's
+before it became the short guide) are printed by ``bench/readme_answer.py`` (the default preset over
 Gardens Point day_right, no calibration step); here a real index and service (the small
 service index of the other tests, with the default preset's shipped policy rules applied by
-the same code) answer a frame single and in sequence mode, and every field of each README
+the same code) answer a frame single and in sequence mode, and every field of each
 example must be a field of the real answer and the other way round (lists: their first
 entry; ``"..."`` stands for the rest).
 """
@@ -22,13 +23,13 @@ from service_helpers import ROOT
 from service.app import create_app
 from service.settings import load_settings
 
-README = ROOT / "README.md"
+EXAMPLES = ROOT / "docs" / "user-guide.md"
 
 
 def examples() -> dict[str, dict[str, Any]]:
-    """The README's JSON blocks that follow a line naming an answer: ``An answer (...)``
+    """The user guide's JSON blocks that follow a line naming an answer: ``An answer (...)``
     (single frame) and ``An answer in sequence mode``."""
-    text = README.read_text()
+    text = EXAMPLES.read_text()
     out = {}
     leads = (("single", "An answer (`POST /v1/localize`)"), ("sequence", "An answer in sequence"))
     for key, lead in leads:
@@ -97,3 +98,8 @@ def test_readme_says_what_the_default_preset_answers_out_of_the_box() -> None:
     for kind, ex in examples().items():
         assert ex["match"]["accepted_by"] == "p_correct", kind
         assert 0.0 <= ex["match"]["p_correct"] <= 1.0, kind
+
+
+def test_readme_points_to_the_examples() -> None:
+    """The README (the short guide) sends the reader to the page holding the examples."""
+    assert "](docs/user-guide.md#answers)" in (ROOT / "README.md").read_text()
