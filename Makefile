@@ -13,6 +13,11 @@ INDEX ?= index/default
 HOST ?= 127.0.0.1
 PORT ?= 8000
 PIP_INSTALL := $(VENV)/bin/pip install --disable-pip-version-check -q
+# torch: the CPU build, asked for explicitly (PyPI's torch wheel for Linux is a multi-GB CUDA
+# build). From the PyTorch CPU index when it answers; else from pip's own indexes (here: the
+# CPU wheel on this machine's disk). Either way the install fails if torch has CUDA.
+TORCH_VERSION ?= 2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
 .PHONY: install run index clean-index eval test test-offline browser haproxy bench lint format clean \
 	container container-test docs
@@ -23,6 +28,11 @@ $(VENV)/.installed: pyproject.toml
 	@# opencv-contrib-python-headless replaced opencv-python-headless (the same cv2 module):
 	@# an old venv's plain wheel goes first; contrib is reinstalled if that removed its files.
 	$(VENV)/bin/pip uninstall -y -q opencv-python-headless 2>/dev/null || true
+	if $(PY) -c 'import sys, urllib.request; urllib.request.urlopen(sys.argv[1] + "/torch/", timeout=5)' \
+		$(TORCH_INDEX) 2>/dev/null; then \
+		$(PIP_INSTALL) torch==$(TORCH_VERSION) --index-url $(TORCH_INDEX); \
+	else $(PIP_INSTALL) torch==$(TORCH_VERSION); fi
+	$(PY) -c 'import torch, sys; sys.exit(f"torch {torch.__version__} is a CUDA build" if torch.version.cuda else 0)'
 	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report,ray]'
 	$(PY) -c 'import cv2; cv2.xfeatures2d.TEBLID_create' 2>/dev/null || $(PIP_INSTALL) \
 		--force-reinstall --no-deps "$$($(VENV)/bin/pip list --format=freeze | grep -i '^opencv-contrib')"
