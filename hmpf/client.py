@@ -8,9 +8,9 @@
         if answer.match is not None and answer.match.accepted:
             print(answer.match.name, answer.match.lat, answer.match.lon)
 
-* Answers are the service's own pydantic models (:mod:`service.schemas`):
-  :class:`~service.schemas.LocalizeResponse`, :class:`~service.schemas.BatchResponse`,
-  :class:`~service.schemas.IndexInfo`, parsed from the JSON the service sent.
+* Answers are the pydantic wire models the service answers with (:mod:`hmpf.api`):
+  :class:`~hmpf.api.LocalizeResponse`, :class:`~hmpf.api.BatchResponse`,
+  :class:`~hmpf.api.IndexInfo`, parsed from the JSON the service sent.
 * An image is a path, the bytes of a JPEG, PNG or WebP file, or an RGB (or grey) ``uint8``
   array, encoded here (JPEG by default, ``array_format="png"`` for lossless).
 * Sequence mode: the client keeps each vehicle's ``track`` token (``sequence.track`` of its
@@ -52,8 +52,8 @@ import httpx
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
+from hmpf.api import BatchResponse, IndexInfo, LocalizeResponse
 from hmpf.errors import HmpfError
-from service.schemas import BatchResponse, IndexInfo, LocalizeResponse
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping

@@ -50,6 +50,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from hmpf.api import MAX_TOKEN_CHARS
 from hmpf.errors import ConfigError, HmpfError
 from hmpf.sequence import (
     Estimate,
@@ -87,8 +88,6 @@ KEY_FILE = ".sequence-key"
 KEEP = 64
 _HEAD = struct.Struct("<B8s8sddd")
 _MAC = 32
-#: The longest token accepted: the header, 64 hypotheses and the MAC in base64, with room.
-MAX_TOKEN_CHARS = 1024
 
 Status = Literal["started", "tracking", "reset", "out_of_order"]
 ResetReason = Literal["expired", "index_changed"]
