@@ -22,13 +22,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hmpf.errors import HmpfError
-from hmpf.hierarchy import HierarchyResult
+from hmpf.methods.base import GlobalMethod
 from hmpf.sequence import Estimate, RouteMap
+
+if TYPE_CHECKING:  # annotations only: hmpf.hierarchy sits above this module (it needs hmpf.config)
+    from hmpf.hierarchy import HierarchyResult
 
 __all__ = [
     "ALL_FEATURES",
@@ -265,8 +268,6 @@ class ReferenceProfile:
         Cost: ``sample`` x N scores per method (matrix products, in chunks of ``chunk``
         references, so memory stays ``sample x chunk``).
         """
-        from hmpf.methods.base import GlobalMethod
-
         n = routes.n
         rng = np.random.default_rng(seed)
         pick = (

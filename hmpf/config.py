@@ -36,10 +36,12 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from hmpf.confidence import PROFILE_FEATURES, ConfidenceModel
 from hmpf.errors import ConfigError, HmpfError
 from hmpf.fusion import default_weights
 from hmpf.methods import Method, create_method, get_method_class
 from hmpf.methods.registry import format_validation_error
+from hmpf.sequence import FilterParams
 
 __all__ = [
     "AcceptanceSettings",
@@ -104,8 +106,6 @@ class AcceptanceSettings(BaseModel):
 
     @model_validator(mode="after")
     def _models(self) -> AcceptanceSettings:
-        from hmpf.confidence import ConfidenceModel
-
         stay = self.sequence_stay_threshold
         if stay is not None:
             if self.sequence_model is None or self.sequence_threshold is None:
@@ -133,16 +133,12 @@ class AcceptanceSettings(BaseModel):
     def needs_profile(self) -> bool:
         """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`),
         so whoever applies it must build the references' profile."""
-        from hmpf.confidence import PROFILE_FEATURES
-
         feats = [f for m in (self.model, self.sequence_model) if m for f in m.get("features", ())]
         return any(f in PROFILE_FEATURES for f in feats)
 
     def confidence_model(self, sequence: bool = False) -> Any:
         """The :class:`~hmpf.confidence.ConfidenceModel` (single frame, or ``sequence``), or
         None when the config has none."""
-        from hmpf.confidence import ConfidenceModel
-
         model = self.sequence_model if sequence else self.model
         return None if model is None else ConfidenceModel.from_dict(model)
 
@@ -173,8 +169,6 @@ class HierarchyConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> HierarchyConfig:
         if self.sequence is not None:
-            from hmpf.sequence import FilterParams
-
             try:
                 FilterParams.from_mapping(self.sequence)
             except (HmpfError, TypeError) as exc:
@@ -213,8 +207,6 @@ class HierarchyConfig(BaseModel):
     def sequence_params(self) -> Any:
         """The sequence filter's :class:`~hmpf.sequence.FilterParams` (``sequence:``
         settings over the defaults)."""
-        from hmpf.sequence import FilterParams
-
         return FilterParams.from_mapping(self.sequence)
 
     def digest(self) -> str:
