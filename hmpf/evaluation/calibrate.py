@@ -1,4 +1,4 @@
-"""Step 3 of :mod:`hmpf.evaluation`: the choice of a hierarchy and its acceptance threshold.
+"""The choice of a hierarchy and its acceptance threshold (layer 4).
 
 The search (:func:`search`) runs on a training split's
 :class:`~hmpf.evaluation.study.ScoreBank`, so every tried hierarchy (a :class:`Trial`) is
@@ -33,7 +33,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.stats import binomtest
 
 from hmpf.confidence import ModelError
 from hmpf.config import AcceptanceSettings, HierarchyConfig
@@ -49,7 +48,7 @@ from hmpf.evaluation.acceptance import (
     sequence_answers,
     single_answers,
 )
-from hmpf.evaluation.evaluate import HierarchyOutcome
+from hmpf.evaluation.metrics import HierarchyOutcome, paired_test, precision_recall_at
 from hmpf.evaluation.sequence import format_sequence_report, sequence_settings, training_drives
 from hmpf.evaluation.study import (
     CostModel,
@@ -351,44 +350,7 @@ def acceptance_threshold(
     return {"threshold": threshold, "target": target, "reached": reached, **stats}
 
 
-def precision_recall_at(
-    quality: np.ndarray, correct: np.ndarray, threshold: float
-) -> dict[str, Any]:
-    """Precision, recall (correct accepted / all queries) and accepted share at a threshold."""
-    q = np.nan_to_num(np.asarray(quality, np.float64), nan=-np.inf)
-    c = np.asarray(correct, bool)
-    acc = q >= threshold
-    n_acc = int(acc.sum())
-    tp = int((acc & c).sum())
-    return {
-        "precision": tp / n_acc if n_acc else None,
-        "recall": tp / len(c) if len(c) else 0.0,
-        "accepted": n_acc / len(c) if len(c) else 0.0,
-        "n_accepted": n_acc,
-        "n_queries": int(len(c)),
-    }
-
-
 # -- the whole procedure ----------------------------------------------------------------------
-
-
-def paired_test(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
-    """Exact two-sided sign (McNemar) test of two answer sets on the same queries.
-
-    Args:
-        a, b: (Q,) booleans, query answered correctly by A and by B.
-
-    Returns:
-        ``wins`` (A right, B wrong), ``losses`` (A wrong, B right) and ``p``, the probability
-        of a split at least that uneven if A and B were equally good (1.0 with no
-        discordant query).
-    """
-    a, b = np.asarray(a, bool), np.asarray(b, bool)
-    if a.shape != b.shape:
-        raise ValueError("both answer sets must cover the same queries")
-    wins, losses = int(np.sum(a & ~b)), int(np.sum(~a & b))
-    p = float(binomtest(wins, wins + losses, 0.5).pvalue) if wins + losses else 1.0
-    return {"wins": wins, "losses": losses, "p": p}
 
 
 def compare_on(bank: ScoreBank, pool: HierarchyConfig, config: HierarchyConfig) -> dict[str, Any]:

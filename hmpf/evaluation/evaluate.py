@@ -1,11 +1,12 @@
-"""Step 1 of :mod:`hmpf.evaluation`: one hierarchy against ground truth.
+"""One hierarchy against ground truth (layer 4 of :mod:`hmpf.evaluation`).
 
 Reports what the paper reports (``recall_final``, ``recall_by_level``,
 ``recall_top1_by_level``, the precision-recall curve over the quality score; METHODS.md §6) and
 more: recall@N of every method alone, flat-fusion recall, and time per stage.
 
-Every evaluation starts from :func:`prepare` (fit -> extract -> stack), runs the hierarchy per
-query (:func:`run_queries`), summarises the answers with :func:`outcome_of` and reports the
+Every evaluation starts from :func:`~hmpf.evaluation.data.prepare` (fit -> extract -> stack),
+runs the hierarchy per query (:func:`~hmpf.evaluation.metrics.run_queries`), summarises the
+answers with :func:`~hmpf.evaluation.metrics.outcome_of` and reports the
 tiers with :func:`tier_rows` / :func:`format_tier_table`: on a route (:func:`evaluate`), on a
 built index through the service's own scorer (:func:`evaluate_index`) and, for many
 hierarchies on precomputed scores, in :class:`hmpf.evaluation.study.ScoreBank`.
@@ -14,19 +15,35 @@ hierarchies on precomputed scores, in :class:`hmpf.evaluation.study.ScoreBank`.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hmpf.acceptance import Policy
 from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, build_methods
-from hmpf.datasets import frame_ground_truth, list_images
-from hmpf.features import ExtractionResult, FeatureCache, extract_images, fit_methods
+from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
+from hmpf.evaluation.data import EvalData, Prepared, prepare
+from hmpf.evaluation.metrics import (
+    RECALL_NS,
+    HierarchyOutcome,
+    median,
+    outcome_of,
+    pr_curve,
+    recall_at_n,
+    run_queries,
+)
+from hmpf.evaluation.sequence import (
+    format_off_map_report,
+    format_sequence_report,
+    off_map_report,
+    sequence_report,
+)
+from hmpf.features import FeatureCache, extract_images
 from hmpf.fusion import flat_fusion, nan_argmax, zscore
-from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
+from hmpf.hierarchy import Hierarchy, HierarchyResult, feature_scorer
 from hmpf.methods import Method
 from hmpf.sequence import RouteMap
 
@@ -50,194 +67,6 @@ __all__ = [
     "run_queries",
     "tier_rows",
 ]
-
-RECALL_NS = (1, 5, 10, 20, 50, 100)
-PR_THRESHOLDS = np.arange(0.0, 50.0 + 1e-9, 0.5)  # the original's 0:0.5:50
-
-
-def recall_at_n(
-    scores: np.ndarray, gt: np.ndarray, ns: Sequence[int] = RECALL_NS, higher_is_better: bool = True
-) -> dict[int, float]:
-    """Fraction of queries with a correct reference among their N best (ties -> lower index).
-
-    Args:
-        scores: (nq, nd) scores of every query against every reference.
-        gt: (nq, nd) boolean ground truth.
-    """
-    s = np.asarray(scores, dtype=np.float64)
-    key = -s if higher_is_better else s
-    key = np.where(np.isnan(key), np.inf, key)
-    order = np.argsort(key, axis=1, kind="stable")
-    hits = np.take_along_axis(gt, order, axis=1)
-    first = np.where(hits.any(axis=1), hits.argmax(axis=1), np.iinfo(np.int64).max)
-    return {n: float(np.mean(first < n)) for n in ns}
-
-
-def pr_curve(correct: np.ndarray, quality: np.ndarray) -> dict[str, Any]:
-    """Precision-recall over the quality score, the original's definition (METHODS.md §6).
-
-    A query is predicted when ``quality > threshold``; wrong predictions are FP, every
-    unpredicted query is FN (there are no true negatives), so recall = TP / n_queries.
-    """
-    c = np.asarray(correct, dtype=bool)
-    q = np.nan_to_num(np.asarray(quality, dtype=np.float64), nan=-np.inf)
-    pred = q[None, :] > PR_THRESHOLDS[:, None]
-    tp = (pred & c[None, :]).sum(1).astype(np.float64)
-    fp = (pred & ~c[None, :]).sum(1).astype(np.float64)
-    fn = len(c) - tp
-    with np.errstate(invalid="ignore", divide="ignore"):
-        precision = tp / (tp + fp)
-        recall = tp / (tp + fn)
-        f1 = 2 * tp / (2 * tp + fp + fn)
-    p2 = np.append(precision[~np.isnan(precision)], 1.0)
-    r2 = recall[: len(p2)]
-    p2, r2 = p2[::-1], r2[::-1]
-    if len(r2) == len(p2) - 1:
-        r2 = np.insert(r2, 0, 0.0)
-    auc = float(np.trapezoid(p2, r2)) if len(p2) > 1 else 0.0
-    perfect = recall[(precision == 1.0) & (tp > 0)]
-    return {
-        "auc": auc,
-        "max_f1": float(np.nanmax(f1)) if np.isfinite(f1).any() else 0.0,
-        "recall_at_100_precision": float(perfect.max()) if perfect.size else 0.0,
-        "thresholds": PR_THRESHOLDS.tolist(),
-        "precision": [None if np.isnan(x) else float(x) for x in precision],
-        "recall": recall.tolist(),
-    }
-
-
-@dataclass
-class EvalData:
-    """Everything an evaluation needs: images, ground truth and a description of it."""
-
-    reference: list[Path]
-    query: list[Path]
-    gt: np.ndarray  # (n_query, n_ref) bool
-    ground_truth: str  # e.g. "frames +-2"
-
-    @classmethod
-    def frames(cls, reference: str | Path, query: str | Path, tolerance: int) -> EvalData:
-        """Two frame-aligned traverses (image folders): a match is within +-``tolerance``."""
-        refs, qrys = list_images(reference), list_images(query)
-        gt = frame_ground_truth(len(qrys), len(refs), tolerance)
-        return cls(refs, qrys, gt, f"frames +-{tolerance}")
-
-
-@dataclass
-class Prepared:
-    """Fit -> extract -> stack, the start of every evaluation of one :class:`EvalData`.
-
-    Attributes:
-        methods: method id -> instance, fitted on the references (never on the queries).
-        db: method id -> the stacked reference set (:meth:`Method.stack`).
-        queries: method id -> per-query features, in query order.
-        fitted: method ids whose parameters were fitted.
-        ref, qry: the extraction results (per-image times, cache hits).
-        fit_s, extraction_s: wall time of fitting and of extraction.
-    """
-
-    methods: dict[str, Method]
-    db: dict[str, Any]
-    queries: dict[str, list[Any]]
-    fitted: list[str]
-    ref: ExtractionResult
-    qry: ExtractionResult
-    fit_s: float
-    extraction_s: float
-
-    def query(self, qi: int) -> dict[str, Any]:
-        """Method id -> the features of query ``qi``."""
-        return {m: feats[qi] for m, feats in self.queries.items()}
-
-
-def prepare(
-    methods: dict[str, Method],
-    data: EvalData,
-    *,
-    cache: FeatureCache | None = None,
-    workers: int | None = None,
-    progress: bool = False,
-) -> Prepared:
-    """Fit ``methods`` on the references, extract (or load) every image's features, stack."""
-    t0 = time.perf_counter()
-    fitted = fit_methods(methods, data.reference, cache=cache)
-    fit_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    ref = extract_images(
-        data.reference, methods, cache=cache, workers=workers, progress=progress, desc="references"
-    )
-    qry = extract_images(
-        data.query, methods, cache=cache, workers=workers, progress=progress, desc="queries"
-    )
-    extraction_s = time.perf_counter() - t0
-    db = {m: methods[m].stack_references(ref.features[m]) for m in methods}
-    queries = {m: list(qry.features[m]) for m in methods}
-    return Prepared(methods, db, queries, fitted, ref, qry, fit_s, extraction_s)
-
-
-# -- one hierarchy's answers -------------------------------------------------------------------
-
-
-@dataclass
-class HierarchyOutcome:
-    """One hierarchy's results on a set of queries, against the ground truth.
-
-    Attributes:
-        matches: (nq,) the answer per query (-1: none).
-        quality: (nq,) the answer's Combined z-score.
-        correct: (nq,) the answer is within the ground truth.
-        tier_top1: per tier, recall@1 of the tier's mean score over the database (the
-            original's ``recall_top1_by_level``).
-        tier_recall: per tier, fraction of queries whose candidate list holds a correct one.
-        mean_inputs: per tier, mean number of references scored (tier 1: the database).
-        mean_candidates: per tier, mean length of the candidate list it passes on.
-        tier_ms: per tier, median time per query (ms).
-        fusion_ms: median time per query of the cross-tier fusion (ms).
-    """
-
-    matches: np.ndarray
-    quality: np.ndarray
-    correct: np.ndarray
-    tier_top1: list[float]
-    tier_recall: list[float]
-    mean_inputs: list[float]
-    mean_candidates: list[float] = field(default_factory=list)
-    tier_ms: list[float] = field(default_factory=list)
-    fusion_ms: float = float("nan")
-
-    @property
-    def recall_at_1(self) -> float:
-        return float(self.correct.mean()) if self.correct.size else 0.0
-
-
-def outcome_of(results: Sequence[HierarchyResult], gt: np.ndarray, n_db: int) -> HierarchyOutcome:
-    """Summarise per-query hierarchy results against ``gt`` ((nq, n_db) bool)."""
-    nq = len(results)
-    match = np.array([r.match for r in results], dtype=np.int64)
-    quality = np.array([r.quality for r in results], dtype=np.float64)
-    correct = np.zeros(nq, dtype=bool)
-    ok = match >= 0
-    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
-    n_tiers = len(results[0].tiers) if results else 0
-    top1, recall, inputs, cands, ms = [], [], [], [], []
-    for t in range(n_tiers):
-        tier = [r.tiers[t] for r in results]
-        top1.append(float(np.mean([gt[q, nan_argmax(x.mean_score())] for q, x in enumerate(tier)])))
-        recall.append(float(np.mean([gt[q, x.candidates].any() for q, x in enumerate(tier)])))
-        inputs.append(float(np.mean([n_db if x.inputs is None else len(x.inputs) for x in tier])))
-        cands.append(float(np.mean([len(x.candidates) for x in tier])))
-        ms.append(_median([x.time_ms for x in tier]))
-    fusion = _median([r.fusion_ms for r in results])
-    return HierarchyOutcome(match, quality, correct, top1, recall, inputs, cands, ms, fusion)
-
-
-def run_queries(
-    hierarchy: Hierarchy, scorers: Iterable[ScoreFn], n_db: int
-) -> tuple[list[HierarchyResult], float]:
-    """Run ``hierarchy`` with each query's scorer; returns the results and the wall time (s)."""
-    t0 = time.perf_counter()
-    results = [hierarchy.run(score_fn, n_db) for score_fn in scorers]
-    return results, time.perf_counter() - t0
 
 
 def tier_rows(config: HierarchyConfig, outcome: HierarchyOutcome) -> list[dict[str, Any]]:
@@ -276,12 +105,6 @@ def _full_scores(method: Method, queries: Any, db: Any) -> np.ndarray:
     return np.stack([method.scores(q, db) for q in queries])
 
 
-def _median(x: Sequence[float] | np.ndarray) -> float:
-    a = np.asarray(x, dtype=np.float64)
-    a = a[~np.isnan(a)]
-    return float(np.median(a)) if a.size else float("nan")
-
-
 def _method_curves(
     prep: Prepared, gt: np.ndarray, skip_curves: Sequence[str]
 ) -> tuple[dict[str, Any], dict[str, np.ndarray], float]:
@@ -295,7 +118,7 @@ def _method_curves(
             "type": type(m).name,
             "kind": m.kind,
             "higher_is_better": m.higher_is_better,
-            "extract_ms_per_image": _median(np.concatenate([prep.ref.ms[mid], prep.qry.ms[mid]])),
+            "extract_ms_per_image": median(np.concatenate([prep.ref.ms[mid], prep.qry.ms[mid]])),
         }
         if mid not in skip_curves:
             ts = time.perf_counter()
@@ -401,7 +224,7 @@ def evaluate(
             "quality": [None if np.isnan(x) else float(x) for x in outcome.quality],
         },
         "timing_ms": {
-            "decode_per_image": _median([prep.ref.decode_ms, prep.qry.decode_ms]),
+            "decode_per_image": median([prep.ref.decode_ms, prep.qry.decode_ms]),
             "extract_per_image": {m: method_report[m]["extract_ms_per_image"] for m in methods},
             "tiers_per_query": [t["ms_per_query"] for t in tiers],
             "fusion_per_query": outcome.fusion_ms,
@@ -424,8 +247,6 @@ def evaluate(
     if sequence:
         report["sequence"] = _sequence(results, gt, routes, config, profile())
     if sequence and foreign:
-        from hmpf.evaluation.sequence import off_map_report
-
         away = EvalData(data.reference, list(foreign), np.zeros((len(foreign), n_db), bool), "")
         p2 = prepare(build_methods(config), away, cache=cache, workers=workers, progress=progress)
         scorers = (feature_scorer(p2.methods, p2.query(qi), p2.db) for qi in range(len(foreign)))
@@ -458,8 +279,6 @@ def _sequence(
     config: HierarchyConfig,
     profile: ReferenceProfile | None = None,
 ) -> dict[str, Any]:
-    from hmpf.evaluation.sequence import sequence_report
-
     t0 = time.perf_counter()
     rep = sequence_report(results, gt, routes, config.sequence_params(), profile=profile)
     rep["wall_s"] = time.perf_counter() - t0
@@ -486,9 +305,6 @@ def acceptance_report(
     ``accepted_answers`` and ``off_map``, and ``accepted`` (share), ``precision`` and, for
     the model, ``ece``.
     """
-    from hmpf.acceptance import Policy
-    from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
-
     params = config.sequence_params()
     policy = Policy.of(config.acceptance, lock_mass=params.lock_mass)
     # The sequence filter's off-map state reads the profile too.
@@ -649,8 +465,6 @@ def _acceptance_lines(report: dict[str, Any]) -> list[str]:
 def _sequence_lines(report: dict[str, Any]) -> list[str]:
     if "sequence" not in report:
         return []
-    from hmpf.evaluation.sequence import format_off_map_report, format_sequence_report
-
     lines = ["", "sequence mode (queries driven in order as one vehicle):"] + [
         "  " + line for line in format_sequence_report(report["sequence"])
     ]

@@ -1,4 +1,4 @@
-"""Step 4 of :mod:`hmpf.evaluation`: the paper's studies (Hausler & Milford 2020, Section IV).
+"""The paper's studies (Hausler & Milford 2020, Section IV).
 
 :func:`run_studies` reproduces, on a :class:`~hmpf.evaluation.study.ScoreBank` of any route's
 training part:
@@ -32,7 +32,7 @@ import numpy as np
 from hmpf.config import HierarchyConfig
 from hmpf.errors import ConfigError, MissingDependencyError
 from hmpf.evaluation.calibrate import compare_on, describe
-from hmpf.evaluation.evaluate import HierarchyOutcome
+from hmpf.evaluation.metrics import HierarchyOutcome
 from hmpf.evaluation.study import CostModel, ScoreBank, derive_config, measure_query_ms
 
 __all__ = [

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hmpf.confidence import absolute_evidence
+from hmpf.evaluation.metrics import paired_test
 from hmpf.hierarchy import HierarchyResult
 from hmpf.sequence import Estimate, Evidence, FilterParams, RouteMap, SequenceFilter
 
@@ -307,8 +308,6 @@ def sequence_report(
         for d in jump_drives(nq, jumps, before, after, max(10, nq // 5), rng)
     ]
     drop_run = drive(filt, evs, dropped_drive(nq, dropped, rng), gt)
-    from hmpf.evaluation.calibrate import paired_test  # (calibrate imports this module)
-
     return {
         "params": asdict(params),
         "n_query": nq,

@@ -1,4 +1,4 @@
-"""Step 2 of :mod:`hmpf.evaluation`: many hierarchies on one route.
+"""Many hierarchies on one route (layer 3 of :mod:`hmpf.evaluation`).
 
 Train/test splits, score banks and a cost model.
 
@@ -29,14 +29,9 @@ from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, TierConfig, build_methods
 from hmpf.errors import ConfigError, DatasetError
 from hmpf.evaluation import SPLITS
-from hmpf.evaluation.evaluate import (
-    EvalData,
-    HierarchyOutcome,
-    outcome_of,
-    prepare,
-    recall_at_n,
-    run_queries,
-)
+from hmpf.evaluation.data import EvalData, prepare
+from hmpf.evaluation.metrics import HierarchyOutcome, outcome_of, recall_at_n, run_queries
+from hmpf.evaluation.sequence import sequence_report, tune_sequence
 from hmpf.features import FeatureCache, extract_query
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
@@ -248,8 +243,6 @@ class ScoreBank:
     ) -> dict[str, Any]:
         """Sequence-mode figures of ``config`` on this part, its queries driven in order
         along its references (one route, file order)."""
-        from hmpf.evaluation.sequence import sequence_report
-
         routes = RouteMap.from_metadata(self.n_db)
         return sequence_report(self.results(config), self.gt, routes, params, seed=seed)
 
@@ -257,8 +250,6 @@ class ScoreBank:
         self, config: HierarchyConfig, *, target_precision: float = 0.99, seed: int = 0
     ) -> tuple[FilterParams, dict[str, Any]]:
         """The sequence filter's settings for ``config`` chosen on this (training) part."""
-        from hmpf.evaluation.sequence import tune_sequence
-
         return tune_sequence(
             [(self.results(config), self.gt, RouteMap.from_metadata(self.n_db))],
             base=config.sequence_params(),
