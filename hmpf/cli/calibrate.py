@@ -51,16 +51,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hmpf.cli.common import add_version, run
-from hmpf.cli.eval import (
-    add_cache_args,
-    add_ground_truth_args,
+from hmpf.cli.args import (
+    DEFAULT_POOL,
     add_sequence_arg,
-    cache_from_args,
-    ground_truth_from_args,
+    add_split_args,
+    load_banks,
 )
+from hmpf.cli.common import add_version, run
 from hmpf.errors import HmpfError
-from hmpf.evaluation import SPLITS
 
 # numpy, OpenCV and the evaluation load inside the command's body (see hmpf.cli.eval).
 if TYPE_CHECKING:
@@ -69,40 +67,7 @@ if TYPE_CHECKING:
     from hmpf.config import HierarchyConfig
     from hmpf.evaluation.study import CostModel, ScoreBank
 
-DEFAULT_POOL = "calibration-pool"  # a preset name (hmpf/presets/calibration-pool.yaml)
 DEFAULT_NAME = "calibrated"
-
-
-def add_split_args(p: argparse.ArgumentParser) -> None:
-    """Data, split and cache flags shared with ``hmpf-eval experiments``."""
-    p.add_argument("--reference", required=True, help="folder of reference images")
-    p.add_argument("--query", required=True, help="folder of query images")
-    add_ground_truth_args(p)
-    p.add_argument("--split", choices=SPLITS, default="blocks", help="train/test split")
-    p.add_argument("--block", type=int, default=20, help="frames per stretch (blocks split)")
-    p.add_argument("--train-fraction", type=float, default=0.5, help="halves split: train share")
-    add_cache_args(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
-def load_banks(args: argparse.Namespace, pool: HierarchyConfig) -> tuple[ScoreBank, ScoreBank]:
-    """Split the route given by the flags and score the pool on both parts."""
-    from hmpf.datasets import list_images
-    from hmpf.evaluation.evaluate import EvalData
-    from hmpf.evaluation.study import ScoreBank, split_data
-
-    refs = list_images(args.reference)
-    qrys = list_images(args.query)
-    gt, desc = ground_truth_from_args(args, qrys, [r.name for r in refs])
-    parts = split_data(
-        EvalData(refs, qrys, gt, desc), args.train_fraction, scheme=args.split, block=args.block
-    )
-    cache = cache_from_args(args)
-    train, test = (
-        ScoreBank.build(pool, part, cache=cache, workers=args.workers, progress=not args.quiet)
-        for part in parts
-    )
-    return train, test
 
 
 def _bar_update(bar: tqdm) -> Callable[[int, int], None]:

@@ -33,23 +33,25 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hmpf.cli import experiments
+from hmpf.cli.args import (
+    add_cache_args,
+    add_ground_truth_args,
+    add_sequence_arg,
+    cache_from_args,
+    ground_truth_from_args,
+)
 from hmpf.cli.common import add_version, run
-from hmpf.errors import HmpfError
-from hmpf.runtime import default_cache_dir
 
 # numpy, OpenCV and the evaluation load inside the command's body (`run`), so that --help and
 # --version are instant and Ctrl-C while they load is one line and exit 130 too.
 if TYPE_CHECKING:
-    import numpy as np
-
-    from hmpf.features import FeatureCache
+    pass
 
 PROG = "hmpf-eval"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from hmpf.cli import experiments
-
     p = argparse.ArgumentParser(
         prog=PROG,
         usage="%(prog)s [options] --config YAML --reference DIR --query DIR\n"
@@ -97,57 +99,6 @@ def build_parser() -> argparse.ArgumentParser:
     add_version(sub)
     experiments.add_arguments(sub)
     return p
-
-
-def add_cache_args(p: argparse.ArgumentParser) -> None:
-    """The descriptor-cache and extraction flags shared by hmpf-eval and hmpf-calibrate."""
-    p.add_argument("--cache-dir", help=f"descriptor cache (default {default_cache_dir()})")
-    p.add_argument("--no-cache", action="store_true", help="always extract, never cache")
-    p.add_argument("--workers", type=int, default=None, help="extraction processes (default: CPUs)")
-
-
-def add_sequence_arg(p: argparse.ArgumentParser) -> None:
-    """``--sequence``, shared by hmpf-eval, its experiments and hmpf-calibrate."""
-    p.add_argument(
-        "--sequence",
-        action="store_true",
-        help="also drive the queries in order as one vehicle through the sequence filter "
-        "(frames to lock on after a start and a jump, recall by speed, accepted answers)",
-    )
-
-
-def add_ground_truth_args(p: argparse.ArgumentParser) -> None:
-    """The ground-truth flags shared by hmpf-eval, its experiments and hmpf-calibrate."""
-    gt = p.add_mutually_exclusive_group()
-    gt.add_argument("--tolerance", type=int, help="frame-aligned ground truth: |q - r| <= T")
-    gt.add_argument("--gt-csv", help="CSV of query,reference[,tolerance] pairs")
-    gt.add_argument("--gps-csv", help="CSV role,name,lat,lon; needs --radius-m")
-    p.add_argument("--radius-m", type=float, help="GPS ground-truth radius in metres")
-
-
-def ground_truth_from_args(
-    args: argparse.Namespace, qrys: list[Path], ref_names: list[str]
-) -> tuple[np.ndarray, str]:
-    """(gt matrix, description) from the ground-truth flags."""
-    from hmpf.datasets import frame_ground_truth, gps_ground_truth, pairs_ground_truth
-
-    if args.gt_csv:
-        gt = pairs_ground_truth(args.gt_csv, [q.name for q in qrys], ref_names)
-        return gt, f"pairs from {args.gt_csv}"
-    if args.gps_csv:
-        if args.radius_m is None:
-            raise HmpfError("--gps-csv needs --radius-m")
-        gt = gps_ground_truth(args.gps_csv, [q.name for q in qrys], ref_names, args.radius_m)
-        return gt, f"GPS within {args.radius_m:g} m"
-    tol = 2 if args.tolerance is None else args.tolerance
-    return frame_ground_truth(len(qrys), len(ref_names), tol), f"frames +-{tol}"
-
-
-def cache_from_args(args: argparse.Namespace) -> FeatureCache | None:
-    """The descriptor cache the flags name (None with ``--no-cache``)."""
-    from hmpf.features import FeatureCache
-
-    return None if args.no_cache else FeatureCache(args.cache_dir or default_cache_dir())
 
 
 def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
@@ -214,8 +165,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "experiments":
-        from hmpf.cli import experiments
-
         return run(experiments.PROG, lambda: experiments.run_experiments(args))
     if args.query is None:
         parser.error("--query is required")

@@ -15,8 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
-from hmpf.cli.calibrate import DEFAULT_POOL, add_split_args, load_banks
-from hmpf.cli.eval import add_sequence_arg
+from hmpf.cli.args import DEFAULT_POOL, add_sequence_arg, add_split_args, load_banks
 from hmpf.errors import HmpfError
 
 PROG = "hmpf-eval experiments"
