@@ -52,7 +52,13 @@ import httpx
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from hmpf.api import BatchResponse, IndexInfo, LocalizeResponse
+from hmpf.api import (
+    TRACK_HEADER,
+    VEHICLE_ID_HEADER,
+    BatchResponse,
+    IndexInfo,
+    LocalizeResponse,
+)
 from hmpf.errors import HmpfError
 
 if TYPE_CHECKING:
@@ -76,9 +82,6 @@ __all__ = [
 
 #: The header that carries the API key.
 API_KEY_HEADER = "X-API-Key"
-#: Headers of sequence mode (never the URL: it ends up in logs).
-VEHICLE_ID_HEADER = "X-Vehicle-Id"
-TRACK_HEADER = "X-Track"
 #: An image as the client takes it: a file path, encoded bytes, or an RGB / grey uint8 array.
 ImageInput = str | os.PathLike[str] | bytes | bytearray | memoryview | np.ndarray
 #: Transport errors worth another try: timeouts, refused / reset connections, a connection
