@@ -573,6 +573,7 @@ def main() -> int:
     t0 = time.perf_counter()
     shipped_config, config, shipped = out_of_the_box(args.config)
     digest = config.digest()
+    prov = provenance(args.config, config)  # the commit of the code loaded, not the end's
     params = shipped_config.sequence_params()
     no_model = Policy.of(None, lock_mass=params.lock_mass)
     cache = FeatureCache(default_cache_dir())
@@ -586,7 +587,7 @@ def main() -> int:
     print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
     has_model = shipped_config.acceptance is not None
     report: dict[str, Any] = {
-        **provenance(args.config, config),
+        **prov,
         "shipped_models": f"hmpf/presets/acceptance/{args.config}.json" if has_model else None,
         "note": (
             "2 shared CPU cores (other jobs running): the figures do not depend on it, "
