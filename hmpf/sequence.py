@@ -274,13 +274,14 @@ def _junctions(
 class FilterParams:
     """The filter's settings.
 
-    The defaults were chosen on the training parts of the four shared routes together
-    (``python bench/sequence.py --tune``: Gardens Point's three protocols with the default
-    hierarchy, Nordland summer -> winter with a HOG-led one; recall over drives at speeds 1-3
-    and over spliced drives, and the share accepted at 99 % precision). The best settings were
-    tied within 0.001 of that score; of them, the one with sensor resetting (``reset``) is the
-    default because it keeps re-locking independent of the map's size. ``lock_mass`` is the
-    posterior mass that gave 99 % precision on those training drives (0.9918, rounded).
+    The defaults were chosen on the training parts of the four shared routes together (the
+    earlier ``python bench/sequence.py --tune``: Gardens Point's three protocols with the
+    default hierarchy, Nordland summer -> winter with a HOG-led one; recall over drives at
+    speeds 1-3 and over spliced drives, and the share accepted at 99 % precision). The best
+    settings were tied within 0.001 of that score; of them, the one with sensor resetting
+    (``reset``) is the default because it keeps re-locking independent of the map's size.
+    ``lock_mass`` is the posterior mass that gave 99 % precision on those training drives
+    (0.9918, rounded).
 
     The off hypothesis's settings were chosen on training data only (``default`` hierarchy,
     Gardens Point day_right's training blocks as the map, 100 references; absolute evidence
