@@ -75,7 +75,7 @@ class CnnConfig(MethodConfig):
 
 
 class MultiScaleConfig(CnnConfig):
-    """Multi-scale pooling of a global CNN descriptor (issue 18).
+    """Multi-scale pooling of a global CNN descriptor (an accuracy lever).
 
     ``scales``: the input size (``input_size`` or the method's default) times each scale,
     rounded to whole 32-pixel cells (at least 32), one forward pass per scale and image; the

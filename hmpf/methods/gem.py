@@ -4,7 +4,7 @@
 (Radenovic et al., TPAMI 2018). Cheap and strong for tier 1: one vector per image, Euclidean
 distance (lower is better), FAISS-friendly.
 
-Options (issue 18; off by default): ``scales`` (multi-scale: the mean of the L2-normalised
+Options (accuracy levers; off by default): ``scales`` (multi-scale: the mean of the L2-normalised
 descriptors of every input scale, :class:`~hmpf.methods.cnn.MultiScaleConfig`) and ``crops``
 (multi-crop: R-MAC's region grid with GeM pooling, Tolias et al., ICLR 2016: the whole map
 plus square crops of ``crops`` levels, :func:`crop_boxes`, each pooled and L2-normalised,

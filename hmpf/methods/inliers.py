@@ -1,6 +1,6 @@
 """Geometric verification (``inliers``): inliers of a robust two-view model between KAZE matches.
 
-Not in the original HMPF (issue 18): the classic re-ranking step of retrieval and
+Not in the original HMPF (an accuracy lever): the classic re-ranking step of retrieval and
 localisation pipelines, as a local method usable in any tier.
 
 **Features** are KAZE's (METHODS.md §2.3, :mod:`hmpf.methods.kaze`): grey, crop, 300 x 300

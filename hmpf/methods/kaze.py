@@ -26,7 +26,7 @@ Deviations (documented):
   descriptor norms are then 1 to within 1e-3, and SSDs are computed exactly on those stored
   values (``|q|^2 + |d|^2 - 2 q.d``), not as ``2 - 2 q.d``.
 
-Binary descriptors (issue 18, beyond the paper): ``descriptor: beblid | teblid | orb`` describes
+Binary descriptors (a lever beyond the paper): ``descriptor: beblid | teblid | orb`` describes
 the same keypoints (KAZE's detection and orientation, the same ``max_keypoints`` strongest)
 with a binary descriptor of OpenCV contrib (``cv2.xfeatures2d``) instead of KAZE's 64 floats:
 

@@ -19,7 +19,7 @@ METHODS.md §2.5. Two ways to get its parameters:
 * ``efficientnet_lite1`` / ``efficientnet_lite2``: the same on their stage 6 (192-d / 208-d)
   at 320 x 544 / 352 x 608 (Lite0's input scaled by the variants' ImageNet sizes).
 
-With ``scales`` (issue 18, multi-scale pooling; :class:`~hmpf.methods.cnn.MultiScaleConfig`)
+With ``scales`` (a lever: multi-scale pooling; :class:`~hmpf.methods.cnn.MultiScaleConfig`)
 the local features of every input scale are pooled into one VLAD (and the centroids fitted on
 all of them).
 
