@@ -10,8 +10,11 @@ oversubscribe the cores; a single process uses every core for one image. They al
 from __future__ import annotations
 
 import os
+import platform
 import signal
 from pathlib import Path
+
+from hmpf.errors import ConfigError
 
 _threads: int | None = None
 _cnn_runtime: str | None = None
@@ -58,8 +61,6 @@ def set_cnn_runtime(name: str) -> None:
 def _check_runtime(name: str, what: str) -> str:
     value = name.strip().lower()
     if value not in CNN_RUNTIMES:
-        from hmpf.errors import ConfigError
-
         raise ConfigError(f"{what} must be one of {', '.join(CNN_RUNTIMES)}, got {name!r}")
     return value
 
@@ -79,8 +80,6 @@ def default_cache_dir() -> Path:
 
 def machine_description() -> str:
     """``<CPU model>, <n> cores, Python <version>``: the machine a measurement ran on."""
-    import platform
-
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

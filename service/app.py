@@ -24,6 +24,7 @@ dependencies (:mod:`service.deps`); errors are answered by :mod:`service.errors`
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
@@ -133,8 +134,6 @@ def _limit_threads(n: int) -> None:
     # torch is not imported for this: the CNN methods run the index's ONNX models without it
     # (a serving install has no torch), and where a query does run torch (an index without
     # stored models, HMPF_CNN_RUNTIME=torch) the forward pass sets its threads itself.
-    import sys
-
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(n)

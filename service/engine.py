@@ -37,6 +37,7 @@ from hmpf.confidence import ReferenceProfile
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index.reader import IndexReader
+from hmpf.runtime import set_compute_threads
 from hmpf.sequence import SequenceFilter
 from service.track import binding_digest
 
@@ -185,8 +186,6 @@ class Engine:
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _init_thread(self) -> None:
-        from hmpf.runtime import set_compute_threads
-
         set_compute_threads(self.threads)
 
     def load(self) -> Loaded:

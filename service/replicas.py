@@ -42,7 +42,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
+import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -219,11 +223,6 @@ def run_replicas(
     environment: ``HMPF_KEYS_FILE``, ``HMPF_SEQUENCE_KEY_FILE``, ...) and HAProxy on ``bind``
     in front of them, until SIGINT / SIGTERM or until one of them exits; then stop all.
     Returns the exit status: 0 after a signal, 1 when a process ended by itself."""
-    import os
-    import signal
-    import subprocess
-    import time
-
     env = dict(os.environ)
     env.setdefault("HMPF_WATCH_CURRENT_S", str(watch_s))
     ports = [first_port + i for i in range(n)]

@@ -72,24 +72,12 @@ ALLOWED_IN_FUNCTION: dict[tuple[str, str], str] = {
     # To remove (each hoists to module level without a circle; not yet done and tested):
     ("hmpf.methods.cnn", "hmpf.backbones.onnx_runtime"): "to remove: ONNX runtime glue",
     ("hmpf.index.models", "hmpf.backbones.onnx_runtime"): "to remove: ONNX runtime glue",
-    ("hmpf.index.models", "hmpf.errors"): "to remove: light, hoist",
     ("hmpf.index.reader", "hmpf.features"): "to remove: hoist (features imports no index)",
     ("hmpf.index.storage", "hmpf.index.ann"): "to remove: ann imports faiss lazily itself",
-    ("hmpf.runtime", "hmpf.errors"): "to remove: light, hoist",
-    ("hmpf.runtime", "platform"): "to remove: standard library, hoist",
-    ("hmpf.cli.replay", "urllib.parse"): "to remove: standard library, hoist",
-    ("hmpf.cli.replay", "urllib.error"): "to remove: standard library, hoist",
-    ("hmpf.cli.replay", "urllib.request"): "to remove: standard library, hoist",
     ("indexer.build", "indexer.distributed"): "to remove: distributed imports ray lazily",
     ("indexer.distributed", "hmpf.runtime"): "to remove: Ray actor set-up, module imported",
     ("indexer.distributed", "hmpf.imageio"): "to remove: Ray task body, hoist",
     ("indexer.distributed", "hmpf.methods.base"): "to remove: Ray task body, hoist",
-    ("service.app", "sys"): "to remove: standard library, hoist",
-    ("service.engine", "hmpf.runtime"): "to remove: worker-thread set-up, hoist",
-    ("service.replicas", "os"): "to remove: standard library, hoist",
-    ("service.replicas", "signal"): "to remove: standard library, hoist",
-    ("service.replicas", "subprocess"): "to remove: standard library, hoist",
-    ("service.replicas", "time"): "to remove: standard library, hoist",
 }
 
 # Module-level import circles still present, each with a reason; to remove.

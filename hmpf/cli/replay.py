@@ -27,6 +27,9 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.error import HTTPError, URLError
+from urllib.parse import urlencode
+from urllib.request import Request, urlopen
 
 from hmpf.cli.common import add_version, run
 from hmpf.errors import HmpfError
@@ -177,8 +180,6 @@ class Vehicle:
         Raises:
             HmpfError: the service cannot be reached, or refuses the key (401 / 403).
         """
-        from urllib.parse import urlencode
-
         fields: dict[str, Any] = {}
         if timestamp is not None:
             fields["timestamp"] = repr(timestamp)
@@ -207,9 +208,6 @@ class Vehicle:
         return reply
 
     def _post(self, url: str, data: bytes, headers: dict[str, str]) -> tuple[int, dict[str, Any]]:
-        from urllib.error import HTTPError, URLError
-        from urllib.request import Request, urlopen
-
         request = Request(url, data=data, headers=headers, method="POST")
         try:
             with urlopen(request, timeout=self.timeout) as resp:

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from hmpf.backbones import backbone_class
+from hmpf.errors import MissingDependencyError
 from hmpf.index.layout import IndexCorruptError
 from hmpf.methods import Method
 from hmpf.methods.base import method_groups
@@ -166,8 +167,6 @@ def torch_needed(methods: Mapping[str, Method]) -> bool:
     """True when a query over ``methods`` would run a forward pass in torch (a CNN method
     without a stored model, on the ``torch`` runtime, or on a backbone that does not
     export): torch's version then matters (:data:`hmpf.index.reader.STRICT_PACKAGES`)."""
-    from hmpf.errors import MissingDependencyError
-
     for m in methods.values():
         if not isinstance(m, CnnMethod):
             continue
