@@ -49,7 +49,7 @@ from hmpf.index.ann import (
     set_search_params,
 )
 from hmpf.index.layout import IndexBuildError, IndexCorruptError
-from hmpf.index.models import write_models
+from hmpf.index.models import MODELS_DIR, write_models
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import (
     Precision,
@@ -140,15 +140,24 @@ class Summary:
     bytes_per_method: dict[str, int]
     #: bytes of the reference thumbnails (``thumbnails.h5``; 0: none stored)
     bytes_thumbnails: int = 0
+    #: bytes of the CNN models the version carries (``onnx/``): once per version, whatever
+    #: its size, so not counted per reference
+    bytes_models: int = 0
 
     def lines(self) -> list[str]:
         n = max(self.images, 1)
+        models = (
+            f" (of which CNN models {self.bytes_models / 1e6:.2f} MB, once per version)"
+            if self.bytes_models
+            else ""
+        )
+        per_reference = (self.bytes_total - self.bytes_models) / n / 1024
         out = [
             f"{self.operation}: published {self.version} with {self.images} references "
             f"({self.extracted} extracted of which {self.resumed} resumed, {self.reused} reused, "
             f"{len(self.skipped)} skipped) "
             f"in {self.seconds:.1f} s ({self.images_per_s:.1f} images/s)",
-            f"on disk: {self.bytes_total / 1e6:.2f} MB, {self.bytes_total / n / 1024:.1f} KiB "
+            f"on disk: {self.bytes_total / 1e6:.2f} MB{models}, {per_reference:.1f} KiB "
             "per reference; per method: "
             + ", ".join(f"{m} {b / n / 1024:.1f} KiB" for m, b in self.bytes_per_method.items())
             + f"; thumbnails {self.bytes_thumbnails / n / 1024:.1f} KiB",
@@ -513,7 +522,13 @@ class VersionTransaction:
             manifest["summary"] = asdict(summary)
             manifest["files"] = _file_entries(out)
             summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
+            summary.bytes_models = sum(
+                f["bytes"]
+                for path, f in manifest["files"].items()
+                if path.startswith(f"{MODELS_DIR}/")
+            )
             manifest["summary"]["bytes_total"] = summary.bytes_total
+            manifest["summary"]["bytes_models"] = summary.bytes_models
             layout.write_manifest(out, manifest)
             layout.fsync_tree(out)
             out.rename(self.root / name)

@@ -39,7 +39,7 @@ from hmpf.index.models import torch_needed
 from hmpf.index.reader import check_packages
 from hmpf.methods.base import extract_many
 from hmpf.methods.cnn import CnnMethod
-from indexer.build import BuildOptions, add, build, remove
+from indexer.build import BuildOptions, Summary, add, build, remove
 from indexer.maintenance import verify
 
 torch = pytest.importorskip("torch")
@@ -115,6 +115,14 @@ def test_version_lists_and_checksums_its_models(built: dict[str, Path]) -> None:
         assert e["exporter"]["torch"] == torch.__version__
     assert _manifest(built["old"])["models"] == []
     assert not (built["old"] / "v0001" / "onnx").exists()
+    # The models are counted once per version, not per reference, in the build's summary.
+    summary = Summary(**manifest["summary"])
+    model_bytes = sum(manifest["files"][e["file"]]["bytes"] for e in models)
+    assert summary.bytes_models == model_bytes
+    line = summary.lines()[1]
+    assert f"CNN models {model_bytes / 1e6:.2f} MB, once per version" in line, line
+    per_reference = (summary.bytes_total - model_bytes) / summary.images / 1024
+    assert f", {per_reference:.1f} KiB per reference" in line, line
     # Every CNN method of a reader runs a stored model: torch's version does not matter.
     with IndexReader(built["new"]) as reader:
         for mid in ("gem", "olo"):
