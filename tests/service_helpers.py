@@ -61,6 +61,16 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def run_ok(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 600) -> str:
+    """``args`` run in ``cwd`` with ``env``: its standard output; an assertion error with
+    both outputs when it fails."""
+    proc = subprocess.run(
+        args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
+    )
+    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    return proc.stdout
+
+
 class LoggedProcess:
     """A subprocess writing stdout and stderr to ``log``; :meth:`stop` sends SIGTERM, then
     SIGKILL after ``stop_wait_s``. Subclasses set ``proc``, ``log`` and ``_out``."""

@@ -29,7 +29,7 @@ import httpx
 import numpy as np
 import pytest
 from conftest import copy_gp
-from service_helpers import free_port
+from service_helpers import free_port, run_ok
 
 from hmpf.config import parse_config
 from hmpf.imageio import load_image
@@ -66,14 +66,6 @@ class ServeEnv:
         return [str(self.bin / name), *args]
 
 
-def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 600) -> str:
-    proc = subprocess.run(
-        args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
-    )
-    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
-    return proc.stdout
-
-
 @pytest.fixture(scope="session")
 def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
     """A fresh venv with ``hmpf[serve]`` installed from the project's wheel: its bin folder,
@@ -93,7 +85,7 @@ def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
     work.mkdir()
     env["HMPF_CACHE_DIR"] = str(base / "cache")
     t0 = time.monotonic()
-    _run(
+    run_ok(
         [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation"]
         + ["-w", "dist", str(src)],
         base,
@@ -101,9 +93,9 @@ def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
     )
     (wheel,) = (base / "dist").glob("hmpf-*.whl")
     venv = base / "venv"
-    _run([sys.executable, "-m", "venv", str(venv)], base, env)
+    run_ok([sys.executable, "-m", "venv", str(venv)], base, env)
     # A normal install, dependencies included: what it pulls in is what a server gets.
-    _run([str(venv / "bin" / "pip"), "install", "-q", f"{wheel}[serve]"], work, env)
+    run_ok([str(venv / "bin" / "pip"), "install", "-q", f"{wheel}[serve]"], work, env)
     seconds = time.monotonic() - t0
     size = sum(p.stat().st_size for p in venv.rglob("*") if p.is_file() and not p.is_symlink())
     print(f"\nserve venv: installed in {seconds:.0f} s, {size / 1e6:.0f} MB")

@@ -20,18 +20,11 @@ import sysconfig
 from pathlib import Path
 
 import pytest
+from service_helpers import run_ok
 
 ROOT = Path(__file__).resolve().parent.parent
 #: What the wheel is built from: the project files the Dockerfile copies too.
 SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
-
-
-def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 300) -> str:
-    proc = subprocess.run(
-        args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
-    )
-    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
-    return proc.stdout
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +42,7 @@ def wheel_env(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PIP_"))}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
     pip = [sys.executable, "-m", "pip"]
-    _run(
+    run_ok(
         [*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", "dist", str(src)],
         base,
         env,
@@ -57,15 +50,15 @@ def wheel_env(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     (wheel,) = (base / "dist").glob("hmpf-*.whl")
 
     venv = base / "venv"
-    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], base, env)
+    run_ok([sys.executable, "-m", "venv", "--without-pip", str(venv)], base, env)
     python = venv / "bin" / "python"
-    _run(
+    run_ok(
         [*pip, "--python", str(python), "install", "-q", "--no-deps", "--no-index", str(wheel)],
         base,
         env,
     )
     fresh_site = Path(
-        _run(
+        run_ok(
             [str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], base, env
         ).strip()
     )
@@ -90,7 +83,7 @@ def test_sources_are_what_the_dockerfile_builds_from() -> None:
 
 def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
     bindir, work, env = wheel_env
-    out = _run(
+    out = run_ok(
         [
             str(bindir / "python"),
             "-c",
@@ -128,7 +121,7 @@ def test_wheel_holds_the_inspection_page(wheel_env) -> None:
     """The page's files (service/static) are package data: hmpf-serve serves them from the
     installed wheel."""
     bindir, work, env = wheel_env
-    out = _run(
+    out = run_ok(
         [
             str(bindir / "python"),
             "-c",
@@ -149,9 +142,9 @@ def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> No
     bindir, work, env = wheel_env
     for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve", "hmpf-replay"):
         assert (bindir / command).is_file(), command
-        assert "usage:" in _run([str(bindir / command), "--help"], work, env)
-        assert _run([str(bindir / command), "--version"], work, env).startswith(command)
-    assert "--config" in _run([str(bindir / "hmpf-eval"), "--help"], work, env)
+        assert "usage:" in run_ok([str(bindir / command), "--help"], work, env)
+        assert run_ok([str(bindir / command), "--version"], work, env).startswith(command)
+    assert "--config" in run_ok([str(bindir / "hmpf-eval"), "--help"], work, env)
 
     # A handful of frame-aligned images: references day_right, queries night_right.
     for folder, traverse in (("refs", "day_right"), ("queries", "night_right")):
@@ -161,7 +154,7 @@ def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> No
 
     # hmpf-calibrate with its default pool (the preset calibration-pool, every method),
     # the smallest search: 2 training and 2 test stretches of 2 frames.
-    _run(
+    run_ok(
         [
             str(bindir / "hmpf-calibrate"),
             *("--reference", "refs", "--query", "queries", "--tolerance", "1"),
@@ -175,7 +168,7 @@ def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> No
 
     # An index from a preset name, then from the calibrated config's path.
     for config, index in (("single-tier", "idx-preset"), ("cal/calibrated.yaml", "idx-path")):
-        _run(
+        run_ok(
             [
                 str(bindir / "hmpf-index"),
                 *("build", "--config", config, "--images", "refs", "--index", index),
@@ -185,7 +178,7 @@ def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> No
             env,
         )
         assert (work / index / "CURRENT").is_file()
-    _run([str(bindir / "hmpf-index"), "verify", "--index", "idx-preset"], work, env)
+    run_ok([str(bindir / "hmpf-index"), "verify", "--index", "idx-preset"], work, env)
 
     # A name that is neither a file nor a preset: a one-line error listing the presets.
     proc = subprocess.run(
