@@ -10,6 +10,7 @@ each test module scopes its own).
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -69,6 +70,31 @@ def run_ok(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 600
     )
     assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     return proc.stdout
+
+
+#: What the project's wheel is built from (the files the Dockerfile copies too).
+WHEEL_SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
+
+
+def build_wheel(base: Path, env: dict[str, str]) -> Path:
+    """The project's wheel, built in ``base`` (outside the checkout) from a copy of
+    :data:`WHEEL_SOURCES`, offline (no build isolation): its path."""
+    assert not base.resolve().is_relative_to(ROOT)
+    src = base / "src"
+    src.mkdir()
+    for name in WHEEL_SOURCES:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(ROOT / name, src / name)
+    run_ok(
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation"]
+        + ["-w", "dist", str(src)],
+        base,
+        env,
+    )
+    (wheel,) = (base / "dist").glob("hmpf-*.whl")
+    return wheel
 
 
 class LoggedProcess:

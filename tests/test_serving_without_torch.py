@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -29,7 +28,7 @@ import httpx
 import numpy as np
 import pytest
 from conftest import copy_gp
-from service_helpers import free_port, run_ok
+from service_helpers import build_wheel, free_port, run_ok
 
 from hmpf.config import parse_config
 from hmpf.imageio import load_image
@@ -39,9 +38,6 @@ from indexer.build import BuildOptions, build
 pytestmark = pytest.mark.slow
 pytest.importorskip("torch")  # the index is built here, with torch
 
-ROOT = Path(__file__).resolve().parent.parent
-#: What the wheel is built from (as tests/test_wheel.py and the Dockerfile).
-SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
 #: Multi-scale GeM on the bundled EfficientNet-Lite0 (two stored models) and Gist.
 CONFIG = {
     "name": "serve-without-torch",
@@ -71,27 +67,13 @@ def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
     """A fresh venv with ``hmpf[serve]`` installed from the project's wheel: its bin folder,
     a work folder outside the checkout and the environment to run commands in."""
     base = tmp_path_factory.mktemp("serve-venv")
-    assert not base.resolve().is_relative_to(ROOT)
-    src = base / "src"
-    src.mkdir()
-    for name in SOURCES:
-        if (ROOT / name).is_dir():
-            shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(ROOT / name, src / name)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PIP_", "HMPF_"))}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
     work = base / "work"
     work.mkdir()
     env["HMPF_CACHE_DIR"] = str(base / "cache")
     t0 = time.monotonic()
-    run_ok(
-        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation"]
-        + ["-w", "dist", str(src)],
-        base,
-        env,
-    )
-    (wheel,) = (base / "dist").glob("hmpf-*.whl")
+    wheel = build_wheel(base, env)
     venv = base / "venv"
     run_ok([sys.executable, "-m", "venv", str(venv)], base, env)
     # A normal install, dependencies included: what it pulls in is what a server gets.

@@ -13,41 +13,25 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import subprocess
 import sys
 import sysconfig
 from pathlib import Path
 
 import pytest
-from service_helpers import run_ok
+from service_helpers import WHEEL_SOURCES, build_wheel, run_ok
 
 ROOT = Path(__file__).resolve().parent.parent
-#: What the wheel is built from: the project files the Dockerfile copies too.
-SOURCES = ("pyproject.toml", "README.md", "LICENSE", "hmpf", "indexer", "service")
 
 
 @pytest.fixture(scope="module")
 def wheel_env(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[str, str]]:
     """(bin folder of the fresh venv, a work folder outside the checkout, its environment)."""
     base = tmp_path_factory.mktemp("wheel")
-    assert not base.resolve().is_relative_to(ROOT)
-    src = base / "src"
-    src.mkdir()
-    for name in SOURCES:
-        if (ROOT / name).is_dir():
-            shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(ROOT / name, src / name)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PIP_"))}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
     pip = [sys.executable, "-m", "pip"]
-    run_ok(
-        [*pip, "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", "dist", str(src)],
-        base,
-        env,
-    )
-    (wheel,) = (base / "dist").glob("hmpf-*.whl")
+    wheel = build_wheel(base, env)
 
     venv = base / "venv"
     run_ok([sys.executable, "-m", "venv", "--without-pip", str(venv)], base, env)
@@ -78,7 +62,7 @@ def test_sources_are_what_the_dockerfile_builds_from() -> None:
     copied = set()
     for line in re.findall(r"^COPY (?!--from)(.+)$", dockerfile, re.M):
         copied.update(src for src in line.split()[:-1] if not src.startswith("docker/"))
-    assert copied == set(SOURCES)
+    assert copied == set(WHEEL_SOURCES)
 
 
 def test_wheel_holds_the_presets_and_the_license(wheel_env) -> None:
