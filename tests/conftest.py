@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import os
 import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from hmpf import runtime
 from hmpf.datasets import dataset_root
 
 #: Fixtures that read ``$HMPF_DATASETS`` (directly or through another fixture: pytest's
@@ -174,3 +177,18 @@ def default_sigint() -> None:
     tests run as a background job (a shell starts those with SIGINT ignored, and a child
     inherits that)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@contextmanager
+def cnn_runtime_as(name: str) -> Iterator[None]:
+    """Run the block with CNN runtime ``name``; the previous setting comes back after."""
+    saved = runtime._cnn_runtime, os.environ.get("HMPF_CNN_RUNTIME")
+    runtime.set_cnn_runtime(name)
+    try:
+        yield
+    finally:
+        runtime._cnn_runtime = saved[0]
+        if saved[1] is None:
+            os.environ.pop("HMPF_CNN_RUNTIME", None)
+        else:
+            os.environ["HMPF_CNN_RUNTIME"] = saved[1]

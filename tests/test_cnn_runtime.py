@@ -11,14 +11,13 @@ exported models.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from conftest import cnn_runtime_as
 
 from hmpf import runtime
 from hmpf.config import build_methods, load_config
@@ -40,21 +39,6 @@ ATOL = 1e-3
 #: Largest difference allowed between the runtimes' raw maps (float32, values up to ~30).
 MAPS_ATOL = 2e-4
 N = 30  # references and queries of the Gardens Point subset
-
-
-@contextmanager
-def cnn_runtime_as(name: str) -> Iterator[None]:
-    """Run the block with CNN runtime ``name``; the previous setting comes back after."""
-    saved = runtime._cnn_runtime, os.environ.get("HMPF_CNN_RUNTIME")
-    runtime.set_cnn_runtime(name)
-    try:
-        yield
-    finally:
-        runtime._cnn_runtime = saved[0]
-        if saved[1] is None:
-            os.environ.pop("HMPF_CNN_RUNTIME", None)
-        else:
-            os.environ["HMPF_CNN_RUNTIME"] = saved[1]
 
 
 # -------------------------------------------------------------------- both runtimes, real data

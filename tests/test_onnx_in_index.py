@@ -22,16 +22,13 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import copy_gp
+from conftest import cnn_runtime_as, copy_gp
 
-from hmpf import runtime
 from hmpf.config import build_methods, parse_config
 from hmpf.imageio import load_image
 from hmpf.index import IndexCorruptError, IndexReader, IndexVersionError
@@ -58,21 +55,6 @@ N_REFS = 12
 ATOL = 1e-3
 MAPS_ATOL = 2e-4
 OPTIONS = BuildOptions(workers=1, progress=False)
-
-
-@contextmanager
-def cnn_runtime_as(name: str) -> Iterator[None]:
-    """Run the block with CNN runtime ``name``; the previous setting comes back after."""
-    saved = runtime._cnn_runtime, os.environ.get("HMPF_CNN_RUNTIME")
-    runtime.set_cnn_runtime(name)
-    try:
-        yield
-    finally:
-        runtime._cnn_runtime = saved[0]
-        if saved[1] is None:
-            os.environ.pop("HMPF_CNN_RUNTIME", None)
-        else:
-            os.environ["HMPF_CNN_RUNTIME"] = saved[1]
 
 
 @pytest.fixture(scope="module")
