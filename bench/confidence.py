@@ -58,16 +58,13 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from sequence import pyplot  # noqa: E402
 from shipped_acceptance import (  # noqa: E402
-    NORDLAND_FRAMES,
     ROUTES,
     TARGET,
     Route,
+    add_route_arguments,
     flips,
-    held_out,
-    limit_of,
-    out_of_the_box,
+    model_sets,
     provenance,
-    training_part,
 )
 
 from hmpf.acceptance import Policy  # noqa: E402
@@ -84,7 +81,6 @@ from hmpf.evaluation.acceptance import (  # noqa: E402
     single_answers,
 )
 from hmpf.evaluation.sequence import Drive  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
 from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
 
 #: Issue 30's goals (bundled default preset, test parts / held-out folds).
@@ -347,31 +343,16 @@ def strip(obj: Any) -> Any:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default="default", help="the bundled preset")
-    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
-    ap.add_argument(
-        "--nordland-frames",
-        type=int,
-        default=NORDLAND_FRAMES,
-        help="Nordland's first frames used (0: all 3576)",
-    )
+    add_route_arguments(ap)
     ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/confidence.json"))
     ap.add_argument(
         "--plot", default=str(ROOT / "docs/experiments/acceptance/reliability_default.png")
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
-    shipped_config, config, shipped = out_of_the_box(args.config)
+    sets = model_sets(args.config, ROUTES, args.foreign, args.nordland_frames)
+    shipped_config, config, shipped, params, no_model, routes, folds = sets
     digest = config.digest()
-    params = shipped_config.sequence_params()
-    no_model = Policy.of(None, lock_mass=params.lock_mass)
-    cache = FeatureCache(default_cache_dir())
-    routes = [
-        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames)) for n in ROUTES
-    ]
-    print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    folds = held_out([training_part(r, params) for r in routes])
-    print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
     has_model = shipped_config.acceptance is not None
     report: dict[str, Any] = {
         **provenance(args.config, config),

@@ -62,20 +62,16 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from shipped_acceptance import (  # noqa: E402
     BLOCK,
-    NORDLAND_FRAMES,
     ROUTES,
     TARGET,
     Route,
+    add_route_arguments,
     evaluate,
-    held_out,
-    limit_of,
-    out_of_the_box,
+    model_sets,
     provenance,
     spread,
-    training_part,
 )
 
-from hmpf.acceptance import Policy  # noqa: E402
 from hmpf.config import HierarchyConfig  # noqa: E402
 from hmpf.evaluation.acceptance import (  # noqa: E402
     Answers,
@@ -236,31 +232,17 @@ def label(preset: str, digest: str, models: str) -> dict[str, str]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default="default", help="the bundled preset")
+    add_route_arguments(ap)
     ap.add_argument("--maps", default=",".join(ROUTES), help="maps to test (comma-separated)")
-    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
-    ap.add_argument(
-        "--nordland-frames",
-        type=int,
-        default=NORDLAND_FRAMES,
-        help="Nordland's first frames used (0: all 3576)",
-    )
     ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/out_of_map.json"))
     args = ap.parse_args()
     t0 = time.perf_counter()
-    shipped_config, config, shipped = out_of_the_box(args.config)
-    digest = config.digest()
-    params = shipped_config.sequence_params()
-    no_model = Policy.of(None, lock_mass=params.lock_mass)
-    cache = FeatureCache(default_cache_dir())
     names = args.maps.split(",")
     # Every route's training part is needed for the held-out folds, whichever maps are shown.
-    routes = [
-        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames)) for n in ROUTES
-    ]
-    print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    folds = held_out([training_part(r, params) for r in routes])
-    print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
+    sets = model_sets(args.config, ROUTES, args.foreign, args.nordland_frames)
+    shipped_config, config, shipped, params, no_model, routes, folds = sets
+    digest = config.digest()
+    cache = FeatureCache(default_cache_dir())
     has_model = shipped_config.acceptance is not None
     report: dict[str, Any] = {
         **provenance(args.config, config),

@@ -69,18 +69,16 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from shipped_acceptance import (  # noqa: E402
-    NORDLAND_FRAMES,
     ROUTES,
     TARGET,
     TOLERANCE,
     Route,
+    add_route_arguments,
     evaluate,
     flips,
-    held_out,
-    limit_of,
+    model_sets,
     out_of_the_box,
     provenance,
-    training_part,
 )
 
 from hmpf.acceptance import Policy  # noqa: E402
@@ -555,15 +553,8 @@ def tune_table(t: dict[str, Any]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default="default", help="the bundled preset")
+    add_route_arguments(ap)
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated (>= 3)")
-    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
-    ap.add_argument(
-        "--nordland-frames",
-        type=int,
-        default=NORDLAND_FRAMES,
-        help="Nordland's first frames used (0: all 3576)",
-    )
     ap.add_argument("--tune", action="store_true", help="also the training-part filter grid")
     ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/sequence.json"))
     ap.add_argument(
@@ -571,20 +562,15 @@ def main() -> int:
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
-    shipped_config, config, shipped = out_of_the_box(args.config)
-    digest = config.digest()
-    prov = provenance(args.config, config)  # the commit of the code loaded, not the end's
-    params = shipped_config.sequence_params()
-    no_model = Policy.of(None, lock_mass=params.lock_mass)
-    cache = FeatureCache(default_cache_dir())
+    # the commit of the code loaded, not the end's
+    prov = provenance(args.config, out_of_the_box(args.config)[1])
     names = args.routes.split(",")
-    routes = [
-        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames)) for n in names
-    ]
+    sets = model_sets(args.config, names, args.foreign, args.nordland_frames)
+    shipped_config, config, shipped, params, no_model, routes, folds = sets
+    digest = config.digest()
+    cache = FeatureCache(default_cache_dir())
     wholes = [Whole(n, config, cache) for n in GARDENS_POINT_PROTOCOLS if n in names]
-    print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    folds = held_out([training_part(r, params) for r in routes])
-    print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
+    print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     has_model = shipped_config.acceptance is not None
     report: dict[str, Any] = {
         **prov,

@@ -49,9 +49,10 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -319,6 +320,46 @@ def out_of_the_box(preset: str) -> tuple[HierarchyConfig, HierarchyConfig, Polic
     bare = shipped.model_copy(update={"acceptance": None})
     policy = Policy.of(shipped.acceptance, lock_mass=shipped.sequence_params().lock_mass)
     return shipped, bare, policy
+
+
+def add_route_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every acceptance bench takes: the preset, the foreign frames per map and
+    Nordland's subset."""
+    ap.add_argument("--config", default="default", help="the bundled preset")
+    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
+    ap.add_argument(
+        "--nordland-frames",
+        type=int,
+        default=NORDLAND_FRAMES,
+        help="Nordland's first frames used (0: all 3576)",
+    )
+
+
+class ModelSets(NamedTuple):
+    """The three model sets the acceptance benches compare on the same routes."""
+
+    shipped_config: HierarchyConfig  # the preset with its shipped acceptance
+    config: HierarchyConfig  # the same without (the score banks are built with it)
+    shipped: Policy  # the policy the service runs on the preset (:func:`out_of_the_box`)
+    params: FilterParams  # the preset's sequence filter
+    no_model: Policy  # the quality / lock rules (what a preset without a model decides)
+    routes: list[Route]
+    folds: list[tuple[Policy, dict[str, Any]]]  # per route: fitted on the others (held_out)
+
+
+def model_sets(preset: str, names: Iterable[str], foreign: int, nordland_frames: int) -> ModelSets:
+    """The banks of the routes ``names`` for ``preset`` and its three model sets: shipped,
+    leave-one-route-out (:func:`held_out`) and none; progress printed."""
+    t0 = time.perf_counter()
+    shipped_config, config, shipped = out_of_the_box(preset)
+    params = shipped_config.sequence_params()
+    no_model = Policy.of(None, lock_mass=params.lock_mass)
+    cache = FeatureCache(default_cache_dir())
+    routes = [Route(n, config, cache, foreign, limit_of(n, nordland_frames)) for n in names]
+    print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+    folds = held_out([training_part(r, params) for r in routes])
+    print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
+    return ModelSets(shipped_config, config, shipped, params, no_model, routes, folds)
 
 
 def git_commit() -> dict[str, Any]:
