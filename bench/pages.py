@@ -1,0 +1,534 @@
+"""Render the results pages' tables from the JSON the benches write.
+
+A page under ``docs/results/`` or ``docs/experiments/`` holds its prose as written and, for
+each generated table, a block::
+
+    <!-- generated: NAME -->
+    ...
+    <!-- /generated -->
+
+whose content this module writes: the table made by the generator ``NAME`` (see
+:data:`GENERATORS`) from its JSON, followed by a "Source:" line naming the JSON file, the
+preset and config digest, the machine, the date and the commit, as the JSON records them
+(what it does not record is said to be not recorded, never filled in by hand).
+
+    python -m bench.pages            # rewrite the pages' generated blocks
+    python -m bench.pages --check    # exit 1, listing the pages that differ
+
+``--root DIR`` reads the JSON and the pages under another copy of the repository (the tests
+use it to show that a changed JSON value fails the check).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+PAGE_DIRS = ("docs/results", "docs/experiments")
+BLOCK = re.compile(
+    r"(?P<open><!-- generated: (?P<name>[\w.-]+) -->\n)(?P<body>.*?)(?P<close><!-- /generated -->)",
+    re.S,
+)
+
+Generator = Callable[[Path], str]
+GENERATORS: dict[str, Generator] = {}
+
+
+def generator(name: str) -> Callable[[Generator], Generator]:
+    def register(fn: Generator) -> Generator:
+        GENERATORS[name] = fn
+        return fn
+
+    return register
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def load(root: Path, rel: str) -> Any:
+    return json.loads((root / rel).read_text())
+
+
+def f3(x: float | None) -> str:
+    return "" if x is None else f"{x:.3f}"
+
+
+def f1(x: float | None) -> str:
+    return "" if x is None else f"{x:.1f}"
+
+
+def pct(x: float | None) -> str:
+    """A share as whole percent (one decimal under 1 %)."""
+    if x is None:
+        return ""
+    p = 100 * x
+    return f"{p:.1f} %" if 0 < p < 1 else f"{p:.0f} %"
+
+
+def thousands(x: float) -> str:
+    return f"{round(x):,}"
+
+
+def table(header: list[str], rows: list[list[str]], align: list[str] | None = None) -> str:
+    align = align or ["---"] * len(header)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def short(digest: str | None) -> str | None:
+    return None if not digest else digest[:12]
+
+
+def config_digest(config: dict[str, Any]) -> str:
+    """The config digest of a config recorded in a JSON (``HierarchyConfig.digest``)."""
+    from hmpf.config import parse_config
+
+    return parse_config(config).digest()
+
+
+def preset_digest(name: str) -> str:
+    """The digest of a preset as shipped now."""
+    from hmpf.config import load_config
+
+    return load_config(name).digest()
+
+
+def source(
+    rel: str,
+    data: dict[str, Any] | None = None,
+    *,
+    preset: str | None = None,
+    digest: str | None = None,
+    digest_note: str = "",
+    extra: str = "",
+) -> str:
+    """The "Source:" line under a table: what the JSON records, and what it does not."""
+    data = data or {}
+    preset = preset or data.get("preset") or data.get("config")
+    digest = digest or data.get("digest") or data.get("config_digest")
+    parts = [f"`{rel}`"]
+    if preset:
+        parts.append(f"preset `{preset}`")
+    if digest:
+        parts.append(f"config digest `{short(digest)}`{digest_note}")
+    else:
+        parts.append("config digest not recorded")
+    parts.append(str(data.get("machine") or "machine not recorded"))
+    parts.append(str(data.get("date") or "date not recorded"))
+    commit = data.get("commit")
+    parts.append(f"commit {commit[:7]}" if commit else "commit not recorded")
+    line = "Source: " + ", ".join(parts)
+    if extra:
+        line += f"; {extra}"
+    return f"\n*{line}.*\n"
+
+
+# ---------------------------------------------------------------- generators
+
+PRESET_FIGURES = {
+    "default": "the default query time and accuracy levers ([levers](levers.md)), shipped "
+    "acceptance models ([confidence](confidence.md), [sequence mode](sequence.md))",
+    "default-lite0": "the default until 2026-11-26: the lever baselines ([levers](levers.md)), "
+    "route-fitted [confidence](confidence.md), older [sequence](sequence.md) and "
+    "[speed](speed.md) measurements",
+    "fast": "[CPU per query](speed.md)",
+    "handcrafted": "[handcrafted hierarchy](methods.md), [index and service](speed.md)",
+    "thumbnails": "[accuracy levers](levers.md)",
+    "netvlad-lite1": "[accuracy levers](levers.md)",
+    "calibrated/nordland_handcrafted": "Nordland in [sequence mode](sequence.md) and "
+    "[levers](levers.md)",
+    "all-methods": "[every method alone](methods.md), Gardens Point",
+    "all-global": "[every method alone](methods.md), Nordland",
+}
+
+
+@generator("presets.digests")
+def presets_digests(root: Path) -> str:
+    rows = [
+        [f"`{name}`", f"`{short(preset_digest(name))}`", text]
+        for name, text in PRESET_FIGURES.items()
+    ]
+    return table(["preset", "config digest (now)", "figures"], rows) + (
+        "\n*Source: `hmpf/presets/` as shipped, `HierarchyConfig.digest()` of each preset "
+        "(first 12 hex digits).*\n"
+    )
+
+
+PROTOCOL_TITLES = {
+    "gp_dr_nr": "GP day_right -> night_right",
+    "gp_dl_nr": "GP day_left -> night_right",
+    "gp_dl_dr": "GP day_left -> day_right",
+    "nordland_s_w": "Nordland summer -> winter",
+}
+GP = ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr")
+BACKBONES = "docs/experiments/backbones.json"
+
+
+def _backbone_source(root: Path, key: str, data: dict[str, Any], label: str) -> str:
+    cfg = data[key]["config"]
+    return source(
+        BACKBONES,
+        {"machine": None},
+        preset=f"{cfg['name']}",
+        digest=config_digest(cfg),
+        digest_note=f" (the config recorded in the JSON: {label})",
+    )
+
+
+@generator("index.default_lite0")
+def index_default_lite0(root: Path) -> str:
+    data = load(root, BACKBONES)
+    entry = data["efficientnet_lite0"]
+    rows = []
+    for p in GP:
+        r = entry["recall"][p]
+        rows.append(
+            [PROTOCOL_TITLES[p]]
+            + [f3(r[m]) for m in ("gem", "netvlad", "olo", "gist")]
+            + [f"**{f3(r['hierarchy'])}**"]
+        )
+    out = table(
+        ["protocol (reference -> query)", "GeM", "NetVLAD", "OLO", "Gist", "**Combined**"], rows
+    )
+    return out + _backbone_source(
+        root, "efficientnet_lite0", data, "the methods, tiers and weights of `default-lite0`"
+    )
+
+
+@generator("levers.backbones")
+def levers_backbones(root: Path) -> str:
+    data = load(root, BACKBONES)
+    rows = []
+    for key, entry in data.items():
+        rec = [entry["recall"][p]["hierarchy"] for p in GP]
+        rows.append(
+            [key.replace("efficientnet_lite", "Lite")]
+            + [f3(x) for x in rec]
+            + [
+                f3(sum(rec) / len(rec)),
+                f1(entry["query"]["total_ms"]),
+                thousands(entry["bytes_per_reference"]),
+            ]
+        )
+    out = table(
+        ["backbone", "dr -> nr", "dl -> nr", "dl -> dr", "mean", "ms / query", "bytes / reference"],
+        rows,
+    )
+    digests = ", ".join(
+        f"{k.replace('efficientnet_lite', 'Lite')} `{short(config_digest(v['config']))}`"
+        for k, v in data.items()
+    )
+    return out + (
+        f"\n*Source: `{BACKBONES}`; configs `default-efficientnet_liteN-native` "
+        f"(`default-lite0`'s methods, tiers and weights on each backbone; config digests of the "
+        f"configs recorded in the JSON: {digests}); machine, date and commit not recorded "
+        f"(AMD EPYC, 2 cores, per the write-up).*\n"
+    )
+
+
+LEVERS = "docs/experiments/levers.json"
+LEVERS_TIME = (
+    "docs/experiments/levers_time_quiet.json",
+    "docs/experiments/levers_time_quiet2.json",
+)
+DEFAULT_VS_LITE0 = "docs/experiments/default_vs_lite0.json"
+# levers.json's baseline row "default" is the default of its run: the hierarchy now shipped as
+# `default-lite0` (its training and test recall equal default-lite0's in
+# levers_olo_choose_default.json, run before the default changed on 2026-11-26)
+LEVERS_NAMES = {"default": "default-lite0"}
+LEVER_ROWS = [
+    ("default", "`default-lite0` (baseline)"),
+    ("netvlad-lite1", "NetVLAD on Lite1 (`netvlad-lite1`)"),
+    ("combined", "combined: Lite1 NetVLAD + Gist whitened (`combined`)"),
+    ("gist_whitened", "Gist PCA-whitened (`gist_whitened`)"),
+    ("inliers_beblid", "`inliers` with BEBLID-512 in the final tier (`inliers_beblid`)"),
+    ("inliers", "`inliers` (KAZE, homography) in the final tier (`inliers`)"),
+    ("kaze_teblid512", "`kaze` with TEBLID-512 in the final tier (`kaze_teblid512`)"),
+    ("dba", "DBA, route neighbours k 1 (`dba`)"),
+    ("netvlad16", "NetVLAD 16 centroids (`netvlad16`)"),
+    ("netvlad64", "NetVLAD 64 centroids (`netvlad64`)"),
+    ("olo_regions50", "OLO 50 regions (`olo_regions50`)"),
+    ("olo_regions150", "OLO 150 regions (`olo_regions150`)"),
+    ("olo_regions200", "OLO 200 regions (`olo_regions200`)"),
+    ("olo_vocab64", "OLO vocabulary 64 words (`olo_vocab64`)"),
+    ("olo_vocab1024", "OLO vocabulary 1024 words (`olo_vocab1024`)"),
+    ("calibrated/nordland_handcrafted", "`calibrated/nordland_handcrafted`"),
+    ("thumbnails", "`thumbnails` (HOG + whitened HOG -> whitened SAD + Gist)"),
+]
+BUDGET_BYTES = 64_000
+
+
+def sign_test(a: list[bool], b: list[bool]) -> tuple[int, int, float]:
+    """Queries ``a`` gets right and ``b`` wrong, the reverse, and the exact two-sided
+    sign test's p."""
+    wins = sum(1 for x, y in zip(a, b, strict=True) if x and not y)
+    losses = sum(1 for x, y in zip(a, b, strict=True) if y and not x)
+    n, k = wins + losses, min(wins, losses)
+    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
+    return wins, losses, p
+
+
+def pvalue(p: float) -> str:
+    return f"{p:.2g}" if p < 0.01 else f"{p:.2f}".rstrip("0").rstrip(".")
+
+
+def lever_times(root: Path) -> dict[str, tuple[float, str]]:
+    """ms per query by config name, with the file it comes from (the first run that timed it)."""
+    out: dict[str, tuple[float, str]] = {}
+    for rel in LEVERS_TIME:
+        for name, row in load(root, rel)["rows"].items():
+            out.setdefault(name, (row["query_ms"], rel))
+    return out
+
+
+def default_query_ms(root: Path) -> tuple[float, float, dict[str, Any]]:
+    """The default's and default-lite0's query time (one thread, extraction), and the run."""
+    data = load(root, LEVERS_TIME[0])
+    return data["rows"]["default"]["query_ms"], data["rows"]["default-lite0"]["query_ms"], data
+
+
+@generator("levers.glance")
+def levers_glance(root: Path) -> str:
+    data = load(root, LEVERS)
+    rows_json = data["rows"]
+    base = rows_json["default"]["test_flags"]
+    times = lever_times(root)
+    rows: list[list[str]] = []
+    for key, label in LEVER_ROWS:
+        r = rows_json[key]
+        test = r["test"]
+        cells = [label] + [f3(test[p]) for p in GP]
+        cells.append(f3(test.get("nordland_s_w")))
+        name = LEVERS_NAMES.get(key, key)
+        ms = times.get(name)
+        cells.append(f1(ms[0]) if ms else "")
+        cells.append(thousands(r["bytes_gp"]))
+        cells.append(f3(r["train_mean"]))
+        if key == "default":
+            cells.append("")
+        else:
+            w, lo, p = sign_test(r["test_flags"], base)
+            note = f"{w} / {lo}, p {pvalue(p)}"
+            if r["bytes_gp"] > BUDGET_BYTES:
+                note += "; over 64 KB"
+            cells.append(f"**{note}**" if p < 0.05 else note)
+        rows.append(cells)
+    header = [
+        "lever (config)",
+        "GP dr -> nr",
+        "GP dl -> nr",
+        "GP dl -> dr",
+        "Nordland",
+        "ms / query",
+        "bytes / ref",
+        "training mean (GP)",
+        "test vs `default-lite0`",
+    ]
+    align = ["---"] * 5 + ["---:"] * 3 + ["---"]
+    out = table(header, rows, align)
+    out += source(LEVERS, data, extra="the baseline row `default` of this run is `default-lite0`")
+    for rel in LEVERS_TIME:
+        out += source(rel, load(root, rel), extra="the ms column, quiet machine")
+    return out
+
+
+@generator("levers.default_time")
+def levers_default_time(root: Path) -> str:
+    ms, lite0, data = default_query_ms(root)
+    return (
+        f"One query's extraction on one thread (median of {data['images_timed']} day_right images, "
+        f"every method; `python bench/levers.py --time-only`): **{f1(ms)} ms** for `default` "
+        f"against {f1(lite0)} ms for `default-lite0`.\n"
+        + source(
+            LEVERS_TIME[0],
+            data,
+            preset="default",
+            digest=preset_digest("default"),
+            digest_note=" (not recorded in the JSON: the preset's digest now, the same at the "
+            "commit that added the file)",
+        )
+    )
+
+
+ACCEPTANCE = "docs/experiments/acceptance/default.json"
+SEQUENCE = "docs/experiments/acceptance/sequence.json"
+ROUTES = ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr", "nordland_s_w")
+
+
+def accepted(x: dict[str, Any]) -> str:
+    prec = x.get("precision")
+    return f"{pct(x['accepted'])}" + (f" ({f3(prec)})" if prec is not None else "")
+
+
+@generator("confidence.shipped")
+def confidence_shipped(root: Path) -> str:
+    data = load(root, ACCEPTANCE)
+    rows = []
+    for models, label in (("folds", "held out"), ("shipped", "shipped")):
+        for route in ROUTES:
+            r = data[models][route]
+            s, q, f, lr = r["single"], r["sequence"], r["foreign"], r["leave_and_return"]
+            n = f["n"]
+            rows.append(
+                [
+                    f"{route} ({label})",
+                    accepted(s),
+                    accepted(q),
+                    f3(q["ece"]),
+                    f1(q["flips_per_100"]),
+                    f"{q['recall_at_1']:.2f}",
+                    f"{round(f['single_accepted'] * n)} / "
+                    f"{round(f['sequence_accepted'] * n)} of {n}",
+                    f"{f3(f['single_mean_p'])} / {f3(f['sequence_mean_p'])}",
+                    pct(lr["away_accepted"]),
+                    str(lr["frames_to_accept_after_return"]),
+                ]
+            )
+    header = [
+        "route, test part (models)",
+        "single frame accepted (precision)",
+        "sequence accepted (precision)",
+        "sequence ECE",
+        "lock flips / 100 frames",
+        "sequence recall@1",
+        "another route's frames accepted, single / sequence",
+        "their mean p_correct, single / sequence",
+        "leave-and-return: accepted while away",
+        "frames to accept after return",
+    ]
+    pooled = data["pooled_sequence_ece_shipped"]
+    folds = data["pooled_sequence_ece_folds"]
+    return (
+        table(header, rows)
+        + (
+            f"\nSequence ECE pooled over the test parts: {f3(pooled['all'])} with the "
+            f"shipped models ({f3(pooled['gardens_point'])} on Gardens Point alone); held "
+            f"out {f3(folds['all'])} and {f3(folds['gardens_point'])}.\n"
+        )
+        + source(ACCEPTANCE, data)
+    )
+
+
+@generator("sequence.test_parts")
+def sequence_test_parts(root: Path) -> str:
+    data = load(root, SEQUENCE)
+    rows = []
+    for route in ROUTES:
+        r = data["routes"][route]
+        flt, sh = r["filter"], r["shipped"]
+        vs = flt["vs_single"]
+        sp = flt["recall_by_speed"]
+        rows.append(
+            [
+                f"{PROTOCOL_TITLES[route]} ({r['n_test']})",
+                f3(r["single_recall_at_1"]),
+                f"**{f3(r['recall_at_1'])}**",
+                f"{vs['wins']} / {vs['losses']} (p = {pvalue(vs['p'])})",
+                accepted(sh["sequence"]),
+                f1(sh["sequence"]["flips_per_100"]),
+                f"{flt['lock_after_start']['median']:g} / {flt['lock_after_start']['p95']:.0f}",
+                f"{flt['lock_after_jump']['within_10']:.2f} ({flt['lock_after_jump']['p95']:.0f})",
+                " / ".join(f3(sp[k]) for k in ("0.5", "2", "4")),
+                f3(flt["dropped"]["recall_at_1"]),
+            ]
+        )
+    header = [
+        "route (test part, frames)",
+        "single frame",
+        "**sequence**",
+        "frames won / lost vs single (sign test)",
+        "accepted, shipped models (precision)",
+        "lock flips / 100",
+        "lock after start: median / p95 frames",
+        "re-lock after a jump: within 10 frames (p95)",
+        "speed x0.5 / x2 / x4",
+        "25 % of frames dropped",
+    ]
+    return table(header, rows) + source(SEQUENCE, data, extra="Nordland: its first 800 frames")
+
+
+@generator("sequence.whole")
+def sequence_whole(root: Path) -> str:
+    data = load(root, SEQUENCE)
+    rows = []
+    for route, r in data["whole"].items():
+        vs = r["vs_single"]
+        sh = r["shipped"]["sequence"]
+        rows.append(
+            [
+                f"{PROTOCOL_TITLES[route]} ({r['n_query']})",
+                f3(r["single_recall_at_1"]),
+                f"**{f3(r['recall_at_1'])}**",
+                f"{vs['wins']} / {vs['losses']} (p = {pvalue(vs['p'])})",
+                accepted(sh),
+            ]
+        )
+    header = [
+        "whole traverse (frames)",
+        "single frame",
+        "**sequence**",
+        "frames won / lost vs single",
+        "accepted, shipped models (precision)",
+    ]
+    return table(header, rows) + source(
+        SEQUENCE, data, extra="the traverses include the models' training parts"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 when a page differs")
+    ap.add_argument("--root", type=Path, default=ROOT)
+    args = ap.parse_args(argv)
+    differ = render_all(args.root, write=not args.check)
+    for page in differ:
+        print(f"{'differs' if args.check else 'rewrote'}: {page}")
+    if args.check and differ:
+        print("run `python -m bench.pages` to regenerate them from their JSON", file=sys.stderr)
+        return 1
+    return 0
+
+
+def render(text: str, root: Path) -> str:
+    """``text`` with every generated block's body written by its generator."""
+
+    def fill(m: re.Match[str]) -> str:
+        name = m["name"]
+        if name not in GENERATORS:
+            raise KeyError(f"no generator {name!r} (known: {', '.join(sorted(GENERATORS))})")
+        return m["open"] + GENERATORS[name](root) + m["close"]
+
+    return BLOCK.sub(fill, text)
+
+
+def pages(root: Path) -> list[Path]:
+    out: list[Path] = []
+    for d in PAGE_DIRS:
+        out += sorted(p for p in (root / d).rglob("*.md") if "<!-- generated:" in p.read_text())
+    return out
+
+
+def render_all(root: Path, write: bool) -> list[str]:
+    """The pages (relative paths) whose generated blocks differ from their JSON; rewritten
+    when ``write``."""
+    differ = []
+    for page in pages(root):
+        text = page.read_text()
+        new = render(text, root)
+        if new != text:
+            differ.append(str(page.relative_to(root)))
+            if write:
+                page.write_text(new)
+    return differ
+
+
+if __name__ == "__main__":
+    sys.exit(main())
