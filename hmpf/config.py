@@ -147,9 +147,9 @@ class HierarchyConfig(BaseModel):
     """A hierarchy: ordered tiers of methods, candidate counts, weights and fusion mode.
 
     ``tier_score`` says how a non-final tier's methods make its term of the Combined score:
-    ``max``, the element-wise maximum (the original's, METHODS.md §5.3), or ``mean``, their
-    average, as the final tier and the per-tier recall already use (an extension: on the
-    Gardens Point protocols it raises the mean recall@1 of 600 random hierarchies by 1.2 to
+    ``max``, the element-wise maximum (the original's, spec §5.3 in docs/spec/fusion.md), or
+    ``mean``, their average, as the final tier and the per-tier recall already use (an extension: on
+    the Gardens Point protocols it raises the mean recall@1 of 600 random hierarchies by 1.2 to
     3.4 points on every protocol and split part, ``bench/tier_score.py``).
     """
 

@@ -1,4 +1,4 @@
-"""Fusion maths as small pure functions (METHODS.md §5).
+"""Fusion maths as small pure functions (spec §5, docs/spec/fusion.md).
 
 Shapes: ``N`` is the database size, ``F`` the number of candidates entering the final tier.
 All scores produced here follow one convention: **higher is better, best = 1, worst = 0**.
@@ -130,7 +130,7 @@ def nan_argmax(x: np.ndarray) -> int:
 def combined_score(
     tier_values: Sequence[np.ndarray], weights: Sequence[float], *, faithful: bool = False
 ) -> np.ndarray:
-    """Cross-tier Combined score over the final candidates (METHODS.md §5.3).
+    """Cross-tier Combined score over the final candidates (spec §5.3).
 
     Args:
         tier_values: per tier, the (F,) tier score gathered at the final candidates: the

@@ -1,6 +1,6 @@
 """The HMPF hierarchy: tiers narrowing the candidate list, scores fused across tiers.
 
-Per query (METHODS.md §5.2-5.3):
+Per query (spec §5.2-5.3, docs/spec/fusion.md):
 
 1. Tier 1 scores the whole database with each of its methods (normalised over the database).
 2. A non-final tier passes on the union of its methods' top-k; the next tier scores only

@@ -1,4 +1,4 @@
-"""Image operations with MATLAB semantics (METHODS.md §1).
+"""Image operations with MATLAB semantics (spec §1, docs/spec/images.md).
 
 * :func:`initcrop` — the original's ``initCrop = [1 1 1 1]``: drops the last row and column.
 * :func:`imresize` — MATLAB ``imresize(I, [rows cols], method)`` with antialiasing when shrinking,
@@ -143,6 +143,6 @@ def rgb2gray(img: np.ndarray) -> np.ndarray:
 def initcrop(img: np.ndarray) -> np.ndarray:
     """The original ``initCrop = [1 1 1 1]``: rows ``1:H-1`` and columns ``1:W-1`` (1-based).
 
-    Only the last row and the last column are removed (METHODS.md §1.3, §8.21).
+    Only the last row and the last column are removed (spec §1.3, §8.21).
     """
     return img[:-1, :-1]

@@ -1,7 +1,7 @@
 """Minimal reader and writer for Caffe ``.caffemodel`` files (binary protobuf ``NetParameter``).
 
-Only the fields a weight loader needs are decoded (METHODS.md §3.1); everything else is skipped
-by wire type, so no ``caffe`` or ``protobuf`` package is needed.
+Only the fields a weight loader needs are decoded (spec §3.1, docs/spec/weights.md); everything else
+is skipped by wire type, so no ``caffe`` or ``protobuf`` package is needed.
 
 * ``NetParameter``: ``name = 1``, ``layers = 2`` (legacy V1LayerParameter), ``layer = 100``
   (LayerParameter).

@@ -1,4 +1,5 @@
-"""HybridNet (Chen et al., ICRA 2017), the CaffeNet-style backbone of CNNHeat (METHODS.md §2.1).
+"""HybridNet (Chen et al., ICRA 2017), the CaffeNet-style backbone of CNNHeat
+(spec §2.1, docs/spec/hybridnet.md).
 
 Weights: ``HybridNet.caffemodel`` (binary Caffe ``NetParameter``, V2 or legacy V1), read by
 :mod:`hmpf.backbones.caffe_proto` without a caffe or protobuf dependency. Only conv1-conv5 are
@@ -22,7 +23,7 @@ Options (``from_weights(path, device, **options)``):
 
 * ``mean_mode="none"`` (default, HMPF-faithful): RGB 0-255 input, no mean subtraction. The
   caffemodel's conv1 expects BGR, so its input channels are flipped on loading; this is what
-  MATLAB's ``importCaffeNetwork`` is believed to do **[U]** (METHODS.md §8.8).
+  MATLAB's ``importCaffeNetwork`` is believed to do **[U]** (spec §8.8).
 * ``mean_mode="caffe"`` (Chen's recipe): BGR input minus the per-channel mean of
   ``amosnet_mean.npy`` (a (3, H, W) BGR mean image). ``mean_file`` names it; by default it is
   looked for next to the caffemodel (the release zip ships both).

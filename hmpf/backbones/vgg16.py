@@ -1,4 +1,5 @@
-"""VGG-16 + NetVLAD + WPCA, Pitts30k (Arandjelovic et al.), the NetVLAD backbone (METHODS.md §2.5).
+"""VGG-16 + NetVLAD + WPCA, Pitts30k (Arandjelovic et al.), the NetVLAD backbone
+(spec §2.5, docs/spec/netvlad.md).
 
 Weights: the "structed" ``vd16_pitts30k_conv5_3_vlad_preL2_intra_white`` network,
 ``Pitts30K_struct.mat`` (made by uzh-rpg/netvlad_tf_open ``net_class2struct.m``, downloaded by

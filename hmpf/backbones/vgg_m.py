@@ -1,4 +1,5 @@
-"""VGG-M-1024 (Chatfield et al.), the backbone of Only Look Once (METHODS.md §2.4, §3.2).
+"""VGG-M-1024 (Chatfield et al.), the backbone of Only Look Once (spec §2.4, §3.2:
+docs/spec/olo.md, docs/spec/weights.md).
 
 Weights: MatConvNet SimpleNN ``imagenet-vgg-m-1024.mat`` read with
 ``scipy.io.loadmat(struct_as_record=False, squeeze_me=True)``. Both layouts are accepted:

@@ -1,8 +1,9 @@
 """One hierarchy against ground truth (layer 4 of :mod:`hmpf.evaluation`).
 
 Reports what the paper reports (``recall_final``, ``recall_by_level``,
-``recall_top1_by_level``, the precision-recall curve over the quality score; METHODS.md §6) and
-more: recall@N of every method alone, flat-fusion recall, and time per stage.
+``recall_top1_by_level``, the precision-recall curve over the quality score; spec §6,
+docs/spec/evaluation.md) and more: recall@N of every method alone, flat-fusion recall, and time per
+stage.
 
 Every evaluation starts from :func:`~hmpf.evaluation.data.prepare` (fit -> extract -> stack),
 runs the hierarchy per query (:func:`~hmpf.evaluation.metrics.run_queries`), summarises the

@@ -53,7 +53,8 @@ def recall_at_n(
 
 
 def pr_curve(correct: np.ndarray, quality: np.ndarray) -> dict[str, Any]:
-    """Precision-recall over the quality score, the original's definition (METHODS.md §6).
+    """Precision-recall over the quality score, the original's definition (spec §6.3,
+    docs/spec/evaluation.md).
 
     A query is predicted when ``quality > threshold``; wrong predictions are FP, every
     unpredicted query is FN (there are no true negatives), so recall = TP / n_queries.

@@ -9,7 +9,7 @@ features, giving one raw score per reference. Two kinds exist (ARCHITECTURE.md):
   used on candidate lists.
 
 ``higher_is_better`` says which direction of the raw score is better; fusion normalises every
-score to ``best = 1`` (METHODS.md §5.1).
+score to ``best = 1`` (spec §5.1, docs/spec/fusion.md).
 
 A method also declares how it is extracted, so that :mod:`hmpf.features` needs to know no
 method family:

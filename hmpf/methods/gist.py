@@ -1,6 +1,6 @@
 """Gist (method id 11): Oliva-Torralba ``LMgist`` with its defaults, 512-D.
 
-METHODS.md §2.2, ported step by step: crop, ``rgb2gray``, then LMgist:
+Spec §2.2 (docs/spec/gist.md), ported step by step: crop, ``rgb2gray``, then LMgist:
 
 1. ``imresizecrop`` to 128x128: aspect-preserving MATLAB bilinear resize (antialiased), centre
    crop (so the sides of wide frames are discarded, §8.10);

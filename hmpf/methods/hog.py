@@ -1,7 +1,7 @@
 """HOG (method id 3): MATLAB ``extractHOGFeatures`` on a 300x300 grey image, 2916-D.
 
-METHODS.md §2.6: crop, ``imresize`` RGB to 300x300 (lanczos3), ``rgb2gray``, then HOG with
-30x30-pixel cells, 2x2-cell blocks overlapping by one cell, 9 unsigned orientation bins,
+Spec §2.6 (docs/spec/hog.md): crop, ``imresize`` RGB to 300x300 (lanczos3), ``rgb2gray``, then HOG
+with 30x30-pixel cells, 2x2-cell blocks overlapping by one cell, 9 unsigned orientation bins,
 L2-Hys block normalisation: 9 x 9 blocks x 4 cells x 9 bins = 2916 values. Lower distance is
 better (Euclidean).
 
@@ -9,7 +9,7 @@ Deviation (documented): OpenCV's ``HOGDescriptor`` computes the descriptor. It f
 Dalal-Triggs as MATLAB does (central-difference gradients, bin interpolation, trilinear
 spatial interpolation inside a block, Gaussian block window, L2-Hys clipped at 0.2); we set the
 Gaussian window to sigma = half the block width as the spec states (OpenCV's own default is a
-quarter). MATLAB's exact interpolation details are not published (METHODS.md §8.16), and
+quarter). MATLAB's exact interpolation details are not published (spec §8.16), and
 OpenCV orders the values differently, which does not change any Euclidean distance.
 """
 

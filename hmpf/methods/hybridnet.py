@@ -1,8 +1,8 @@
 """HybridNet "CNNHeat" (method id 1): the conv5 max-location histogram, 169-D.
 
-METHODS.md §2.1. For each channel of a 13 x 13 x C activation map ``A`` (rows = image y, cols =
-image x) that is not all zero, the location of its maximum (MATLAB's tie rule: first in
-column-major order, i.e. the smallest column, then the smallest row) votes into a 13 x 13
+Spec §2.1 (docs/spec/hybridnet.md). For each channel of a 13 x 13 x C activation map ``A`` (rows =
+image y, cols = image x) that is not all zero, the location of its maximum (MATLAB's tie rule: first
+in column-major order, i.e. the smallest column, then the smallest row) votes into a 13 x 13
 histogram at ``h[col, 12 - row]``; the feature is ``h`` flattened column-major (the vote goes
 to index ``col + 13 * (12 - row)``). Counts sum to the number of non-zero channels. Euclidean
 distance, lower is better. An all-zero map gives the zero vector (MATLAB would error).
@@ -41,7 +41,7 @@ DEFAULTS = {
 
 
 def max_location_histogram(a: np.ndarray) -> np.ndarray:
-    """(C, 13, 13) activations -> (169,) float32 vote counts (METHODS.md §2.1 rules).
+    """(C, 13, 13) activations -> (169,) float32 vote counts (spec §2.1 rules).
 
     Raises:
         ValueError: the map is not 13 x 13.

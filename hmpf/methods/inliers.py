@@ -3,8 +3,8 @@
 Not in the original HMPF (an accuracy lever): the classic re-ranking step of retrieval and
 localisation pipelines, as a local method usable in any tier.
 
-**Features** are KAZE's (METHODS.md §2.3, :mod:`hmpf.methods.kaze`): grey, crop, 300 x 300
-lanczos3, OpenCV KAZE with the MATLAB defaults, the ``max_keypoints`` strongest, keypoints
+**Features** are KAZE's (spec §2.3, docs/spec/kaze.md; :mod:`hmpf.methods.kaze`): grey, crop, 300 x
+300 lanczos3, OpenCV KAZE with the MATLAB defaults, the ``max_keypoints`` strongest, keypoints
 (x, y, size, angle, response) and unit descriptors at float16 precision. The extraction and the
 stored arrays are KAZE's own code, and so is the descriptor cache entry: an ``inliers`` and a
 ``kaze`` with the same extraction settings share cached features. KAZE's ``descriptor``

@@ -1,8 +1,8 @@
 """KAZE (method id 9): matched-feature residual, the sum of the 20 strongest matches.
 
-METHODS.md §2.3. Extraction: ``rgb2gray``, crop, ``imresize`` to 300x300 (lanczos3, uint8),
-OpenCV KAZE with MATLAB ``detectKAZEFeatures`` defaults (threshold 1e-4, 3 octaves, 4 levels,
-Perona-Malik g2 "region" diffusion, 64-D oriented descriptors). Descriptors are stored
+Spec §2.3 (docs/spec/kaze.md). Extraction: ``rgb2gray``, crop, ``imresize`` to 300x300 (lanczos3,
+uint8), OpenCV KAZE with MATLAB ``detectKAZEFeatures`` defaults (threshold 1e-4, 3 octaves, 4
+levels, Perona-Malik g2 "region" diffusion, 64-D oriented descriptors). Descriptors are stored
 L2-normalised to unit length, as ``matchFeatures`` normalises them before matching.
 
 Matching reproduces MATLAB ``matchFeatures(Fq, Fdb, 'MatchThreshold', 20, 'MaxRatio', 0.7)``:
@@ -21,7 +21,7 @@ Deviations (documented):
   ``None``.
 * When ``SSD2 == 0`` the ratio ``SSD1 / SSD2`` is undefined; the match is rejected (MATLAB's
   NaN comparison would reject it as well) [U].
-* MATLAB's KAZE implementation may differ numerically from OpenCV's (METHODS.md §8.15).
+* MATLAB's KAZE implementation may differ numerically from OpenCV's (spec §8.15).
 * Keypoints and unit descriptors are rounded to float16 precision (what the index stores);
   descriptor norms are then 1 to within 1e-3, and SSDs are computed exactly on those stored
   values (``|q|^2 + |d|^2 - 2 q.d``), not as ``2 - 2 q.d``.

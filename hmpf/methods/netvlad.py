@@ -1,6 +1,6 @@
 """NetVLAD (method id 6): soft-assignment VLAD over a CNN's local features.
 
-METHODS.md §2.5. Two ways to get its parameters:
+Spec §2.5 (docs/spec/netvlad.md). Two ways to get its parameters:
 
 * ``vgg16`` with the Pitts30k weights (``Pitts30K_struct.mat``): the exact published pipeline
   ``vd16_pitts30k_conv5_3_vlad_preL2_intra_white``: conv5_3 (no ReLU) of the 224 x 224 input,

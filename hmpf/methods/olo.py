@@ -1,7 +1,7 @@
 """Only Look Once (method id 10): masked regional CNN features, mutual matching with IDF.
 
-METHODS.md §2.4. **Encoding** (``encode_feat``): for every channel ``m`` of the mask map M,
-``bw = M_m > min(M_m)``; its 8-connected components, in ``bwlabel`` order (first pixel in
+Spec §2.4 (docs/spec/olo.md). **Encoding** (``encode_feat``): for every channel ``m`` of the mask
+map M, ``bw = M_m > min(M_m)``; its 8-connected components, in ``bwlabel`` order (first pixel in
 column-major scan), each give a region with the channel's mean activation over the component
 and the component's inclusive bounding box. The regions whose mean is at least the 200th
 largest are kept (ties may keep more) in (channel, component) order. A region's descriptor is

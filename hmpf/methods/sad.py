@@ -1,12 +1,13 @@
 """SAD (method id 2): SeqSLAM-style patch-normalised thumbnails, 64x32, 2048-D ``uint8``.
 
-METHODS.md §2.7: crop, ``imresize`` RGB to 32 rows x 64 columns (lanczos3), ``rgb2gray``,
-patch-normalise every 8x8 patch to ``round(255 (p - min) / (max - min))`` (a flat patch gives 0),
-flatten column-major. Distance: mean absolute difference over the 2048 values, lower is better.
+Spec §2.7 (docs/spec/other-methods.md): crop, ``imresize`` RGB to 32 rows x 64 columns (lanczos3),
+``rgb2gray``, patch-normalise every 8x8 patch to ``round(255 (p - min) / (max - min))`` (a flat
+patch gives 0), flatten column-major. Distance: mean absolute difference over the 2048 values, lower
+is better.
 
 ``faithful=True`` reproduces the original's uint8 arithmetic, where ``db - q`` saturates at 0,
 so only the one-sided sum ``sum(max(db - q, 0)) / 2048`` is computed. The default is the true
-absolute difference (a deliberate fix, see METHODS.md §8.17).
+absolute difference (a deliberate fix, see spec §8.17).
 """
 
 from __future__ import annotations
