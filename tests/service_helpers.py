@@ -20,11 +20,11 @@ from typing import Any
 
 import httpx
 import numpy as np
-from conftest import copy_gp, default_sigint
 
 from hmpf.config import parse_config
 from hmpf.hierarchy import ScoreFn
 from indexer.build import BuildOptions, build
+from tests.conftest import copy_gp, default_sigint
 
 __all__ = [
     "BUILD_OPTIONS",

@@ -1,0 +1,303 @@
+"""The CNN runtimes: ONNX Runtime (the default) against torch (the reference), and the cache of
+exported models.
+
+* Real Gardens Point images, the default hierarchy's CNN methods (gem, netvlad, olo), fitted
+  once (torch) and shared by both runtimes: descriptors equal within :data:`ATOL` (they are
+  stored at float16 precision; the maps differ by float32 rounding, ~2e-5) and the
+  hierarchy's answers equal on 30 references x 30 queries.
+* The model cache: a second load exports nothing, a changed key exports anew, a corrupt file
+  is exported again, an unwritable cache folder falls back to a temporary one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hmpf import runtime
+from hmpf.config import build_methods, load_config
+from hmpf.errors import ConfigError
+from hmpf.hierarchy import Hierarchy, feature_scorer
+from hmpf.imageio import load_image
+from hmpf.methods import create_method
+from hmpf.methods.base import extract_many, fit_many
+from tests.conftest import cnn_runtime_as
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxruntime")
+
+from hmpf.backbones import load_backbone  # noqa: E402
+from hmpf.backbones import onnx_runtime as ox  # noqa: E402
+
+#: Largest difference allowed between the runtimes' descriptor values (unit-norm vectors and
+#: regions at float16 precision: one float16 step is 2.4e-4 at 0.25, 4.9e-4 at 0.5).
+ATOL = 1e-3
+#: Largest difference allowed between the runtimes' raw maps (float32, values up to ~30).
+MAPS_ATOL = 2e-4
+N = 30  # references and queries of the Gardens Point subset
+
+
+# -------------------------------------------------------------------- both runtimes, real data
+
+
+@pytest.fixture(scope="module")
+def both(gardens_point: Path) -> dict[str, Any]:
+    """The default hierarchy's features of 30 references (day_right) and 30 queries
+    (day_left, the same places) under each runtime, from one set of fitted parameters."""
+    from hmpf.datasets import list_images
+
+    pick = np.linspace(0, 199, N).round().astype(int)
+    refs = [load_image(list_images(gardens_point / "day_right")[i]) for i in pick]
+    qrys = [load_image(list_images(gardens_point / "day_left")[i]) for i in pick]
+    config = load_config("default")
+    methods = build_methods(config)
+    cnn = [m for m in methods if getattr(methods[m], "batched", False)]
+    # Fitted once, on a third of the references (faster; only the extraction is compared).
+    fit_many({m: methods[m] for m in methods if methods[m].requires_fit()}, refs[::3])
+    state = {m: methods[m].state_arrays() for m in methods}
+    others = {m: methods[m] for m in methods if m not in cnn}
+    shared = {k: extract_many(others, imgs) for k, imgs in (("ref", refs), ("qry", qrys))}
+    out: dict[str, Any] = {"config": config, "cnn": cnn, "methods": methods}
+    for name in runtime.CNN_RUNTIMES:
+        ms = build_methods(config)
+        for m, arrays in state.items():
+            if arrays:
+                ms[m].load_state(arrays)
+        with cnn_runtime_as(name):
+            assert all(ms[m].runtime() == name for m in cnn)  # type: ignore[attr-defined]
+            feats = {
+                k: {**extract_many({m: ms[m] for m in cnn}, imgs), **shared[k]}
+                for k, imgs in (("ref", refs), ("qry", qrys))
+            }
+        out[name] = (ms, feats)
+    return out
+
+
+def _answers(config: Any, methods: dict[str, Any], feats: dict[str, Any]) -> list[int]:
+    db = {m: methods[m].stack(feats["ref"][m]) for m in methods}
+    hierarchy = Hierarchy(config, methods)
+    answers = []
+    for qi in range(N):
+        query = {m: feats["qry"][m][qi] for m in methods}
+        answers.append(hierarchy.run(feature_scorer(methods, query, db), N).match)
+    return answers
+
+
+def test_runtimes_give_the_same_descriptors(both: dict[str, Any]) -> None:
+    _, ft = both["torch"]
+    _, fo = both["onnx"]
+    assert sorted(both["cnn"]) == ["gem", "netvlad", "olo"]
+    worst = {}
+    for m in both["cnn"]:
+        diffs, words = [], []
+        for part in ("ref", "qry"):
+            for a, b in zip(ft[part][m], fo[part][m], strict=True):
+                if m == "olo":
+                    assert a.regions.shape == b.regions.shape
+                    diffs.append(np.abs(a.regions - b.regions).max())
+                    words.append(np.mean(a.words != b.words))
+                else:
+                    assert a.shape == b.shape and a.dtype == b.dtype
+                    diffs.append(np.abs(a.astype(np.float32) - b.astype(np.float32)).max())
+        worst[m] = float(np.max(diffs))
+        assert worst[m] <= ATOL, (m, worst[m])
+        if words:  # a region on a visual-word boundary may change word; almost none do
+            assert float(np.mean(words)) <= 0.01, float(np.mean(words))
+    print("max |torch - onnx| per method:", worst, "olo words changed:", np.mean(words))
+
+
+def test_runtimes_give_the_same_answers(both: dict[str, Any]) -> None:
+    config = both["config"]
+    got = {name: _answers(config, *both[name]) for name in runtime.CNN_RUNTIMES}
+    assert got["onnx"] == got["torch"]
+    assert np.mean(np.array(got["onnx"]) == np.arange(N)) >= 0.8  # day -> day: mostly right
+
+
+def test_maps_equal_torch_at_every_default_size(both: dict[str, Any]) -> None:
+    net = load_backbone("efficientnet_lite0")
+    rng = np.random.default_rng(0)
+    for size, layers in (
+        ((224, 224), ["head"]),
+        ((288, 512), ["s6"]),
+        ((416, 416), ["head", "s6"]),
+    ):
+        x = rng.standard_normal((3, 3, *size)).astype(np.float32)
+        with torch.inference_mode():
+            ref = {k: v.numpy() for k, v in net.forward_maps(torch.from_numpy(x), layers).items()}
+        maps = ox.onnx_maps(net, layers, size)
+        got = maps(x)  # one image per run
+        whole = ox.OnnxMaps(maps.session, layers, maps.path, run_batch=3)(x)  # one run of 3
+        for k in layers:
+            assert got[k].shape == ref[k].shape == whole[k].shape
+            np.testing.assert_allclose(got[k], ref[k], rtol=0, atol=MAPS_ATOL)
+            np.testing.assert_allclose(whole[k], got[k], rtol=0, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- the setting
+
+
+def test_runtime_setting_and_keys(monkeypatch: pytest.MonkeyPatch) -> None:
+    gem = create_method("gem")
+    with cnn_runtime_as("torch"):
+        torch_key = gem.descriptor_key()
+        assert gem.runtime() == "torch" and torch_key == gem.cache_key()  # the keys it had
+    with cnn_runtime_as("onnx"):
+        assert gem.runtime() == "onnx"
+        assert gem.descriptor_key() != torch_key and gem.cache_key() == torch_key
+        assert create_method("gem", {"device": "cuda"}).runtime() == "torch"  # ORT: CPU only
+        vgg = create_method("gem", {"backbone": "vgg16", "weights": "x.pth"})
+        assert vgg.runtime() == "torch"  # a backbone not checked under ONNX Runtime
+    monkeypatch.setattr(runtime, "_cnn_runtime", None)
+    monkeypatch.setenv("HMPF_CNN_RUNTIME", "Torch")
+    assert runtime.cnn_runtime() == "torch"
+    monkeypatch.delenv("HMPF_CNN_RUNTIME")
+    assert runtime.cnn_runtime() == "onnx"  # the default
+    monkeypatch.setenv("HMPF_CNN_RUNTIME", "tensorrt")
+    with pytest.raises(ConfigError, match="HMPF_CNN_RUNTIME must be one of onnx, torch"):
+        runtime.cnn_runtime()
+    with pytest.raises(ConfigError, match="one of"):
+        runtime.set_cnn_runtime("jax")
+
+
+def test_shared_forward_pass_per_group_onnx(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under ONNX Runtime too, methods sharing a group key share one run per batch."""
+    gem = create_method("gem", {"input_size": [416, 416]})
+    hyb = create_method("hybridnet")  # s6 at 416 x 416: same group as gem above
+    other = create_method("gem", {"input_size": [96, 96]})
+    calls: list[tuple[int, tuple[str, ...]]] = []
+    original = ox.OnnxMaps.__call__
+
+    def counting(self: ox.OnnxMaps, batch: np.ndarray) -> dict[str, np.ndarray]:
+        calls.append((batch.shape[0], tuple(sorted(self.layers))))
+        return original(self, batch)
+
+    monkeypatch.setattr(ox.OnnxMaps, "__call__", counting)
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 255, (120, 160, 3), dtype=np.uint8) for _ in range(3)]
+    with cnn_runtime_as("onnx"):
+        out = extract_many({"g": gem, "h": hyb, "o": other}, images)
+    assert sorted(calls) == [(3, ("head",)), (3, ("head", "s6"))]
+    assert len(out["g"]) == len(out["h"]) == len(out["o"]) == 3
+
+
+# ------------------------------------------------------------------------- the model cache
+
+SIZE = (64, 96)  # small: an export takes about a second
+
+
+@pytest.fixture
+def cache_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A fresh model cache; sessions and the fallback folder are forgotten around the test."""
+    monkeypatch.setenv("HMPF_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ox, "_FALLBACK_DIR", None)
+    ox.clear_sessions()
+    yield tmp_path / "onnx"
+    ox.clear_sessions()
+
+
+@pytest.fixture
+def exports(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Paths exported during the test (the export itself still runs)."""
+    done: list[Path] = []
+    original = ox._export
+
+    def counting(net: Any, layers: Any, size: Any, path: Path) -> None:
+        done.append(path)
+        original(net, layers, size, path)
+
+    monkeypatch.setattr(ox, "_export", counting)
+    return done
+
+
+def _check_maps(maps: ox.OnnxMaps) -> None:
+    net = load_backbone("efficientnet_lite0")
+    x = np.random.default_rng(2).standard_normal((2, 3, *SIZE)).astype(np.float32)
+    with torch.inference_mode():
+        ref = net.forward_maps(torch.from_numpy(x), ["s4"])["s4"].numpy()
+    np.testing.assert_allclose(maps(x)["s4"], ref, rtol=0, atol=MAPS_ATOL)
+
+
+def test_second_load_does_not_export(cache_dir: Path, exports: list[Path]) -> None:
+    net = load_backbone("efficientnet_lite0")
+    first = ox.onnx_maps(net, ["s4"], SIZE)
+    assert exports == [first.path] and first.path.parent == cache_dir
+    assert first.path.is_file() and first.path.with_name(first.path.name + ".sha256").is_file()
+    assert ox.onnx_maps(net, ["s4"], SIZE) is first  # the session is kept in the process
+    ox.clear_sessions()  # as a new process: loads the file
+    second = ox.onnx_maps(net, ["s4"], SIZE)
+    assert second is not first and second.path == first.path and len(exports) == 1
+    _check_maps(second)
+    assert sorted(p.name for p in cache_dir.iterdir()) == [
+        first.path.name,
+        first.path.name + ".sha256",
+    ]  # no temporary file left
+
+
+def test_changed_key_exports_anew(
+    cache_dir: Path, exports: list[Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    net = load_backbone("efficientnet_lite0")
+    a = ox.onnx_maps(net, ["s4"], SIZE).path
+    b = ox.onnx_maps(net, ["s4"], (SIZE[0], SIZE[1] + 32)).path  # another input size
+    c = ox.onnx_maps(net, ["s3", "s4"], SIZE).path  # other layers
+    monkeypatch.setattr(ox, "EXPORT_VERSION", "test")  # other export settings
+    d = ox.onnx_maps(net, ["s4"], SIZE).path
+    assert exports == [a, b, c, d] and len({a, b, c, d}) == 4
+    # The torch version and the weights are in the key too.
+    key = ox.export_key(net, ["s4"], SIZE)
+    monkeypatch.setattr(torch, "__version__", "0.0.0")
+    assert ox.export_key(net, ["s4"], SIZE) != key
+    monkeypatch.setitem(ox._WEIGHTS, net, "0" * 64)
+    assert ox.export_key(net, ["s4"], SIZE) != key
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage_with_matching_sha256"])
+def test_corrupt_cached_file_is_exported_again(
+    cache_dir: Path, exports: list[Path], damage: str
+) -> None:
+    net = load_backbone("efficientnet_lite0")
+    path = ox.onnx_maps(net, ["s4"], SIZE).path
+    ox.clear_sessions()
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[:1000])
+    else:  # the checksum matches, the file does not load
+        path.write_bytes(b"not an onnx model")
+        path.with_name(path.name + ".sha256").write_text(ox._file_sha256(path))
+    maps = ox.onnx_maps(net, ["s4"], SIZE)
+    assert exports == [path, path]
+    _check_maps(maps)
+
+
+def test_unwritable_cache_falls_back_to_a_temporary_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, exports: list[Path]
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache folder should be")
+    monkeypatch.setenv("HMPF_CACHE_DIR", str(blocker))
+    monkeypatch.setattr(ox, "_FALLBACK_DIR", None)
+    ox.clear_sessions()
+    try:
+        maps = ox.onnx_maps(load_backbone("efficientnet_lite0"), ["s4"], SIZE)
+        assert ox._FALLBACK_DIR is not None and maps.path.parent == ox._FALLBACK_DIR
+        _check_maps(maps)
+    finally:
+        ox.clear_sessions()
+
+
+def test_session_threads_follow_compute_threads(
+    cache_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    net = load_backbone("efficientnet_lite0")
+    monkeypatch.setattr(runtime, "_threads", 1)
+    one = ox.onnx_maps(net, ["s4"], SIZE)
+    monkeypatch.setattr(runtime, "_threads", 2)
+    two = ox.onnx_maps(net, ["s4"], SIZE)
+    assert one is not two and one.path == two.path
+    for maps, n in ((one, 1), (two, 2)):
+        opts = maps.session.get_session_options()
+        assert opts.intra_op_num_threads == n and opts.inter_op_num_threads == 1
+        assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"
