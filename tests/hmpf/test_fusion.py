@@ -1,4 +1,4 @@
-"""Hand-computed toy cases for the pure fusion functions (METHODS.md §5).
+"""Hand-computed toy cases for the pure fusion functions (spec §5, docs/spec/fusion.md).
 
 Every expected value below is worked out by hand in the comments; nothing is derived by
 calling the function under test.

@@ -1,4 +1,4 @@
-"""Hierarchy.run on tiny hand-built databases (METHODS.md §5.1-5.3).
+"""Hierarchy.run on tiny hand-built databases (spec §5.1-5.3, docs/spec/fusion.md).
 
 Each test gives fixed raw scores per method over a database of 6 images (indices 0..5) through a
 ``score_fn(method_id, subset)`` callback, and checks every tier, the final candidates F, the

@@ -589,7 +589,7 @@ def test_vgg16_maps_and_netvlad_params(pitts: tuple[Path, dict[str, np.ndarray]]
     np.testing.assert_array_equal(p["wpca_w"], stored["wpca"][0, 0])
     np.testing.assert_array_equal(p["wpca_b"], stored["wpca_b"])
 
-    # The head runs on these parameters (METHODS.md §2.5): unit-norm output.
+    # The head runs on these parameters (spec §2.5, docs/spec/netvlad.md): unit-norm output.
     f = maps["conv5_3"][0].reshape(512, -1).numpy().T.astype(np.float64)  # (N, D)
     f /= np.sqrt(1e-12 + (f**2).sum(1, keepdims=True))
     s = f @ p["assign"]

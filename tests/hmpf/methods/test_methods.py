@@ -1,7 +1,8 @@
 """Tests of the weight-free methods (Gist, KAZE, HOG, SAD), imops and the method registry.
 
-Every reference below is written independently from METHODS.md (§1, §2.2, §2.3, §2.6, §2.7),
-not by calling the implementation's helpers, so that a wrong implementation fails.
+Every reference below is written independently from the specification (docs/spec, §1, §2.2,
+§2.3, §2.6, §2.7), not by calling the implementation's helpers, so that a wrong implementation
+fails.
 Tests that read the Gardens Point images are marked ``dataset`` and skip when it is absent.
 """
 
@@ -32,7 +33,7 @@ def _image(folder: str, index: int) -> np.ndarray:
 
 
 # =============================================================================================
-# Gist (METHODS.md §2.2) against a slow spatial-domain reference
+# Gist (spec §2.2) against a slow spatial-domain reference
 # =============================================================================================
 
 
@@ -201,7 +202,7 @@ def test_prefilt_constant_image_is_finite() -> None:
 
 
 # =============================================================================================
-# KAZE (METHODS.md §2.3): vectorised scores against a brute-force matchFeatures reference
+# KAZE (spec §2.3): vectorised scores against a brute-force matchFeatures reference
 # =============================================================================================
 
 
@@ -366,7 +367,7 @@ def test_kaze_real_images() -> None:
 
 
 # =============================================================================================
-# HOG (METHODS.md §2.6)
+# HOG (spec §2.6)
 # =============================================================================================
 
 
@@ -400,7 +401,7 @@ def test_hog_flat_image_is_finite() -> None:
 
 
 # =============================================================================================
-# SAD (METHODS.md §2.7)
+# SAD (spec §2.7)
 # =============================================================================================
 
 
@@ -474,7 +475,7 @@ def test_sad_faithful_is_one_sided() -> None:
 
 
 # =============================================================================================
-# imops (METHODS.md §1.4, §1.5)
+# imops (spec §1.4, §1.5)
 # =============================================================================================
 
 
