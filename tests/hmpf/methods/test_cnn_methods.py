@@ -48,7 +48,7 @@ def test_hybridnet_histogram_hand_built_with_ties() -> None:
 
 
 def _slow_olo(t: np.ndarray, q: np.ndarray, wt: np.ndarray, wq: np.ndarray, idf: np.ndarray):
-    """compare_two as written (METHODS.md §2.4), with loops."""
+    """compare_two as written (spec §2.4, docs/spec/olo.md), with loops."""
     s = t @ q.T
     total = 0.0
     for i in range(len(t)):
