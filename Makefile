@@ -64,7 +64,7 @@ eval: install
 test: install
 	$(PY) -m pytest -q
 
-## browser: the system chromium the inspection page's browser test drives (tests/test_inspect.py;
+## browser: the system chromium the inspection page's browser test drives (tests/service/test_inspect.py;
 ## Playwright's own browser download is not used). Installed with apt-get when missing (root).
 browser:
 	@command -v chromium >/dev/null || { \
@@ -73,7 +73,7 @@ browser:
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null; }
 	@chromium --version 2>/dev/null
 
-## haproxy: the load balancer tests/test_replicas.py puts in front of two hmpf-serve replicas
+## haproxy: the load balancer tests/service/test_replicas.py puts in front of two hmpf-serve replicas
 ## (docs/replicas.md). Installed with apt-get when missing (root).
 haproxy:
 	@PATH="$$PATH:/usr/sbin:/sbin" command -v haproxy >/dev/null || { \

@@ -12,7 +12,7 @@ Builds the default preset's index over Gardens Point day_right (as ``make run``,
   single frame and in sequence mode, with how many were right (+-2 frames).
 
 Prints both answers (long lists cut to their first entry and ``"..."``) and writes them with
-the figures. ``tests/test_readme_answers.py`` checks the README's examples against a real
+the figures. ``tests/service/test_readme_answers.py`` checks the README's examples against a real
 answer's fields.
 """
 

@@ -15,7 +15,7 @@ frames, as ``calibrated/nordland_handcrafted`` was calibrated), ground truth +-2
    :func:`hmpf.features.fit_methods` would pick (<= 500, evenly spaced), each descriptor
    finished by :meth:`GlobalMethod.finish` (what extraction does after the method's own
    descriptor) and the references stacked by :meth:`Method.stack_references` (DBA).
-   ``tests/test_reference_fitting.py`` checks this route equals fit + extraction.
+   ``tests/hmpf/methods/test_reference_fitting.py`` checks this route equals fit + extraction.
 3. Settings are chosen on the TRAINING parts only: per method, the whitening setting of the
    grid and the DBA ``k`` with the best mean training recall@1 over the routes the method
    is used on. Test parts get recall@1 and a paired sign test against the plain method /

@@ -40,10 +40,10 @@ def cnn_runtime() -> str:
     ``HMPF_CNN_RUNTIME``.
 
     It is how descriptors are computed, not what they are (both give the same maps within
-    float32 rounding, tests/test_cnn_runtime.py), so it is not part of a config's digest nor of
-    a method's :meth:`~hmpf.methods.base.Method.cache_key` (an index built with one runtime
-    serves queries with the other); the descriptor cache keeps the two apart
-    (:meth:`~hmpf.methods.base.Method.descriptor_key`).
+    float32 rounding, tests/hmpf/methods/test_cnn_runtime.py), so it is not part of a
+    config's digest nor of a method's :meth:`~hmpf.methods.base.Method.cache_key` (an index
+    built with one runtime serves queries with the other); the descriptor cache keeps the two
+    apart (:meth:`~hmpf.methods.base.Method.descriptor_key`).
     """
     if _cnn_runtime is not None:
         return _cnn_runtime

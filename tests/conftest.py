@@ -28,7 +28,7 @@ DATASET_FIXTURES = frozenset({"gardens_point", "nordland", "gp_subset"})
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark every test that uses a dataset fixture ``dataset``, so ``pytest -m "not dataset"``
     is an offline suite (tests that read the data without a fixture carry the mark themselves:
-    tests/test_methods.py, tests/test_e2e_gardens_point.py)."""
+    tests/hmpf/methods/test_methods.py, tests/e2e/test_e2e_gardens_point.py)."""
     for item in items:
         if DATASET_FIXTURES.intersection(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.dataset)

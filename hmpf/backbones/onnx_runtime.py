@@ -5,7 +5,7 @@ The ``onnx`` CNN runtime (:func:`hmpf.runtime.cnn_runtime`, the default) runs a 
 through an ONNX Runtime session instead of torch: on one CPU thread EfficientNet-Lite0 runs
 about 1.7-1.9x faster than the (already BN-folded, channels-last) torch model
 (``bench/cnn_runtime.py``) and the maps equal torch's within float32 rounding (6e-5 on maps
-up to 33; ``tests/test_cnn_runtime.py``).
+up to 33; ``tests/hmpf/methods/test_cnn_runtime.py``).
 
 * Export: at first use, with torch's TorchScript-based exporter (``torch.onnx.export``,
   ``dynamo=False``; torch is pinned, so is the exporter), at the fixed input size, with a

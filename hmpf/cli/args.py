@@ -17,7 +17,7 @@ from hmpf.runtime import default_cache_dir
 
 # numpy, OpenCV and the evaluation load inside the functions that need them (called from a
 # command's body, ``run``), so that --help and --version are instant and Ctrl-C while they
-# load is one line and exit 130 too (tests/test_cli_common.py).
+# load is one line and exit 130 too (tests/hmpf/test_cli_common.py).
 if TYPE_CHECKING:
     import numpy as np
 

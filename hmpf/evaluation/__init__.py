@@ -15,7 +15,7 @@
    a time budget, its acceptance threshold and the paired test on the test split).
 5. :mod:`~hmpf.evaluation.experiments`: the paper's studies, figures and report on banks.
 
-``tests/test_import_structure.py`` checks that there is no circle. The names of layers 1
+``tests/hmpf/test_import_structure.py`` checks that there is no circle. The names of layers 1
 and 2 stay importable from :mod:`~hmpf.evaluation.evaluate` (and ``paired_test``,
 ``precision_recall_at`` from :mod:`~hmpf.evaluation.calibrate`), where they were first. The
 commands are ``hmpf-eval`` (4, and 5 as ``hmpf-eval experiments``) and ``hmpf-calibrate``.

@@ -55,7 +55,7 @@ OPTIONAL_HEAVY = frozenset(
 
 # Command modules: a command loads numpy, OpenCV and the evaluation inside its body (``run``),
 # so that --help and --version are instant and Ctrl-C while they load is one line and exit
-# 130 (tests/test_cli_common.py); their in-project imports inside functions are that.
+# 130 (tests/hmpf/test_cli_common.py); their in-project imports inside functions are that.
 COMMAND_MODULES: dict[str, str] = {
     "hmpf.cli.args": "argument helpers of the evaluation commands, called inside run",
     "hmpf.cli.calibrate": "hmpf-calibrate",

@@ -31,7 +31,7 @@ from hmpf.sequence import (
 # synthetic frames below have a standard deviation of ~0.25, so 0.75 weighs them as the
 # earlier raw weight of 3.0 did (the bounds were first measured with that). leave = 0: no
 # "not in the map" hypothesis, the filter these bounds were measured on (and the dense
-# forward algorithm below); tests/test_sequence_off_map.py tests the off hypothesis.
+# forward algorithm below); tests/hmpf/test_sequence_off_map.py tests the off hypothesis.
 PARAMS = FilterParams(
     max_steps=4,
     accel=0.05,

@@ -4,7 +4,7 @@ after coming back, a drive on the map, the filter without it (``leave = 0``) aga
 recorded from the filter before the hypothesis existed, the weighing of one frame, the
 packed state, ``continuous`` and ``held``, and the service's frame step carrying ``held``.
 
-A frame on the map has a bump at its true place (tests/test_sequence.py's synthetic
+A frame on the map has a bump at its true place (tests/hmpf/test_sequence.py's synthetic
 evidence) and a high absolute evidence (z ~ 6); a frame from elsewhere has scores of clutter
 only, its best reference a random one, and an absolute evidence z ~ 0.
 """

@@ -183,7 +183,7 @@ def test_dockerignore_sends_only_what_the_images_copy() -> None:
         "index/default/CURRENT",
         "results/eval.json",
         "hmpf/__pycache__/x.pyc",
-        "tests/test_dockerfile.py",
+        "tests/packaging/test_docker_files.py",
         "docker/keys.yaml",
     ):
         assert _ignored(path, patterns), path

@@ -47,7 +47,7 @@ CONFIG = {
 N_REFS = 12
 #: Night queries (indices into night_right), inside the references' stretch.
 QUERIES = (1, 4, 7, 10)
-ATOL = 1e-3  # descriptor values at float16 precision (tests/test_onnx_in_index.py)
+ATOL = 1e-3  # descriptor values at float16 precision (tests/hmpf/index/test_onnx_in_index.py)
 
 
 @dataclass(frozen=True)

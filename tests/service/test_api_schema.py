@@ -1,7 +1,7 @@
 """The OpenAPI document tells the truth: what each route takes (the limits the code enforces),
 what it answers (media types, bodies, error codes) and who may see what.
 
-The schema-driven fuzzing of a real server against this document is tests/test_fuzz.py.
+The schema-driven fuzzing of a real server against this document is tests/service/test_fuzz.py.
 """
 
 from __future__ import annotations

@@ -51,7 +51,8 @@ CONFIG = {
 }
 N_REFS = 12
 #: Descriptor values (stored at float16 precision: one step is 4.9e-4 at 0.5) and raw maps
-#: (float32, values up to ~30), as between the CNN runtimes (tests/test_cnn_runtime.py).
+#: (float32, values up to ~30), as between the CNN runtimes
+#: (tests/hmpf/methods/test_cnn_runtime.py).
 ATOL = 1e-3
 MAPS_ATOL = 2e-4
 OPTIONS = BuildOptions(workers=1, progress=False)

@@ -282,7 +282,8 @@ def test_fitted_state_round_trip_pickle_and_cache_key(fitted: dict[str, object])
 
 
 def test_shared_forward_pass_per_group(monkeypatch: pytest.MonkeyPatch) -> None:
-    # torch's forward_maps counted here; ONNX Runtime's runs in tests/test_cnn_runtime.py
+    # torch's forward_maps counted here; ONNX Runtime's runs in
+    # tests/hmpf/methods/test_cnn_runtime.py
     monkeypatch.setattr("hmpf.runtime._cnn_runtime", "torch")
     gem = create_method("gem", {"input_size": [416, 416]})
     hyb = create_method("hybridnet")  # s6 at 416 x 416: same group as gem above

@@ -24,7 +24,7 @@ from hmpf.methods.base import extract_many, fit_many  # noqa: E402
 
 VARIANTS = ("efficientnet_lite1", "efficientnet_lite2")
 SIZE = (64, 96)
-#: As tests/test_cnn_runtime.py: the runtimes' raw maps (float32) agree to this.
+#: As tests/hmpf/methods/test_cnn_runtime.py: the runtimes' raw maps (float32) agree to this.
 MAPS_ATOL = 2e-4
 EXPECTED = {
     "efficientnet_lite1": ((240, 240), [16, 24, 40, 80, 112, 192, 320, 1280], 21),
