@@ -277,7 +277,7 @@ def sign_test(a: list[bool], b: list[bool]) -> tuple[int, int, float]:
 
 
 def pvalue(p: float) -> str:
-    return f"{p:.2g}" if p < 0.01 else f"{p:.2f}".rstrip("0").rstrip(".")
+    return f"{p:.2g}"
 
 
 def lever_times(root: Path) -> dict[str, tuple[float, str]]:
@@ -481,6 +481,136 @@ def sequence_whole(root: Path) -> str:
     return table(header, rows) + source(
         SEQUENCE, data, extra="the traverses include the models' training parts"
     )
+
+
+LOCAL = "docs/experiments/local_descriptors.json"
+LOCAL_STRUCTURES = {
+    "kaze alone": "`kaze` alone",
+    "handcrafted, kaze swapped": "`handcrafted`, its `kaze` swapped",
+    "default + kaze in final tier": "`default-lite0` + `kaze` in the final tier",
+    "default + inliers in final tier": "`default-lite0` + `inliers` in the final tier",
+}
+LOCAL_DESCRIPTORS = {"teblid512": "TEBLID-512", "beblid": "BEBLID (512 bits)"}
+
+
+@generator("levers.local_descriptors")
+def levers_local_descriptors(root: Path) -> str:
+    data = load(root, LOCAL)
+    rows_json = data["rows"]
+    rows = []
+    for key, label in LOCAL_STRUCTURES.items():
+        mine = {k.split(" | ")[1]: v for k, v in rows_json.items() if k.split(" | ")[0] == key}
+        choice = max((d for d in mine if d != "kaze"), key=lambda d: mine[d]["mean_train"])
+        cells = [label, f3(mine["kaze"]["mean_test"])]
+        for desc in LOCAL_DESCRIPTORS:
+            r = mine.get(desc)
+            if r is None:
+                cells.append("not run")
+                continue
+            w = sum(s["wins"] for s in r["sign"].values())
+            lo = sum(s["losses"] for s in r["sign"].values())
+            _, _, pv = sign_test([True] * w + [False] * lo, [False] * w + [True] * lo)
+            note = " (training choice)" if desc == choice else ""
+            cells.append(f"{f3(r['mean_test'])} (+{w}/-{lo}, p {pvalue(pv)}){note}")
+        cells.append(
+            f"{thousands(mine['kaze']['bytes_per_reference'])} -> "
+            f"{thousands(mine['beblid']['bytes_per_reference'])}"
+        )
+        rows.append(cells)
+    header = ["structure", "KAZE's descriptor"] + list(LOCAL_DESCRIPTORS.values())
+    header.append("bytes / reference (KAZE -> 512 bits)")
+    return table(header, rows) + source(
+        LOCAL,
+        data,
+        extra="mean test recall@1 of the three Gardens Point protocols; "
+        '"default" in the JSON is `default-lite0`, the default of that run',
+    )
+
+
+FITTING = "docs/experiments/reference_fitting.json"
+FITTING_ROWS = {
+    "default": "`default-lite0`",
+    "default + whiten": "`default-lite0`, Gist whitened",
+    "default + dba": "`default-lite0` + DBA (k 1)",
+    "default + both": "`default-lite0`, Gist whitened + DBA (k 1)",
+    "nordland_handcrafted": "`calibrated/nordland_handcrafted`",
+    "nordland_handcrafted + whiten": "same, methods whitened",
+    "nordland_handcrafted + dba": "same + DBA (k 1)",
+    "nordland_handcrafted + both": "same, whitened + DBA (k 1)",
+}
+
+
+@generator("levers.reference_fitting")
+def levers_reference_fitting(root: Path) -> str:
+    data = load(root, FITTING)
+    rows = []
+    for key, h in data["hierarchies"].items():
+        label = FITTING_ROWS.get(key)
+        if label is None:  # the searched thumbnail hierarchy: shipped as the preset `thumbnails`
+            label = f"searched on the training parts: `{key.removeprefix('searched: ')}`"
+        cells = [label]
+        for p in (*GP, "nordland"):
+            r = h.get(p)
+            if r is None:
+                cells.append("")
+                continue
+            s = r["sign"]
+            sign = (
+                f" (+{s['wins']}/-{s['losses']}, p {pvalue(s['p'])})"
+                if s["wins"] + s["losses"]
+                else ""
+            )
+            cells.append(f"{f3(r['test'])}{sign}")
+        cells.append(thousands(h["bytes_per_reference"]))
+        rows.append(cells)
+    header = ["config", "dr -> nr", "dl -> nr", "dl -> dr", "Nordland 64x32", "bytes / reference"]
+    return table(header, rows) + source(
+        FITTING,
+        data,
+        extra='"default" in the JSON is `default-lite0`, the default of that run; '
+        "query times of this run were taken under heavy load and are left out",
+    )
+
+
+METHOD_NAMES = {
+    "gem": "GeM",
+    "netvlad": "NetVLAD",
+    "hybridnet": "HybridNet",
+    "olo": "OLO",
+    "gist": "Gist",
+    "hog": "HOG",
+    "sad": "SAD",
+    "kaze": "KAZE",
+}
+
+
+def accuracy_table(root: Path, rel: str) -> str:
+    """A ``bench/accuracy.py`` report: recall@1 of each method alone and of the hierarchy."""
+    data = load(root, rel)
+    reports = data["reports"]
+    ids = list(next(iter(reports.values()))["methods"])
+    rows = []
+    for name, rep in reports.items():
+        h = rep["hierarchy"]
+        single = [rep["methods"][m].get("recall_at", {}).get("1") for m in ids]
+        rows.append(
+            [PROTOCOL_TITLES.get(name, name)]
+            + [f3(x) if x is not None else "-" for x in single]
+            + [
+                f"**{f3(h['combined_recall_at_1'])}**",
+                f3(h["final_tier_recall_at_1"]),
+                f3(h["flat_recall_at_1"]),
+                " / ".join(f"{t['recall']:.2f}" for t in h["tiers"]),
+            ]
+        )
+    header = ["protocol (reference -> query)", *(METHOD_NAMES.get(m, m) for m in ids)]
+    header += ["**Combined**", "final tier", "flat", "tier recalls"]
+    return table(header, rows) + source(rel, data, extra=data.get("note", ""))
+
+
+@generator("index.default")
+def index_default(root: Path) -> str:
+    return accuracy_table(root, "docs/experiments/accuracy/default.json")
 
 
 def main(argv: list[str] | None = None) -> int:
