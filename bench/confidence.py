@@ -1,7 +1,7 @@
 """Calibrated confidence out of the box: is the bundled preset's ``p_correct`` a probability,
 and what does its acceptance give on the map?
 
-    python bench/confidence.py [--config default] [--foreign 200] [--nordland-frames 800]
+    python -m bench.confidence [--config default] [--foreign 200] [--nordland-frames 800]
         [--out docs/experiments/acceptance/confidence.json] [--plot PNG]
 
 ``p_correct`` and ``accepted`` are the service's: :class:`hmpf.acceptance.Policy` applied
@@ -41,9 +41,6 @@ tables.
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -52,36 +49,34 @@ from typing import Any
 import numpy as np
 from scipy.stats import rankdata
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from sequence import pyplot  # noqa: E402
-from shipped_acceptance import (  # noqa: E402
+from bench.harness import ROOT, add_json, parser, provenance, write_record
+from bench.sequence import pyplot
+from bench.shipped_acceptance import (
     ROUTES,
     TARGET,
     Route,
     add_route_arguments,
     flips,
+    held_out_fit,
     model_sets,
-    provenance,
+    report_head,
+    route_policies,
 )
-
-from hmpf.acceptance import Policy  # noqa: E402
-from hmpf.confidence import (  # noqa: E402
+from hmpf.acceptance import Policy
+from hmpf.confidence import (
     expected_calibration_error,
     feature_matrix,
     reliability,
 )
-from hmpf.config import HierarchyConfig  # noqa: E402
-from hmpf.evaluation.acceptance import (  # noqa: E402
+from hmpf.config import HierarchyConfig
+from hmpf.evaluation.acceptance import (
     Answers,
     apply_acceptance,
     sequence_answers,
     single_answers,
 )
-from hmpf.evaluation.sequence import Drive  # noqa: E402
-from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
+from hmpf.evaluation.sequence import Drive
+from hmpf.sequence import FilterParams, RouteMap
 
 #: Issue 30's goals (bundled default preset, test parts / held-out folds).
 GOAL_ECE = 0.05
@@ -341,59 +336,43 @@ def strip(obj: Any) -> Any:
     return obj
 
 
+NOTE = (
+    "2 shared CPU cores (other jobs running): the figures do not depend on it, "
+    "wall_s does. 100 test queries per Gardens Point protocol: one answer moves a "
+    "precision of 99 % by about one point."
+)
+GOALS = {
+    "ece_sequence_pooled": GOAL_ECE,
+    "sequence_accepted": GOAL_SEQUENCE,
+    "single_accepted_gp": GOAL_SINGLE_GP,
+    "foreign_mean_p": GOAL_MEAN_P,
+    "flips_per_100": GOAL_FLIPS,
+}
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     add_route_arguments(ap)
-    ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/confidence.json"))
+    add_json(ap, "--out", default=str(ROOT / "docs/experiments/acceptance/confidence.json"))
     ap.add_argument(
         "--plot", default=str(ROOT / "docs/experiments/acceptance/reliability_default.png")
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
     sets = model_sets(args.config, ROUTES, args.foreign, args.nordland_frames)
-    shipped_config, config, shipped, params, no_model, routes, folds = sets
+    config, params = sets.config, sets.params
     digest = config.digest()
-    has_model = shipped_config.acceptance is not None
-    report: dict[str, Any] = {
-        **provenance(args.config, config),
-        "shipped_models": f"hmpf/presets/acceptance/{args.config}.json" if has_model else None,
-        "note": (
-            "2 shared CPU cores (other jobs running): the figures do not depend on it, "
-            "wall_s does. 100 test queries per Gardens Point protocol: one answer moves a "
-            "precision of 99 % by about one point."
-        ),
-        "target_precision": TARGET,
-        "goals": {
-            "ece_sequence_pooled": GOAL_ECE,
-            "sequence_accepted": GOAL_SEQUENCE,
-            "single_accepted_gp": GOAL_SINGLE_GP,
-            "foreign_mean_p": GOAL_MEAN_P,
-            "flips_per_100": GOAL_FLIPS,
-        },
-        "foreign_frames": args.foreign,
-        "nordland_frames": args.nordland_frames or "all",
-        "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
-        "policies": {"shipped": shipped.describe(), "no_model": no_model.describe()},
-        "routes": {},
-    }
+    prov = provenance(args.config, config, args)
+    report: dict[str, Any] = {**prov, **report_head(args, sets, NOTE, GOALS), "routes": {}}
     answers: dict[str, dict[str, Any]] = {}
     runs: dict[str, dict[str, dict[str, Any]]] = {"shipped": {}, "held_out": {}}
-    for route, (fold, train) in zip(routes, folds, strict=True):
+    for i, route in enumerate(sets.routes):
         gp = route.name.startswith("gp_")
         answers[route.name] = route_answers(route, config, params)
-        others = [r.name for r in routes if r is not route]
-        entry: dict[str, Any] = {"held_out_fit": {"train": train, "thresholds": fold.describe()}}
-        for key, policy, models in (
-            ("shipped", shipped, "shipped" if has_model else "none shipped (quality / lock)"),
-            ("held_out", fold, f"held out: fitted on {', '.join(others)}"),
-            ("no_model", no_model, "none (quality / lock rules)"),
-        ):
-            entry[key] = {
-                "preset": args.config,
-                "digest": digest,
-                "models": models,
-                **measure(policy, answers[route.name], gp),
-            }
+        entry: dict[str, Any] = {"held_out_fit": held_out_fit(sets, i)}
+        for key, (policy, models) in route_policies(sets, i).items():
+            who = {"preset": args.config, "digest": digest, "models": models}
+            entry[key] = {**who, **measure(policy, answers[route.name], gp)}
             if key in runs:
                 runs[key][route.name] = entry[key]
         report["routes"][route.name] = entry
@@ -406,9 +385,7 @@ def main() -> int:
     figure = plot(report, Path(args.plot))
     report["figure"] = None if figure is None else str(figure)
     report["wall_s"] = time.perf_counter() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(strip(report), indent=1, default=str) + "\n")
+    out = write_record(args.out, strip(report), prov=prov)
     print(f"preset {args.config!r} (digest {digest[:12]}), {report['machine']}")
     print(table(report))
     print()
@@ -418,4 +395,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

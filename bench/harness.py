@@ -11,7 +11,8 @@ arguments, small functions compute, :func:`write_record` writes the JSON.
   sizes with :meth:`Parser.smoke`), :func:`add_datasets`, :func:`add_cache_dir`,
   :func:`add_config`, :func:`add_protocols`, :func:`add_json`.
 * **Protocols**: :data:`PROTOCOLS` (Gardens Point's from :mod:`hmpf.datasets`, and
-  Nordland summer -> winter), :func:`protocol_data` (an :class:`EvalData` of one of them).
+  Nordland summer -> winter), :func:`protocol_data` (an :class:`EvalData` of one of them),
+  :func:`split_parts` (its training and test parts).
 * **Timing**: :func:`samples_ms` (wall times of repeated calls after a warm-up),
   :func:`median_ms`, :func:`timed`, :func:`percentiles`, :func:`summary`; the machine:
   :func:`machine` (``<CPU>, <n> cores, Python <v>``) and :func:`machine_details` (the same
@@ -43,7 +44,7 @@ import numpy as np
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
 from hmpf.evaluation.evaluate import EvalData
-from hmpf.index.layout import write_json_atomic
+from hmpf.evaluation.study import split_data
 from hmpf.runtime import default_cache_dir, machine_description
 
 __all__ = [
@@ -68,6 +69,7 @@ __all__ = [
     "provenance",
     "record",
     "samples_ms",
+    "split_parts",
     "summary",
     "timed",
     "write_json",
@@ -176,6 +178,15 @@ def protocol_dirs(name: str, datasets: str | Path | None = None) -> tuple[Path, 
 def protocol_data(name: str, datasets: str | Path | None = None, tolerance: int = 2) -> EvalData:
     """Protocol ``name`` with ground truth +-``tolerance`` frames."""
     return EvalData.frames(*protocol_dirs(name, datasets), tolerance)
+
+
+def split_parts(
+    name: str, datasets: str | Path | None = None, tolerance: int = 2
+) -> list[tuple[str, EvalData]]:
+    """Protocol ``name``'s training and test parts (``hmpf-calibrate``'s ``blocks`` split),
+    as ``[("train", part), ("test", part)]``."""
+    data = protocol_data(name, datasets, tolerance)
+    return list(zip(("train", "test"), split_data(data), strict=True))
 
 
 # -- timing ------------------------------------------------------------------------------------
@@ -311,12 +322,21 @@ def record(
     return {**head, **results}
 
 
-def write_json(path: str | Path, data: Any) -> Path:
-    """Write ``data`` as JSON to ``path`` atomically (values JSON lacks written with
-    ``str``); its folder is made. Returns the path."""
+def write_json(path: str | Path, data: Any, default: Callable[[Any], Any] = str) -> Path:
+    """Write ``data`` as JSON (indent 1, a final newline; values JSON lacks written with
+    ``default``) to ``path`` atomically: a temporary file beside it, then :func:`os.replace`.
+    Its folder is made. Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(path, json.loads(json.dumps(data, default=str)))
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(json.dumps(data, indent=1, default=default) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -327,6 +347,7 @@ def write_record(
     preset: str | None = None,
     config: HierarchyConfig | str | Path | None = None,
     prov: dict[str, Any] | None = None,
+    default: Callable[[Any], Any] = str,
 ) -> Path:
     """:func:`record` written by :func:`write_json`."""
-    return write_json(path, record(results, args, preset, config, prov))
+    return write_json(path, record(results, args, preset, config, prov), default)

@@ -1,7 +1,7 @@
 """Places that are not in the map, out of the box: how often does the bundled preset accept
 an answer for a frame from elsewhere, and what does refusing them cost on the map?
 
-    python bench/out_of_map.py [--config default] [--maps gp_dl_dr,...] [--foreign 200]
+    python -m bench.out_of_map [--config default] [--maps gp_dl_dr,...] [--foreign 200]
         [--nordland-frames 800] [--out docs/experiments/acceptance/out_of_map.json]
 
 The decisions are the service's: :class:`hmpf.acceptance.Policy` applied through
@@ -46,43 +46,36 @@ the report the machine, date and git commit) and prints Markdown tables.
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from shipped_acceptance import (  # noqa: E402
+from bench.harness import ROOT, add_json, parser, provenance, write_record
+from bench.shipped_acceptance import (
     BLOCK,
     ROUTES,
-    TARGET,
     Route,
     add_route_arguments,
     evaluate,
+    held_out_fit,
     model_sets,
-    provenance,
+    report_head,
+    route_policies,
     spread,
 )
-
-from hmpf.config import HierarchyConfig  # noqa: E402
-from hmpf.evaluation.acceptance import (  # noqa: E402
+from hmpf.config import HierarchyConfig
+from hmpf.evaluation.acceptance import (
     Answers,
     apply_acceptance,
     sequence_answers,
     single_answers,
 )
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.study import ScoreBank  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import ScoreBank
+from hmpf.features import FeatureCache, default_cache_dir
+from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = ["block_parts", "false_accepts", "off_map_rows", "out_of_map", "spread", "table"]
 
@@ -230,113 +223,101 @@ def label(preset: str, digest: str, models: str) -> dict[str, str]:
     return {"preset": preset, "digest": digest, "models": models}
 
 
+def rows_of(
+    name: str, who: dict[str, str], ev: dict[str, Any], removed: dict[str, Any]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """One map and policy's rows (``who``: the policy's label, its models named short): off
+    the map (foreign frames, then removed stretches) and in the map."""
+    common = {"map": name, **who}
+    f = ev["foreign"]
+    rows = []
+    for mode in ("single", "sequence"):
+        n = f["n"]
+        k = int(round(f[f"{mode}_accepted"] * n))
+        mp = f[f"{mode}_mean_p"]
+        rows.append(
+            {
+                **common,
+                "queries": "foreign",
+                "mode": mode,
+                "rule": ev[mode]["rule"],
+                "n": n,
+                "false_accepts": k,
+                "rate": k / n if n else None,
+                "upper_95": upper_95(k, n),
+                "met": (k / n <= GOAL) if n else None,
+                "mean_p": mp,
+                "mean_p_met": None if mp is None else mp <= GOAL_MEAN_P,
+                "said_off_map": f["sequence_off_map"] if mode == "sequence" else None,
+            }
+        )
+    for mode in ("single", "sequence"):
+        rows.append({**common, "queries": "removed", "mode": mode, **removed[mode]})
+    t = ev["leave_and_return"]
+    in_map = []
+    for mode in ("single", "sequence"):
+        row = {**common, "mode": mode, **ev[mode]}
+        if mode == "sequence":
+            row["leave_and_return"] = (
+                f"{t['away_accepted']:.3f}, {t['frames_to_accept_after_return']}"
+            )
+        in_map.append(row)
+    return rows, in_map
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     add_route_arguments(ap)
     ap.add_argument("--maps", default=",".join(ROUTES), help="maps to test (comma-separated)")
-    ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/out_of_map.json"))
+    add_json(ap, "--out", default=str(ROOT / "docs/experiments/acceptance/out_of_map.json"))
     args = ap.parse_args()
     t0 = time.perf_counter()
     names = args.maps.split(",")
     # Every route's training part is needed for the held-out folds, whichever maps are shown.
     sets = model_sets(args.config, ROUTES, args.foreign, args.nordland_frames)
-    shipped_config, config, shipped, params, no_model, routes, folds = sets
+    config, params = sets.config, sets.params
     digest = config.digest()
     cache = FeatureCache(default_cache_dir())
-    has_model = shipped_config.acceptance is not None
+    prov = provenance(args.config, config, args)
+    goals = {"off_map_accepted": GOAL, "off_map_mean_p": GOAL_MEAN_P, "flips": GOAL_FLIPS}
+    note = "2 shared CPU cores (other jobs running): the figures do not depend on it, wall_s does"
     report: dict[str, Any] = {
-        **provenance(args.config, config),
-        "shipped_models": (f"hmpf/presets/acceptance/{args.config}.json" if has_model else None),
-        "note": (
-            "2 shared CPU cores (other jobs running): the figures do not depend on it, wall_s does"
-        ),
-        "target_precision": TARGET,
-        "goals": {"off_map_accepted": GOAL, "off_map_mean_p": GOAL_MEAN_P, "flips": GOAL_FLIPS},
-        "foreign_frames": args.foreign,
-        "nordland_frames": args.nordland_frames or "all",
-        "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
-        "policies": {"shipped": shipped.describe(), "no_model": no_model.describe()},
+        **prov,
+        **report_head(args, sets, note, goals),
         "maps": {},
         "rows": [],
         "in_map": [],
     }
-    for i, route in enumerate(routes):
+    for i, route in enumerate(sets.routes):
         if route.name not in names:
             continue
-        fold, train = folds[i]
-        others = [r.name for r in routes if r is not route]
-        policies = {
-            "shipped": (shipped, "shipped" if has_model else "none shipped (quality / lock)"),
-            "held_out": (fold, f"held out: fitted on {', '.join(others)}"),
-            "no_model": (no_model, "none (quality / lock rules)"),
-        }
         r_single, r_seq, outside = removed_answers(route, config, params, cache)
         entry: dict[str, Any] = {
             "foreign": ROUTES[route.name][2],
             "n_test": route.n_test,
             "n_reference_test": route.test.n_db,
             "n_reference_train": route.train.n_db,
-            "held_out_fit": {"train": train, "thresholds": fold.describe()},
+            "held_out_fit": held_out_fit(sets, i),
         }
-        for key, (policy, models) in policies.items():
+        for key, (policy, models) in route_policies(sets, i).items():
             who = label(args.config, digest, models)
             ev = evaluate(route, policy, params)
-            for mode in ("sequence",):
-                ev[mode] = {k: v for k, v in ev[mode].items() if k not in ("p_correct", "correct")}
-            f = ev["foreign"]
+            ev["sequence"] = {
+                k: v for k, v in ev["sequence"].items() if k not in ("p_correct", "correct")
+            }
             removed = {
                 "single": off_map_rows(apply_acceptance(policy, r_single), outside),
                 "sequence": off_map_rows(apply_acceptance(policy, r_seq, sequence=True), outside),
             }
             entry[key] = {**who, **ev, "removed": removed}
-            short = key.replace("_", " ")
-            for mode in ("single", "sequence"):
-                n = f["n"]
-                k = int(round(f[f"{mode}_accepted"] * n))
-                mp = f[f"{mode}_mean_p"]
-                report["rows"].append(
-                    {
-                        "map": route.name,
-                        **who,
-                        "models": short,
-                        "queries": "foreign",
-                        "mode": mode,
-                        "rule": ev[mode]["rule"],
-                        "n": n,
-                        "false_accepts": k,
-                        "rate": k / n if n else None,
-                        "upper_95": upper_95(k, n),
-                        "met": (k / n <= GOAL) if n else None,
-                        "mean_p": mp,
-                        "mean_p_met": None if mp is None else mp <= GOAL_MEAN_P,
-                        "said_off_map": f["sequence_off_map"] if mode == "sequence" else None,
-                    }
-                )
-            for mode in ("single", "sequence"):
-                report["rows"].append(
-                    {
-                        "map": route.name,
-                        **who,
-                        "models": short,
-                        "queries": "removed",
-                        "mode": mode,
-                        **removed[mode],
-                    }
-                )
-            t = ev["leave_and_return"]
-            for mode in ("single", "sequence"):
-                row = {"map": route.name, **who, "models": short, "mode": mode, **ev[mode]}
-                if mode == "sequence":
-                    row["leave_and_return"] = (
-                        f"{t['away_accepted']:.3f}, {t['frames_to_accept_after_return']}"
-                    )
-                report["in_map"].append(row)
+            short = {**who, "models": key.replace("_", " ")}
+            rows, in_map = rows_of(route.name, short, ev, removed)
+            report["rows"] += rows
+            report["in_map"] += in_map
         report["maps"][route.name] = entry
         print(f"{route.name} done ({time.perf_counter() - t0:.0f} s)", flush=True)
     report["wall_s"] = time.perf_counter() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1, default=str) + "\n")
+    out = write_record(args.out, report, prov=prov)
     print(f"preset {args.config!r} (digest {digest[:12]}), {report['machine']}")
     print(table(report["rows"]))
     print()

@@ -1,6 +1,6 @@
 """Sequence mode out of the box: what the filter finds and what the one policy accepts of it.
 
-    python bench/sequence.py [--config default] [--foreign 200] [--nordland-frames 800]
+    python -m bench.sequence [--config default] [--foreign 200] [--nordland-frames 800]
         [--out docs/experiments/acceptance/sequence.json] [--plots DIR] [--tune]
 
 The routes and their parts are ``bench/shipped_acceptance.py``'s (Gardens Point's three
@@ -53,10 +53,7 @@ Every figure names the preset and its config digest, the machine, date and git c
 
 from __future__ import annotations
 
-import argparse
 import itertools
-import json
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -64,11 +61,8 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from shipped_acceptance import (  # noqa: E402
+from bench.harness import ROOT, add_json, parser, provenance, write_record
+from bench.shipped_acceptance import (
     ROUTES,
     TARGET,
     TOLERANCE,
@@ -76,26 +70,27 @@ from shipped_acceptance import (  # noqa: E402
     add_route_arguments,
     evaluate,
     flips,
+    held_out_fit,
     model_sets,
     out_of_the_box,
-    provenance,
+    report_head,
+    route_policies,
 )
-
-from hmpf.acceptance import Policy  # noqa: E402
-from hmpf.config import HierarchyConfig  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root  # noqa: E402
-from hmpf.evaluation.acceptance import Answers, apply_acceptance, sequence_answers  # noqa: E402
-from hmpf.evaluation.calibrate import paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.sequence import (  # noqa: E402
+from hmpf.acceptance import Policy
+from hmpf.config import HierarchyConfig
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
+from hmpf.evaluation.acceptance import Answers, apply_acceptance, sequence_answers
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.sequence import (
     Drive,
     jump_drives,
     sequence_report,
     start_drives,
 )
-from hmpf.evaluation.study import ScoreBank  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.sequence import FilterParams, RouteMap  # noqa: E402
+from hmpf.evaluation.study import ScoreBank
+from hmpf.features import FeatureCache, default_cache_dir
+from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = [
     "first_accepts",
@@ -551,62 +546,68 @@ def tune_table(t: dict[str, Any]) -> str:
 # -- the run ------------------------------------------------------------------------------------
 
 
+NOTE = (
+    "2 shared CPU cores (other jobs running): the figures do not depend on it, "
+    "wall_s does. 100 test queries per Gardens Point protocol (200 per whole "
+    "traverse): one frame moves a recall by 1 (0.5) point; close rivals cannot be "
+    "told apart."
+)
+
+
+def print_report(report: dict[str, Any], digest: str, out: Path) -> None:
+    print(
+        f"preset {report['preset']!r} (digest {digest[:12]}), "
+        f"commit {(report['commit'] or '?')[:7]}, {report['machine']}, {report['date']}"
+    )
+    print(table(report))
+    print()
+    print(filter_table(report))
+    print()
+    print(whole_table(report))
+    if "tune" in report:
+        print()
+        print(tune_table(report["tune"]))
+    print(f"wrote {out} ({report['wall_s']:.0f} s)")
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     add_route_arguments(ap)
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated (>= 3)")
     ap.add_argument("--tune", action="store_true", help="also the training-part filter grid")
-    ap.add_argument("--out", default=str(ROOT / "docs/experiments/acceptance/sequence.json"))
+    add_json(ap, "--out", default=str(ROOT / "docs/experiments/acceptance/sequence.json"))
     ap.add_argument(
         "--plots", default=str(ROOT / "docs/experiments/acceptance/sequence_history_by_speed.png")
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
     # the commit of the code loaded, not the end's
-    prov = provenance(args.config, out_of_the_box(args.config)[1])
+    prov = provenance(args.config, out_of_the_box(args.config)[1], args)
     names = args.routes.split(",")
     sets = model_sets(args.config, names, args.foreign, args.nordland_frames)
-    shipped_config, config, shipped, params, no_model, routes, folds = sets
+    config, params, routes = sets.config, sets.params, sets.routes
     digest = config.digest()
     cache = FeatureCache(default_cache_dir())
     wholes = [Whole(n, config, cache) for n in GARDENS_POINT_PROTOCOLS if n in names]
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    has_model = shipped_config.acceptance is not None
+    goals = {
+        "whole_gp_dl_nr_recall": GOAL_WHOLE,
+        "sequence_accepted": GOAL_SEQUENCE,
+        "flips_per_100": GOAL_FLIPS,
+    }
     report: dict[str, Any] = {
         **prov,
-        "shipped_models": f"hmpf/presets/acceptance/{args.config}.json" if has_model else None,
-        "note": (
-            "2 shared CPU cores (other jobs running): the figures do not depend on it, "
-            "wall_s does. 100 test queries per Gardens Point protocol (200 per whole "
-            "traverse): one frame moves a recall by 1 (0.5) point; close rivals cannot be "
-            "told apart."
-        ),
-        "target_precision": TARGET,
-        "goals": {
-            "whole_gp_dl_nr_recall": GOAL_WHOLE,
-            "sequence_accepted": GOAL_SEQUENCE,
-            "flips_per_100": GOAL_FLIPS,
-        },
+        **report_head(args, sets, NOTE, goals, filter_key="filter_params"),
         "right_run_min_frames": MIN_RUN,
-        "foreign_frames": args.foreign,
-        "nordland_frames": args.nordland_frames or "all",
-        "filter_params": {k: getattr(params, k) for k in params.__dataclass_fields__},
-        "policies": {"shipped": shipped.describe(), "no_model": no_model.describe()},
         "routes": {},
         "whole": {},
     }
     by_name = {}
-    for route, (fold, train) in zip(routes, folds, strict=True):
-        others = [r.name for r in routes if r is not route]
-        policies = {
-            "shipped": (shipped, "shipped" if has_model else "none shipped (quality / lock)"),
-            "held_out": (fold, f"held out: fitted on {', '.join(others)}"),
-            "no_model": (no_model, "none (quality / lock rules)"),
-        }
-        by_name[route.name] = policies
+    for i, route in enumerate(routes):
+        by_name[route.name] = policies = route_policies(sets, i)
         report["routes"][route.name] = {
             **route_figures(route, config, params, policies, digest),
-            "held_out_fit": {"train": train, "thresholds": fold.describe()},
+            "held_out_fit": held_out_fit(sets, i),
         }
         print(f"{route.name} done ({time.perf_counter() - t0:.0f} s)", flush=True)
     for w in wholes:  # with the fold that held this protocol out
@@ -618,24 +619,9 @@ def main() -> int:
         report["tune"] = tune(routes, wholes, config, params)
         print(f"tuning done ({time.perf_counter() - t0:.0f} s)", flush=True)
     report["wall_s"] = time.perf_counter() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1, default=str) + "\n")
-    print(
-        f"preset {args.config!r} (digest {digest[:12]}), commit {(report['commit'] or '?')[:7]}, "
-        f"{report['machine']}, {report['date']}"
-    )
-    print(table(report))
-    print()
-    print(filter_table(report))
-    print()
-    print(whole_table(report))
-    if "tune" in report:
-        print()
-        print(tune_table(report["tune"]))
-    print(f"wrote {out} ({report['wall_s']:.0f} s)")
+    print_report(report, digest, write_record(args.out, report, prov=prov))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

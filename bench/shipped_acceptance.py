@@ -1,7 +1,7 @@
 """The confidence models a bundled preset ships: fitted on every route we have, checked on
 routes they never saw.
 
-    python bench/shipped_acceptance.py [--config default] [--foreign 200] [--write]
+    python -m bench.shipped_acceptance [--config default] [--foreign 200] [--write]
         [--out results/shipped_acceptance_default.json]
 
 Each route (Gardens Point's three protocols, Nordland summer -> winter; all with the same
@@ -43,11 +43,7 @@ camera and season). With ``--write`` the shipped fit goes to
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import subprocess
-import sys
 import time
 from collections.abc import Iterable
 from dataclasses import replace
@@ -56,6 +52,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from bench.harness import ROOT, Parser, add_json, parser, provenance, write_json, write_record
 from hmpf.acceptance import STAY_P, Policy
 from hmpf.confidence import expected_calibration_error
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
@@ -76,10 +73,9 @@ from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import Drive, training_drives
 from hmpf.evaluation.study import ScoreBank, split_data
 from hmpf.features import FeatureCache
-from hmpf.runtime import default_cache_dir, machine_description
+from hmpf.runtime import default_cache_dir
 from hmpf.sequence import FilterParams, RouteMap
 
-ROOT = Path(__file__).resolve().parent.parent
 #: Route name -> (reference folder, query folder, the foreign frames' folder for the test,
 #: the foreign frames' folder for training: other frames of another data set).
 ROUTES = {
@@ -333,6 +329,8 @@ def add_route_arguments(ap: argparse.ArgumentParser) -> None:
         default=NORDLAND_FRAMES,
         help="Nordland's first frames used (0: all 3576)",
     )
+    if isinstance(ap, Parser):
+        ap.smoke(foreign=20, nordland_frames=100)
 
 
 class ModelSets(NamedTuple):
@@ -362,35 +360,46 @@ def model_sets(preset: str, names: Iterable[str], foreign: int, nordland_frames:
     return ModelSets(shipped_config, config, shipped, params, no_model, routes, folds)
 
 
-def git_commit() -> dict[str, Any]:
-    """The commit the tree was at, and whether the bench's own code differed from it."""
-
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(
-                ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
-            ).stdout.rstrip("\n")  # not strip(): porcelain lines start with a space
-        except (OSError, subprocess.CalledProcessError):
-            return ""
-
-    changed = git("status", "--porcelain", "--", "bench", "hmpf")
+def report_head(
+    args: argparse.Namespace,
+    sets: ModelSets,
+    note: str,
+    goals: dict[str, Any],
+    filter_key: str = "filter",
+) -> dict[str, Any]:
+    """What the acceptance benches' reports say first (after :func:`bench.harness.provenance`):
+    the shipped models' file, the note, the target and goals, the sizes, the filter's settings
+    and the shipped and no-model policies."""
+    params = sets.params
+    has_model = sets.shipped_config.acceptance is not None
     return {
-        "commit": git("rev-parse", "HEAD") or None,
-        "code_changed_since_commit": [line[3:] for line in changed.splitlines()],
+        "shipped_models": f"hmpf/presets/acceptance/{args.config}.json" if has_model else None,
+        "note": note,
+        "target_precision": TARGET,
+        "goals": goals,
+        "foreign_frames": args.foreign,
+        "nordland_frames": args.nordland_frames or "all",
+        filter_key: {k: getattr(params, k) for k in params.__dataclass_fields__},
+        "policies": {"shipped": sets.shipped.describe(), "no_model": sets.no_model.describe()},
     }
 
 
-def provenance(preset: str, config: HierarchyConfig) -> dict[str, Any]:
-    """What every figure of a report belongs to: the preset and its config digest, the
-    machine, the date (UTC), the git commit and the command line."""
+def route_policies(sets: ModelSets, i: int) -> dict[str, tuple[Policy, str]]:
+    """Route ``sets.routes[i]``'s three policies, each with what its models are:
+    ``shipped``, ``held_out`` (fitted on the other routes) and ``no_model``."""
+    has_model = sets.shipped_config.acceptance is not None
+    others = [r.name for j, r in enumerate(sets.routes) if j != i]
     return {
-        "preset": preset,
-        "digest": config.digest(),
-        "machine": machine_description(),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        **git_commit(),
-        "command": " ".join(["python", *sys.argv]),
+        "shipped": (sets.shipped, "shipped" if has_model else "none shipped (quality / lock)"),
+        "held_out": (sets.folds[i][0], f"held out: fitted on {', '.join(others)}"),
+        "no_model": (sets.no_model, "none (quality / lock rules)"),
     }
+
+
+def held_out_fit(sets: ModelSets, i: int) -> dict[str, Any]:
+    """Route ``i``'s held-out fit: its training figures and thresholds."""
+    fold, train = sets.folds[i]
+    return {"train": train, "thresholds": fold.describe()}
 
 
 def settings_of(policy: Policy, note: str) -> AcceptanceSettings:
@@ -432,22 +441,61 @@ def goals(report: dict[str, Any]) -> list[str]:
     return lines
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default="default", help="the bundled preset")
-    ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
-    ap.add_argument("--foreign", type=int, default=200, help="foreign frames per map")
-    ap.add_argument(
-        "--nordland-frames",
-        type=int,
-        default=NORDLAND_FRAMES,
-        help="Nordland's first frames used (0: all 3576)",
+def fold_reports(
+    routes: list[Route], parts: list[tuple[RoutePart, RoutePart]], params: FilterParams, t0: float
+) -> dict[str, Any]:
+    """Per route: the policy fitted on the other routes (:func:`held_out`) on its test part."""
+    out = {}
+    for route, (policy, train) in zip(routes, held_out(parts), strict=True):
+        out[route.name] = {
+            **evaluate(route, policy, params),
+            "train": train,
+            "thresholds": policy.describe(),
+        }
+        print(f"fold {route.name} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    return out
+
+
+def shipped_report(
+    routes: list[Route], parts: list[tuple[RoutePart, RoutePart]], params: FilterParams
+) -> tuple[Policy, dict[str, Any]]:
+    """The shipped fit (every route's training part) and its figures on every test part."""
+    policy, train = fit([p[0] for p in parts], [p[1] for p in parts])
+    report: dict[str, Any] = {"train": train, "thresholds": policy.describe()}
+    for route in routes:
+        report[route.name] = evaluate(route, policy, params)
+    return policy, report
+
+
+def write_shipped(
+    preset: str, config: HierarchyConfig, routes: list[Route], policy: Policy
+) -> Path:
+    """``hmpf/presets/acceptance/<preset>.json``: the shipped fit, with the config's digest."""
+    note = (
+        f"shipped with preset {preset!r}: fitted by bench/shipped_acceptance.py on "
+        f"the training parts of {', '.join(r.name for r in routes)} (each route alike), "
+        "thresholds for 99 % precision on out-of-fold predictions (stretches of each "
+        "route); sequence stay threshold 0.5 (hysteresis)"
     )
+    doc = {
+        "preset": preset,
+        "digest": config.digest(),
+        "routes": [r.name for r in routes],
+        "acceptance": settings_of(policy, note).model_dump(exclude_none=True),
+    }
+    return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    add_route_arguments(ap)
+    ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
     ap.add_argument("--write", action="store_true", help="write the preset's shipped models")
-    ap.add_argument("--out", help="JSON report (default results/shipped_acceptance_<config>)")
+    add_json(ap, "--out", help="JSON report (default results/shipped_acceptance_<config>)")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    config = load_config(args.config).model_copy(update={"acceptance": None})
+    config = out_of_the_box(args.config)[1]
+    prov = provenance(args.config, config, args)
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
     routes = [
@@ -458,61 +506,30 @@ def main() -> int:
     parts = [training_part(r, params) for r in routes]
     report: dict[str, Any] = {
         "config": args.config,
-        "digest": config.digest(),
-        "machine": machine_description(),
         "target_precision": TARGET,
         "single_features": list(SINGLE_FEATURES),
         "sequence_features": list(SEQUENCE_FEATURES),
         "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
         "nordland_frames": args.nordland_frames or "all",
-        "folds": {},
-        "shipped": {},
+        "folds": fold_reports(routes, parts, params, t0),
     }
-    for i, route in enumerate(routes):
-        rest = [p for j, p in enumerate(parts) if j != i]
-        policy, train = fit([p[0] for p in rest], [p[1] for p in rest])
-        report["folds"][route.name] = {
-            **evaluate(route, policy, params),
-            "train": train,
-            "thresholds": policy.describe(),
-        }
-        print(f"fold {route.name} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    policy, train = fit([p[0] for p in parts], [p[1] for p in parts])
-    report["shipped"]["train"] = train
-    report["shipped"]["thresholds"] = policy.describe()
-    for route in routes:
-        report["shipped"][route.name] = evaluate(route, policy, params)
+    policy, report["shipped"] = shipped_report(routes, parts, params)
     for key, runs in (
         ("folds", report["folds"]),
         ("shipped", {k: v for k, v in report["shipped"].items() if k in report["folds"]}),
     ):
         report[f"pooled_sequence_ece_{key}"] = pooled_ece(runs.values())
     report["wall_s"] = time.perf_counter() - t0
-    out = Path(args.out or ROOT / "results" / f"shipped_acceptance_{args.config}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1, default=str))
+    out = write_record(
+        args.out or ROOT / "results" / f"shipped_acceptance_{args.config}.json", report, prov=prov
+    )
     print("\n".join(goals(report)))
     print(
         "pooled sequence ECE (test parts): held-out folds "
         f"{report['pooled_sequence_ece_folds']}, shipped {report['pooled_sequence_ece_shipped']}"
     )
     if args.write:
-        note = (
-            f"shipped with preset {args.config!r}: fitted by bench/shipped_acceptance.py on "
-            f"the training parts of {', '.join(r.name for r in routes)} (each route alike), "
-            "thresholds for 99 % precision on out-of-fold predictions (stretches of each "
-            "route); sequence stay threshold 0.5 (hysteresis)"
-        )
-        target = ROOT / "hmpf" / "presets" / "acceptance" / f"{args.config}.json"
-        target.parent.mkdir(parents=True, exist_ok=True)
-        doc = {
-            "preset": args.config,
-            "digest": config.digest(),
-            "routes": [r.name for r in routes],
-            "acceptance": settings_of(policy, note).model_dump(exclude_none=True),
-        }
-        target.write_text(json.dumps(doc, indent=1) + "\n")
-        print(f"wrote {target}")
+        print(f"wrote {write_shipped(args.config, config, routes, policy)}")
     print(f"wrote {out} ({report['wall_s']:.0f} s)")
     return 0
 
