@@ -229,8 +229,7 @@ def levers_backbones(root: Path) -> str:
     return out + (
         f"\n*Source: `{BACKBONES}`; configs `default-efficientnet_liteN-native` "
         f"(`default-lite0`'s methods, tiers and weights on each backbone; config digests of the "
-        f"configs recorded in the JSON: {digests}); machine, date and commit not recorded "
-        f"(AMD EPYC, 2 cores, per the write-up).*\n"
+        f"configs recorded in the JSON: {digests}); machine, date and commit not recorded.*\n"
     )
 
 
@@ -611,6 +610,112 @@ def accuracy_table(root: Path, rel: str) -> str:
 @generator("index.default")
 def index_default(root: Path) -> str:
     return accuracy_table(root, "docs/experiments/accuracy/default.json")
+
+
+@generator("backbones.methods")
+def backbones_methods(root: Path) -> str:
+    data = load(root, BACKBONES)
+    rows = []
+    for key, entry in data.items():
+        for m in ("gem", "netvlad", "olo"):
+            rec = [entry["recall"][p][m] for p in GP]
+            rows.append(
+                [key, m, *(f3(x) for x in rec), f3(sum(rec) / len(rec)), f1(entry["method_ms"][m])]
+            )
+    gist = {k: e["method_ms"]["gist"] for k, e in data.items()}
+    rec = [next(iter(data.values()))["recall"][p]["gist"] for p in GP]
+    rows.append(
+        [
+            "(any)",
+            "gist",
+            *(f3(x) for x in rec),
+            f3(sum(rec) / len(rec)),
+            f"{f1(min(gist.values()))}-{f1(max(gist.values()))}",
+        ]
+    )
+    header = ["backbone", "method", *GP, "mean", "ms / image (1 thread)"]
+    return table(header, rows) + (
+        f"\n*Source: `{BACKBONES}`; machine, date and commit not recorded.*\n"
+    )
+
+
+# the kaze method's own matching defaults (hmpf/methods/kaze.py), the row KAZE's baseline uses
+KAZE_DEFAULT_MATCHING = {"match_threshold": 20.0, "max_ratio": 0.7}
+DESCRIPTOR_BITS = {
+    "kaze": "64 floats",
+    "beblid": "512 bits",
+    "teblid": "256 bits",
+    "teblid512": "512 bits",
+    "orb": "256 bits",
+}
+
+
+@generator("local_descriptors.grid")
+def local_descriptors_grid(root: Path) -> str:
+    data = load(root, LOCAL)
+    grid = data["grid"]
+    rows = []
+    for desc, means in data["grid_train"].items():
+        chosen = data["chosen"].get(desc) or KAZE_DEFAULT_MATCHING
+        best = grid.index([chosen["match_threshold"], chosen["max_ratio"]])
+        rows.append(
+            [f"{desc} ({DESCRIPTOR_BITS.get(desc, '')})"]
+            + [f"**{f3(x)}**" if i == best else f3(x) for i, x in enumerate(means)]
+        )
+    header = ["descriptor"] + [f"{thr:g} / {ratio:g}" for thr, ratio in grid]
+    return table(header, rows) + source(
+        LOCAL,
+        data,
+        extra="mean training recall@1; bold: the setting used below (the JSON's `chosen`; KAZE: "
+        "its defaults)",
+    )
+
+
+@generator("local_descriptors.recall")
+def local_descriptors_recall(root: Path) -> str:
+    data = load(root, LOCAL)
+    rows = []
+    for key, r in data["rows"].items():
+        structure, desc = key.split(" | ")
+        params = r["params"]
+        matching = (
+            f"{desc} ({params['match_threshold']:g} / {params['max_ratio']:g})"
+            if "match_threshold" in params
+            else desc
+        )
+        cells = [structure, matching]
+        for i, p in enumerate(GP):
+            cells.append(f3(r["train"][i]))
+            s = r["sign"].get(p)
+            sign = f" (+{s['wins']}/-{s['losses']}, p {pvalue(s['p'])})" if s else ""
+            cells.append(f3(r["test"][i]) + sign)
+        cells += [f3(r["mean_train"]), f3(r["mean_test"])]
+        if r["sign"]:
+            w = sum(s["wins"] for s in r["sign"].values())
+            lo = sum(s["losses"] for s in r["sign"].values())
+            _, _, pv = sign_test([True] * w + [False] * lo, [False] * w + [True] * lo)
+            cells.append(f"+{w}/-{lo}, p {pvalue(pv)}")
+        else:
+            cells.append("(baseline)")
+        cells.append(thousands(r["bytes_per_reference"]))
+        rows.append(cells)
+    header = [
+        "structure",
+        "descriptor (matching)",
+        "dr->nr train",
+        "dr->nr test",
+        "dl->nr train",
+        "dl->nr test",
+        "dl->dr train",
+        "dl->dr test",
+        "mean train",
+        "mean test",
+        "pooled test vs KAZE's",
+        "bytes / ref",
+    ]
+    return table(header, rows) + source(
+        LOCAL, data, extra='"default" in the JSON is `default-lite0`, the default of that run'
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
