@@ -796,6 +796,77 @@ def reference_fitting_cost(root: Path) -> str:
     return table(header, rows) + f"\n\\* {FITTING_DBA_NOTE}.\n" + source(FITTING, data)
 
 
+def choose_table(root: Path, rel: str, labels: dict[str, str], note: str = "") -> str:
+    """A ``bench/choose_default.py --out`` report: training and test recall@1 of each config
+    (the first is the baseline), paired sign tests on the pooled test (and whole) queries."""
+    data = load(root, rel)
+    rows_json = {k: v for k, v in data.items() if isinstance(v, dict) and "test" in v}
+    base_key = next(iter(rows_json))
+    base = rows_json[base_key]
+    whole = "whole_flags" in base
+    rows = []
+    for key, r in rows_json.items():
+        test = " / ".join(f3(r["test"][p]) for p in GP) + f" ({f3(r['test_mean'])})"
+        cells = [labels.get(key, f"`{key}`"), f3(r["train_mean"]), test]
+        if key == base_key:
+            cells.append("")
+        else:
+            w, lo, pv = sign_test(r["test_flags"], base["test_flags"])
+            cells.append(f"{w} / {lo}, p {pvalue(pv)}")
+        if whole:
+            cells.append(f3(r["whole_mean"]))
+            if key == base_key:
+                cells.append("")
+            else:
+                w, lo, pv = sign_test(r["whole_flags"], base["whole_flags"])
+                cells.append(f"{w} / {lo}, p {pvalue(pv)}")
+        rows.append(cells)
+    header = [
+        "config",
+        "training mean",
+        "test dr -> nr / dl -> nr / dl -> dr (mean)",
+        f"test vs {labels.get(base_key, base_key)}",
+    ]
+    if whole:
+        header += ["whole mean", "whole vs the first row"]
+    return table(header, rows) + source(rel, data if "machine" in data else None, extra=note)
+
+
+@generator("levers.olo_sizes")
+def levers_olo_sizes(root: Path) -> str:
+    labels = {
+        "default": "100 regions, 256 words (`default-lite0`)",
+        "bench/levers/olo_regions50.yaml": "50 regions",
+        "bench/levers/olo_regions150.yaml": "150 regions",
+        "bench/levers/olo_regions200.yaml": "200 regions",
+        "bench/levers/olo_vocab64.yaml": "64 words",
+        "bench/levers/olo_vocab1024.yaml": "1024 words",
+    }
+    return choose_table(
+        root,
+        "docs/experiments/levers_olo_choose_default.json",
+        labels,
+        "its `default` is `default-lite0`, the default of that run; machine: the printout "
+        "alongside (`levers_olo_choose_default.txt`)",
+    )
+
+
+@generator("levers.results_printout")
+def levers_results_printout(root: Path) -> str:
+    rel = "docs/experiments/levers.txt"
+    lines = [ln for ln in (root / rel).read_text().splitlines() if ln.startswith("|")]
+    return (
+        "\n".join(lines)
+        + "\n"
+        + source(
+            LEVERS,
+            load(root, LEVERS),
+            extra=f"the table as `bench/levers.py` printed it (`{rel}`); its `default` is "
+            "`default-lite0`, the default of that run; ms: `levers_time.json`, a loaded machine",
+        )
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 when a page differs")
