@@ -825,7 +825,7 @@ def choose_table(root: Path, rel: str, labels: dict[str, str], note: str = "") -
         "config",
         "training mean",
         "test dr -> nr / dl -> nr / dl -> dr (mean)",
-        f"test vs {labels.get(base_key, base_key)}",
+        "test vs the first row",
     ]
     if whole:
         header += ["whole mean", "whole vs the first row"]
