@@ -10,7 +10,8 @@ each generated table, a block::
 whose content this module writes: the table made by the generator ``NAME`` (see
 :data:`GENERATORS`) from its JSON, followed by a "Source:" line naming the JSON file, the
 preset and config digest, the machine, the date and the commit, as the JSON records them
-(what it does not record is said to be not recorded, never filled in by hand).
+(what it does not record is said to be not recorded, never filled in by hand). The
+calibration leaderboards (:data:`WHOLE_PAGES`) are generated whole from their reports.
 
     python -m bench.pages            # rewrite the pages' generated blocks
     python -m bench.pages --check    # exit 1, listing the pages that differ
@@ -956,13 +957,31 @@ def pages(root: Path) -> list[Path]:
     return out
 
 
+def leaderboard_page(root: Path, folder: str) -> str:
+    """A calibration leaderboard, whole, as ``hmpf-calibrate`` writes it from its report."""
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
+    return leaderboard_markdown(load(root, f"{folder}/calibration.json"))
+
+
+# pages generated whole (no prose of their own): path -> renderer
+WHOLE_PAGES: dict[str, Callable[[Path], str]] = {
+    f"docs/experiments/{name}/leaderboard.md": (
+        lambda root, name=name: leaderboard_page(root, f"docs/experiments/{name}")
+    )
+    for name in ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr", "nordland_handcrafted")
+}
+
+
 def render_all(root: Path, write: bool) -> list[str]:
-    """The pages (relative paths) whose generated blocks differ from their JSON; rewritten
-    when ``write``."""
+    """The pages (relative paths) that differ from what their JSON produce; rewritten when
+    ``write``."""
     differ = []
-    for page in pages(root):
+    todo = [(page, lambda text: render(text, root)) for page in pages(root)]
+    todo += [(root / rel, lambda _text, fn=fn: fn(root)) for rel, fn in WHOLE_PAGES.items()]
+    for page, make in todo:
         text = page.read_text()
-        new = render(text, root)
+        new = make(text)
         if new != text:
             differ.append(str(page.relative_to(root)))
             if write:

@@ -37,6 +37,7 @@ def _copy(tmp_path: Path) -> Path:
     [
         ("docs/experiments/levers_time_quiet.json", ("rows", "default", "query_ms"), 12.34),
         ("docs/experiments/acceptance/sequence.json", ("routes", "gp_dl_nr", "recall_at_1"), 0.5),
+        ("docs/experiments/gp_dl_nr/calibration.json", ("test", "recall_at_1"), 0.123),
     ],
 )
 def test_check_fails_when_a_json_value_changes(
