@@ -37,6 +37,7 @@ __all__ = [
     "MapsModuleBackbone",
     "Preprocess",
     "available_backbones",
+    "full_float32_on",
     "backbone_class",
     "load_backbone",
     "register_backbone",
@@ -87,6 +88,7 @@ class Backbone(ABC):
     onnx: ClassVar[bool] = False
 
     def __init__(self, module: torch.nn.Module, device: str = "cpu") -> None:
+        full_float32_on(device)
         self.module = module.eval().to(device)
         self.device = device
 
@@ -139,6 +141,26 @@ class Backbone(ABC):
             raise ValueError(
                 f"backbone {self.name!r} has no layer {unknown}; it exposes {sorted(self.layers)}"
             )
+
+
+def full_float32_on(device: str) -> None:
+    """Before a backbone runs on a CUDA ``device``: full float32 convolutions and matrix
+    products for the whole process (TF32 off).
+
+    PyTorch lets cuDNN convolutions round to TF32 (a 10-bit mantissa) on Ampere and later GPUs
+    by default. On an H100, with the same fitted state, that changed up to 17 % of a HybridNet
+    histogram's bins and most of OLO's word assignments against the CPU, and the top-1 match of
+    3 of 16 OLO queries; in float32 the descriptors agreed within float32 rounding, for under
+    10 % more time (``bench/cuda_check.py``, docs/experiments/cuda/). An index built on a GPU
+    and queried on a CPU, or the reverse, must give the same answers, so the forward passes run
+    in float32. Process-wide, not per call: several threads may run forward passes at once. A
+    CPU device changes nothing."""
+    if not str(device).startswith("cuda"):
+        return
+    import torch
+
+    torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
 
 
 class MapsModuleBackbone(Backbone):
