@@ -1,6 +1,6 @@
 """EfficientNet-Lite0 / Lite1 / Lite2 as the CNN backbone: recall and time, Gardens Point.
 
-    python bench/backbones.py [--backbones efficientnet_lite0,...] [--sizes native|lite0]
+    python -m bench.backbones [--backbones efficientnet_lite0,...] [--sizes native|lite0]
                               [--time-images 10] [--json out.json]
 
 For each backbone, the default config (``load_config("default")``) with every CNN method
@@ -22,30 +22,30 @@ Features and scores come from :class:`~hmpf.evaluation.study.ScoreBank` (the eva
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from inliers import bytes_per_reference  # noqa: E402
-
-from hmpf.config import HierarchyConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, measure_query_ms  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir, extract_query  # noqa: E402
-from hmpf.imageio import load_image  # noqa: E402
-from hmpf.methods import Method  # noqa: E402
-from hmpf.runtime import compute_threads, machine_description, set_compute_threads  # noqa: E402
+from bench.harness import (
+    add_data,
+    add_json,
+    machine,
+    parser,
+    write_json,
+)
+from bench.inliers import bytes_per_reference
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS
+from hmpf.datasets import list_images
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import ScoreBank, measure_query_ms
+from hmpf.features import FeatureCache, extract_query
+from hmpf.imageio import load_image
+from hmpf.methods import Method
+from hmpf.runtime import compute_threads, set_compute_threads
 
 BACKBONES = ("efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 CNN = ("gem", "netvlad", "olo")
@@ -87,19 +87,18 @@ def method_ms(methods: dict[str, Method], images: list[Path]) -> dict[str, float
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    ap = parser(__doc__)
+    add_data(ap)
     ap.add_argument("--backbones", default=",".join(BACKBONES))
     ap.add_argument("--sizes", choices=("native", "lite0"), default="native")
     ap.add_argument("--time-images", type=int, default=10)
-    ap.add_argument("--json", help="write the figures here too")
+    add_json(ap)
     args = ap.parse_args()
     cache = FeatureCache(args.cache_dir)
     base = load_config("default")
     root = Path(args.datasets)
     timing_images = list_images(root / PROTOCOLS["gp_dr_nr"][0])[: args.time_images]
-    print(machine_description(), flush=True)
+    print(machine(), flush=True)
     results: dict[str, Any] = {}
     timed: dict[str, tuple[HierarchyConfig, ScoreBank]] = {}
     for backbone in args.backbones.split(","):
@@ -126,7 +125,7 @@ def main() -> int:
         print(f"{backbone}: query {row['query']}, method ms {row['method_ms']}", flush=True)
     print_tables(results, args.sizes)
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
+        write_json(args.json, results)  # keyed by backbone: no record around it
     return 0
 
 

@@ -1,6 +1,6 @@
 """Per-query CPU and resident memory of one ``hmpf-serve`` replica: inputs of docs/scale.md.
 
-    .venv/bin/python bench/capacity.py --index INDEX --queries DIR [--n 100] [--workers 1]
+    .venv/bin/python -m bench.capacity --index INDEX --queries DIR [--n 100] [--workers 1]
 
 Starts a real ``hmpf-serve`` on INDEX (loopback, no auth), reads its resident memory when
 ready, sends ``--n`` frames from DIR one at a time through :class:`hmpf.client.Client`
@@ -18,22 +18,17 @@ the resident memory per reference as the slope between them.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from bench.service_load import _free_port, _start  # noqa: E402
-from hmpf.client import Client  # noqa: E402
-from hmpf.datasets import list_images  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import machine, parser
+from bench.service_load import _free_port, _start
+from hmpf.client import Client
+from hmpf.datasets import list_images
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
@@ -70,7 +65,7 @@ def version_bytes(index: Path) -> tuple[int, int]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = parser(__doc__)
     p.add_argument("--index", type=Path, required=True)
     p.add_argument("--queries", type=Path, required=True, help="folder of query frames")
     p.add_argument("--n", type=int, default=100, help="queries sent (evenly spaced frames)")
@@ -103,7 +98,7 @@ def main() -> None:
             proc.wait(30)
     disk, refs = version_bytes(a.index)
     n = len(walls)
-    print(machine_description())
+    print(machine())
     print(f"index {a.index}: {refs} references, {disk / refs / 1024:.1f} KiB per reference on disk")
     print(
         f"replica HMPF_WORKERS={a.workers} x {a.threads} thread(s); "

@@ -1,6 +1,6 @@
 """Choose between hierarchy configs on training parts, report test parts: the default's rule.
 
-    python bench/choose_default.py default path/to/variant.yaml ... [--nordland] [--out F]
+    python -m bench.choose_default default path/to/variant.yaml ... [--nordland] [--out F]
 
 For every config (a preset name or a YAML file; the first is the baseline):
 
@@ -19,28 +19,22 @@ is then compared with the baseline's by an exact paired sign test on the pooled 
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from one_pass import correct_flags, passes, query_ms  # noqa: E402
-
-from hmpf.config import HierarchyConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
-from hmpf.evaluation.calibrate import paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.study import split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.imageio import load_image  # noqa: E402
-from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
+from bench.harness import add_cache_dir, add_json, machine, parser, write_json
+from bench.one_pass import correct_flags, passes, query_ms
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import split_data
+from hmpf.features import FeatureCache
+from hmpf.imageio import load_image
+from hmpf.runtime import set_cnn_runtime
 
 NORDLAND = ("nordland_64x32/summer", "nordland_64x32/winter")
 
@@ -103,7 +97,7 @@ def measure(
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("configs", nargs="+", help="preset names or YAML files; first = baseline")
     ap.add_argument("--nordland", action="store_true", help="Nordland summer -> winter too")
     ap.add_argument("--images", type=int, default=10, help="images timed (day_right)")
@@ -114,11 +108,11 @@ def main() -> int:
         help="only configs whose measured query ms is within this (off by default: on a "
         "shared machine the timings are not the quiet ones the budget is stated in)",
     )
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    add_cache_dir(ap)
+    add_json(ap, "--out", type=Path, help="write the figures as JSON")
     args = ap.parse_args()
     set_cnn_runtime("onnx")
-    print(f"Machine: {machine_description()}", flush=True)
+    print(f"Machine: {machine()}", flush=True)
     timing = timing_images(args.images)
     cache = FeatureCache(args.cache_dir)
     full, parts = load_protocols(args.nordland)
@@ -158,7 +152,7 @@ def main() -> int:
             f"{base['test_mean']:.3f}: {t['wins']} wins / {t['losses']} losses, p = {t['p']:.3f}"
         )
     if args.out:
-        args.out.write_text(json.dumps(out, indent=1))
+        write_json(args.out, out)  # keyed by config: no record around it
     return 0
 
 

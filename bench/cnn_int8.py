@@ -1,6 +1,6 @@
 """Lower precision for the backbone: int8 EfficientNet-Lite0 in ONNX Runtime against float32.
 
-    python bench/cnn_int8.py [--size 288 512] [--images 20] [--calibration 32]
+    python -m bench.cnn_int8 [--size 288 512] [--images 20] [--calibration 32]
 
 The float32 model is the default runtime's cached export (the layers the default hierarchy
 reads, at ``--size``). Two int8 variants from ``onnxruntime.quantization``:
@@ -17,20 +17,13 @@ as GeM with p = 3) to float32's, over the timed day_right images.
 
 from __future__ import annotations
 
-import argparse
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import onnxruntime  # noqa: E402
-from onnxruntime.quantization import (  # noqa: E402
+import onnxruntime
+from onnxruntime.quantization import (
     CalibrationDataReader,
     QuantFormat,
     QuantType,
@@ -38,11 +31,12 @@ from onnxruntime.quantization import (  # noqa: E402
     quantize_static,
 )
 
-from hmpf.config import build_methods, load_config  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
-from hmpf.imageio import load_image, to_rgb  # noqa: E402
-from hmpf.methods.cnn import CnnMethod  # noqa: E402
-from hmpf.runtime import machine_description, set_compute_threads  # noqa: E402
+from bench.harness import machine, median_ms, parser
+from hmpf.config import build_methods, load_config
+from hmpf.datasets import dataset_root, list_images
+from hmpf.imageio import load_image, to_rgb
+from hmpf.methods.cnn import CnnMethod
+from hmpf.runtime import set_compute_threads
 
 
 class Images(CalibrationDataReader):
@@ -60,19 +54,14 @@ def session(path: Path) -> onnxruntime.InferenceSession:
     return onnxruntime.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
-def median_ms(sess: onnxruntime.InferenceSession, xs: list[np.ndarray]) -> float:
+def session_ms(sess: onnxruntime.InferenceSession, xs: list[np.ndarray]) -> float:
+    """Median ms of one ``sess.run`` per input of ``xs``, after a warm-up run."""
     name = sess.get_inputs()[0].name
-    sess.run(None, {name: xs[0]})
-    runs = []
-    for x in xs:
-        t = time.perf_counter()
-        sess.run(None, {name: x})
-        runs.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(runs)
+    return median_ms(lambda x: sess.run(None, {name: x}), xs)
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--size", type=int, nargs=2, default=(288, 512))
     ap.add_argument("--images", type=int, default=20)
     ap.add_argument("--calibration", type=int, default=32)
@@ -93,7 +82,7 @@ def main() -> int:
     xs = [net.preprocess(to_rgb(load_image(timed[i])), size)[None] for i in pick]
     calib = list_images(gp / "day_left")[:: max(1, 200 // args.calibration)][: args.calibration]
     cs = [net.preprocess(to_rgb(load_image(p)), size)[None] for p in calib]
-    print(f"Machine: {machine_description()}; onnxruntime {onnxruntime.__version__}")
+    print(f"Machine: {machine()}; onnxruntime {onnxruntime.__version__}")
     print(f"EfficientNet-Lite0 at {size[0]} x {size[1]}, layers {', '.join(layers)}\n")
     base = session(fp32_path)
     name = base.get_inputs()[0].name
@@ -114,7 +103,7 @@ def main() -> int:
         )
         for label, path in (("dynamic", dyn), ("static", static)):
             sess = session(path)
-            t32, t8 = median_ms(base, xs), median_ms(sess, xs)
+            t32, t8 = session_ms(base, xs), session_ms(sess, xs)
             out = [sess.run(None, {name: x}) for x in xs]
             errs = []
             for li, layer in enumerate(layers):

@@ -1,6 +1,6 @@
 """CNN forward passes in torch and in ONNX Runtime: speed on one thread, and recall@1.
 
-    python bench/cnn_runtime.py [--images 20] [--protocols gp_dr_nr ...] [--no-recall]
+    python -m bench.cnn_runtime [--images 20] [--protocols gp_dr_nr ...] [--no-recall]
 
 * Speed, one compute thread (a service worker's or an extraction worker's setting), one
   image at a time as for a query, on the same real Gardens Point images for both runtimes
@@ -19,47 +19,29 @@
 
 from __future__ import annotations
 
-import argparse
 import os
-import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+import onnxruntime
+import torch
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import onnxruntime  # noqa: E402
-import torch  # noqa: E402
-
-from hmpf.config import build_methods, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir, extract_query  # noqa: E402
-from hmpf.imageio import load_image, to_rgb  # noqa: E402
-from hmpf.methods.base import Method, extract_many, fit_many  # noqa: E402
-from hmpf.methods.cnn import CnnMethod  # noqa: E402
-from hmpf.runtime import (  # noqa: E402
+from bench.harness import add_cache_dir, machine, median_ms, parser
+from hmpf.config import build_methods, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
+from hmpf.evaluation.evaluate import EvalData, evaluate
+from hmpf.features import FeatureCache, extract_query
+from hmpf.imageio import load_image, to_rgb
+from hmpf.methods.base import Method, extract_many, fit_many
+from hmpf.methods.cnn import CnnMethod
+from hmpf.runtime import (
     CNN_RUNTIMES,
     compute_threads,
-    machine_description,
     set_cnn_runtime,
     set_compute_threads,
 )
-
-
-def median_ms(fn: Any, items: list[Any]) -> float:
-    """Median wall time (ms) of ``fn(item)`` over ``items``, after one warm-up call."""
-    fn(items[0])
-    runs = []
-    for item in items:
-        t = time.perf_counter()
-        fn(item)
-        runs.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(runs)
 
 
 def forward_fn(group: list[CnnMethod], runtime: str) -> Any:
@@ -154,7 +136,7 @@ def recall(protocols: list[str], cache_dir: str, workers: int | None) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--images", type=int, default=20, help="images timed (day_right)")
     ap.add_argument(
         "--protocols",
@@ -163,13 +145,10 @@ def main() -> int:
         choices=list(GARDENS_POINT_PROTOCOLS),
     )
     ap.add_argument("--no-recall", action="store_true", help="timings only")
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    add_cache_dir(ap)
     ap.add_argument("--workers", type=int, default=None, help="Gist extraction processes")
     args = ap.parse_args()
-    print(
-        f"Machine: {machine_description()}; torch {torch.__version__}, "
-        f"onnxruntime {onnxruntime.__version__}"
-    )
+    print(f"Machine: {machine()}; torch {torch.__version__}, onnxruntime {onnxruntime.__version__}")
     gp = dataset_root() / "gardens_point"
     refs = list_images(gp / "day_right")
     pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)

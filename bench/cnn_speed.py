@@ -1,6 +1,6 @@
 """Speed of the CNN paths (medians, on this machine).
 
-    python bench/cnn_speed.py [--device cpu|cuda] [--batch 16]
+    python -m bench.cnn_speed [--device cpu|cuda] [--batch 16]
 
 * EfficientNet-Lite0 forward per image, batched as for indexing and one image at a time as
   for a query, at every input size the methods use by default, with the inference rewrites
@@ -12,31 +12,24 @@
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+import torch
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-import torch  # noqa: E402
-from accuracy import machine  # noqa: E402
-from speed import timed as median_ms  # noqa: E402
-
-from hmpf.backbones import load_backbone  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
-from hmpf.imageio import load_image  # noqa: E402
-from hmpf.methods import create_method  # noqa: E402
-from hmpf.methods.base import extract_many, fit_many  # noqa: E402
+from bench.harness import machine, parser
+from bench.harness import timed as median_ms
+from hmpf.backbones import load_backbone
+from hmpf.datasets import dataset_root, list_images
+from hmpf.imageio import load_image
+from hmpf.methods import create_method
+from hmpf.methods.base import extract_many, fit_many
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=5)

@@ -8,8 +8,8 @@ and its ``main()`` is short: :func:`parser` (with the ``add_*`` helpers below) p
 arguments, small functions compute, :func:`write_record` writes the JSON.
 
 * **Arguments**: :func:`parser` (description from the module's docstring; ``--smoke``
-  sizes with :meth:`Parser.smoke`), :func:`add_datasets`, :func:`add_cache_dir`,
-  :func:`add_config`, :func:`add_protocols`, :func:`add_json`.
+  sizes with :meth:`Parser.smoke`), :func:`add_datasets`, :func:`add_cache_dir` (both:
+  :func:`add_data`), :func:`add_config`, :func:`add_protocols`, :func:`add_json`.
 * **Protocols**: :data:`PROTOCOLS` (Gardens Point's from :mod:`hmpf.datasets`, and
   Nordland summer -> winter), :func:`protocol_data` (an :class:`EvalData` of one of them),
   :func:`split_parts` (its training and test parts).
@@ -55,6 +55,7 @@ __all__ = [
     "Parser",
     "add_cache_dir",
     "add_config",
+    "add_data",
     "add_datasets",
     "add_json",
     "add_protocols",
@@ -132,6 +133,12 @@ def add_datasets(ap: argparse.ArgumentParser) -> None:
 def add_cache_dir(ap: argparse.ArgumentParser) -> None:
     """``--cache-dir``: the feature cache (``$HMPF_CACHE_DIR`` or ``~/.cache/hmpf``)."""
     ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+
+
+def add_data(ap: argparse.ArgumentParser) -> None:
+    """``--datasets`` and ``--cache-dir``: where the images are and their features cached."""
+    add_datasets(ap)
+    add_cache_dir(ap)
 
 
 def add_config(ap: argparse.ArgumentParser, default: str = "default", **kwargs: Any) -> None:

@@ -1,6 +1,6 @@
 """Build throughput, bytes on disk and loaded memory per reference for ``hmpf-index build``.
 
-    .venv/bin/python bench/index_build.py --config configs/handcrafted.yaml \\
+    .venv/bin/python -m bench.index_build --config configs/handcrafted.yaml \\
         --images ../shared/datasets/gardens_point/day_right [--limit 200] [--workers 2]
 
 Builds into a fresh temporary folder (no feature cache, so every image is extracted), then
@@ -10,13 +10,13 @@ memory a loaded :class:`IndexReader` adds per reference (global matrices touched
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from bench.harness import parser
 from hmpf.datasets import list_images
 from hmpf.index import IndexReader
 from indexer.build import BuildOptions, build
@@ -28,7 +28,7 @@ def rss_bytes() -> int:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser()
+    p = parser(__doc__)
     p.add_argument("--config", required=True)
     p.add_argument("--images", required=True)
     p.add_argument("--limit", type=int, default=None)

@@ -1,6 +1,6 @@
 """Tier-1 search latency against map size: exact FAISS Flat vs IVF, synthetic descriptors.
 
-    .venv/bin/python bench/index_search.py --sizes 10000 100000 1000000
+    .venv/bin/python -m bench.index_search --sizes 10000 100000 1000000
 
 Descriptors model a fleet's map: unit 512-d float32 vectors along routes. Each route is a
 smooth random walk in a 64-d latent space (consecutive frames look alike, distant places do
@@ -14,12 +14,12 @@ approximate candidates.
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import faiss
 import numpy as np
 
+from bench.harness import parser
 from hmpf.methods.base import euclidean
 
 ROUTE_FRAMES = 2000  # frames per route: 10k references are 5 routes, 1M are 500
@@ -64,7 +64,7 @@ def recall(approx: np.ndarray, exact: np.ndarray) -> float:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser()
+    p = parser(__doc__)
     p.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
     p.add_argument("--dim", type=int, default=512)
     p.add_argument("--queries", type=int, default=200)

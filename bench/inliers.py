@@ -1,6 +1,6 @@
 """Geometric verification (``inliers``) on top of the default hierarchy, Gardens Point.
 
-    python bench/inliers.py [--json out.json] [--time-images 10]
+    python -m bench.inliers [--json out.json] [--time-images 10]
 
 Per Gardens Point protocol (``hmpf.datasets.GARDENS_POINT_PROTOCOLS``, +-2 frames, ``blocks``
 split), on the training and the test part:
@@ -23,29 +23,28 @@ reference are what an index stores (``exact`` precision).
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
-from collections.abc import Mapping
-from pathlib import Path
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.config import HierarchyConfig, TierConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
-from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluation.calibrate import WEIGHT_LADDER, paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, prepare  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.index.storage import storage_dtype  # noqa: E402
-from hmpf.methods import Method, create_method  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import (
+    add_data,
+    add_json,
+    machine,
+    parser,
+    split_parts,
+    write_record,
+)
+from hmpf.config import HierarchyConfig, TierConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS
+from hmpf.evaluation.calibrate import WEIGHT_LADDER, paired_test
+from hmpf.evaluation.evaluate import prepare
+from hmpf.evaluation.study import ScoreBank, measure_query_ms
+from hmpf.features import FeatureCache
+from hmpf.index.storage import storage_dtype
+from hmpf.methods import Method, create_method
 
 #: ``inliers`` settings tried (method id -> parameters); "inliers" is the method's default.
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -142,32 +141,29 @@ def bytes_per_reference(
     return total
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--time-images", type=int, default=10)
-    ap.add_argument("--json", help="write the figures here too")
-    args = ap.parse_args()
-    cache = FeatureCache(args.cache_dir)
-    base = load_config("default")
-    print(f"{machine_description()}", flush=True)
-    banks: dict[tuple[str, str], ScoreBank] = {}
+Correct = Callable[[HierarchyConfig, str, str], np.ndarray]
+Banks = dict[tuple[str, str], ScoreBank]
+
+
+def score(
+    base: HierarchyConfig, datasets: str, cache: FeatureCache
+) -> tuple[Banks, dict[str, list[float]]]:
+    """Every protocol part's bank with the variants added; ms per scored pair per variant."""
+    banks: Banks = {}
     pair_ms: dict[str, list[float]] = {v: [] for v in VARIANTS}
-    for proto, (r, q) in PROTOCOLS.items():
-        data = EvalData.frames(Path(args.datasets) / r, Path(args.datasets) / q, 2)
-        for part, split in zip(("train", "test"), split_data(data), strict=True):
+    for proto in PROTOCOLS:
+        for part, split in split_parts(proto, datasets):
             bank = ScoreBank.build(base, split, cache=cache)
             for v, ms in add_sparse(bank, base, cache).items():
                 pair_ms[v].append(ms)
             banks[proto, part] = bank
             print(f"scored {proto} {part}", flush=True)
+    return banks, pair_ms
 
-    def correct(config: HierarchyConfig, proto: str, part: str) -> np.ndarray:
-        return np.asarray(banks[proto, part].run(config).correct, bool)
 
-    # Model choice: each setting re-ranking the default's tier-1 candidates alone, and in the
-    # final tier, on the training parts.
+def model_choice(base: HierarchyConfig, correct: Correct) -> dict[str, Any]:
+    """Each setting re-ranking the default's tier-1 candidates alone, and in the final tier,
+    on the training parts (printed)."""
     k1 = base.tiers[0].k
     print("\n### Model choice (training parts, recall@1)\n")
     print(
@@ -195,9 +191,15 @@ def main() -> int:
             + " | ".join(cells)
             + f" | {np.mean(finals):.3f} |"
         )
-    print("\nms per scored pair: " + ", ".join(f"{v} {np.mean(t):.2f}" for v, t in pair_ms.items()))
+    return choice_rows
 
-    # (c): chosen on the training parts only.
+
+def choose(
+    base: HierarchyConfig, correct: Correct
+) -> tuple[str, dict[str, float], dict[str, HierarchyConfig]]:
+    """(c), chosen on the training parts only: its label, every candidate's mean training
+    recall@1, and the configs compared ((a), (b), (b3), (c))."""
+    k1 = base.tiers[0].k
     pool: dict[str, HierarchyConfig] = {}
     for v in VARIANTS:
         pool.update(candidates(base, v))
@@ -219,7 +221,13 @@ def main() -> int:
     print(f"\n(c) chosen on the training parts: {best} (mean train recall@1 {train[best]:.3f})")
     top = sorted(train, key=lambda lab: -train[lab])[:8]
     print("best training means: " + "; ".join(f"{lab} {train[lab]:.3f}" for lab in top))
+    return best, train, configs
 
+
+def recall_rows(
+    configs: dict[str, HierarchyConfig], base: HierarchyConfig, correct: Correct
+) -> dict[str, Any]:
+    """Recall@1 of each config on every part; test parts signed against the default."""
     print("\n### Recall@1 (+-2 frames)\n")
     print("| config | " + " | ".join(f"{p} train | {p} test" for p in PROTOCOLS) + " | mean test |")
     print("|---|" + "---|---|" * len(PROTOCOLS) + "---|")
@@ -238,14 +246,18 @@ def main() -> int:
             tests.append(te.mean())
         rows[label] = {"cells": cells, "mean_test": float(np.mean(tests)), "sign": signs}
         print(f"| {label} | " + " | ".join(cells) + f" | {np.mean(tests):.3f} |")
+    return rows
 
+
+def add_costs(
+    rows: dict[str, Any], configs: dict[str, HierarchyConfig], bank: ScoreBank, images: int
+) -> None:
+    """Each config's ms per query (end to end, one thread) and bytes per reference."""
     print("\n### Cost (ms per query end to end, one thread; bytes per reference)\n")
     print("| config | ms per query | extraction ms | hierarchy ms | bytes per reference |")
     print("|---|---|---|---|---|")
-    first = next(iter(PROTOCOLS))
     for label, cfg in configs.items():
-        bank = banks[first, "test"]
-        t = measure_query_ms(cfg, bank, images=args.time_images, threads=1)
+        t = measure_query_ms(cfg, bank, images=images, threads=1)
         size = bytes_per_reference(bank, cfg)
         rows[label].update(timing=t, bytes_per_reference=size)
         print(
@@ -253,21 +265,35 @@ def main() -> int:
             f"| {size:,.0f} |",
             flush=True,
         )
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    add_data(ap)
+    ap.add_argument("--time-images", type=int, default=10)
+    add_json(ap)
+    args = ap.parse_args()
+    base = load_config("default")
+    print(f"{machine()}", flush=True)
+    banks, pair_ms = score(base, args.datasets, FeatureCache(args.cache_dir))
+
+    def correct(config: HierarchyConfig, proto: str, part: str) -> np.ndarray:
+        return np.asarray(banks[proto, part].run(config).correct, bool)
+
+    choice_rows = model_choice(base, correct)
+    print("\nms per scored pair: " + ", ".join(f"{v} {np.mean(t):.2f}" for v, t in pair_ms.items()))
+    best, train, configs = choose(base, correct)
+    rows = recall_rows(configs, base, correct)
+    add_costs(rows, configs, banks[next(iter(PROTOCOLS)), "test"], args.time_images)
     if args.json:
-        Path(args.json).write_text(
-            json.dumps(
-                {
-                    "machine": machine_description(),
-                    "model_choice": choice_rows,
-                    "pair_ms": {v: float(np.mean(t)) for v, t in pair_ms.items()},
-                    "chosen": best,
-                    "train_means": train,
-                    "rows": rows,
-                },
-                indent=2,
-                default=float,
-            )
-        )
+        results = {
+            "model_choice": choice_rows,
+            "pair_ms": {v: float(np.mean(t)) for v, t in pair_ms.items()},
+            "chosen": best,
+            "train_means": train,
+            "rows": rows,
+        }
+        write_record(args.json, results, args, config=base, default=float)
     return 0
 
 

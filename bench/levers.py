@@ -1,8 +1,8 @@
 """Issue 18's accuracy levers, each alone and combined, in one table.
 
-    python bench/levers.py [--only NAME ...] [--nordland-configs NAME ...] [--out F.json]
-    python bench/levers.py --time-only [--images 20]      (ms per query only: a quiet machine)
-    python bench/levers.py --table F.json                 (print the table of an earlier run)
+    python -m bench.levers [--only NAME ...] [--nordland-configs NAME ...] [--out F.json]
+    python -m bench.levers --time-only [--images 20]      (ms per query only: a quiet machine)
+    python -m bench.levers --table F.json                 (print the table of an earlier run)
 
 Configs: the presets ``default-lite0`` (the baseline: the default until 2026-11-26, which
 every lever was measured against), ``default`` (the current one, chosen from these levers),
@@ -32,27 +32,31 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from choose_default import load_protocols, measure, timing_images  # noqa: E402
-from inliers import bytes_per_reference  # noqa: E402
-from one_pass import query_ms  # noqa: E402
-
-from hmpf.config import HierarchyConfig, build_methods, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS  # noqa: E402
-from hmpf.evaluation.calibrate import paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, prepare  # noqa: E402
-from hmpf.evaluation.study import ScoreBank  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
+from bench.choose_default import load_protocols, measure, timing_images
+from bench.harness import (
+    ROOT,
+    add_cache_dir,
+    add_json,
+    machine,
+    parser,
+    provenance,
+    record,
+    write_json,
+)
+from bench.inliers import bytes_per_reference
+from bench.one_pass import query_ms
+from hmpf.config import HierarchyConfig, build_methods, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import EvalData, prepare
+from hmpf.evaluation.study import ScoreBank
+from hmpf.features import FeatureCache
+from hmpf.runtime import set_cnn_runtime
 
 LEVERS = ROOT / "bench" / "levers"
 PRESETS = (
@@ -164,9 +168,8 @@ def table(out: dict[str, Any]) -> list[str]:
     return lines
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    names = all_configs()
+def arguments(names: dict[str, Any]) -> tuple[argparse.ArgumentParser, argparse.Namespace]:
+    ap = parser(__doc__)
     ap.add_argument("--only", nargs="+", default=None, choices=list(names), metavar="NAME")
     ap.add_argument(
         "--nordland-configs",
@@ -177,8 +180,8 @@ def main() -> int:
     )
     ap.add_argument("--time-only", action="store_true", help="ms per query only, no accuracy")
     ap.add_argument("--images", type=int, default=10, help="images timed (day_right)")
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    add_cache_dir(ap)
+    add_json(ap, "--out", type=Path, help="write the figures as JSON")
     ap.add_argument("--table", type=Path, default=None, help="print the table of this JSON")
     ap.add_argument(
         "--reuse",
@@ -195,13 +198,53 @@ def main() -> int:
         help="a --time-only run's --out: its ms per query replace the ones measured here (one "
         "timing run for every row, e.g. on a quieter machine)",
     )
-    args = ap.parse_args()
+    return ap, ap.parse_args()
+
+
+def print_table(report: dict[str, Any], ms_from: Path | None) -> None:
+    if ms_from is not None:
+        take_ms(report, ms_from)
+    print(f"\n{caption(report)}\n")
+    print("\n".join(table(report["rows"])))
+
+
+def reused_rows(paths: list[Path], chosen: list[str]) -> dict[str, Any]:
+    """The rows of earlier ``--out`` files to take as measured there (the first file wins)."""
+    reused: dict[str, Any] = {}
+    for f in paths:
+        earlier = json.loads(f.read_text())
+        for name, row in earlier["rows"].items():
+            if name in chosen and name not in reused and "test" in row:
+                reused[name] = {**row, "reused_from": str(f)}
+    return reused
+
+
+def measure_gp(
+    config: HierarchyConfig, full: Any, parts: Any, cache: FeatureCache, timing: Any
+) -> dict[str, Any]:
+    """A config's row on Gardens Point: accuracy, ms per query and bytes per reference."""
+    row, flags = measure(config, full, parts, cache, timing, protocols=GP, whole=False)
+    row["flags"] = {part: {p: f.tolist() for p, f in fl.items()} for part, fl in flags.items()}
+    row["bytes_gp"] = reference_bytes(config, parts[GP[0]][1], cache)
+    return row
+
+
+def add_nordland(
+    row: dict[str, Any], config: HierarchyConfig, full: Any, parts: Any, cache: FeatureCache
+) -> None:
+    """Nordland summer -> winter's figures into ``row``."""
+    nl_row, flags = measure(config, full, parts, cache, None, protocols=[NL], whole=False)
+    for part in ("train", "test"):
+        row[part][NL] = nl_row[part][NL]
+        row["flags"][part][NL] = flags[part][NL].tolist()
+    row["bytes_nl"] = reference_bytes(config, parts[NL][1], cache)
+
+
+def main() -> int:
+    names = all_configs()
+    ap, args = arguments(names)
     if args.table is not None:
-        report = json.loads(args.table.read_text())
-        if args.ms_from is not None:
-            take_ms(report, args.ms_from)
-        print(f"{caption(report)}\n")
-        print("\n".join(table(report["rows"])))
+        print_table(json.loads(args.table.read_text()), args.ms_from)
         return 0
     unknown = set(args.nordland_configs) - set(names)
     if unknown:
@@ -210,26 +253,21 @@ def main() -> int:
     if BASELINE not in chosen and not args.time_only:
         chosen = [BASELINE, *chosen]  # the sign tests need it
     set_cnn_runtime("onnx")
-    print(f"Machine: {machine_description()}", flush=True)
+    print(f"Machine: {machine()}", flush=True)
     print(f"Load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    prov = provenance(args=args)
     report: dict[str, Any] = {
-        "machine": machine_description(),
         "load_start": list(os.getloadavg()),
         "images_timed": args.images,
         "rows": {},
     }
     rows: dict[str, Any] = report["rows"]
-    reused: dict[str, Any] = {}
-    for f in args.reuse:
-        earlier = json.loads(f.read_text())
-        for name, row in earlier["rows"].items():
-            if name in chosen and name not in reused and "test" in row and not args.time_only:
-                reused[name] = {**row, "reused_from": str(f)}
+    reused = {} if args.time_only else reused_rows(args.reuse, chosen)
     report["reused"] = {n: r["reused_from"] for n, r in reused.items()}
 
     def save() -> None:
         if args.out:
-            args.out.write_text(json.dumps(report, indent=1) + "\n")
+            write_json(args.out, record(report, prov=prov))
 
     timing = timing_images(args.images)
     if args.time_only:
@@ -243,21 +281,15 @@ def main() -> int:
         full, parts = load_protocols(bool(nl_wanted), NORDLAND_BLOCK)
         # Gardens Point for every config first; Nordland (slow for CNN configs) after.
         for name in chosen:
+            config = load_config(names[name])
             if name in reused:  # accuracy as measured there; bytes (cheap) measured again
                 rows[name] = row = reused[name]
-                config = load_config(names[name])
                 row["bytes_gp"] = reference_bytes(config, parts[GP[0]][1], cache)
                 if NL in row["test"] and NL in parts:
                     row["bytes_nl"] = reference_bytes(config, parts[NL][1], cache)
                 print(f"{name}: reused from {row['reused_from']}", flush=True)
                 continue
-            config = load_config(names[name])
-            row, flags = measure(config, full, parts, cache, timing, protocols=GP, whole=False)
-            row["flags"] = {
-                part: {p: f.tolist() for p, f in fl.items()} for part, fl in flags.items()
-            }
-            row["bytes_gp"] = reference_bytes(config, parts[GP[0]][1], cache)
-            rows[name] = row
+            rows[name] = row = measure_gp(config, full, parts, cache, timing)
             print(
                 f"{name}: {row['query_ms']:.1f} ms/query, GP train {row['train_mean']:.3f}, "
                 f"test {row['test_mean']:.3f}, {row['bytes_gp']:,.0f} bytes/ref",
@@ -265,30 +297,22 @@ def main() -> int:
             )
             save()
         for name in nl_wanted:
-            if NL in rows[name]["test"]:
-                continue  # reused with Nordland
-            config = load_config(names[name])
-            nl_row, flags = measure(config, full, parts, cache, None, protocols=[NL], whole=False)
             row = rows[name]
-            for part in ("train", "test"):
-                row[part][NL] = nl_row[part][NL]
-                row["flags"][part][NL] = flags[part][NL].tolist()
-            row["bytes_nl"] = reference_bytes(config, parts[NL][1], cache)
+            if NL in row["test"]:
+                continue  # reused with Nordland
+            add_nordland(row, load_config(names[name]), full, parts, cache)
             print(
                 f"{name}: Nordland train {row['train'][NL]:.3f}, test {row['test'][NL]:.3f}, "
                 f"{row['bytes_nl']:,.0f} bytes/ref",
                 flush=True,
             )
             save()
-    if args.ms_from is not None:
-        take_ms(report, args.ms_from)
     report["load_end"] = list(os.getloadavg())
+    print_table(report, args.ms_from)
     save()
-    print(f"\n{caption(report)}\n")
-    print("\n".join(table(rows)))
     print(f"\nLoad average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -1,7 +1,7 @@
 """Learned binary local descriptors (BEBLID / TEBLID) against KAZE's, Gardens Point.
 
-    python bench/local_descriptors.py [--json out.json] [--time-images 10] [--descriptors a,b]
-    python bench/local_descriptors.py --time-only     (extraction and matching per descriptor)
+    python -m bench.local_descriptors [--json out.json] [--time-images 10] [--descriptors a,b]
+    python -m bench.local_descriptors --time-only     (extraction and matching per descriptor)
 
 KAZE keypoints (the method's detection, orientation and 500 strongest) described by KAZE's
 64 floats (the baseline), BEBLID (512 bits), TEBLID (256 and 512 bits) or ORB (256 bits),
@@ -29,30 +29,30 @@ matrices are checked against ``Kaze.scores`` on a few queries.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from inliers import bytes_per_reference  # noqa: E402
-
-from hmpf.config import HierarchyConfig, TierConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
-from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluation.calibrate import paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, prepare  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.methods import Method, create_method  # noqa: E402
-from hmpf.methods.kaze import match_distance, nearest_two_any  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import (
+    add_data,
+    add_json,
+    machine,
+    parser,
+    split_parts,
+    write_record,
+)
+from bench.inliers import bytes_per_reference
+from hmpf.config import HierarchyConfig, TierConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import prepare
+from hmpf.evaluation.study import ScoreBank, measure_query_ms
+from hmpf.features import FeatureCache
+from hmpf.methods import Method, create_method
+from hmpf.methods.kaze import match_distance, nearest_two_any
 
 #: Descriptor settings compared (label -> kaze options); "kaze" is the baseline.
 DESCRIPTORS: dict[str, dict[str, Any]] = {
@@ -185,9 +185,8 @@ def control(datasets: Path, cache: FeatureCache, matching: dict[str, Any]) -> No
     preset, against KAZE's defaults, per protocol and part (no grid, no timing)."""
     h = load_config("handcrafted")
     tuned = create_method("kaze", matching)
-    for proto, (r, q) in PROTOCOLS.items():
-        data = EvalData.frames(datasets / r, datasets / q, 2)
-        for part, split in zip(("train", "test"), split_data(data), strict=True):
+    for proto in PROTOCOLS:
+        for part, split in split_parts(proto, datasets):
             bank = ScoreBank.build(h, split, cache=cache)
             db, qs = bank.features["kaze"]
             bank.methods["tuned"] = tuned
@@ -206,51 +205,23 @@ def control(datasets: Path, cache: FeatureCache, matching: dict[str, Any]) -> No
             )
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--time-images", type=int, default=10)
-    ap.add_argument("--json", help="write the figures here too")
-    ap.add_argument(
-        "--descriptors",
-        help=f"comma-separated subset of {', '.join(DESCRIPTORS)} (kaze, the baseline, always)",
-    )
-    ap.add_argument(
-        "--no-default",
-        action="store_true",
-        help="kaze alone and the handcrafted preset only (no CNN method is scored)",
-    )
-    ap.add_argument("--time-only", action="store_true", help="only time each descriptor")
-    ap.add_argument(
-        "--control",
-        metavar="THRESHOLD,RATIO",
-        help="only KAZE's descriptor with this matching (alone, handcrafted) against its default",
-    )
-    args = ap.parse_args()
-    if args.descriptors:
-        keep = {"kaze", *args.descriptors.split(",")}
-        if keep - set(DESCRIPTORS):
-            ap.error(f"unknown descriptors: {', '.join(sorted(keep - set(DESCRIPTORS)))}")
-        for d in set(DESCRIPTORS) - keep:
-            del DESCRIPTORS[d]
-    cache = FeatureCache(args.cache_dir)
-    print(machine_description(), flush=True)
-    if args.time_only:
-        time_descriptors(Path(args.datasets))
-        return 0
-    if args.control:
-        t, r = (float(v) for v in args.control.split(","))
-        control(Path(args.datasets), cache, {"match_threshold": t, "max_ratio": r})
-        return 0
-    pool = pool_config(("handcrafted",) if args.no_default else ("default", "handcrafted"))
-    banks: dict[tuple[str, str], ScoreBank] = {}
-    near: dict[tuple[str, str, str], dict[tuple[float, float], np.ndarray]] = {}
-    feats: dict[tuple[str, str, str], tuple[Any, list[Any]]] = {}
+Banks = dict[tuple[str, str], ScoreBank]
+Near = dict[tuple[str, str, str], dict[tuple[float, float], np.ndarray]]
+Feats = dict[tuple[str, str, str], tuple[Any, list[Any]]]
+Correct = Callable[[HierarchyConfig, str, str], np.ndarray]
+
+
+def score(
+    pool: HierarchyConfig, datasets: str, cache: FeatureCache
+) -> tuple[Banks, Near, Feats, dict[str, list[float]]]:
+    """Per protocol part: the pool's bank, each descriptor's features and its grid's
+    nearest-neighbour matrices; ms per pair per descriptor."""
+    banks: Banks = {}
+    near: Near = {}
+    feats: Feats = {}
     pair_ms: dict[str, list[float]] = {d: [] for d in DESCRIPTORS}
-    for proto, (r, q) in PROTOCOLS.items():
-        data = EvalData.frames(Path(args.datasets) / r, Path(args.datasets) / q, 2)
-        for part, split in zip(("train", "test"), split_data(data), strict=True):
+    for proto in PROTOCOLS:
+        for part, split in split_parts(proto, datasets):
             banks[proto, part] = ScoreBank.build(pool, split, cache=cache)
             for d, p in DESCRIPTORS.items():
                 if d == "kaze_tuned" and "kaze" in DESCRIPTORS:  # the same features and grid
@@ -263,6 +234,14 @@ def main() -> int:
                 near[proto, part, d], ms = grid_matrices(prep.queries["k"], prep.db["k"])
                 pair_ms[d].append(ms)
             print(f"scored {proto} {part}", flush=True)
+    return banks, near, feats, pair_ms
+
+
+def matching_choice(
+    banks: Banks, near: Near
+) -> tuple[dict[str, dict[str, Any]], dict[str, list[float]]]:
+    """Each descriptor's matching setting chosen on the grid (kaze alone, mean training
+    recall@1), and the grid's figures (printed)."""
 
     def alone_train(d: str, t: float, r: float) -> float:
         vals = []
@@ -283,17 +262,21 @@ def main() -> int:
         if d != "kaze":
             best = int(np.argmax(vals))  # first of equals: the strictest setting
             chosen[d] = {"match_threshold": GRID[best][0], "max_ratio": GRID[best][1]}
-    params = {d: {**DESCRIPTORS[d], **chosen[d]} for d in DESCRIPTORS}
-    print("chosen: " + "; ".join(f"{d} {chosen[d]}" for d in DESCRIPTORS))
-    print(
-        "ms per pair (nearest two): "
-        + ", ".join(f"{d} {np.mean(v):.3f}" for d, v in pair_ms.items() if v)
-    )
+    return chosen, grid_rows
 
-    # Every chosen method's scores into the banks (dense for kaze, sparse for inliers).
+
+def add_chosen(
+    banks: Banks,
+    near: Near,
+    feats: Feats,
+    params: dict[str, dict[str, Any]],
+    with_default: bool,
+) -> dict[str, dict[str, HierarchyConfig]]:
+    """Every chosen method's scores into the banks (dense for kaze, sparse for inliers);
+    returns each descriptor's hierarchy families."""
     configs: dict[str, dict[str, HierarchyConfig]] = {}
     for d in DESCRIPTORS:
-        configs[d] = families(d, params[d], not args.no_default)
+        configs[d] = families(d, params[d], with_default)
         for (p, part), bank in banks.items():
             db, qs = feats[p, part, d]
             m = create_method("kaze", params[d])
@@ -308,21 +291,18 @@ def main() -> int:
                     np.testing.assert_allclose(mat[qi], m.scores(qs[qi], db), atol=1e-9)
             bank.methods[f"kaze_{d}"], bank.scores[f"kaze_{d}"] = m, mat
             bank.features[f"kaze_{d}"] = (db, qs)
-            if d in INLIER_DESCRIPTORS and not args.no_default:
+            if d in INLIER_DESCRIPTORS and with_default:
                 mi = create_method("inliers", params[d])
                 bank.methods[f"inliers_{d}"] = mi
                 bank.scores[f"inliers_{d}"] = sparse_inliers(bank, mi, (db, qs))
                 bank.features[f"inliers_{d}"] = (db, qs)
         print(f"hierarchies of {d} scored", flush=True)
+    return configs
 
-    def correct(cfg: HierarchyConfig, p: str, part: str) -> np.ndarray:
-        return np.asarray(banks[p, part].run(cfg).correct, bool)
 
+def preset_rows(presets: dict[str, HierarchyConfig], correct: Correct) -> dict[str, Any]:
+    """The presets as they are: recall@1 on every part (printed)."""
     rows: dict[str, Any] = {}
-    first = next(iter(PROTOCOLS))
-    presets = {
-        n: load_config(n) for n in ("handcrafted",) + (() if args.no_default else ("default",))
-    }
     print("\n### The presets as they are (recall@1, train / test)\n")
     for n, cfg in presets.items():
         cells = [
@@ -330,6 +310,20 @@ def main() -> int:
         ]
         print(f"| {n} | " + " | ".join(cells) + " |")
         rows[f"preset {n}"] = {"cells": cells}
+    return rows
+
+
+def family_rows(
+    configs: dict[str, dict[str, HierarchyConfig]],
+    params: dict[str, dict[str, Any]],
+    presets: dict[str, HierarchyConfig],
+    correct: Correct,
+    bank: ScoreBank,
+    images: int,
+) -> dict[str, Any]:
+    """Each structure with each descriptor: recall@1 (test parts signed against KAZE's
+    descriptor), ms per query on ``bank`` and bytes per reference (printed)."""
+    rows: dict[str, Any] = {}
     print("\n### Recall@1 (+-2 frames); test cells: won/lost vs KAZE's descriptor, sign test p\n")
     print("| structure | descriptor | " + " | ".join(f"{p} train | {p} test" for p in PROTOCOLS)
           + " | mean train | mean test | ms/query | bytes/ref |")  # fmt: skip
@@ -355,8 +349,7 @@ def main() -> int:
                         te, correct(presets["default"], p, "test")
                     )
                 cells.append(f"{te.mean():.3f} (+{t['wins']}/-{t['losses']}, p {t['p']:.2g})")
-            bank = banks[first, "test"]
-            timing = measure_query_ms(cfg, bank, images=args.time_images, threads=1)
+            timing = measure_query_ms(cfg, bank, images=images, threads=1)
             size = bytes_per_reference(bank, cfg)
             rows[f"{fam} | {d}"] = {
                 "params": params[d], "train": trains, "test": tests, "sign": signs,
@@ -369,21 +362,80 @@ def main() -> int:
                 f"| {size:,.0f} |",
                 flush=True,
             )  # fmt: skip
+    return rows
+
+
+def select(ap: argparse.ArgumentParser, descriptors: str | None) -> None:
+    """Keep only ``descriptors`` (comma-separated; kaze always) in :data:`DESCRIPTORS`."""
+    if not descriptors:
+        return
+    keep = {"kaze", *descriptors.split(",")}
+    if keep - set(DESCRIPTORS):
+        ap.error(f"unknown descriptors: {', '.join(sorted(keep - set(DESCRIPTORS)))}")
+    for d in set(DESCRIPTORS) - keep:
+        del DESCRIPTORS[d]
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    add_data(ap)
+    ap.add_argument("--time-images", type=int, default=10)
+    add_json(ap)
+    ap.add_argument(
+        "--descriptors",
+        help=f"comma-separated subset of {', '.join(DESCRIPTORS)} (kaze, the baseline, always)",
+    )
+    ap.add_argument(
+        "--no-default",
+        action="store_true",
+        help="kaze alone and the handcrafted preset only (no CNN method is scored)",
+    )
+    ap.add_argument("--time-only", action="store_true", help="only time each descriptor")
+    ap.add_argument(
+        "--control",
+        metavar="THRESHOLD,RATIO",
+        help="only KAZE's descriptor with this matching (alone, handcrafted) against its default",
+    )
+    args = ap.parse_args()
+    select(ap, args.descriptors)
+    cache = FeatureCache(args.cache_dir)
+    print(machine(), flush=True)
+    if args.time_only:
+        time_descriptors(Path(args.datasets))
+        return 0
+    if args.control:
+        t, r = (float(v) for v in args.control.split(","))
+        control(Path(args.datasets), cache, {"match_threshold": t, "max_ratio": r})
+        return 0
+    pool = pool_config(("handcrafted",) if args.no_default else ("default", "handcrafted"))
+    banks, near, feats, pair_ms = score(pool, args.datasets, cache)
+    chosen, grid_rows = matching_choice(banks, near)
+    params = {d: {**DESCRIPTORS[d], **chosen[d]} for d in DESCRIPTORS}
+    print("chosen: " + "; ".join(f"{d} {chosen[d]}" for d in DESCRIPTORS))
+    print(
+        "ms per pair (nearest two): "
+        + ", ".join(f"{d} {np.mean(v):.3f}" for d, v in pair_ms.items() if v)
+    )
+    configs = add_chosen(banks, near, feats, params, not args.no_default)
+
+    def correct(cfg: HierarchyConfig, p: str, part: str) -> np.ndarray:
+        return np.asarray(banks[p, part].run(cfg).correct, bool)
+
+    presets = {
+        n: load_config(n) for n in ("handcrafted",) + (() if args.no_default else ("default",))
+    }
+    rows = preset_rows(presets, correct)
+    bank = banks[next(iter(PROTOCOLS)), "test"]
+    rows.update(family_rows(configs, params, presets, correct, bank, args.time_images))
     if args.json:
-        Path(args.json).write_text(
-            json.dumps(
-                {
-                    "machine": machine_description(),
-                    "grid": [list(g) for g in GRID],
-                    "grid_train": grid_rows,
-                    "chosen": chosen,
-                    "pair_ms": {d: float(np.mean(v)) for d, v in pair_ms.items() if v},
-                    "rows": rows,
-                },
-                indent=2,
-                default=float,
-            )
-        )
+        results = {
+            "grid": [list(g) for g in GRID],
+            "grid_train": grid_rows,
+            "chosen": chosen,
+            "pair_ms": {d: float(np.mean(v)) for d, v in pair_ms.items() if v},
+            "rows": rows,
+        }
+        write_record(args.json, results, args, config=pool, default=float)
     return 0
 
 

@@ -1,31 +1,27 @@
 """OLO alone on Nordland summer -> winter, on every N-th query (its whole-database curve over
 all 3576 queries is 12.8 M comparisons, about an hour on 2 cores).
 
-    python bench/olo_nordland.py [--every 10] [--tolerance 2]
+    python -m bench.olo_nordland [--every 10] [--tolerance 2]
 
 Uses the feature cache (the default OLO features, fitted on the summer references).
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
-from hmpf.evaluation.evaluate import recall_at_n  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods  # noqa: E402
-from hmpf.methods import create_method  # noqa: E402
+from bench.harness import parser
+from hmpf.datasets import dataset_root, frame_ground_truth, list_images
+from hmpf.evaluation.evaluate import recall_at_n
+from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
+from hmpf.methods import create_method
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--tolerance", type=int, default=2)
     ap.add_argument("--params", default="{}", help="OLO parameters as a Python dict literal")

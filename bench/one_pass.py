@@ -1,6 +1,6 @@
 """One forward pass per query: the default hierarchy's CNN methods at one shared input size.
 
-    python bench/one_pass.py [--images 20] [--variants default s288x512 ...] [--out F]
+    python -m bench.one_pass [--images 20] [--variants default s288x512 ...] [--out F]
 
 The default hierarchy reads EfficientNet-Lite0 at three input sizes (GeM 224 x 224, NetVLAD
 288 x 512, OLO 416 x 416): three forward passes per query. Methods on one backbone and one
@@ -26,8 +26,6 @@ passes and the one-pass hierarchy is the ``fast`` preset.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import statistics
 import sys
@@ -37,20 +35,17 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.config import HierarchyConfig, build_methods, load_config, parse_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
-from hmpf.evaluation.calibrate import paired_test  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
-from hmpf.evaluation.study import split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir, extract_query  # noqa: E402
-from hmpf.imageio import load_image  # noqa: E402
-from hmpf.methods.base import fit_many  # noqa: E402
-from hmpf.methods.cnn import CnnMethod  # noqa: E402
-from hmpf.runtime import (  # noqa: E402
-    machine_description,
+from bench.harness import add_cache_dir, add_json, machine, parser, write_json
+from hmpf.config import HierarchyConfig, build_methods, load_config, parse_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import EvalData, evaluate
+from hmpf.evaluation.study import split_data
+from hmpf.features import FeatureCache, extract_query
+from hmpf.imageio import load_image
+from hmpf.methods.base import fit_many
+from hmpf.methods.cnn import CnnMethod
+from hmpf.runtime import (
     set_cnn_runtime,
     set_compute_threads,
 )
@@ -113,18 +108,18 @@ def correct_flags(config: HierarchyConfig, data: EvalData, cache: FeatureCache) 
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--images", type=int, default=20, help="images timed (day_right)")
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    add_cache_dir(ap)
+    add_json(ap, "--out", type=Path, help="write the figures as JSON")
     ap.add_argument("--no-recall", action="store_true", help="timings only")
     ap.add_argument(
         "--protocols", nargs="*", default=list(GARDENS_POINT_PROTOCOLS), choices=list(PROTOCOLS)
     )
     args = ap.parse_args()
     set_cnn_runtime("onnx")
-    print(f"Machine: {machine_description()}", flush=True)
+    print(f"Machine: {machine()}", flush=True)
     refs = list_images(dataset_root() / "gardens_point" / "day_right")
     pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)
     images = [load_image(refs[i]) for i in pick]
@@ -198,7 +193,7 @@ def main() -> int:
                 f"| {t['p']:.3f} |"
             )
     if args.out:
-        args.out.write_text(json.dumps(out, indent=1) + "\n")
+        write_json(args.out, out)  # keyed by variant: no record around it
     return 0
 
 

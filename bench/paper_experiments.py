@@ -1,6 +1,6 @@
 """The paper's studies, calibration and the headline table on the Gardens Point protocols.
 
-    python bench/paper_experiments.py [--protocols gp_dr_nr ...] [--budget-ms 150] [--seed 0]
+    python -m bench.paper_experiments [--protocols gp_dr_nr ...] [--budget-ms 150] [--seed 0]
 
 Per protocol (reference -> query, +-2 frames, ``blocks`` split: alternating stretches of 20
 frames, 100 training and 100 test frames): ``hmpf-calibrate``'s search on the training part
@@ -14,33 +14,28 @@ the feature cache; a cold run extracts every method for 600 images first.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.cli.calibrate import write_config  # noqa: E402
-from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
-from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluation.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.experiments import report_markdown, run_studies, write_figures  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
+from bench.harness import ROOT, add_data, parser, write_json
+from hmpf.cli.calibrate import write_config
+from hmpf.config import load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS
+from hmpf.evaluation.calibrate import SearchSpace, calibrate, compare_on, leaderboard_markdown
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.experiments import report_markdown, run_studies, write_figures
+from hmpf.evaluation.study import ScoreBank, measure_query_ms, split_data
+from hmpf.features import FeatureCache
 
 PRESETS = ("paper-nordland", "paper-berlin", "default")
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--protocols", nargs="*", default=list(PROTOCOLS), choices=list(PROTOCOLS))
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
+    add_data(ap)
     ap.add_argument("--budget-ms", type=float, default=150.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--split", default="blocks", choices=("blocks", "halves"))
@@ -87,7 +82,7 @@ def main() -> int:
             f"test recall@1 {rep['test']['recall_at_1']:.3f} (docs/experiments/{proto}/).",
         )
         (out / "leaderboard.md").write_text(leaderboard_markdown(rep))
-        (out / "calibration.json").write_text(json.dumps(rep, indent=1))
+        write_json(out / "calibration.json", rep)
         title = f"Gardens Point {Path(r).name} -> {Path(q).name}"
         res = run_studies(pool, train, test, costs=None, calibrated=config)
         figures = write_figures(res, out, title)
@@ -95,7 +90,7 @@ def main() -> int:
             report_markdown(res, title, figures)
             + "\nCalibration leaderboard: [leaderboard.md](leaderboard.md).\n"
         )
-        (out / "experiments.json").write_text(json.dumps(res, indent=1))
+        write_json(out / "experiments.json", res)
         te = rep["test"]
         row = {
             "protocol": proto,
@@ -124,7 +119,7 @@ def main() -> int:
         headline.append(row)
         print(json.dumps({k: v for k, v in row.items() if "acceptance" not in k}, indent=1))
         print(f"{proto}: {time.perf_counter() - t0:.0f} s", flush=True)
-    (out_root / "headline.json").write_text(json.dumps(headline, indent=1))
+    write_json(out_root / "headline.json", headline)
     return 0
 
 

@@ -1,6 +1,6 @@
 """Cost of the references' profile (hmpf.confidence.ReferenceProfile) against the map's size.
 
-    python bench/profile_scale.py [--sizes 10000,100000,1000000] [--dim 1280] [--threads 2]
+    python -m bench.profile_scale [--sizes 10000,100000,1000000] [--dim 1280] [--threads 2]
 
 The profile is what the absolute confidence evidence (``ref_z``) compares a query's score
 with: per reference and tier-1 global method, the mean and spread of the scores it gets
@@ -17,21 +17,16 @@ reference and method).
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
-from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.confidence import ReferenceProfile  # noqa: E402
-from hmpf.methods.base import GlobalMethod, euclidean  # noqa: E402
-from hmpf.runtime import machine_description, set_compute_threads  # noqa: E402
-from hmpf.sequence import RouteMap  # noqa: E402
+from bench.harness import machine, parser
+from hmpf.confidence import ReferenceProfile
+from hmpf.methods.base import GlobalMethod, euclidean
+from hmpf.runtime import set_compute_threads
+from hmpf.sequence import RouteMap
 
 
 class _Vectors(GlobalMethod):
@@ -48,7 +43,7 @@ class _Vectors(GlobalMethod):
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--sizes", default="10000,100000,1000000")
     ap.add_argument("--dim", type=int, default=1280)
     ap.add_argument("--threads", type=int, default=2)
@@ -56,7 +51,7 @@ def main() -> int:
     args = ap.parse_args()
     set_compute_threads(args.threads)
     method = _Vectors()
-    print(f"machine: {machine_description()}; {args.threads} threads, dim {args.dim}")
+    print(f"machine: {machine()}; {args.threads} threads, dim {args.dim}")
     print(
         f"| references | build (s, best of {args.repeat}) | s per 1M references | profile bytes |"
     )

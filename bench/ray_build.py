@@ -1,6 +1,6 @@
 """Build throughput of ``hmpf-index build`` locally and on a local Ray instance, 1 and 2 workers.
 
-    .venv/bin/python bench/ray_build.py [--images ../shared/datasets/gardens_point/day_right]
+    .venv/bin/python -m bench.ray_build [--images ../shared/datasets/gardens_point/day_right]
         [--config default] [--limit 200] [--repeat 1] [--modes local1,local2,ray1,ray2]
 
 Every build starts from a fresh index folder, so nothing is cached (the work folder's feature
@@ -15,13 +15,13 @@ extraction, HDF5, fsync), and the load average before the runs (the machine may 
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
+from bench.harness import parser
 from hmpf.datasets import dataset_root, list_images
 from indexer.build import BuildOptions, build
 from indexer.distributed import RayOptions, require_ray
@@ -43,7 +43,7 @@ def _ray_startup(workers: int) -> float:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = parser(__doc__)
     default_images = dataset_root() / "gardens_point" / "day_right"
     p.add_argument("--images", default=str(default_images))
     p.add_argument("--config", default="default")

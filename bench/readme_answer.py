@@ -1,6 +1,6 @@
 """The README's example answers, produced by running what a new user runs.
 
-    python bench/readme_answer.py [--index index/default] [--out results/readme_answer.json]
+    python -m bench.readme_answer [--index index/default] [--out results/readme_answer.json]
 
 Builds the default preset's index over Gardens Point day_right (as ``make run``, unless
 ``--index`` already holds a version), serves it in-process (the real app, no
@@ -18,7 +18,6 @@ answer's fields.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 from pathlib import Path
@@ -26,13 +25,13 @@ from typing import Any
 
 from fastapi.testclient import TestClient
 
+from bench.harness import ROOT, add_json, parser, write_record
 from hmpf.config import load_config
 from hmpf.datasets import dataset_root
 from indexer.build import BuildOptions, build
 from service.app import create_app
 from service.settings import load_settings
 
-ROOT = Path(__file__).resolve().parent.parent
 FRAME = "Image050.jpg"
 DRIVE = range(20, 50)
 TOLERANCE = 2
@@ -56,9 +55,9 @@ def frame_number(name: str) -> int:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--index", default=str(ROOT / "index" / "default"))
-    ap.add_argument("--out", default=str(ROOT / "results" / "readme_answer.json"))
+    add_json(ap, "--out", default=str(ROOT / "results" / "readme_answer.json"), help="JSON report")
     args = ap.parse_args()
     data = dataset_root() / "gardens_point"
     index = Path(args.index)
@@ -125,9 +124,7 @@ def main() -> int:
         ),
     }
     out["figures"] = figures
-    target = Path(args.out)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(json.dumps(out, indent=1))
+    target = write_record(args.out, out, args, preset="default")
     print(json.dumps(abridged(single), indent=1))
     print(json.dumps(abridged(out["sequence"]), indent=1))
     print(json.dumps(figures, indent=1))

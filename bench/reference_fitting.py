@@ -1,6 +1,6 @@
 """Fitting on the references: PCA-whitening and database-side augmentation (DBA).
 
-    python bench/reference_fitting.py [--json out.json] [--time-images 5]
+    python -m bench.reference_fitting [--json out.json] [--time-images 5]
 
 Routes: the three Gardens Point protocols (``hmpf.datasets.GARDENS_POINT_PROTOCOLS``,
 ``blocks`` split of 20 frames) and Nordland summer -> winter 64x32 (``blocks`` split of 100
@@ -32,36 +32,35 @@ index stores (``exact`` precision).
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
-import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-import inliers  # noqa: E402
-
-from hmpf.config import HierarchyConfig, TierConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root  # noqa: E402
-from hmpf.evaluation.calibrate import SearchSpace, paired_test, search  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.study import (  # noqa: E402
+from bench import inliers
+from bench.harness import (
+    add_data,
+    add_json,
+    machine,
+    parser,
+    protocol_data,
+    write_record,
+)
+from hmpf.config import HierarchyConfig, TierConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS
+from hmpf.evaluation.calibrate import SearchSpace, paired_test, search
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import (
     ScoreBank,
     measure_costs,
     measure_query_ms,
     split_data,
 )
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.index.storage import storage_dtype  # noqa: E402
-from hmpf.methods import GlobalMethod, create_method  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from hmpf.features import FeatureCache
+from hmpf.index.storage import storage_dtype
+from hmpf.methods import GlobalMethod, create_method
 
 GP_BASE = {"gem": {}, "netvlad": {"clusters": 32}, "olo": {"regions": 100}, "gist": {}, "hog": {}}
 NL_BASE = {"sad": {}, "hog": {}, "gist": {}}
@@ -149,67 +148,67 @@ def bytes_per_reference(bank: ScoreBank, config: HierarchyConfig) -> float:
     return inliers.bytes_per_reference(bank, config, own)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--time-images", type=int, default=5)
-    ap.add_argument("--json", help="write the figures here too")
-    args = ap.parse_args()
-    cache = FeatureCache(args.cache_dir)
-    root = Path(args.datasets)
-    t_start = time.perf_counter()
-    print(machine_description(), flush=True)
+METHODS = ("gem", "netvlad", "gist", "hog", "sad")
+Chosen = dict[str, dict[str, dict[str, Any] | None]]
 
-    routes: dict[str, tuple[EvalData, dict[str, dict[str, Any]], int]] = {}
-    for proto, (r, q) in GARDENS_POINT_PROTOCOLS.items():
-        routes[proto] = (EvalData.frames(root / r, root / q, 2), GP_BASE, 20)
-    nl = root / "nordland_64x32"
-    routes["nordland"] = (EvalData.frames(nl / "summer", nl / "winter", 2), NL_BASE, 100)
 
-    banks: dict[tuple[str, str], ScoreBank] = {}
-    for route, (data, base, block) in routes.items():
-        pool = HierarchyConfig(
-            name="pool",
-            methods={m: dict(p) for m, p in base.items()},
-            tiers=[TierConfig(methods=list(base), k=1)],
-        )
-        for part, split in zip(("train", "test"), split_data(data, block=block), strict=True):
-            banks[route, part] = ScoreBank.build(pool, split, cache=cache)
-            print(f"scored {route} {part} ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    for m, p in {**GP_BASE, **NL_BASE}.items():
-        VARIANT_PARAMS[m] = {"type": m, **p}
+class Study:
+    """The routes (Gardens Point's protocols and Nordland, each with its base methods and
+    split block), their parts' banks, and the variants derived in them."""
 
-    def used_on(m: str) -> list[str]:
-        return [r for r, (_, base, _) in routes.items() if m in base]
+    def __init__(self, datasets: str, cache: FeatureCache, t_start: float) -> None:
+        self.routes: dict[str, tuple[EvalData, dict[str, dict[str, Any]], int]] = {}
+        for proto in GARDENS_POINT_PROTOCOLS:
+            self.routes[proto] = (protocol_data(proto, datasets), GP_BASE, 20)
+        self.routes["nordland"] = (protocol_data("nordland_s_w", datasets), NL_BASE, 100)
+        self.banks: dict[tuple[str, str], ScoreBank] = {}
+        for route, (data, base, block) in self.routes.items():
+            pool = HierarchyConfig(
+                name="pool",
+                methods={m: dict(p) for m, p in base.items()},
+                tiers=[TierConfig(methods=list(base), k=1)],
+            )
+            for part, split in zip(("train", "test"), split_data(data, block=block), strict=True):
+                self.banks[route, part] = ScoreBank.build(pool, split, cache=cache)
+                print(f"scored {route} {part} ({time.perf_counter() - t_start:.0f} s)", flush=True)
+        for m, p in {**GP_BASE, **NL_BASE}.items():
+            VARIANT_PARAMS[m] = {"type": m, **p}
 
-    def correct(config: HierarchyConfig, route: str, part: str) -> np.ndarray:
-        return np.asarray(banks[route, part].run(config).correct, bool)
+    def used_on(self, m: str) -> list[str]:
+        return [r for r, (_, base, _) in self.routes.items() if m in base]
 
-    def make(m: str, extra: dict[str, Any], part: str | None = None) -> str:
+    def correct(self, config: HierarchyConfig, route: str, part: str) -> np.ndarray:
+        return np.asarray(self.banks[route, part].run(config).correct, bool)
+
+    def mean_train(self, config: HierarchyConfig, routes: list[str]) -> float:
+        return float(np.mean([self.correct(config, r, "train").mean() for r in routes]))
+
+    def make(self, m: str, extra: dict[str, Any], part: str | None = None) -> str:
+        """Variant ``m`` + ``extra`` derived in the banks of ``part`` (both when None)."""
         vid = variant_id(m, extra)
         base = {**GP_BASE, **NL_BASE}[m]
         VARIANT_PARAMS[vid] = {"type": m, **base, **extra}
-        for r in used_on(m):
+        for r in self.used_on(m):
             for p in (part,) if part else ("train", "test"):
-                derive(banks[r, p], vid, m, base, extra)
+                derive(self.banks[r, p], vid, m, base, extra)
         return vid
 
-    # -- 1. each method alone: the settings chosen on the training parts ---------------------
-    report: dict[str, Any] = {"machine": machine_description(), "methods": {}, "hierarchies": {}}
-    chosen: dict[str, dict[str, dict[str, Any] | None]] = {}
+
+def choose_levers(study: Study, report: dict[str, Any]) -> Chosen:
+    """Each method alone: its whitening and DBA settings chosen on the training parts."""
+    chosen: Chosen = {}
     print("\n### Each method alone: training mean recall@1 per setting\n", flush=True)
-    for m in ("gem", "netvlad", "gist", "hog", "sad"):
-        rs = used_on(m)
+    for m in METHODS:
+        rs = study.used_on(m)
         grids = {"whiten": WHITEN_GRID if m in WHITENABLE else [], "dba": DBA_GRID}
-        plain_train = float(np.mean([correct(alone(m), r, "train").mean() for r in rs]))
+        plain_train = study.mean_train(alone(m), rs)
         chosen[m] = {}
         train_rows: dict[str, float] = {"plain": plain_train}
         for lever, grid in grids.items():
             best, best_v = None, plain_train
             for extra in grid:
-                vid = make(m, extra, "train")
-                v = float(np.mean([correct(alone(vid), r, "train").mean() for r in rs]))
+                vid = study.make(m, extra, "train")
+                v = study.mean_train(alone(vid), rs)
                 train_rows[vid] = v
                 if v > best_v + 1e-12:
                     best, best_v = extra, v
@@ -217,30 +216,34 @@ def main() -> int:
         # Combined: both levers where both were chosen (else the one chosen, already listed).
         both = {**(chosen[m]["whiten"] or {}), **(chosen[m]["dba"] or {})} or None
         if chosen[m]["whiten"] and chosen[m]["dba"]:
-            vid = make(m, both, "train")
-            train_rows[vid] = float(np.mean([correct(alone(vid), r, "train").mean() for r in rs]))
+            vid = study.make(m, both, "train")
+            train_rows[vid] = study.mean_train(alone(vid), rs)
         chosen[m]["both"] = both
         top = sorted(train_rows.items(), key=lambda kv: -kv[1])[:6]
         print(f"{m} on {', '.join(rs)}: " + "; ".join(f"{k} {v:.3f}" for k, v in top), flush=True)
         report["methods"][m] = {"routes": rs, "train": train_rows, "chosen": chosen[m]}
+    return chosen
 
+
+def test_levers(study: Study, chosen: Chosen, report: dict[str, Any]) -> None:
+    """Each method alone with each chosen lever on the test parts, against it plain."""
     print("\n### Each method alone, test parts (recall@1; vs plain: won/lost, sign test p)\n")
-    routes_all = list(routes)
+    routes_all = list(study.routes)
     print("| method | lever | setting | " + " | ".join(routes_all) + " |")
     print("|---|---|---|" + "---|" * len(routes_all))
-    for m in ("gem", "netvlad", "gist", "hog", "sad"):
-        rows = {}
+    for m in METHODS:
+        rows: dict[str, Any] = {}
         for lever in ("plain", "whiten", "dba", "both"):
             extra = {} if lever == "plain" else chosen[m][lever]
             if extra is None:
                 continue
-            vid = make(m, extra, "test") if extra else m
+            vid = study.make(m, extra, "test") if extra else m
             cells = []
             for r in routes_all:
-                if r not in used_on(m):
+                if r not in study.used_on(m):
                     cells.append("")
                     continue
-                c, c0 = correct(alone(vid), r, "test"), correct(alone(m), r, "test")
+                c, c0 = study.correct(alone(vid), r, "test"), study.correct(alone(m), r, "test")
                 t = paired_test(c, c0)
                 mark = "" if lever == "plain" else f" (+{t['wins']}/-{t['losses']}, p {t['p']:.2g})"
                 cells.append(f"{c.mean():.3f}{mark}")
@@ -249,29 +252,31 @@ def main() -> int:
             print(f"| {m} | {lever} | {setting} | " + " | ".join(cells) + " |", flush=True)
         report["methods"][m]["test"] = rows
 
-    # -- 2. in the hierarchies ---------------------------------------------------------------
-    default = load_config("default")
-    thumbs = load_config("calibrated/nordland_handcrafted")
 
-    def lever_swap(cfg: HierarchyConfig, lever: str) -> dict[str, str]:
-        out = {}
-        for m in cfg.method_ids:
-            extra = chosen.get(m, {}).get(lever)
-            if extra:
-                out[m] = make(m, extra)
-        return out
-
-    configs: dict[str, dict[str, HierarchyConfig]] = {"gp": {}, "nordland": {}}
-    for key, cfg in (("gp", default), ("nordland", thumbs)):
-        base_cfg = swapped(cfg, {}, cfg.name)
-        configs[key][f"{cfg.name}"] = base_cfg
+def lever_configs(
+    study: Study, chosen: Chosen, presets: dict[str, HierarchyConfig]
+) -> dict[str, dict[str, HierarchyConfig]]:
+    """Per route family, its preset plain and with each chosen lever swapped in."""
+    configs: dict[str, dict[str, HierarchyConfig]] = {}
+    for key, cfg in presets.items():
+        configs[key] = {f"{cfg.name}": swapped(cfg, {}, cfg.name)}
         for lever in ("whiten", "dba", "both"):
-            sw = lever_swap(cfg, lever)
+            sw = {}
+            for m in cfg.method_ids:
+                extra = chosen.get(m, {}).get(lever)
+                if extra:
+                    sw[m] = study.make(m, extra)
             if sw:
                 configs[key][f"{cfg.name} + {lever}"] = swapped(cfg, sw, f"{cfg.name}+{lever}")
+    return configs
 
-    # Nordland: a 2-tier search over plain and whitened SAD / HOG / Gist on the training part.
-    w_ids = {m: make(m, chosen[m]["whiten"]) for m in NL_BASE if chosen[m]["whiten"]}
+
+def nordland_search(
+    study: Study, chosen: Chosen, thumbs: HierarchyConfig
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """Nordland: a 2-tier search over plain and whitened SAD / HOG / Gist on the training
+    part; the winner and the search's report."""
+    w_ids = {m: study.make(m, chosen[m]["whiten"]) for m in NL_BASE if chosen[m]["whiten"]}
     pool_ids = [*NL_BASE, *w_ids.values()]
     pool = HierarchyConfig(
         name="pool",
@@ -279,7 +284,7 @@ def main() -> int:
         methods={m: VARIANT_PARAMS[m] for m in pool_ids},
         tiers=[TierConfig(methods=pool_ids, k=1)],
     )
-    train_bank = banks["nordland", "train"]
+    train_bank = study.banks["nordland", "train"]
     sub = ScoreBank(
         {m: train_bank.methods[m] for m in pool_ids},
         {m: train_bank.scores[m] for m in pool_ids},
@@ -298,8 +303,7 @@ def main() -> int:
         f"chosen on training: {win.label()} (train recall@1 {win.recall_at_1:.3f})",
         flush=True,
     )
-    configs["nordland"][f"searched: {win.label()}"] = searched
-    report["nordland_search"] = {
+    return searched, {
         "pool": pool_ids,
         "space": {"max_tiers": 2, "max_per_tier": 2, "refine": 10},
         "winner": win.label(),
@@ -308,6 +312,11 @@ def main() -> int:
         "leaderboard": [(t.label(), t.recall_at_1) for t in ranked[:10]],
     }
 
+
+def hierarchy_rows(
+    study: Study, configs: dict[str, dict[str, HierarchyConfig]], report: dict[str, Any]
+) -> None:
+    """Each hierarchy's recall@1 on the parts of its routes, tests against the first row."""
     print("\n### Hierarchies (recall@1, +-2 frames; test vs the first row: won/lost, p)\n")
     for key, rs in (("gp", list(GARDENS_POINT_PROTOCOLS)), ("nordland", ["nordland"])):
         print("| config | " + " | ".join(f"{r} train | {r} test" for r in rs) + " |")
@@ -316,8 +325,8 @@ def main() -> int:
         for label, cfg in configs[key].items():
             cells, entry = [], {}
             for r in rs:
-                tr, te = correct(cfg, r, "train"), correct(cfg, r, "test")
-                t = paired_test(te, correct(first, r, "test"))
+                tr, te = study.correct(cfg, r, "train"), study.correct(cfg, r, "test")
+                t = paired_test(te, study.correct(first, r, "test"))
                 mark = "" if cfg is first else f" (+{t['wins']}/-{t['losses']}, p {t['p']:.2g})"
                 cells += [f"{tr.mean():.3f}", f"{te.mean():.3f}{mark}"]
                 entry[r] = {"train": float(tr.mean()), "test": float(te.mean()), "sign": t}
@@ -325,15 +334,23 @@ def main() -> int:
             print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
         print()
 
+
+def cost_rows(
+    study: Study,
+    configs: dict[str, dict[str, HierarchyConfig]],
+    report: dict[str, Any],
+    images: int,
+) -> None:
+    """ms per query (end to end, one thread) and bytes per reference of each hierarchy."""
     print("### Cost (ms per query end to end, one thread; bytes per reference)\n")
     print("| config | ms per query | extraction ms | hierarchy ms | bytes per reference |")
     print("|---|---|---|---|---|")
-    timing_bank = {"gp": banks[next(iter(GARDENS_POINT_PROTOCOLS)), "test"]}
-    timing_bank["nordland"] = banks["nordland", "test"]
+    timing_bank = {"gp": study.banks[next(iter(GARDENS_POINT_PROTOCOLS)), "test"]}
+    timing_bank["nordland"] = study.banks["nordland", "test"]
     for key in ("gp", "nordland"):
         bank = timing_bank[key]
         for label, cfg in configs[key].items():
-            t = measure_query_ms(cfg, bank, images=args.time_images, threads=1)
+            t = measure_query_ms(cfg, bank, images=images, threads=1)
             size = bytes_per_reference(bank, cfg)
             report["hierarchies"][label].update(timing=t, bytes_per_reference=size)
             print(
@@ -341,10 +358,32 @@ def main() -> int:
                 f"{t['hierarchy_ms']:.1f} | {size:,.0f} |",
                 flush=True,
             )
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    add_data(ap)
+    ap.add_argument("--time-images", type=int, default=5)
+    add_json(ap)
+    args = ap.parse_args()
+    t_start = time.perf_counter()
+    print(machine(), flush=True)
+    study = Study(args.datasets, FeatureCache(args.cache_dir), t_start)
+    # -- 1. each method alone: the settings chosen on the training parts ---------------------
+    report: dict[str, Any] = {"machine": machine(), "methods": {}, "hierarchies": {}}
+    chosen = choose_levers(study, report)
+    test_levers(study, chosen, report)
+    # -- 2. in the hierarchies ---------------------------------------------------------------
+    thumbs = load_config("calibrated/nordland_handcrafted")
+    configs = lever_configs(study, chosen, {"gp": load_config("default"), "nordland": thumbs})
+    searched, report["nordland_search"] = nordland_search(study, chosen, thumbs)
+    configs["nordland"][f"searched: {report['nordland_search']['winner']}"] = searched
+    hierarchy_rows(study, configs, report)
+    cost_rows(study, configs, report, args.time_images)
     report["elapsed_s"] = time.perf_counter() - t_start
     report["variants"] = VARIANT_PARAMS
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1, default=str) + "\n")
+        write_record(args.json, report, args)
     return 0
 
 

@@ -1,6 +1,6 @@
 """Cost of the sequence filter (hmpf/sequence.py) against the size of the map, one thread.
 
-    python bench/sequence_scale.py [--sizes 10000,100000,1000000] [--frames 200]
+    python -m bench.sequence_scale [--sizes 10000,100000,1000000] [--frames 200]
 
 Synthetic map: 100 straight routes on a grid (50 west-east, 50 south-north, references
 5 m apart, roads of a direction >= 100 m apart, crossing those of the other direction), with
@@ -34,20 +34,15 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
-import argparse  # noqa: E402
 import math  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
-from pathlib import Path  # noqa: E402
 from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.runtime import machine_description, set_compute_threads  # noqa: E402
+from bench.harness import machine, parser, percentiles  # noqa: E402
+from hmpf.runtime import set_compute_threads  # noqa: E402
 from hmpf.sequence import Evidence, FilterParams, RouteMap, SequenceFilter  # noqa: E402
 
 N_ROUTES = 100
@@ -133,11 +128,6 @@ class Frames:
         )
 
 
-def percentiles(ms: list[float]) -> tuple[float, float]:
-    a = np.asarray(ms)
-    return float(np.median(a)), float(np.percentile(a, 95))
-
-
 def bench_size(n: int, frames: int, params: FilterParams) -> dict[str, float]:
     rm, build_s, nbytes, peak = route_map_cost(n, params)
     f = SequenceFilter(rm, params)
@@ -190,7 +180,7 @@ def bench_size(n: int, frames: int, params: FilterParams) -> dict[str, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--sizes", default="10000,100000,1000000")
     ap.add_argument("--frames", type=int, default=200)
     args = ap.parse_args()
@@ -198,7 +188,7 @@ def main() -> None:
     params = FilterParams()
     load0 = os.getloadavg()[0]
     rows = [bench_size(int(s), args.frames, params) for s in args.sizes.split(",")]
-    print(f"machine: {machine_description()}; one thread; numpy {np.__version__}")
+    print(f"machine: {machine()}; one thread; numpy {np.__version__}")
     print(f"load average (1 min) before / after: {load0:.2f} / {os.getloadavg()[0]:.2f}")
     print(
         f"FilterParams defaults (hypotheses={params.hypotheses}, proposals={params.proposals}, "

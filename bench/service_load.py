@@ -1,6 +1,6 @@
 """Load test of ``hmpf-serve`` over loopback: throughput, latency percentiles, errors, 503s.
 
-    .venv/bin/python bench/service_load.py [--config configs/default.yaml] [--clients 1 8]
+    .venv/bin/python -m bench.service_load [--config configs/default.yaml] [--clients 1 8]
         [--duration 30] [--overload 48] [--index DIR] [--workers N] [--queue Q]
 
 Builds (once, under ``results/service-index/<config name>``) an index of Gardens Point
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import http.client
-import json
 import os
 import socket
 import statistics
@@ -34,15 +33,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+import httpx
 
-import httpx  # noqa: E402
-from accuracy import machine  # noqa: E402
-
-from hmpf.client import Client, ServiceError, ServiceUnreachable  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
+from bench.harness import ROOT, add_json, machine, parser, write_record
+from hmpf.client import Client, ServiceError, ServiceUnreachable
+from hmpf.datasets import dataset_root, list_images
 
 TIMEOUT_S = 30.0
 
@@ -212,7 +207,7 @@ def _report(p: Phase) -> dict[str, object]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "default.yaml")
     ap.add_argument("--index", type=Path, default=None)
     ap.add_argument("--clients", type=int, nargs="+", default=[1, 8])
@@ -220,7 +215,7 @@ def main() -> int:
     ap.add_argument("--overload", type=int, default=48, help="clients of the overload phase")
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--queue", type=int, default=None)
-    ap.add_argument("--json", type=Path, default=None)
+    add_json(ap, type=Path)
     args = ap.parse_args()
 
     index = _ensure_index(args.config.resolve(), args.index)
@@ -248,8 +243,7 @@ def main() -> int:
             proc.terminate()
             proc.wait(30)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"config": str(args.config), "phases": rows}, indent=1))
+        write_record(args.json, {"config": str(args.config), "phases": rows}, args)
     return 0
 
 

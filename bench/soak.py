@@ -1,6 +1,6 @@
 """Soak test of ``hmpf-serve``: a real server under a mixed, partly hostile load for minutes.
 
-    .venv/bin/python bench/soak.py [--minutes 10] [--vehicles 4] [--reload-every 120]
+    .venv/bin/python -m bench.soak [--minutes 10] [--vehicles 4] [--reload-every 120]
         [--add-every 180] [--out results/soak.json]
 
 Builds a fresh index (default config) of the first 150 Gardens Point ``day_right`` frames in a
@@ -46,13 +46,11 @@ import time
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import Any, NamedTuple
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.client import Client, ServiceError, ServiceUnreachable  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import ROOT, add_json, parser, write_record
+from hmpf.client import Client, ServiceError, ServiceUnreachable
+from hmpf.datasets import dataset_root, list_images
 
 TIMEOUT_S = 30.0
 BIN = Path(sys.executable).parent
@@ -265,131 +263,124 @@ def percentile(values: list[float], q: float) -> float | None:
     return v[min(len(v) - 1, int(round(q * (len(v) - 1))))]
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--minutes", type=float, default=10.0)
-    ap.add_argument("--vehicles", type=int, default=4)
-    ap.add_argument("--reload-every", type=float, default=120.0)
-    ap.add_argument("--add-every", type=float, default=180.0)
-    ap.add_argument("--rss-growth-mb", type=float, default=150.0)
-    ap.add_argument("--fd-growth", type=int, default=20)
-    ap.add_argument("--out", default=str(ROOT / "results" / "soak.json"))
-    args = ap.parse_args()
+def build_index(work: Path, refs: list[Path]) -> Path:
+    """A fresh index (default config) of ``refs`` copied under ``work``."""
+    images = work / "refs"
+    images.mkdir()
+    for p in refs:
+        shutil.copy(p, images / p.name)
+    index = work / "index"
+    t0 = time.perf_counter()
+    subprocess.run(
+        [str(BIN / "hmpf-index"), "build", "--config", "default", "--images", str(images)]
+        + ["--index", str(index), "--quiet"],
+        check=True,
+    )
+    print(f"index: {index} built in {time.perf_counter() - t0:.0f} s", flush=True)
+    return index
 
-    gp = dataset_root() / "gardens_point"
-    refs, night = list_images(gp / "day_right"), list_images(gp / "night_right")
-    frames = [p.read_bytes() for p in night]
-    work = Path(tempfile.mkdtemp(prefix="hmpf-soak-"))
-    procs: list[subprocess.Popen[bytes]] = []
-    try:
-        images = work / "refs"
-        images.mkdir()
-        for p in refs[:150]:
-            shutil.copy(p, images / p.name)
-        index = work / "index"
-        t0 = time.perf_counter()
-        subprocess.run(
-            [str(BIN / "hmpf-index"), "build", "--config", "default", "--images", str(images)]
-            + ["--index", str(index), "--quiet"],
-            check=True,
-        )
-        print(f"index: {index} built in {time.perf_counter() - t0:.0f} s", flush=True)
-        from service.auth import add_key
-        from service.settings import load_settings
 
-        keys = work / "keys.yaml"
-        vkey, akey = add_key(keys, "soak-car", "vehicle"), add_key(keys, "soak-ops", "admin")
-        max_upload = load_settings(None, index=index, keys_file=keys).max_upload_bytes
-        port = free_port()
-        env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
-        env.update(HMPF_KEYS_FILE=str(keys), HMPF_LOG_LEVEL="warning")
-        if "HMPF_DATASETS" in os.environ:
-            env["HMPF_DATASETS"] = os.environ["HMPF_DATASETS"]
-        log_path = work / "serve.log"
-        server = subprocess.Popen(
-            [str(BIN / "hmpf-serve"), "--index", str(index), "--port", str(port)],
-            env=env,
-            stdout=log_path.open("wb"),
-            stderr=subprocess.STDOUT,
-        )
-        procs.append(server)
-        deadline = time.monotonic() + 300
+class Server(NamedTuple):
+    proc: subprocess.Popen[bytes]
+    port: int
+    vehicle_key: str
+    admin_key: str
+    max_upload: int
+
+
+def start_server(work: Path, index: Path) -> Server:
+    """``hmpf-serve`` on ``index`` on a free loopback port (authentication on, a vehicle and
+    an admin key), once it answers ``/readyz``."""
+    from service.auth import add_key
+    from service.settings import load_settings
+
+    keys = work / "keys.yaml"
+    vkey, akey = add_key(keys, "soak-car", "vehicle"), add_key(keys, "soak-ops", "admin")
+    max_upload = load_settings(None, index=index, keys_file=keys).max_upload_bytes
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+    env.update(HMPF_KEYS_FILE=str(keys), HMPF_LOG_LEVEL="warning")
+    if "HMPF_DATASETS" in os.environ:
+        env["HMPF_DATASETS"] = os.environ["HMPF_DATASETS"]
+    log_path = work / "serve.log"
+    server = subprocess.Popen(
+        [str(BIN / "hmpf-serve"), "--index", str(index), "--port", str(port)],
+        env=env,
+        stdout=log_path.open("wb"),
+        stderr=subprocess.STDOUT,
+    )
+    deadline = time.monotonic() + 300
+    while True:
+        if server.poll() is not None:
+            raise SystemExit(f"hmpf-serve exited {server.returncode}: {log_path.read_text()}")
+        try:
+            if request(port, "GET", "/readyz")[0] == 200:
+                return Server(server, port, vkey, akey, max_upload)
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            server.kill()
+            raise SystemExit("hmpf-serve did not become ready in 300 s")
+        time.sleep(0.3)
+
+
+def soak(
+    srv: Server, index: Path, frames: list[bytes], extra_refs: list[Path], args: argparse.Namespace
+) -> tuple[Log, list[tuple[float, float, int]], float, bool]:
+    """The load for ``args.minutes``: the log, the server's (time, RSS, fds) samples, the
+    seconds elapsed and whether the server was alive at the end (it is stopped then)."""
+    log, stop = Log(), threading.Event()
+    samples: list[tuple[float, float, int]] = []
+    t_start = time.monotonic()
+
+    def sampler() -> None:
         while True:
-            if server.poll() is not None:
-                raise SystemExit(f"hmpf-serve exited {server.returncode}: {log_path.read_text()}")
-            try:
-                if request(port, "GET", "/readyz")[0] == 200:
-                    break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                raise SystemExit("hmpf-serve did not become ready in 300 s")
-            time.sleep(0.3)
+            samples.append((time.monotonic() - t_start, *proc_stats(srv.proc.pid)))
+            if stop.wait(5.0):
+                return
 
-        log, stop = Log(), threading.Event()
-        samples: list[tuple[float, float, int]] = []
-        t_start = time.monotonic()
-
-        def sampler() -> None:
-            while True:
-                samples.append((time.monotonic() - t_start, *proc_stats(server.pid)))
-                if stop.wait(5.0):
-                    return
-
-        threads = [threading.Thread(target=sampler)]
-        for v in range(args.vehicles):
-            name = f"car-{v}"
-            offset = frames[v * len(frames) // max(1, args.vehicles) :] + frames
-            threads.append(
-                threading.Thread(target=vehicle, args=(port, vkey, name, offset, stop, log))
-            )
-        threads.append(
-            threading.Thread(target=hostile, args=(port, vkey, frames, max_upload, stop, log))
-        )
+    threads = [threading.Thread(target=sampler)]
+    for v in range(args.vehicles):
+        offset = frames[v * len(frames) // max(1, args.vehicles) :] + frames
         threads.append(
             threading.Thread(
-                target=operator,
-                args=(
-                    port,
-                    akey,
-                    index,
-                    refs[150:],
-                    args.reload_every,
-                    args.add_every,
-                    stop,
-                    log,
-                ),
+                target=vehicle, args=(srv.port, srv.vehicle_key, f"car-{v}", offset, stop, log)
             )
         )
-        for th in threads:
-            th.start()
-        print(f"soak: {args.minutes:g} min on port {port} ...", flush=True)
-        stop.wait(args.minutes * 60)
-        stop.set()
-        for th in threads:
-            th.join(timeout=TIMEOUT_S + 5)
-        elapsed = time.monotonic() - t_start
-        alive = server.poll() is None
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-        shutil.rmtree(work, ignore_errors=True)
+    threads.append(
+        threading.Thread(
+            target=hostile, args=(srv.port, srv.vehicle_key, frames, srv.max_upload, stop, log)
+        )
+    )
+    operator_args = (srv.port, srv.admin_key, index, extra_refs, args.reload_every, args.add_every)
+    threads.append(threading.Thread(target=operator, args=(*operator_args, stop, log)))
+    for th in threads:
+        th.start()
+    print(f"soak: {args.minutes:g} min on port {srv.port} ...", flush=True)
+    stop.wait(args.minutes * 60)
+    stop.set()
+    for th in threads:
+        th.join(timeout=TIMEOUT_S + 5)
+    elapsed = time.monotonic() - t_start
+    alive = srv.proc.poll() is None
+    srv.proc.send_signal(signal.SIGTERM)
+    try:
+        srv.proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        srv.proc.kill()
+    return log, samples, elapsed, alive
 
+
+def summary(
+    log: Log, samples: list[tuple[float, float, int]], elapsed: float, alive: bool, vehicles: int
+) -> dict[str, Any]:
+    """Requests by kind and status, the vehicles' latency, RSS and open descriptors."""
     five = sum(n for (_, st), n in log.codes.items() if st.isdigit() and int(st) >= 500)
     first = [s for s in samples if s[0] <= 60] or samples[:1]
     last = [s for s in samples if s[0] >= elapsed - 60] or samples[-1:]
-    rss_growth = max(s[1] for s in last) - max(s[1] for s in first)
-    fd_growth = max(s[2] for s in last) - max(s[2] for s in first)
-    report = {
-        "machine": machine_description(),
+    return {
         "minutes": elapsed / 60,
-        "vehicles": args.vehicles,
+        "vehicles": vehicles,
         "requests": {f"{k} {s}": n for (k, s), n in sorted(log.codes.items())},
         "vehicle_latency_ms": {
             "n": len(log.latency),
@@ -401,23 +392,54 @@ def main() -> int:
             "start": samples[0][1],
             "end": samples[-1][1],
             "peak": max(s[1] for s in samples),
-            "growth_first_to_last_minute": rss_growth,
+            "growth_first_to_last_minute": max(s[1] for s in last) - max(s[1] for s in first),
         },
         "open_fds": {
             "start": samples[0][2],
             "end": samples[-1][2],
             "peak": max(s[2] for s in samples),
-            "growth_first_to_last_minute": fd_growth,
+            "growth_first_to_last_minute": max(s[2] for s in last) - max(s[2] for s in first),
         },
         "server_alive_at_end": alive,
         "5xx": five,
         "errors": log.errors,
     }
-    ok = five == 0 and alive and rss_growth <= args.rss_growth_mb and fd_growth <= args.fd_growth
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--vehicles", type=int, default=4)
+    ap.add_argument("--reload-every", type=float, default=120.0)
+    ap.add_argument("--add-every", type=float, default=180.0)
+    ap.add_argument("--rss-growth-mb", type=float, default=150.0)
+    ap.add_argument("--fd-growth", type=int, default=20)
+    add_json(ap, "--out", default=str(ROOT / "results" / "soak.json"), help="JSON report")
+    args = ap.parse_args()
+    gp = dataset_root() / "gardens_point"
+    refs, night = list_images(gp / "day_right"), list_images(gp / "night_right")
+    frames = [p.read_bytes() for p in night]
+    work = Path(tempfile.mkdtemp(prefix="hmpf-soak-"))
+    srv = None
+    try:
+        index = build_index(work, refs[:150])
+        srv = start_server(work, index)
+        log, samples, elapsed, alive = soak(srv, index, frames, refs[150:], args)
+    finally:
+        if srv is not None and srv.proc.poll() is None:
+            srv.proc.kill()
+        shutil.rmtree(work, ignore_errors=True)
+    report = summary(log, samples, elapsed, alive, args.vehicles)
+    rss_growth = report["rss_mib"]["growth_first_to_last_minute"]
+    fd_growth = report["open_fds"]["growth_first_to_last_minute"]
+    ok = (
+        report["5xx"] == 0
+        and alive
+        and rss_growth <= args.rss_growth_mb
+        and fd_growth <= args.fd_growth
+    )
     report["passed"] = ok
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1))
+    out = write_record(args.out, report, args)
     print(json.dumps(report, indent=1))
     print(f"wrote {out}; {'PASSED' if ok else 'FAILED'}")
     return 0 if ok else 1

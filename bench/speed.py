@@ -1,6 +1,6 @@
 """Speed figures behind the issue's targets (medians, on this machine).
 
-    python bench/speed.py
+    python -m bench.speed
 
 * KAZE matching per candidate pair on real Gardens Point features (night query vs day
   references), with the default keypoint cap and without it, plus a bare vectorised
@@ -16,36 +16,20 @@ import statistics
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from accuracy import machine  # noqa: E402
-
-from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import dataset_root, frame_ground_truth, list_images  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
-from hmpf.imageio import load_image  # noqa: E402
-from hmpf.methods import create_method  # noqa: E402
-from hmpf.methods.kaze import best_two_ssd, unit_rows  # noqa: E402
-
-
-def timed(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` in ms."""
-    fn()
-    runs = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        runs.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(runs)
+from bench.harness import ROOT, machine, parser, timed
+from hmpf.config import load_config
+from hmpf.datasets import dataset_root, frame_ground_truth, list_images
+from hmpf.evaluation.evaluate import EvalData, evaluate
+from hmpf.imageio import load_image
+from hmpf.methods import create_method
+from hmpf.methods.kaze import best_two_ssd, unit_rows
 
 
 def main() -> int:
+    parser(__doc__).parse_args()  # no options; --help
     gp = dataset_root() / "gardens_point"
     day = list_images(gp / "day_right")
     night = list_images(gp / "night_right")

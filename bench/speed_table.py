@@ -1,6 +1,6 @@
 """Before / after: the default hierarchy's speed with each of issue 20's levers, one run.
 
-    python bench/speed_table.py [--images 20] [--duration 20] [--rows before onnx after]
+    python -m bench.speed_table [--images 20] [--duration 20] [--rows before onnx after]
         [--json F]
 
 Rows (the same machine, images and run; each lever added on top of the row above):
@@ -27,7 +27,6 @@ The runtime is chosen by ``HMPF_CNN_RUNTIME`` (set for the service's process too
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -38,17 +37,14 @@ from typing import Any
 
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from hmpf.config import HierarchyConfig, load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData, evaluate  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, measure_query_ms  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.runtime import machine_description, set_cnn_runtime  # noqa: E402
-from indexer.build import BuildOptions, build  # noqa: E402
+from bench.harness import ROOT, add_cache_dir, add_json, machine, parser, write_json
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
+from hmpf.evaluation.evaluate import EvalData, evaluate
+from hmpf.evaluation.study import ScoreBank, measure_query_ms
+from hmpf.features import FeatureCache
+from hmpf.runtime import set_cnn_runtime
+from indexer.build import BuildOptions, build
 
 #: row -> (CNN runtime, preset).
 ROWS = {
@@ -67,8 +63,8 @@ def write_yaml(config: HierarchyConfig, folder: Path) -> Path:
 def http(
     config_yaml: Path, index: Path, runtime: str, duration: float, out: Path
 ) -> dict[str, Any]:
-    """bench/service_load.py's phases with 1 and 8 clients (no overload phase)."""
-    cmd = [sys.executable, str(ROOT / "bench" / "service_load.py"), "--config", str(config_yaml)]
+    """``python -m bench.service_load``'s phases with 1 and 8 clients (no overload phase)."""
+    cmd = [sys.executable, "-m", "bench.service_load", "--config", str(config_yaml)]
     cmd += ["--index", str(index)]
     cmd += ["--clients", "1", "8", "--duration", str(duration), "--overload", "0"]
     cmd += ["--json", str(out)]
@@ -97,14 +93,14 @@ def recalls(config: HierarchyConfig, cache: FeatureCache) -> dict[str, float]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--images", type=int, default=20, help="queries timed on one thread")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds per HTTP phase")
     ap.add_argument("--rows", nargs="*", default=list(ROWS), choices=list(ROWS))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--json", type=Path, default=None)
+    add_cache_dir(ap)
+    add_json(ap, type=Path)
     args = ap.parse_args()
-    print(f"Machine: {machine_description()}", flush=True)
+    print(f"Machine: {machine()}", flush=True)
     cache = FeatureCache(args.cache_dir)
     gp = dataset_root() / "gardens_point"
     timed = EvalData.frames(gp / "day_right", gp / "night_right", 2)
@@ -130,7 +126,7 @@ def main() -> int:
                 "recall": recalls(config, cache),
             }
             print(f"{row}: {json.dumps(table[row])}", flush=True)
-    print(f"\nMachine: {machine_description()}; one run of every row.\n")
+    print(f"\nMachine: {machine()}; one run of every row.\n")
     names = " / ".join(GARDENS_POINT_PROTOCOLS)
     print(
         "| row | runtime, passes | one query, 1 thread (extract + hierarchy) | HTTP p50, 1 client "
@@ -149,7 +145,7 @@ def main() -> int:
             f"| {eight['answers_per_s']:.1f} ({errors}) | {r['build_images_per_s']:.1f} | {rec} |"
         )
     if args.json:
-        args.json.write_text(json.dumps(table, indent=1) + "\n")
+        write_json(args.json, table)  # keyed by row: no record around it
     return 0
 
 

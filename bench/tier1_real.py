@@ -1,6 +1,6 @@
 """Tier-1 FAISS choice on real descriptors: exact Flat against IVF, as far as real data goes.
 
-    .venv/bin/python bench/tier1_real.py [--methods gem netvlad] [--winter-every 4]
+    .venv/bin/python -m bench.tier1_real [--methods gem netvlad] [--winter-every 4]
 
 ``bench/index_search.py`` sizes tier 1 on synthetic route-like vectors up to a million
 references. This checks the same choice on the real descriptors we have: one map made of
@@ -28,23 +28,18 @@ capacity model (docs/scale.md) recommends lose tier-1 candidates on real descrip
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.config import build_methods, load_config  # noqa: E402
-from hmpf.datasets import dataset_root, list_images  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods  # noqa: E402
-from hmpf.index.ann import build_faiss, declared_metric, faiss_module  # noqa: E402
-from hmpf.index.reader import SAMPLE_SIZE  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import machine, parser
+from hmpf.config import build_methods, load_config
+from hmpf.datasets import dataset_root, list_images
+from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
+from hmpf.index.ann import build_faiss, declared_metric, faiss_module
+from hmpf.index.reader import SAMPLE_SIZE
 
 TOLERANCE = 2
 
@@ -99,7 +94,7 @@ def search_times(index: object, q: np.ndarray, k: int) -> float:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = parser(__doc__)
     p.add_argument("--config", default="default")
     p.add_argument("--methods", nargs="*", default=None, help="default: the config's tier 1")
     p.add_argument("--winter-every", type=int, default=4)
@@ -114,7 +109,7 @@ def main() -> None:
     tier1 = a.methods or list(config.tiers[0].methods)
     methods = {mid: m for mid, m in build_methods(config).items() if mid in tier1}
     refs, ref_lab, qs, q_lab = routes(dataset_root(), a.winter_every)
-    print(machine_description())
+    print(machine())
     print(f"map: {len(refs)} references (3 routes), {len(qs)} queries; tier-1 k = {k}")
     cache = FeatureCache(default_cache_dir())
     fit_methods(methods, refs, cache=cache)

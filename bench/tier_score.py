@@ -1,6 +1,6 @@
 """How a non-final tier enters the Combined score: the original's max against the mean.
 
-    python bench/tier_score.py [--hierarchies 600] [--seed 0] [--json out.json]
+    python -m bench.tier_score [--hierarchies 600] [--seed 0] [--json out.json]
 
 Per Gardens Point protocol (``hmpf.datasets.GARDENS_POINT_PROTOCOLS``, ``blocks`` split,
 +-2 frames), draws ``--hierarchies`` random 2- and 3-tier hierarchies of the calibration pool
@@ -11,34 +11,34 @@ mean recall@1 of both and how often the mean is better or worse. Same seed, same
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from bench.harness import (
+    ROOT,
+    add_data,
+    add_json,
+    machine,
+    parser,
+    protocol_data,
+    write_record,
+)
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS
+from hmpf.evaluation.calibrate import WEIGHT_LADDER, SearchSpace, describe
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.study import ScoreBank, derive_config, split_data
+from hmpf.features import FeatureCache
+
+Hierarchy = tuple[list[tuple[tuple[str, ...], int]], list[float]]
 
 
-from hmpf.config import load_config  # noqa: E402
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS as PROTOCOLS  # noqa: E402
-from hmpf.datasets import dataset_root  # noqa: E402
-from hmpf.evaluation.calibrate import WEIGHT_LADDER, SearchSpace, describe  # noqa: E402
-from hmpf.evaluation.evaluate import EvalData  # noqa: E402
-from hmpf.evaluation.study import ScoreBank, derive_config, split_data  # noqa: E402
-from hmpf.features import FeatureCache, default_cache_dir  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
-
-
-def draw(
-    space: SearchSpace, n: int, seed: int
-) -> list[tuple[list[tuple[tuple[str, ...], int]], list[float]]]:
+def draw(space: SearchSpace, n: int, seed: int) -> list[Hierarchy]:
     """``n`` distinct random hierarchies: (tiers as (methods, k), weights)."""
     rng = np.random.default_rng(seed)
     sets = space.tier_sets()
-    out: dict[str, tuple[list[tuple[tuple[str, ...], int]], list[float]]] = {}
+    out: dict[str, Hierarchy] = {}
     while len(out) < n:
         n_tiers = int(rng.integers(2, 4))
         tiers = [sets[int(i)] for i in rng.integers(0, len(sets), n_tiers)]
@@ -50,49 +50,54 @@ def draw(
     return list(out.values())
 
 
+def compare(
+    pool: HierarchyConfig, split: EvalData, hierarchies: list[Hierarchy], cache: FeatureCache
+) -> dict[str, Any]:
+    """Mean recall@1 of ``hierarchies`` on ``split`` with either tier score, and how often
+    the mean is better or worse."""
+    bank = ScoreBank.build(pool, split, cache=cache)
+    rec = {
+        ts: np.array(
+            [
+                bank.run(
+                    derive_config(pool.model_copy(update={"tier_score": ts}), tiers, ws)
+                ).recall_at_1
+                for tiers, ws in hierarchies
+            ]
+        )
+        for ts in ("max", "mean")
+    }
+    d = rec["mean"] - rec["max"]
+    return {
+        "max": float(rec["max"].mean()),
+        "mean": float(rec["mean"].mean()),
+        "difference": float(d.mean()),
+        "mean_better": float(np.mean(d > 0)),
+        "mean_worse": float(np.mean(d < 0)),
+    }
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--hierarchies", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--datasets", default=str(dataset_root()))
-    ap.add_argument("--cache-dir", default=str(default_cache_dir()))
-    ap.add_argument("--json", help="write the figures here too")
+    add_data(ap)
+    add_json(ap)
     args = ap.parse_args()
     cache = FeatureCache(args.cache_dir)
     pool = load_config(ROOT / "configs" / "calibration-pool.yaml")
     hierarchies = draw(SearchSpace(tuple(pool.method_ids)), args.hierarchies, args.seed)
-    print(f"{machine_description()}; {len(hierarchies)} hierarchies, seed {args.seed}")
+    print(f"{machine()}; {len(hierarchies)} hierarchies, seed {args.seed}")
     print(
         "| protocol | part | mean R@1, max | mean R@1, mean | difference | mean better "
         "| mean worse |"
     )
     print("|---|---|---|---|---|---|---|")
     rows = []
-    for proto, (r, q) in PROTOCOLS.items():
-        data = EvalData.frames(Path(args.datasets) / r, Path(args.datasets) / q, 2)
+    for proto in PROTOCOLS:
+        data = protocol_data(proto, args.datasets)
         for part, split in zip(("train", "test"), split_data(data), strict=True):
-            bank = ScoreBank.build(pool, split, cache=cache)
-            rec = {
-                ts: np.array(
-                    [
-                        bank.run(
-                            derive_config(pool.model_copy(update={"tier_score": ts}), tiers, ws)
-                        ).recall_at_1
-                        for tiers, ws in hierarchies
-                    ]
-                )
-                for ts in ("max", "mean")
-            }
-            d = rec["mean"] - rec["max"]
-            row = {
-                "protocol": proto,
-                "part": part,
-                "max": float(rec["max"].mean()),
-                "mean": float(rec["mean"].mean()),
-                "difference": float(d.mean()),
-                "mean_better": float(np.mean(d > 0)),
-                "mean_worse": float(np.mean(d < 0)),
-            }
+            row = {"protocol": proto, "part": part, **compare(pool, split, hierarchies, cache)}
             rows.append(row)
             print(
                 f"| {proto} | {part} | {row['max']:.3f} | {row['mean']:.3f} | "
@@ -100,11 +105,9 @@ def main() -> int:
                 flush=True,
             )
     if args.json:
-        Path(args.json).write_text(
-            json.dumps({"machine": machine_description(), "rows": rows}, indent=1)
-        )
+        write_record(args.json, {"rows": rows}, args, config=pool)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

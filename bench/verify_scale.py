@@ -1,6 +1,6 @@
 """Cost of verifying an index version on load (sha256 of every file) against the map's size.
 
-    python bench/verify_scale.py [--sizes 10000,100000] [--global-kib 17.8] [--local-kib 37.9]
+    python -m bench.verify_scale [--sizes 10000,100000] [--global-kib 17.8] [--local-kib 37.9]
                                  [--repeat 3] [--extrapolate 1000000] [--dir /tmp]
 
 Every time a version is opened for reading (``hmpf-serve`` start and reload, ``hmpf-eval
@@ -29,7 +29,6 @@ largest measured size is used, and the output says it is extrapolated).
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import statistics
@@ -41,11 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from hmpf.index import layout  # noqa: E402
-from hmpf.runtime import machine_description  # noqa: E402
+from bench.harness import machine, parser
+from hmpf.index import layout
 
 #: Rows written per HDF5 write (bounded memory at any size).
 SLAB = 2048
@@ -102,7 +98,7 @@ def median_time(fn: Callable[[], object], repeat: int, before: Callable[[], None
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--sizes", default="10000,100000")
     ap.add_argument("--global-kib", type=float, default=17.8)
     ap.add_argument("--local-kib", type=float, default=37.9)
@@ -111,7 +107,7 @@ def main() -> int:
     ap.add_argument("--dir", default=None, help="where to write the synthetic versions")
     args = ap.parse_args()
     per_ref = (args.global_kib + args.local_kib) * 1024
-    print(f"machine: {machine_description()}; {os.cpu_count()} CPUs")
+    print(f"machine: {machine()}; {os.cpu_count()} CPUs")
     print(
         f"per reference: {args.global_kib} KiB references.h5 + {args.local_kib} KiB local.h5; "
         f"median of {args.repeat} runs"
