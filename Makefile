@@ -111,7 +111,7 @@ test-offline: install
 	$(PY) -m pytest -q -m "not dataset"
 
 bench: install
-	$(PY) bench/accuracy.py --out results/accuracy.json
+	$(PY) -m bench.accuracy --out results/accuracy.json
 
 lint: install
 	$(VENV)/bin/ruff check hmpf indexer service tests bench
