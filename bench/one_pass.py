@@ -28,14 +28,21 @@ from __future__ import annotations
 
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench.harness import add_cache_dir, add_json, machine, parser, write_json
+from bench.harness import (
+    add_cache_dir,
+    add_json,
+    add_protocols,
+    machine,
+    parser,
+    protocol_data,
+    write_json,
+)
 from hmpf.config import HierarchyConfig, build_methods, load_config, parse_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.calibrate import paired_test
@@ -51,11 +58,6 @@ from hmpf.runtime import (
 )
 
 CNN_METHODS = ("gem", "netvlad", "olo")
-#: Gardens Point's three protocols and Nordland summer -> winter (thumbnails, +-2 frames).
-PROTOCOLS = {
-    **GARDENS_POINT_PROTOCOLS,
-    "nordland_s_w": ("nordland_64x32/summer", "nordland_64x32/winter"),
-}
 #: variant name -> input size (rows, cols) per CNN method; None: the method's own default.
 VARIANTS: dict[str, dict[str, tuple[int, int] | None]] = {
     "default": {m: None for m in CNN_METHODS},
@@ -107,55 +109,30 @@ def correct_flags(config: HierarchyConfig, data: EvalData, cache: FeatureCache) 
     return data.gt[np.arange(len(matches)), matches]
 
 
-def main() -> int:
-    ap = parser(__doc__)
-    ap.add_argument("--images", type=int, default=20, help="images timed (day_right)")
-    ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
-    add_cache_dir(ap)
-    add_json(ap, "--out", type=Path, help="write the figures as JSON")
-    ap.add_argument("--no-recall", action="store_true", help="timings only")
-    ap.add_argument(
-        "--protocols", nargs="*", default=list(GARDENS_POINT_PROTOCOLS), choices=list(PROTOCOLS)
-    )
-    args = ap.parse_args()
-    set_cnn_runtime("onnx")
-    print(f"Machine: {machine()}", flush=True)
-    refs = list_images(dataset_root() / "gardens_point" / "day_right")
-    pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)
-    images = [load_image(refs[i]) for i in pick]
-    fit = [load_image(p) for p in refs[::7]]
-    cache = FeatureCache(args.cache_dir)
-    parts: dict[str, tuple[EvalData, EvalData]] = {}
-    full: dict[str, EvalData] = {}
-    for name in args.protocols:
-        r, q = PROTOCOLS[name]
-        full[name] = EvalData.frames(dataset_root() / r, dataset_root() / q, 2)
-        parts[name] = split_data(full[name])
-    out: dict[str, Any] = {}
-    for v in args.variants:
-        config = variant_config(VARIANTS[v])
-        row: dict[str, Any] = {"passes": passes(config), "query_ms": query_ms(config, images, fit)}
-        out[v] = row
-        if args.no_recall:
-            print(f"{v}: {row['passes']} pass(es), {row['query_ms']:.1f} ms/query", flush=True)
-            continue
-        for part_i, part in enumerate(("train", "test", "whole")):
-            flags = {
-                p: correct_flags(config, full[p] if part == "whole" else parts[p][part_i], cache)
-                for p in parts
-            }
-            row[part] = {p: float(f.mean()) for p, f in flags.items()}
-            row[f"{part}_mean"] = float(np.mean(list(row[part].values())))
-            row[f"{part}_flags"] = np.concatenate([flags[p] for p in parts]).tolist()
-        print(
-            f"{v}: {row['passes']} pass(es), {row['query_ms']:.1f} ms/query, "
-            f"train {row['train_mean']:.3f}, test {row['test_mean']:.3f}, "
-            f"whole {row['whole_mean']:.3f}",
-            flush=True,
-        )
-    if args.no_recall:
-        return 0
-    print(f"\nQuery extraction on one thread, median of {args.images} images; recall@1 (+-2):\n")
+Parts = dict[str, tuple[EvalData, EvalData]]
+
+
+def add_recalls(
+    row: dict[str, Any],
+    config: HierarchyConfig,
+    full: dict[str, EvalData],
+    parts: Parts,
+    cache: FeatureCache,
+) -> None:
+    """recall@1 per protocol on the training and test parts and the whole protocols, their
+    means and the pooled per-query flags, into ``row``."""
+    for part_i, part in enumerate(("train", "test", "whole")):
+        flags = {
+            p: correct_flags(config, full[p] if part == "whole" else parts[p][part_i], cache)
+            for p in parts
+        }
+        row[part] = {p: float(f.mean()) for p, f in flags.items()}
+        row[f"{part}_mean"] = float(np.mean(list(row[part].values())))
+        row[f"{part}_flags"] = np.concatenate([flags[p] for p in parts]).tolist()
+
+
+def print_table(out: dict[str, Any], parts: Parts, images: int) -> None:
+    print(f"\nQuery extraction on one thread, median of {images} images; recall@1 (+-2):\n")
     print(
         "| variant | passes | ms / query | train: " + " / ".join(parts) + " (mean) "
         "| test: " + " / ".join(parts) + " (mean) |"
@@ -168,34 +145,77 @@ def main() -> int:
             f"| {v} | {row['passes']} | {row['query_ms']:.1f} | {tr} ({row['train_mean']:.3f}) "
             f"| {te} ({row['test_mean']:.3f}) |"
         )
+
+
+def print_choice(out: dict[str, Any], parts: Parts) -> None:
+    """The variant chosen on the training parts, and every variant on the whole protocols,
+    against the default."""
+    base = out["default"]
+    ok = [v for v in out if out[v]["train_mean"] >= base["train_mean"] - 0.005]
+    chosen = min(ok, key=lambda v: out[v]["query_ms"])
+    test = paired_test(np.array(out[chosen]["test_flags"]), np.array(base["test_flags"]))
+    print(
+        f"\nChosen on the training parts: {chosen} (fastest within 0.5 points of default's "
+        f"training recall). Test parts, pooled ({len(base['test_flags'])} queries): "
+        f"{out[chosen]['test_mean']:.3f} vs {base['test_mean']:.3f}; paired sign test: "
+        f"{test['wins']} wins, {test['losses']} losses, p = {test['p']:.3f}"
+    )
+    print(
+        "\nWhole protocols (every reference in the map, every query), against the default "
+        f"({base['whole_mean']:.3f} mean; pooled {len(base['whole_flags'])} queries):\n"
+    )
+    print("| variant | " + " / ".join(parts) + " (mean) | wins / losses | p |")
+    print("|---|---|---:|---:|")
+    for v, row in out.items():
+        t = paired_test(np.array(row["whole_flags"]), np.array(base["whole_flags"]))
+        wh = " / ".join(f"{row['whole'][p]:.3f}" for p in parts)
+        print(
+            f"| {v} | {wh} ({row['whole_mean']:.3f}) | {t['wins']} / {t['losses']} | {t['p']:.3f} |"
+        )
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    ap.add_argument("--images", type=int, default=20, help="images timed (day_right)")
+    ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
+    add_cache_dir(ap)
+    add_json(ap, "--out", type=Path, help="write the figures as JSON")
+    ap.add_argument("--no-recall", action="store_true", help="timings only")
+    add_protocols(ap, default=GARDENS_POINT_PROTOCOLS)
+    args = ap.parse_args()
+    set_cnn_runtime("onnx")
+    print(f"Machine: {machine()}", flush=True)
+    refs = list_images(dataset_root() / "gardens_point" / "day_right")
+    pick = np.linspace(0, len(refs) - 1, args.images).round().astype(int)
+    images = [load_image(refs[i]) for i in pick]
+    fit = [load_image(p) for p in refs[::7]]
+    cache = FeatureCache(args.cache_dir)
+    full = {name: protocol_data(name) for name in args.protocols}
+    parts: Parts = {name: split_data(data) for name, data in full.items()}
+    out: dict[str, Any] = {}
+    for v in args.variants:
+        config = variant_config(VARIANTS[v])
+        row: dict[str, Any] = {"passes": passes(config), "query_ms": query_ms(config, images, fit)}
+        out[v] = row
+        if args.no_recall:
+            print(f"{v}: {row['passes']} pass(es), {row['query_ms']:.1f} ms/query", flush=True)
+            continue
+        add_recalls(row, config, full, parts, cache)
+        print(
+            f"{v}: {row['passes']} pass(es), {row['query_ms']:.1f} ms/query, "
+            f"train {row['train_mean']:.3f}, test {row['test_mean']:.3f}, "
+            f"whole {row['whole_mean']:.3f}",
+            flush=True,
+        )
+    if args.no_recall:
+        return 0
+    print_table(out, parts, args.images)
     if "default" in out:
-        base = out["default"]
-        ok = [v for v in out if out[v]["train_mean"] >= base["train_mean"] - 0.005]
-        chosen = min(ok, key=lambda v: out[v]["query_ms"])
-        test = paired_test(np.array(out[chosen]["test_flags"]), np.array(base["test_flags"]))
-        print(
-            f"\nChosen on the training parts: {chosen} (fastest within 0.5 points of default's "
-            f"training recall). Test parts, pooled ({len(base['test_flags'])} queries): "
-            f"{out[chosen]['test_mean']:.3f} vs {base['test_mean']:.3f}; paired sign test: "
-            f"{test['wins']} wins, {test['losses']} losses, p = {test['p']:.3f}"
-        )
-        print(
-            "\nWhole protocols (every reference in the map, every query), against the default "
-            f"({base['whole_mean']:.3f} mean; pooled {len(base['whole_flags'])} queries):\n"
-        )
-        print("| variant | " + " / ".join(parts) + " (mean) | wins / losses | p |")
-        print("|---|---|---:|---:|")
-        for v, row in out.items():
-            t = paired_test(np.array(row["whole_flags"]), np.array(base["whole_flags"]))
-            wh = " / ".join(f"{row['whole'][p]:.3f}" for p in parts)
-            print(
-                f"| {v} | {wh} ({row['whole_mean']:.3f}) | {t['wins']} / {t['losses']} "
-                f"| {t['p']:.3f} |"
-            )
+        print_choice(out, parts)
     if args.out:
         write_json(args.out, out)  # keyed by variant: no record around it
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())
