@@ -31,10 +31,11 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from bench.harness import machine, parser
+from bench.harness import add_config, machine, parser
 from hmpf.config import build_methods, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
@@ -93,17 +94,90 @@ def search_times(index: object, q: np.ndarray, k: int) -> float:
     return float(np.median(times))
 
 
+def kept(
+    cand: np.ndarray,
+    extra: np.ndarray,
+    rank: np.ndarray,
+    top_exact: np.ndarray,
+    right: np.ndarray,
+    held: np.ndarray,
+    k: int,
+) -> tuple[float, float]:
+    """The reader's approximate path on FAISS candidates ``cand`` (plus ``extra`` scored
+    exactly): the share of the exact top k kept, and of the right places the exact top k
+    held, kept."""
+    kept_top = np.empty(len(cand))
+    kept_right = np.empty(len(cand), bool)
+    for i, c in enumerate(cand):
+        scored = np.union1d(c[c >= 0], extra)
+        top = scored[np.argsort(rank[i, scored], kind="stable")[:k]]
+        kept_top[i] = np.isin(top_exact[i], top).mean()
+        kept_right[i] = right[i, top].any()
+    return float(kept_top.mean()), float((kept_right & held).sum() / max(int(held.sum()), 1))
+
+
+def report_method(
+    mid: str,
+    x: np.ndarray,
+    q: np.ndarray,
+    metric: Any,
+    right: np.ndarray,
+    k: int,
+    nprobes: list[int],
+) -> None:
+    """One tier-1 method: exact search's figures, then each IVF index's (printed)."""
+    faiss = faiss_module()
+    n = len(x)
+    exact, _ = build_faiss(x, metric, "Flat")
+    _, order = exact.search(q, n)  # every reference, best first
+    top_exact = order[:, :k]
+    rank = np.empty_like(order)
+    rank[np.arange(len(q))[:, None], order] = np.arange(n)[None, :]
+    held = right[np.arange(len(q))[:, None], top_exact].any(axis=1)
+    r1_exact = right[np.arange(len(q)), top_exact[:, 0]].mean()
+    print(
+        f"\n{mid} ({x.shape[1]}-d, metric {metric.kind}): exact top-{k} holds the right "
+        f"place for {held.mean():.3f} of queries, recall@1 {r1_exact:.3f}, "
+        f"Flat p50 {search_times(exact, q, k):.2f} ms"
+    )
+    # the reader's approximate path (hmpf.index.reader): FAISS's top max(256, 4k) and an
+    # evenly spaced sample of up to 1024 references are scored exactly, the rest get the
+    # worst value; tier 1 then keeps the exact top k of those
+    approx_k = max(256, 4 * k)
+    sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
+    print(
+        f"| FAISS | bytes/ref in RAM | nprobe | exact top-{k} kept (no sample) "
+        "| right kept (no sample) | p50 ms (FAISS only) |"
+    )
+    print("|---|---:|---:|---|---|---:|")
+    s1, s4 = int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))
+    pq = pq_subquantizers(x.shape[1])
+    for factory in (f"IVF{s1},Flat", f"IVF{s4},Flat", f"IVF{s1},PQ{pq}", f"IVF{s4},PQ{pq}"):
+        ivf, _ = build_faiss(x, metric, factory)
+        ram = len(faiss.serialize_index(ivf)) / n
+        for nprobe in nprobes:
+            if nprobe > int(ivf.nlist):
+                continue
+            ivf.nprobe = nprobe
+            _, cand = ivf.search(q, approx_k)
+            ks = kept(cand, sample, rank, top_exact, right, held, k)
+            kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
+            print(
+                f"| {factory} | {ram:.0f} | {nprobe} | {ks[0]:.4f} ({kn[0]:.4f}) "
+                f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(ivf, q, approx_k):.2f} |"
+            )
+
+
 def main() -> None:
     p = parser(__doc__)
-    p.add_argument("--config", default="default")
+    add_config(p)
     p.add_argument("--methods", nargs="*", default=None, help="default: the config's tier 1")
     p.add_argument("--winter-every", type=int, default=4)
     p.add_argument("--k", type=int, default=None, help="default: the config's tier-1 k")
     p.add_argument("--nprobe", type=int, nargs="*", default=[1, 2, 4, 8, 16, 32])
     p.add_argument("--workers", type=int, default=None)
     a = p.parse_args()
-    faiss = faiss_module()
-    faiss.omp_set_num_threads(1)
+    faiss_module().omp_set_num_threads(1)
     config = load_config(a.config)
     k = a.k or config.tiers[0].k
     tier1 = a.methods or list(config.tiers[0].methods)
@@ -116,7 +190,6 @@ def main() -> None:
     r_feat = extract_images(refs, methods, cache=cache, workers=a.workers, progress=True)
     q_feat = extract_images(qs, methods, cache=cache, workers=a.workers, progress=True)
     right = right_mask(ref_lab, q_lab)
-    n = len(refs)
     for mid, m in methods.items():
         metric = declared_metric(mid, m)
         if metric is None:
@@ -124,57 +197,7 @@ def main() -> None:
             continue
         x = np.ascontiguousarray(m.stack(r_feat.features[mid]), np.float32)
         q = np.ascontiguousarray(m.stack(q_feat.features[mid]), np.float32)
-        exact, _ = build_faiss(x, metric, "Flat")
-        _, order = exact.search(q, n)  # every reference, best first
-        top_exact = order[:, :k]
-        rank = np.empty_like(order)
-        rank[np.arange(len(q))[:, None], order] = np.arange(n)[None, :]
-        held = right[np.arange(len(q))[:, None], top_exact].any(axis=1)
-        r1_exact = right[np.arange(len(q)), top_exact[:, 0]].mean()
-        print(
-            f"\n{mid} ({x.shape[1]}-d, metric {metric.kind}): exact top-{k} holds the right "
-            f"place for {held.mean():.3f} of queries, recall@1 {r1_exact:.3f}, "
-            f"Flat p50 {search_times(exact, q, k):.2f} ms"
-        )
-        # the reader's approximate path (hmpf.index.reader): FAISS's top max(256, 4k) and an
-        # evenly spaced sample of up to 1024 references are scored exactly, the rest get the
-        # worst value; tier 1 then keeps the exact top k of those
-        approx_k = max(256, 4 * k)
-        sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
-        print(
-            f"| FAISS | bytes/ref in RAM | nprobe | exact top-{k} kept (no sample) "
-            "| right kept (no sample) | p50 ms (FAISS only) |"
-        )
-        print("|---|---:|---:|---|---|---:|")
-        s1, s4 = int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))
-        pq = pq_subquantizers(x.shape[1])
-        for factory in (f"IVF{s1},Flat", f"IVF{s4},Flat", f"IVF{s1},PQ{pq}", f"IVF{s4},PQ{pq}"):
-            ivf, _ = build_faiss(x, metric, factory)
-            ram = len(faiss.serialize_index(ivf)) / n
-            nlist = int(ivf.nlist)
-            for nprobe in a.nprobe:
-                if nprobe > nlist:
-                    continue
-                ivf.nprobe = nprobe
-                _, cand = ivf.search(q, approx_k)
-                kept = {}
-                for label, extra in (("sample", sample), ("none", np.zeros(0, np.int64))):
-                    kept_top = np.empty(len(q))
-                    kept_right = np.empty(len(q), bool)
-                    for i, c in enumerate(cand):
-                        scored = np.union1d(c[c >= 0], extra)
-                        top = scored[np.argsort(rank[i, scored], kind="stable")[:k]]
-                        kept_top[i] = np.isin(top_exact[i], top).mean()
-                        kept_right[i] = right[i, top].any()
-                    kept[label] = (
-                        kept_top.mean(),
-                        (kept_right & held).sum() / max(int(held.sum()), 1),
-                    )
-                print(
-                    f"| {factory} | {ram:.0f} | {nprobe} | {kept['sample'][0]:.4f} "
-                    f"({kept['none'][0]:.4f}) | {kept['sample'][1]:.4f} ({kept['none'][1]:.4f}) "
-                    f"| {search_times(ivf, q, approx_k):.2f} |"
-                )
+        report_method(mid, x, q, metric, right, k, a.nprobe)
     print(f"\nload {os.getloadavg()[0]:.2f}")
 
 
