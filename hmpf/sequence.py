@@ -250,7 +250,7 @@ def _junctions(
     ok = np.isfinite(la) & np.isfinite(lo)
     if not ok.any():
         return empty
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # scipy takes ~0.6 s to import: loaded on first use
 
     idx = np.flatnonzero(ok)
     lat0 = math.radians(float(np.mean(la[idx])))

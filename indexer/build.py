@@ -30,7 +30,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -67,10 +67,8 @@ from hmpf.index.tables import (
     select_columns,
 )
 from hmpf.methods import Method
+from indexer.distributed import RayOptions, extract_to_cache
 from indexer.inputs import ImageCheck, check_images, read_metadata, scan_images
-
-if TYPE_CHECKING:
-    from indexer.distributed import RayOptions
 
 __all__ = ["BuildOptions", "NewVersion", "Summary", "VersionTransaction", "add", "build", "remove"]
 
@@ -325,8 +323,6 @@ def _extract(
         return {}, 0
     resumed: int | None = None
     if opt.ray is not None:
-        from indexer.distributed import extract_to_cache
-
         with _images_stay_readable():  # the features land in the cache, read back below
             resumed = extract_to_cache(paths, methods, work.cache, opt.ray, progress=opt.progress)
     with _images_stay_readable():

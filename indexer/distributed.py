@@ -39,10 +39,12 @@ from tqdm import tqdm
 
 from hmpf.errors import HmpfError, ImageError
 from hmpf.features import FeatureCache, file_digest
+from hmpf.imageio import load_image
 from hmpf.index import layout
 from hmpf.index.layout import IndexBuildError
 from hmpf.methods import Method
-from hmpf.runtime import cnn_runtime
+from hmpf.methods.base import extract_many
+from hmpf.runtime import cnn_runtime, set_cnn_runtime, set_compute_threads
 
 __all__ = [
     "RAY_HINT",
@@ -80,7 +82,7 @@ def require_ray() -> Any:
         IndexBuildError: Ray is not installed (one line: how to install it).
     """
     try:
-        import ray
+        import ray  # the ray extra
         import ray.data  # noqa: F401
     except ImportError:
         raise IndexBuildError(RAY_HINT) from None
@@ -170,8 +172,6 @@ class _Extractor:
     versions: ClassVar[dict[str, str]] = {}
 
     def __init__(self) -> None:
-        from hmpf.runtime import set_cnn_runtime, set_compute_threads
-
         mine = _package_versions()
         if mine != self.versions:
             keys = {*mine, *self.versions}
@@ -190,9 +190,6 @@ class _Extractor:
         self.methods: dict[str, Method] = pickle.loads(self.blob)
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        from hmpf.imageio import load_image
-        from hmpf.methods.base import extract_many
-
         rows: dict[str, list[Any]] = {"i": [], "mid": [], "npz": []}
         groups: dict[str, list[int]] = {}
         for j, mids in enumerate(batch["mids"]):

@@ -126,7 +126,7 @@ def _limit_threads(n: int) -> None:
     """Cap BLAS/OpenMP pools (threadpoolctl) and, when torch is loaded, its pool for the
     workers."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import threadpool_limits  # optional: absent, the pools keep their sizes
 
         threadpool_limits(n)
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency of the extra

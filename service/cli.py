@@ -106,7 +106,7 @@ def _run_server(app: FastAPI, settings: Settings) -> int:
         KeyboardInterrupt: after Ctrl-C and the graceful shutdown it starts (uvicorn itself
             would return as after SIGTERM), so that the command exits 130.
     """
-    import uvicorn
+    import uvicorn  # serving only: building the app (tests, --help) needs no server
 
     from service.server import uvicorn_config
 

@@ -157,7 +157,7 @@ def full_float32_on(device: str) -> None:
     CPU device changes nothing."""
     if not str(device).startswith("cuda"):
         return
-    import torch
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     torch.backends.cudnn.allow_tf32 = False
     torch.backends.cuda.matmul.allow_tf32 = False
@@ -168,7 +168,7 @@ class MapsModuleBackbone(Backbone):
     on a float32 batch returns {layer: (B, C, h, w)} for the ``wanted`` names."""
 
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
-        import torch
+        import torch  # the cnn extra; a server running stored ONNX models has no torch
 
         self.check_layers(layers)
         module: Any = self.module

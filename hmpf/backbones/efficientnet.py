@@ -95,7 +95,7 @@ def bundled_weights(variant: int = 0) -> Path:
 
 def _fold_bn(conv: torch.nn.Conv2d, bn: torch.nn.BatchNorm2d) -> None:
     """Fold an eval-mode BatchNorm into the preceding convolution (adds a bias)."""
-    import torch
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     # The model's BatchNorm layers track running statistics, so both buffers are set.
     assert bn.running_mean is not None and bn.running_var is not None
@@ -116,7 +116,7 @@ def _fold_for_inference(model: Any) -> None:
 
     ``model`` is an ``efficientnet_lite_pytorch.EfficientNet`` (an untyped package): its
     submodules (``_conv_stem``, ``_blocks``, ...) are dynamic attributes, hence ``Any``."""
-    import torch
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     pairs = [(model._conv_stem, model, "_bn0"), (model._conv_head, model, "_bn1")]
     for block in model._blocks:
@@ -137,6 +137,8 @@ def _static_same_padding(model: Any, size: tuple[int, int]) -> None:
     """Make the remaining dynamic "same" convolutions (stride 2) pad by constants computed for
     input ``size``: the exported graph then has constant pads, which ONNX Runtime folds into
     the convolutions, instead of a shape computation and a Pad per call (same maps)."""
+    # the cnn extra (torch, EfficientNet's torch code); a server running stored ONNX models
+    # has neither
     import torch
     import torch.nn.functional as F
     from efficientnet_lite_pytorch.utils import Conv2dDynamicSamePadding
@@ -193,11 +195,12 @@ class EfficientNetLite0(Backbone):
     def from_weights(
         cls, path: Path | None, device: str = "cpu", **options: Any
     ) -> EfficientNetLite0:
-        import torch
+        import torch  # the cnn extra; a server running stored ONNX models has no torch
 
         if options:
             raise ConfigError(f"backbone {cls.name!r} takes no options, got {sorted(options)}")
         try:
+            # the cnn extra: EfficientNet's torch code
             from efficientnet_lite_pytorch import EfficientNet
         except ImportError:
             raise MissingDependencyError(
@@ -226,7 +229,7 @@ class EfficientNetLite0(Backbone):
         return imagenet_input
 
     def forward_maps(self, batch: torch.Tensor, layers: Collection[str]) -> dict[str, torch.Tensor]:
-        import torch
+        import torch  # the cnn extra; a server running stored ONNX models has no torch
 
         self.check_layers(layers)
         # An efficientnet_lite_pytorch.EfficientNet (untyped); torch types its submodules,

@@ -152,8 +152,8 @@ def weights_digest(net: Backbone) -> str:
 
 def export_key(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> str:
     """Content key of the exported model of ``net`` for ``layers`` at input ``size``."""
-    import onnx
-    import torch
+    import onnx  # exporting only (needs the cnn extra; a server need not have it)
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     payload = {
         "backbone": net.name,
@@ -201,7 +201,7 @@ def _intact(path: Path) -> bool:
 
 def _maps_module(net: Backbone, layers: Sequence[str]) -> Any:
     """The exported module: a batch in, the requested maps out (in ``layers`` order)."""
-    import torch
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     names = list(layers)
 
@@ -219,7 +219,7 @@ def _maps_module(net: Backbone, layers: Sequence[str]) -> Any:
 
 def _export(net: Backbone, layers: Sequence[str], size: tuple[int, int], path: Path) -> None:
     """Export ``net``'s maps at ``size`` to ``path`` (atomically, with its sha256 beside)."""
-    import torch
+    import torch  # the cnn extra; a server running stored ONNX models has no torch
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
@@ -254,7 +254,7 @@ def _export(net: Backbone, layers: Sequence[str], size: tuple[int, int], path: P
 
 
 def _session(path: Path, threads: int) -> onnxruntime.InferenceSession:
-    import onnxruntime as ort
+    import onnxruntime as ort  # the onnx extra: CNN methods only
 
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads

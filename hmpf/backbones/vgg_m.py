@@ -72,7 +72,7 @@ __all__ = [
 
 def load_mat(path: Path) -> dict[str, Any]:
     """``loadmat(path, struct_as_record=False, squeeze_me=True)``; failures -> WeightsError."""
-    import scipy.io
+    import scipy.io  # scipy takes ~0.6 s to import: loaded on first use
 
     try:
         return scipy.io.loadmat(str(path), struct_as_record=False, squeeze_me=True)

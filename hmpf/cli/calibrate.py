@@ -82,7 +82,7 @@ def _bar_update(bar: tqdm) -> Callable[[int, int], None]:
 
 def write_config(config: HierarchyConfig, path: Path, header: str) -> None:
     """A config as YAML (loadable by :func:`hmpf.config.load_config`) with a comment header."""
-    import yaml
+    import yaml  # ~0.1 s to import: commands load their modules in run (--help stays instant)
 
     data = config.model_dump(mode="json", exclude_defaults=False)
     if not data["index"]["faiss"] and not data["index"]["faiss_params"]:
@@ -291,7 +291,7 @@ def _acceptance_args(args: argparse.Namespace) -> dict[str, Any]:
 def run_calibrate(args: argparse.Namespace) -> int:
     """The command's body: check the flags, score the split, search (or, ``--fit-only``,
     fit the given config), write."""
-    from tqdm import tqdm
+    from tqdm import tqdm  # a command: its modules load in run, --help stays instant
 
     from hmpf.evaluation.calibrate import SearchSpace, calibrate
 

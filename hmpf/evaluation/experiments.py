@@ -308,10 +308,10 @@ class _Figures:
     """A folder of PNG figures drawn with matplotlib (Agg, no display)."""
 
     def __init__(self, out: Path, title: str) -> None:
-        import matplotlib
+        import matplotlib  # figures only (the report extra)
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # figures only (the report extra)
 
         self.plt = plt
         self.out = out

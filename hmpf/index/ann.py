@@ -40,7 +40,7 @@ __all__ = [
 def faiss_module() -> Any:
     """Import faiss, or tell the user which extra to install."""
     try:
-        import faiss
+        import faiss  # the index extra
     except ImportError:  # pragma: no cover - depends on the environment
         raise MissingDependencyError(
             "the index needs FAISS and h5py: pip install 'hmpf[index]'"

@@ -36,6 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from hmpf.backbones import backbone_class
+from hmpf.backbones import onnx_runtime as ox
+from hmpf.backbones.onnx_runtime import StoredModel
 from hmpf.errors import MissingDependencyError
 from hmpf.index.layout import IndexCorruptError
 from hmpf.methods import Method
@@ -101,10 +103,8 @@ def _link_or_copy(src: Path, dest: Path) -> None:
 
 def _export(head: CnnMethod, layers: list[str], size: tuple[int, int], out: Path) -> dict:
     """Export ``head``'s backbone for ``layers`` at ``size`` into ``out`` (needs torch)."""
-    import onnx
+    import onnx  # exporting only (needs the cnn extra; a server need not have it)
     import torch  # imported here: exporting needs torch (a build has it; a server need not)
-
-    from hmpf.backbones import onnx_runtime as ox
 
     net = head.backbone()
     key = ox.export_key(net, layers, size)
@@ -134,8 +134,6 @@ def attach_models(
         IndexCorruptError: an entry is malformed, names a method that is not in the version,
             or a file the manifest's checksums do not cover.
     """
-    from hmpf.backbones.onnx_runtime import StoredModel
-
     entries = manifest.get("models") or []
     files = manifest.get("files") or {}
     where = version_dir / "manifest.json"

@@ -42,6 +42,7 @@ import numpy as np
 from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, build_methods, parse_config, with_shipped_acceptance
 from hmpf.errors import ConfigError
+from hmpf.features import extract_query
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
 from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
@@ -385,8 +386,6 @@ class IndexReader:
         (:func:`hmpf.features.extract_query`). When ``ms`` is given, each method's time (ms;
         a shared forward pass is counted once, in the first method of its group) is stored.
         """
-        from hmpf.features import extract_query
-
         return extract_query(self.methods, image, ms, executor)
 
     def global_matrix(self, mid: str) -> np.ndarray:

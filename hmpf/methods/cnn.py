@@ -29,20 +29,18 @@ import time
 from abc import abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from hmpf.backbones import Backbone, backbone_class, load_backbone, require_torch
 from hmpf.backbones.base import Preprocess, torch_available
+from hmpf.backbones.onnx_runtime import OnnxMaps, StoredModel, onnx_maps
 from hmpf.errors import MissingDependencyError
 from hmpf.imageio import to_rgb
 from hmpf.methods.base import GroupOutput, Method, MethodConfig
 from hmpf.runtime import cnn_runtime, compute_threads
-
-if TYPE_CHECKING:
-    from hmpf.backbones.onnx_runtime import OnnxMaps, StoredModel
 
 __all__ = [
     "CnnConfig",
@@ -280,8 +278,6 @@ def forward_group(
         net = head.backbone()
         preprocess = net.preprocess
         if head.runtime() == "onnx":
-            from hmpf.backbones.onnx_runtime import onnx_maps
-
             onnx = [onnx_maps(net, layers, size) for size in sizes]
         else:
             import torch  # imported here: only the torch runtime needs it (an optional extra)
@@ -296,7 +292,7 @@ def forward_group(
             if onnx is not None:
                 arrays = onnx[i](x)
             else:
-                import torch
+                import torch  # the cnn extra; a server running stored ONNX models has no torch
 
                 assert net is not None
                 with torch.inference_mode():

@@ -249,7 +249,7 @@ class Olo(CnnMethod, LocalMethod):
     # -- vocabulary ---------------------------------------------------------------------------
     @cached_property
     def _files(self) -> dict[str, np.ndarray]:
-        import scipy.io
+        import scipy.io  # scipy takes ~0.6 s to import: loaded on first use
 
         c = self.olo
         try:

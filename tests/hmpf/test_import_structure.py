@@ -66,19 +66,10 @@ COMMAND_MODULES: dict[str, str] = {
     "service.cli": "hmpf-serve",
 }
 
-# Other imports inside functions that are allowed, each with the reason (the goal is this
-# list being empty). Keys: (importing module, imported module).
-ALLOWED_IN_FUNCTION: dict[tuple[str, str], str] = {
-    # To remove (each hoists to module level without a circle; not yet done and tested):
-    ("hmpf.methods.cnn", "hmpf.backbones.onnx_runtime"): "to remove: ONNX runtime glue",
-    ("hmpf.index.models", "hmpf.backbones.onnx_runtime"): "to remove: ONNX runtime glue",
-    ("hmpf.index.reader", "hmpf.features"): "to remove: hoist (features imports no index)",
-    ("hmpf.index.storage", "hmpf.index.ann"): "to remove: ann imports faiss lazily itself",
-    ("indexer.build", "indexer.distributed"): "to remove: distributed imports ray lazily",
-    ("indexer.distributed", "hmpf.runtime"): "to remove: Ray actor set-up, module imported",
-    ("indexer.distributed", "hmpf.imageio"): "to remove: Ray task body, hoist",
-    ("indexer.distributed", "hmpf.methods.base"): "to remove: Ray task body, hoist",
-}
+# Other imports inside functions that are allowed, each with the reason (empty: every one
+# that hid a circle or had no reason was moved to module level). Keys: (importing module,
+# imported module).
+ALLOWED_IN_FUNCTION: dict[tuple[str, str], str] = {}
 
 # Module-level import circles still present, each with a reason; to remove.
 # Keys: frozenset of the modules in the strongly connected component.
@@ -324,6 +315,33 @@ def test_imports_in_functions_only_for_optional_heavy_dependencies() -> None:
     for e in bad:
         print("  in function:", _fmt(e))
     assert bad == []
+
+
+def _has_reason(lines: list[str], line: int) -> bool:
+    """A comment on the import's line, or on the comment lines right above it (a block of
+    imports may share the comment above its first line)."""
+    i = line - 1
+    if "#" in lines[i]:
+        return True
+    while i > 0 and lines[i - 1].lstrip().startswith(("import ", "from ")):
+        i -= 1
+    return i > 0 and lines[i - 1].lstrip().startswith("#")
+
+
+def test_imports_in_functions_say_why() -> None:
+    """Each import of an optional or heavy dependency inside a function has a comment saying
+    why it is there (a command module's are explained once, in ``COMMAND_MODULES``)."""
+    modules, _ = build_graph()
+    ok, _ = find_in_function()
+    silent = []
+    for e in ok:
+        if e.src in COMMAND_MODULES and _in_project(e.dst):
+            continue
+        lines = modules[e.src].read_text(encoding="utf-8").splitlines()
+        if not _has_reason(lines, e.line):
+            silent.append(_fmt(e))
+    print(f"\n{len(ok)} import(s) inside functions, {len(silent)} without a reason")
+    assert silent == []
 
 
 def test_allow_lists_are_not_stale() -> None:
