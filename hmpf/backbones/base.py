@@ -148,10 +148,10 @@ def full_float32_on(device: str) -> None:
     products for the whole process (TF32 off).
 
     PyTorch lets cuDNN convolutions round to TF32 (a 10-bit mantissa) on Ampere and later GPUs
-    by default. On an H100, with the same fitted state, that changed up to 17 % of a HybridNet
-    histogram's bins and most of OLO's word assignments against the CPU, and the top-1 match of
-    3 of 16 OLO queries; in float32 the descriptors agreed within float32 rounding, for under
-    10 % more time (``bench/cuda_check.py``, docs/experiments/cuda/). An index built on a GPU
+    by default. On an H100, with the same fitted state, that moved HybridNet's histogram
+    counts by up to 17 % of the largest bin against the CPU, and OLO's descriptors enough to
+    change the top-1 reference of 3 of 16 queries; in float32 the descriptors agreed within
+    float32 rounding (``python -m bench.cuda_check``, docs/experiments/cuda/). An index built on a GPU
     and queried on a CPU, or the reverse, must give the same answers, so the forward passes run
     in float32. Process-wide, not per call: several threads may run forward passes at once. A
     CPU device changes nothing."""
