@@ -295,6 +295,24 @@ def default_query_ms(root: Path) -> tuple[float, float, dict[str, Any]]:
     return data["rows"]["default"]["query_ms"], data["rows"]["default-lite0"]["query_ms"], data
 
 
+def _glance_default_row(root: Path, times: dict[str, tuple[float, str]]) -> list[str]:
+    """The current default's row: its recall and sign test against `default-lite0` from the
+    run that measured both (``CHOOSE_DEFAULT``), its time from the quiet-machine runs."""
+    data = load(root, CHOOSE_DEFAULT)
+    r, base = data["default"], data["default-lite0"]
+    w, lo, p = sign_test(r["test_flags"], base["test_flags"])
+    ms = times.get("default")
+    return [
+        "**`default`** (Lite1 NetVLAD + GeM scales 1, 0.5)",
+        *(f"**{f3(r['test'][q])}**" for q in GP),
+        "",
+        f1(ms[0]) if ms else "",
+        "",
+        f"**{f3(r['train_mean'])}**",
+        f"{w} / {lo}, p {pvalue(p)}",
+    ]
+
+
 @generator("levers.glance")
 def levers_glance(root: Path) -> str:
     data = load(root, LEVERS)
@@ -321,6 +339,8 @@ def levers_glance(root: Path) -> str:
                 note += "; over 64 KB"
             cells.append(f"**{note}**" if p < 0.05 else note)
         rows.append(cells)
+        if key == "default":
+            rows.append(_glance_default_row(root, times))
     header = [
         "lever (config)",
         "GP dr -> nr",
@@ -335,6 +355,7 @@ def levers_glance(root: Path) -> str:
     align = ["---"] * 5 + ["---:"] * 3 + ["---"]
     out = table(header, rows, align)
     out += source(LEVERS, data, extra="the baseline row `default` of this run is `default-lite0`")
+    out += source(CHOOSE_DEFAULT, load(root, CHOOSE_DEFAULT), extra="the `default` row's recall")
     for rel in LEVERS_TIME:
         out += source(rel, load(root, rel), extra="the ms column, quiet machine")
     return out
@@ -921,6 +942,26 @@ def experiments_headline(root: Path) -> str:
         extra="won/lost from each protocol's `calibration.json`; `default` in the JSON is the "
         "default of that run, now `default-lite0` (its test recall equals default-lite0's); "
         "times on 2 shared cores",
+    )
+
+
+CHOOSE_DEFAULT = "docs/experiments/choose_default/default.json"
+CHOOSE_LABELS = {
+    "default-lite0": "`default-lite0`",
+    "default": "**Lite1 NetVLAD + GeM scales 1, 0.5 (the `default`)**",
+    "bench/levers/multiscale_gem05.yaml": "GeM scales 1, 0.5 (`multiscale_gem05`)",
+    "netvlad-lite1": "NetVLAD on Lite1 (`netvlad-lite1`)",
+}
+
+
+@generator("multiscale.default")
+def multiscale_default(root: Path) -> str:
+    return choose_table(
+        root,
+        CHOOSE_DEFAULT,
+        CHOOSE_LABELS,
+        "query times of this run (2 shared cores, 3 images) are not shown; the quiet-machine "
+        'times are in "Accuracy levers at a glance"',
     )
 
 
