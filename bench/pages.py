@@ -110,6 +110,7 @@ def source(
     digest: str | None = None,
     digest_note: str = "",
     extra: str = "",
+    kind: str = "preset",
 ) -> str:
     """The "Source:" line under a table: what the JSON records, and what it does not."""
     data = data or {}
@@ -117,7 +118,7 @@ def source(
     digest = digest or data.get("digest") or data.get("config_digest")
     parts = [f"`{rel}`"]
     if preset:
-        parts.append(f"preset `{preset}`")
+        parts.append(f"{kind} `{preset}`")
     if digest:
         parts.append(f"config digest `{short(digest)}`{digest_note}")
     else:
@@ -179,6 +180,7 @@ def _backbone_source(root: Path, key: str, data: dict[str, Any], label: str) -> 
         BACKBONES,
         {"machine": None},
         preset=f"{cfg['name']}",
+        kind="config",
         digest=config_digest(cfg),
         digest_note=f" (the config recorded in the JSON: {label})",
     )
