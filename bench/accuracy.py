@@ -87,6 +87,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--skip-curves", nargs="*", default=[], metavar="METHOD")
     add_json(ap, "--out", default=str(ROOT / "results" / "accuracy.json"), help="JSON report")
+    ap.smoke(protocols=["gp_dr_nr"])
     args = ap.parse_args()
     config = load_config(args.config)
     reports = run(config, args)

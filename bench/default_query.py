@@ -60,6 +60,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds per config")
     add_cache_dir(ap)
     add_json(ap)
+    ap.smoke(configs=["default-lite0"], images=3, rounds=1)
     args = ap.parse_args()
     set_cnn_runtime("onnx")
     print(f"Machine: {machine()}; load {os.getloadavg()[0]:.1f}", flush=True)

@@ -95,7 +95,7 @@ PACKAGES = ("numpy", "scipy", "opencv-contrib-python-headless", "torch", "onnxru
 
 class Parser(argparse.ArgumentParser):
     """An :class:`argparse.ArgumentParser` with ``--smoke``: small sizes for a quick run
-    (:meth:`smoke`); an option given on the command line keeps its value."""
+    (:meth:`smoke`); an option given another value than its default keeps it."""
 
     def smoke(self, **sizes: Any) -> Parser:
         """Add ``--smoke``: each ``dest=value`` replaces that option's default when set."""
@@ -112,10 +112,8 @@ class Parser(argparse.ArgumentParser):
         ns = super().parse_args(args, namespace)
         sizes = getattr(self, "_smoke", None)
         if sizes and ns.smoke:
-            given = sys.argv[1:] if args is None else list(args)
             for dest, value in sizes.items():
-                flag = f"--{dest.replace('_', '-')}"
-                if not any(a == flag or a.startswith(flag + "=") for a in given):
+                if getattr(ns, dest) == self.get_default(dest):  # not given: the small size
                     setattr(ns, dest, value)
         return ns
 

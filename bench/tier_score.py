@@ -83,6 +83,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     add_data(ap)
     add_json(ap)
+    ap.smoke(hierarchies=10)
     args = ap.parse_args()
     cache = FeatureCache(args.cache_dir)
     pool = load_config(ROOT / "configs" / "calibration-pool.yaml")
