@@ -119,8 +119,13 @@ class Parser(argparse.ArgumentParser):
 
 
 def parser(doc: str | None, **kwargs: Any) -> Parser:
-    """A :class:`Parser` described by the first line of the bench's docstring."""
-    return Parser(description=(doc or "").strip().splitlines()[0], **kwargs)
+    """A :class:`Parser` described by the first line of the bench's docstring, its usage
+    line naming ``python -m bench.NAME``."""
+    script = Path(sys.argv[0])
+    if script.parent.name == "bench" and script.suffix == ".py":
+        kwargs.setdefault("prog", f"python -m bench.{script.stem}")
+    first = (doc or "").strip().splitlines()[:1]
+    return Parser(description=first[0] if first else None, **kwargs)
 
 
 def add_datasets(ap: argparse.ArgumentParser) -> None:
