@@ -126,7 +126,15 @@ def source(
     parts.append(str(data.get("machine") or "machine not recorded"))
     parts.append(str(data.get("date") or "date not recorded"))
     commit = data.get("commit")
-    parts.append(f"commit {commit[:7]}" if commit else "commit not recorded")
+    changed = data.get("code_changed_since_commit")
+    parts.append(
+        (
+            f"commit {commit[:7]}"
+            + (f" (+ uncommitted changes to {', '.join(changed)})" if changed else "")
+        )
+        if commit
+        else "commit not recorded"
+    )
     line = "Source: " + ", ".join(parts)
     if extra:
         line += f"; {extra}"
@@ -965,6 +973,32 @@ def multiscale_default(root: Path) -> str:
         "query times of this run (2 shared cores, 3 images) are not shown; the quiet-machine "
         'times are in "Accuracy levers at a glance"',
     )
+
+
+@generator("methods.handcrafted")
+def methods_handcrafted(root: Path) -> str:
+    return accuracy_table(root, "docs/experiments/accuracy/handcrafted.json")
+
+
+@generator("methods.alone")
+def methods_alone(root: Path) -> str:
+    """Each method alone over the whole database, and flat fusion of all (``all-methods``)."""
+    rel = "docs/experiments/accuracy/all-methods.json"
+    data = load(root, rel)
+    reports = data["reports"]
+    ids = list(next(iter(reports.values()))["methods"])
+    rows = []
+    for m in ids:
+        rows.append(
+            [METHOD_NAMES.get(m, m)]
+            + [f3(rep["methods"][m].get("recall_at", {}).get("1")) for rep in reports.values()]
+        )
+    rows.append(
+        ["flat fusion of all"]
+        + [f3(rep["hierarchy"]["flat_recall_at_1"]) for rep in reports.values()]
+    )
+    header = ["method", *(PROTOCOL_TITLES.get(n, n) for n in reports)]
+    return table(header, rows) + source(rel, data, extra=data.get("note", ""))
 
 
 def main(argv: list[str] | None = None) -> int:
