@@ -24,6 +24,8 @@ from hmpf.config import load_config
 
 PUBLISHED = Path(__file__).resolve().parents[2] / "docs/experiments/gp_dr_nr/calibration.json"
 
+pytestmark = pytest.mark.slow  # minutes on 2 cores: a whole calibration search
+
 
 def test_calibrated_beats_best_single_and_matches_flat_on_test(gardens_point: Path, tmp_path: Path):
     out = tmp_path / "cal"

@@ -27,6 +27,7 @@ def _eval(args: list[str], cache: Path) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.mark.dataset
+@pytest.mark.slow  # minutes on 2 cores (whole Gardens Point protocols)
 def test_handcrafted_day_right_to_night_right(gardens_point: Path, tmp_path: Path):
     out = tmp_path / "report.json"
     cache = tmp_path / "cache"
@@ -109,6 +110,7 @@ def test_cli_reports_empty_folder(tmp_path: Path):
 
 
 @pytest.mark.dataset
+@pytest.mark.slow  # minutes on 2 cores (whole Gardens Point protocols)
 def test_default_hierarchy_beats_best_single_and_flat(gardens_point: Path, tmp_path: Path):
     """configs/default.yaml on the two night protocols (issue: must beat its best single
     method and flat fusion of the same methods on both)."""
