@@ -34,7 +34,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 BLOCK = re.compile(
-    r"(?P<open><!-- generated: (?P<name>[\w.-]+) -->\n)(?P<body>.*?)(?P<close><!-- /generated -->)",
+    r"(?P<open><!-- generated: (?P<name>[\w.:/,-]+) -->\n)"
+    r"(?P<body>.*?)(?P<close><!-- /generated -->)",
     re.S,
 )
 
@@ -1001,6 +1002,12 @@ def methods_alone(root: Path) -> str:
     return table(header, rows) + source(rel, data, extra=data.get("note", ""))
 
 
+def presets_line(names: list[str]) -> str:
+    """A page's presets with their config digests as shipped now (``presets:a,b`` blocks)."""
+    listed = ", ".join(f"`{n}` (config digest `{short(preset_digest(n))}`)" for n in names)
+    return f"*Presets ([digests](index.md#presets-and-config-digests)): {listed}.*\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 when a page differs")
@@ -1020,6 +1027,8 @@ def render(text: str, root: Path) -> str:
 
     def fill(m: re.Match[str]) -> str:
         name = m["name"]
+        if name.startswith("presets:"):
+            return m["open"] + presets_line(name.removeprefix("presets:").split(",")) + m["close"]
         if name not in GENERATORS:
             raise KeyError(f"no generator {name!r} (known: {', '.join(sorted(GENERATORS))})")
         return m["open"] + GENERATORS[name](root) + m["close"]

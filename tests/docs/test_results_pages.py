@@ -23,7 +23,7 @@ def test_every_block_names_a_known_generator() -> None:
     for page in pages.pages(ROOT):
         found |= {m["name"] for m in pages.BLOCK.finditer(page.read_text())}
     assert found, "no generated block on any results page"
-    assert found <= set(pages.GENERATORS)
+    assert {n for n in found if not n.startswith("presets:")} <= set(pages.GENERATORS)
 
 
 def _copy(tmp_path: Path) -> Path:
@@ -55,6 +55,12 @@ def test_check_fails_when_a_json_value_changes(
     assert pages.main(["--check", "--root", str(root)]) == 1
     pages.main(["--root", str(root)])  # regenerating makes the pages agree again
     assert pages.main(["--check", "--root", str(root)]) == 0
+
+
+def test_presets_line_names_each_preset_with_its_digest() -> None:
+    line = pages.render("<!-- generated: presets:default,fast -->\n<!-- /generated -->", ROOT)
+    for name in ("default", "fast"):
+        assert f"`{name}` (config digest `{pages.preset_digest(name)[:12]}`)" in line
 
 
 def test_an_unknown_generator_is_an_error(tmp_path: Path) -> None:
