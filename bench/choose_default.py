@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import add_cache_dir, add_json, machine, parser, write_json
+from bench.harness import add_cache_dir, add_json, machine, parser, write_record
 from bench.one_pass import correct_flags, passes, query_ms
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
@@ -152,7 +152,8 @@ def main() -> int:
             f"{base['test_mean']:.3f}: {t['wins']} wins / {t['losses']} losses, p = {t['p']:.3f}"
         )
     if args.out:
-        write_json(args.out, out)  # keyed by config: no record around it
+        # the provenance beside the configs' rows (bench/pages.py keeps the rows: dicts with "test")
+        write_record(args.out, out, args)
     return 0
 
 
