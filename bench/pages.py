@@ -377,7 +377,7 @@ def levers_default_time(root: Path) -> str:
     ms, lite0, data = default_query_ms(root)
     return (
         f"One query's extraction on one thread (median of {data['images_timed']} day_right images, "
-        f"every method; `python bench/levers.py --time-only`): **{f1(ms)} ms** for `default` "
+        f"every method; `python -m bench.levers --time-only`): **{f1(ms)} ms** for `default` "
         f"against {f1(lite0)} ms for `default-lite0`.\n"
         + source(
             LEVERS_TIME[0],
@@ -830,7 +830,7 @@ def reference_fitting_cost(root: Path) -> str:
 
 
 def choose_table(root: Path, rel: str, labels: dict[str, str], note: str = "") -> str:
-    """A ``bench/choose_default.py --out`` report: training and test recall@1 of each config
+    """A ``python -m bench.choose_default --out`` report: training and test recall@1 of each config
     (the first is the baseline), paired sign tests on the pooled test (and whole) queries."""
     data = load(root, rel)
     rows_json = {k: v for k, v in data.items() if isinstance(v, dict) and "test" in v}

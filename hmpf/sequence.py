@@ -275,7 +275,7 @@ class FilterParams:
     """The filter's settings.
 
     The defaults were chosen on the training parts of the four shared routes together (the
-    earlier ``python bench/sequence.py --tune``: Gardens Point's three protocols with the
+    earlier ``python -m bench.sequence --tune``: Gardens Point's three protocols with the
     default hierarchy, Nordland summer -> winter with a HOG-led one; recall over drives at
     speeds 1-3 and over spliced drives, and the share accepted at 99 % precision). The best
     settings were tied within 0.001 of that score; of them, the one with sensor resetting
