@@ -78,7 +78,7 @@ from hmpf.evaluation.acceptance import (
 from hmpf.evaluation.sequence import Drive
 from hmpf.sequence import FilterParams, RouteMap
 
-#: Issue 30's goals (bundled default preset, test parts / held-out folds).
+#: The acceptance goals (bundled default preset, test parts / held-out folds).
 GOAL_ECE = 0.05
 GOAL_SEQUENCE = {"gp": 0.85, "nordland": 0.50}
 GOAL_SINGLE_GP = 0.30
@@ -141,7 +141,7 @@ def feature_auc(answers: Answers, names: Sequence[str]) -> dict[str, float]:
 
 
 def meets(mode: str, gp: bool, accepted: float, precision: float | None) -> bool | None:
-    """Whether an accepted share at a precision meets issue 30's on-map goal (None: no goal
+    """Whether an accepted share at a precision meets the on-map acceptance goal (None: no goal
     for single frame on Nordland)."""
     if mode == "single":
         goal = GOAL_SINGLE_GP if gp else None

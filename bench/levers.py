@@ -1,4 +1,4 @@
-"""Issue 18's accuracy levers, each alone and combined, in one table.
+"""The accuracy levers, each alone and combined, in one table.
 
     python -m bench.levers [--only NAME ...] [--nordland-configs NAME ...] [--out F.json]
     python -m bench.levers --time-only [--images 20]      (ms per query only: a quiet machine)

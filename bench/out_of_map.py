@@ -34,7 +34,7 @@ Nordland summer -> winter, the preset on all), split as ``hmpf-calibrate`` split
   are left out of the count: for them the place *is* in the map. Sequence mode drives every
   test query in order.
 
-A false accept is an accepted answer for a frame off the map; the goal (issue 30) is <= 1 %
+A false accept is an accepted answer for a frame off the map; the goal is <= 1 %
 in both modes and a mean ``p_correct`` <= 0.1 off the map. Beside it, in the map (the test
 part against its own references, :func:`shipped_acceptance.evaluate`): the share accepted
 and the precision reached, lock flips per 100 frames, the sequence recall@1, ECE, and a
@@ -79,10 +79,10 @@ from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = ["block_parts", "false_accepts", "off_map_rows", "out_of_map", "spread", "table"]
 
-#: Issue 30's goals off the map: accepted share and mean ``p_correct`` of off-map frames.
+#: The acceptance goals off the map: accepted share and mean ``p_correct`` of off-map frames.
 GOAL = 0.01
 GOAL_MEAN_P = 0.1
-#: Issue 30's goal for the lock on the map.
+#: The goal for the lock on the map.
 GOAL_FLIPS = 2.0
 POLICIES = ("shipped", "held_out", "no_model")
 

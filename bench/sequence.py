@@ -22,7 +22,7 @@ with the hysteresis, or ``lock``; the filter's off-map state refuses). Three pol
 
 Per route, on the test part driven once, in order, as one vehicle (every frame counts):
 sequence recall@1 (beside single frame; the policy does not change it), the share accepted
-and its precision (issue 30's goal at precision >= 99 %: >= 85 % on every Gardens Point
+and its precision (the goal at precision >= 99 %: >= 85 % on every Gardens Point
 protocol, >= 50 % on Nordland), lock flips per 100 frames (after the first acceptance, over
 the drive; and inside the drive's *right, continuous* stretches, :func:`right_runs`: where
 an estimate that stays right should stay accepted; goal <= 2), the share of in-map frames the
@@ -36,7 +36,7 @@ the estimate is right for 5 frames after a start and after a jump, recall@1 by s
 (0.5-4) and with 25 % of the frames dropped, recall by frames of history (plot).
 
 **The whole traverses** (Gardens Point's three protocols, 200 frames each, the whole map):
-sequence recall@1 as ``hmpf-eval --sequence`` measures it (issue 30's goal: >= 0.95 on
+sequence recall@1 as ``hmpf-eval --sequence`` measures it (the goal: >= 0.95 on
 day_left -> night_right), with each policy's accepted share. A whole traverse includes the
 training parts the shipped models (and the other folds' models) were fitted on: its
 acceptance is not a held-out figure; its recall does not depend on the models.
@@ -100,7 +100,7 @@ __all__ = [
     "run_flips",
 ]
 
-#: Issue 30's goals (bundled default preset, test parts / held-out folds).
+#: The acceptance goals (bundled default preset, test parts / held-out folds).
 GOAL_WHOLE = 0.95
 GOAL_FLIPS = 2.0
 GOAL_SEQUENCE = {"gp": 0.85, "nordland": 0.50}

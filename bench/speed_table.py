@@ -1,4 +1,4 @@
-"""Before / after: the default hierarchy's speed with each of issue 20's levers, one run.
+"""Before / after: the default hierarchy's speed with each of its speed levers, one run.
 
     python -m bench.speed_table [--images 20] [--duration 20] [--rows before onnx after]
         [--json F]
