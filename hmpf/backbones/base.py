@@ -151,10 +151,10 @@ def full_float32_on(device: str) -> None:
     by default. On an H100, with the same fitted state, that moved HybridNet's histogram
     counts by up to 17 % of the largest bin against the CPU, and OLO's descriptors enough to
     change the top-1 reference of 3 of 16 queries; in float32 the descriptors agreed within
-    float32 rounding (``python -m bench.cuda_check``, docs/experiments/cuda/). An index built on a GPU
-    and queried on a CPU, or the reverse, must give the same answers, so the forward passes run
-    in float32. Process-wide, not per call: several threads may run forward passes at once. A
-    CPU device changes nothing."""
+    float32 rounding (``python -m bench.cuda_check``, docs/experiments/cuda/). An index built
+    on a GPU and queried on a CPU, or the reverse, must give the same answers, so the forward
+    passes run in float32. Process-wide, not per call: several threads may run forward passes
+    at once. A CPU device changes nothing."""
     if not str(device).startswith("cuda"):
         return
     import torch  # the cnn extra; a server running stored ONNX models has no torch
