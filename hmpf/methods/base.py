@@ -1,7 +1,7 @@
 """Method interface: the base class checks input, subclasses compute.
 
 A method turns an RGB image into a *feature* and compares a query's feature with reference
-features, giving one raw score per reference. Two kinds exist (ARCHITECTURE.md):
+features, giving one raw score per reference. Two kinds exist (CONTRIBUTING.md, "Adding a method"):
 
 * ``global``: one fixed-length vector per image; compared by a distance over stacked matrices,
   so it can rank the whole database (tier 1, later through FAISS).
