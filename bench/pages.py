@@ -515,6 +515,51 @@ def sequence_whole(root: Path) -> str:
     )
 
 
+SERVICE_LOAD = "docs/experiments/service_load"
+
+
+@generator("speed.service_load")
+def speed_service_load(root: Path) -> str:
+    """``python -m bench.service_load`` reports, one per preset: a row per phase."""
+    out = []
+    for name in ("default", "handcrafted"):
+        rel = f"{SERVICE_LOAD}/{name}.json"
+        data = load(root, rel)
+        rows = []
+        for ph in data["phases"]:
+            overload = ph["clients"] == data["arguments"]["overload"]
+            st = ph["server_median_ms"]
+            busy = f"{ph['503']}" + (f" (p99 {f1(ph['503_p99_ms'])} ms)" if ph["503"] else "")
+            rows.append(
+                [
+                    f"`{data['preset']}`",
+                    f"{ph['clients']}" + (" (overload)" if overload else ""),
+                    f1(ph["answers_per_s"]),
+                    f"{f1(ph['p50_ms'])} ms",
+                    f"{f1(ph['p95_ms'])} ms",
+                    f"{f1(ph['p99_ms'])} ms",
+                    busy,
+                    str(sum(ph["errors"].values())),
+                    " / ".join(f1(st.get(k)) for k in ("extract", "hierarchy")),
+                    f3(ph["within_2_frames"]),
+                ]
+            )
+        header = [
+            "preset",
+            "clients",
+            "answers/s",
+            "p50",
+            "p95",
+            "p99",
+            "503s",
+            "other errors",
+            "server: extract / hierarchy (median ms)",
+            "within +-2 frames",
+        ]
+        out.append(table(header, rows) + source(rel, data))
+    return "\n".join(out)
+
+
 LOCAL = "docs/experiments/local_descriptors.json"
 LOCAL_STRUCTURES = {
     "kaze alone": "`kaze` alone",

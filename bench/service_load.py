@@ -243,7 +243,8 @@ def main() -> int:
             proc.terminate()
             proc.wait(30)
     if args.json:
-        write_record(args.json, {"config": str(args.config), "phases": rows}, args)
+        results = {"config": str(args.config), "phases": rows, "server_alive_after": alive}
+        write_record(args.json, results, args, preset=args.config.stem, config=args.config)
     return 0
 
 
