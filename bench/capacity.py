@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.harness import machine, parser
+from bench.harness import add_json, machine, parser, write_record
 from bench.service_load import _free_port, _start
 from hmpf.client import Client
 from hmpf.datasets import list_images
@@ -72,6 +72,7 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=1, help="HMPF_WORKERS of the replica")
     p.add_argument("--threads", type=int, default=1, help="HMPF_THREADS_PER_WORKER")
     p.add_argument("--warmup", type=int, default=5)
+    add_json(p)
     a = p.parse_args()
     a.queue = None
     paths = list_images(a.queries)
@@ -110,6 +111,28 @@ def main() -> None:
     )
     print(f"resident at ready: {show(rss_ready)}")
     print(f"resident after the queries: {show(rss_after)}")
+    if a.json:
+        config = index_config(a.index)
+        results = {
+            "index": str(a.index),
+            "index_config_digest": config["sha256"],
+            "references": refs,
+            "disk_bytes_per_reference": disk / refs,
+            "queries": n,
+            "cpu_ms_per_query": (cpu1 - cpu0) / n * 1e3,
+            "wall_p50_ms": statistics.median(walls),
+            "load_1min_after": os.getloadavg()[0],
+            "rss_ready_mib": rss_ready,
+            "rss_after_mib": rss_after,
+        }
+        write_record(a.json, results, a, preset=config["name"])
+        print(f"wrote {a.json}")
+
+
+def index_config(index: Path) -> dict:
+    """The current version's config as its manifest records it (name, sha256 digest)."""
+    version = index / (index / "CURRENT").read_text().strip()
+    return json.loads((version / "manifest.json").read_text())["config"]
 
 
 if __name__ == "__main__":
