@@ -18,7 +18,6 @@ the resident memory per reference as the slope between them.
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import tempfile
@@ -29,6 +28,7 @@ from bench.harness import add_json, machine, parser, write_record
 from bench.service_load import _free_port, _start
 from hmpf.client import Client
 from hmpf.datasets import list_images
+from hmpf.index import layout
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
@@ -56,12 +56,12 @@ def show(r: dict[str, float]) -> str:
     return f"{r['VmRSS']:.0f} MiB (anonymous {r['RssAnon']:.0f}, file-backed {r['RssFile']:.0f})"
 
 
-def version_bytes(index: Path) -> tuple[int, int]:
-    """(bytes on disk of the current version, references in it)."""
-    version = index / (index / "CURRENT").read_text().strip()
+def version_bytes(index: Path) -> tuple[int, int, dict]:
+    """(bytes on disk of the current version, references in it, its manifest)."""
+    version = index / str(layout.current_version(index))
     total = sum(f.stat().st_size for f in version.rglob("*") if f.is_file())
-    manifest = json.loads((version / "manifest.json").read_text())
-    return total, int(manifest["images"]["count"])
+    manifest = layout.read_manifest(version)
+    return total, int(manifest["images"]["count"]), manifest
 
 
 def main() -> None:
@@ -97,7 +97,7 @@ def main() -> None:
         finally:
             proc.terminate()
             proc.wait(30)
-    disk, refs = version_bytes(a.index)
+    disk, refs, manifest = version_bytes(a.index)
     n = len(walls)
     print(machine())
     print(f"index {a.index}: {refs} references, {disk / refs / 1024:.1f} KiB per reference on disk")
@@ -112,7 +112,7 @@ def main() -> None:
     print(f"resident at ready: {show(rss_ready)}")
     print(f"resident after the queries: {show(rss_after)}")
     if a.json:
-        config = index_config(a.index)
+        config = manifest["config"]  # the name and sha256 digest it was built with
         results = {
             "index": str(a.index),
             "index_config_digest": config["sha256"],
@@ -127,12 +127,6 @@ def main() -> None:
         }
         write_record(a.json, results, a, preset=config["name"])
         print(f"wrote {a.json}")
-
-
-def index_config(index: Path) -> dict:
-    """The current version's config as its manifest records it (name, sha256 digest)."""
-    version = index / (index / "CURRENT").read_text().strip()
-    return json.loads((version / "manifest.json").read_text())["config"]
 
 
 if __name__ == "__main__":

@@ -31,6 +31,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
+
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 BLOCK = re.compile(
@@ -654,18 +656,6 @@ def levers_reference_fitting(root: Path) -> str:
     )
 
 
-METHOD_NAMES = {
-    "gem": "GeM",
-    "netvlad": "NetVLAD",
-    "hybridnet": "HybridNet",
-    "olo": "OLO",
-    "gist": "Gist",
-    "hog": "HOG",
-    "sad": "SAD",
-    "kaze": "KAZE",
-}
-
-
 def accuracy_table(root: Path, rel: str) -> str:
     """A ``bench/accuracy.py`` report: recall@1 of each method alone and of the hierarchy."""
     data = load(root, rel)
@@ -685,7 +675,7 @@ def accuracy_table(root: Path, rel: str) -> str:
                 " / ".join(f"{t['recall']:.2f}" for t in h["tiers"]),
             ]
         )
-    header = ["protocol (reference -> query)", *(METHOD_NAMES.get(m, m) for m in ids)]
+    header = ["protocol (reference -> query)", *(METHOD_TITLES.get(m, m) for m in ids)]
     header += ["**Combined**", "final tier", "flat", "tier recalls"]
     return table(header, rows) + source(rel, data, extra=data.get("note", ""))
 
@@ -1036,7 +1026,7 @@ def methods_alone(root: Path) -> str:
     rows = []
     for m in ids:
         rows.append(
-            [METHOD_NAMES.get(m, m)]
+            [METHOD_TITLES.get(m, m)]
             + [f3(rep["methods"][m].get("recall_at", {}).get("1")) for rep in reports.values()]
         )
     rows.append(
