@@ -6,7 +6,8 @@
     /sha256           (N,) S64             sha256 of each image file's bytes
     /sources          (F,) utf-8 str       folders the images were read from
     /source_id        (N,) int32           each image's folder (for ``add --refit``)
-    /meta/<column>    (N,) float64 | str   lat, lon, heading, timestamp, sequence (those given)
+    /meta/<column>    (N,) float64 | str   lat, lon, heading, timestamp, sequence (those given);
+                                           place, exp_* on a version with experiences
     /global/<id>      (N, D)               one dataset per global method, contiguous (memory-
                                             mappable when stored in its own dtype)
 
@@ -37,7 +38,7 @@ import numpy as np
 
 from hmpf.index.ann import faiss_module
 from hmpf.index.layout import IndexCorruptError
-from hmpf.index.tables import META_COLUMNS, TEXT_COLUMNS, Ragged, RefTable
+from hmpf.index.tables import STORED_COLUMNS, TEXT_COLUMNS, Ragged, RefTable
 from hmpf.methods import Method
 
 __all__ = [
@@ -107,7 +108,7 @@ def write_references(
         lookup = {s: i for i, s in enumerate(folders)}
         f.create_dataset("source_id", data=np.array([lookup[s] for s in refs.sources], np.int32))
         meta = f.create_group("meta")
-        for col in META_COLUMNS:
+        for col in STORED_COLUMNS:
             if col not in refs.meta:
                 continue
             if col in TEXT_COLUMNS:

@@ -21,7 +21,9 @@ from hmpf.index.layout import IndexBuildError
 from hmpf.methods import Method
 
 __all__ = [
+    "EXPERIENCE_COLUMNS",
     "META_COLUMNS",
+    "STORED_COLUMNS",
     "Columns",
     "Ragged",
     "RefTable",
@@ -30,9 +32,18 @@ __all__ = [
     "select_columns",
 ]
 
-#: Optional metadata columns (besides the required ``name``); ``sequence`` is text.
+#: Optional metadata columns a user gives (besides the required ``name``); ``sequence`` is text.
 META_COLUMNS = ("lat", "lon", "heading", "timestamp", "sequence")
-TEXT_COLUMNS = frozenset({"sequence"})
+#: Columns of a version holding fleet experiences (written by ``hmpf-index add --experiences``,
+#: never read from a user's CSV). Rows ``0 .. P-1`` are the places' original references, in
+#: place order, and every later row is an *experience* of one of them: ``place`` is NaN (or
+#: absent) on an original reference and the index of its place on an experience. The others
+#: say where an experience came from (its provenance): the log's id, the vehicle, when the
+#: frame was taken (seconds since the epoch), its ``p_correct`` and the version that answered.
+EXPERIENCE_COLUMNS = ("place", "exp_log", "exp_vehicle", "exp_version", "exp_time", "exp_p_correct")
+#: Every metadata column a version may store.
+STORED_COLUMNS = META_COLUMNS + EXPERIENCE_COLUMNS
+TEXT_COLUMNS = frozenset({"sequence", "exp_log", "exp_vehicle", "exp_version"})
 
 
 @dataclass(frozen=True)
