@@ -32,6 +32,7 @@ __all__ = [
     "Candidate",
     "ErrorBody",
     "ErrorDetail",
+    "Experience",
     "Health",
     "IndexInfo",
     "LocalizeFields",
@@ -132,9 +133,54 @@ class LocalizeParams(LocalizeFields, VehicleFields):
 AcceptedBy = Literal["p_correct", "quality", "lock"]
 
 
+class Experience(BaseModel):
+    """Which stored image of the matched place the query matched.
+
+    A place of the map holds its original reference and, once fleet frames have been merged
+    into the index (``hmpf-index add --experiences``), further *experiences* of it: frames
+    of the same place taken by the vehicles, in other light, weather or seasons. The answer
+    names the place (``reference_id``, ``name``, ``lat``/``lon`` are its original
+    reference's); this says which of its images looked most like the query.
+    """
+
+    row: int = Field(
+        description="row of the image in the index version (the place's `reference_id` "
+        "when it is the original reference); usable wherever a reference row id is taken "
+        "(`/v1/references/{row}/thumbnail`, `/v1/evidence`)"
+    )
+    name: str = Field(description="the image's name in the index")
+    original: bool = Field(
+        description="the place's original reference (true) or an experience added from "
+        "the fleet (false)"
+    )
+    vehicle: str | None = Field(
+        None, description="a fleet experience: the vehicle that sent the frame (else null)"
+    )
+    time: float | None = Field(
+        None,
+        description="a fleet experience: when the frame was taken, seconds since the Unix "
+        "epoch (else null)",
+    )
+    p_correct: float | None = Field(
+        None,
+        description="a fleet experience: the p_correct its answer had when it was recorded "
+        "(else null)",
+    )
+    log: str | None = Field(
+        None, description="a fleet experience: the id of the experience log it came from"
+    )
+    version: str | None = Field(
+        None,
+        description="a fleet experience: the index version that answered the frame when it "
+        "was recorded",
+    )
+
+
 class Match(BaseModel):
-    reference_id: int = Field(description="row of the reference in the index version")
-    name: str
+    reference_id: int = Field(
+        description="the place: row of its original reference in the index version"
+    )
+    name: str = Field(description="the place's name (its original reference's)")
     lat: float | None = None
     lon: float | None = None
     score: float | None = Field(
@@ -164,6 +210,14 @@ class Match(BaseModel):
         "model's threshold (null p_correct: not accepted); `quality`: no model, score >= the "
         "z threshold (`threshold` of the response); `lock`: a sequence estimate without a "
         "sequence model, accepted when the filter is locked"
+    )
+    experience: Experience | None = Field(
+        None,
+        description="which stored image of the place matched: its original reference or an "
+        "experience the fleet added (with where it came from). A place scores by its best "
+        "image; this is the one that decided the final tier. null where the frame did not "
+        "score the place (a sequence estimate elsewhere than the frame's candidates, e.g. "
+        "outside its GPS prior)",
     )
 
 

@@ -105,7 +105,13 @@ class TierResult:
 
 @dataclass
 class HierarchyResult:
-    """The answer for one query and the evidence behind it."""
+    """The answer for one query and the evidence behind it.
+
+    ``matched_rows`` is set by whoever scored places rather than images (an index version
+    with several experiences per place, :meth:`hmpf.index.reader.IndexReader.matched_rows`):
+    per place of the whole map (its id, also under a GPS prior), the stored row (experience)
+    that matched it, -1 where none was scored; None: every place is one image.
+    """
 
     match: int
     quality: float
@@ -113,6 +119,7 @@ class HierarchyResult:
     combined: np.ndarray  # z-scores over final_candidates
     tiers: list[TierResult] = field(default_factory=list)
     fusion_ms: float = 0.0
+    matched_rows: np.ndarray | None = field(default=None, repr=False)
 
     def ranking(self) -> np.ndarray:
         """Final candidates ranked by Combined z-score, duplicates removed (an extension)."""

@@ -13,6 +13,11 @@ version's confidence model (every bundled preset ships one) and ``accepted``, or
 quality / lock rule for a config without a model. The features need reference ids along
 the routes, so a result run under a GPS prior (its indices are positions in the allowed ids)
 is first put back on the whole map (:func:`on_references`).
+
+Matches are *places* (their original reference's id, name and position); a match also says
+which stored image of the place matched (``experience``: the original reference, or a fleet
+experience with its provenance), read from the result's ``matched_rows`` in a version with
+experiences.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from service.engine import Loaded, confidence
 from service.schemas import (
     AcceptedBy,
     Candidate,
+    Experience,
     LocalizeParams,
     LocalizeResponse,
     Match,
@@ -133,6 +139,7 @@ def on_references(result: HierarchyResult, allowed: np.ndarray | None, n: int) -
         combined=result.combined,
         tiers=tiers,
         fusion_ms=result.fusion_ms,
+        matched_rows=result.matched_rows,  # by place id already
     )
 
 
@@ -153,7 +160,8 @@ def with_sequence(
     version's sequence model over the frame's features with the estimate's, ``result``: the
     frame's result on reference ids, :func:`on_references`, None: no result; or the lock
     rule; with hysteresis, never off the map). ``decision``: the one already made for this
-    estimate (and recorded in the track); None: made here.
+    estimate (and recorded in the track); None: made here. The estimate's ``experience`` is
+    the image of its place that matched this frame (read from ``result``).
     """
     est = step.estimate
     mass = 0.0 if est is None else min(1.0, max(0.0, est.mass))
@@ -171,6 +179,7 @@ def with_sequence(
             accepted=decision.accepted,
             p_correct=decision.p_correct,
             accepted_by=decision.accepted_by,
+            matched_rows=None if result is None else result.matched_rows,
         )
     use = estimate is not None
     report = SequenceReport(
@@ -225,6 +234,7 @@ def _match(loaded: Loaded, result: HierarchyResult, refs: _References) -> Match 
         accepted=decision.accepted,
         p_correct=decision.p_correct,
         accepted_by=decision.accepted_by,
+        matched_rows=result.matched_rows,
     )
 
 
@@ -237,8 +247,11 @@ def _reference_match(
     accepted: bool,
     accepted_by: AcceptedBy,
     p_correct: float | None = None,
+    matched_rows: np.ndarray | None = None,
 ) -> Match:
-    """Reference ``ref_id`` (with its position, when known) as a :class:`Match`."""
+    """Place ``ref_id`` (its original reference, with its position when known) as a
+    :class:`Match`; ``matched_rows``: the query's matched row per place
+    (:attr:`~hmpf.hierarchy.HierarchyResult.matched_rows`)."""
     meta = loaded.reader.refs.meta
     lat = float(meta["lat"][ref_id]) if "lat" in meta else float("nan")
     lon = float(meta["lon"][ref_id]) if "lon" in meta else float("nan")
@@ -252,6 +265,33 @@ def _reference_match(
         p_correct=p_correct,
         accepted=accepted,
         accepted_by=accepted_by,
+        experience=_experience(loaded, ref_id, matched_rows),
+    )
+
+
+def _experience(loaded: Loaded, place: int, matched_rows: np.ndarray | None) -> Experience | None:
+    """The stored image of ``place`` that matched: the row ``matched_rows`` names; in a
+    version without experiences the place's own (only) image. None where the query did not
+    score the place (or a version with experiences gave no rows)."""
+    reader = loaded.reader
+    if matched_rows is None:
+        if reader.has_experiences:
+            return None
+        row = place
+    else:
+        row = int(matched_rows[place])
+        if row < 0:
+            return None
+    e = reader.experience(row)
+    return Experience(
+        row=e.row,
+        name=e.name,
+        original=e.original,
+        vehicle=e.vehicle,
+        time=e.time,
+        p_correct=e.p_correct,
+        log=e.log,
+        version=e.version,
     )
 
 

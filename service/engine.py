@@ -60,7 +60,7 @@ def confidence(quality: float, n: int) -> float:
 
 @dataclass(frozen=True)
 class Prior:
-    """A GPS prior: only references within ``radius_m`` of (lat, lon) are candidates."""
+    """A GPS prior: only places within ``radius_m`` of (lat, lon) are candidates."""
 
     lat: float
     lon: float
@@ -115,8 +115,10 @@ class Loaded:
         except BaseException:
             reader.close()
             raise
-        meta = reader.refs.meta
-        lat, lon = meta.get("lat"), meta.get("lon")
+        # Positions are the places' (their original references', rows 0 .. P-1).
+        meta, P = reader.refs.meta, reader.n
+        lat = None if meta.get("lat") is None else meta["lat"][:P]
+        lon = None if meta.get("lon") is None else meta["lon"][:P]
         has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
         return cls(
             reader,
@@ -140,14 +142,14 @@ class Loaded:
         return self.lat is not None
 
     def within(self, prior: Prior) -> np.ndarray:
-        """Indices of the references within the prior's radius (positions unknown: none)."""
+        """Ids of the places within the prior's radius (positions unknown: none)."""
         assert self.lat is not None and self.lon is not None
         d = haversine_m(prior.lat, prior.lon, self.lat, self.lon)
         return np.flatnonzero(np.isfinite(d) & (d <= prior.radius_m)).astype(np.int64)
 
 
 def restricted(score_fn: ScoreFn, allowed: np.ndarray) -> ScoreFn:
-    """A score function over the sub-database ``allowed`` (local index -> reference id)."""
+    """A score function over the sub-database ``allowed`` (local index -> place id)."""
 
     def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
         return score_fn(mid, allowed if subset is None else allowed[subset])
@@ -203,10 +205,11 @@ class Engine:
                 if old.leases == 0:
                     old.reader.close()
         log.info(
-            "index %s version %s loaded (%d references; files verified in %.2f s)",
+            "index %s version %s loaded (%d references, %d experiences; files verified in %.2f s)",
             self.root,
             loaded.version,
             loaded.reader.n,
+            loaded.reader.n_rows - loaded.reader.n,
             loaded.reader.verify_seconds or 0.0,
         )
         return loaded
@@ -352,9 +355,10 @@ def run_query(
     """Extract, restrict to the prior and run the hierarchy for one decoded image.
 
     Returns:
-        (the result, or None when the prior leaves no reference; the allowed reference ids,
-        or None without a prior). With a prior the result's indices are positions in the
-        allowed ids (the hierarchy ran over that sub-database).
+        (the result, or None when the prior leaves no place; the allowed place ids, or None
+        without a prior). With a prior the result's indices are positions in the allowed ids
+        (the hierarchy ran over that sub-database); its ``matched_rows`` (a version with
+        experiences: which experience matched each place) are by place id either way.
     """
     reader = loaded.reader
     t = time.perf_counter()
@@ -362,7 +366,7 @@ def run_query(
     feats = reader.extract_query(image, per_method, executor)
     timing["extract"] = (time.perf_counter() - t) * 1e3
     timing["extract_per_method"] = per_method
-    score_fn = reader.scorer(feats)
+    score_fn = place_fn = reader.scorer(feats)
     n = reader.n
     allowed: np.ndarray | None = None
     if prior is not None and loaded.has_positions:
@@ -372,5 +376,6 @@ def run_query(
         score_fn, n = restricted(score_fn, allowed), len(allowed)
     t = time.perf_counter()
     result = loaded.hierarchy.run(score_fn, n)
+    result.matched_rows = reader.matched_rows(place_fn)
     timing["hierarchy"] = (time.perf_counter() - t) * 1e3
     return result, allowed

@@ -47,9 +47,9 @@ class ImageQuery:
         decode_side: the working size the image is decoded at (0: full size).
         evidence, loaded: after the call, in sequence mode: the evidence and the version it
             was computed on.
-        result: after the call, in sequence mode with a sequence confidence model: the
-            frame's result on reference ids (:func:`~service.answer.on_references`; None
-            when the prior left no reference), for the estimate's features.
+        result: after the call, in sequence mode: the frame's result on reference ids
+            (:func:`~service.answer.on_references`; None when the prior left no reference),
+            for the estimate's features (a sequence confidence model) and experience.
     """
 
     data: bytes
@@ -102,8 +102,9 @@ class ImageQuery:
                     allowed=allowed,
                     absolute=absolute_evidence(on_refs, loaded.profile),
                 )
-                if loaded.acceptance.sequence_model is not None:
-                    self.result = on_refs
+                # Kept for the estimate's features (a sequence model) and its experience
+                # (which image of the estimate's place matched this frame).
+                self.result = on_refs
         answer = localize_response(loaded, result, allowed, self.params, timing)
         answer.timing_ms["total"] = _ms_since(self.submitted)
         return answer

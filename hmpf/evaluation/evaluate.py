@@ -335,8 +335,13 @@ def evaluate_index(
 
     Reports the hierarchy's recall, its tier table, the PR curve over the quality score and
     timings; single-method curves and flat fusion need whole-database score matrices and are
-    left to :func:`evaluate`. ``gt`` is (n_query, n_ref).
+    left to :func:`evaluate`. ``gt`` is (n_query, n_ref) over the index's places
+    (:attr:`~hmpf.index.reader.IndexReader.place_names`); a matrix over every row of a
+    version with experiences is cut to its places' columns (an experience is a picture of
+    its place, not another place).
     """
+    if gt.shape[1] == reader.n_rows != reader.n:
+        gt = gt[:, : reader.n]
     t0 = time.perf_counter()
     qry = extract_images(
         queries, reader.methods, cache=cache, workers=workers, progress=progress, desc="queries"
@@ -349,7 +354,12 @@ def evaluate_index(
     results, hierarchy_s = run_queries(reader.hierarchy(), scorers, reader.n)
     outcome = outcome_of(results, gt, reader.n)
     report = {
-        "index": {"path": str(reader.root), "version": reader.version, "n_reference": reader.n},
+        "index": {
+            "path": str(reader.root),
+            "version": reader.version,
+            "n_reference": reader.n,
+            "n_experiences": reader.n_rows - reader.n,
+        },
         "config": {"name": reader.config.name, "sha256": reader.config.digest()},
         "protocol": {
             "query": str(Path(queries[0]).parent),

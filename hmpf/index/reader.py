@@ -6,9 +6,18 @@ The service and ``hmpf-eval --index`` both go through :class:`IndexReader`::
     hier = reader.hierarchy()
     query = reader.extract_query(image)            # method id -> feature
     result = hier.run(reader.scorer(query), reader.n)
-    reader.refs.names[result.match]
+    reader.refs.names[result.match]                # the place (its original reference)
 
-Tier 1 (``subset is None``) of a global method:
+Places and experiences (:mod:`hmpf.index.places`): a version's rows are its places' original
+references first (row ``p`` is place ``p``), then fleet experiences of those places.
+:attr:`IndexReader.n` counts places, :attr:`IndexReader.n_rows` rows. The hierarchy, route
+maps, the reference profile and answers run over places; the stored arrays (features,
+thumbnails, FAISS) over rows. In a version with experiences :meth:`IndexReader.scorer` is
+place-level (a place scores by its best experience, per method, before normalisation) and
+:meth:`IndexReader.matched_rows` says which experience matched each place; a version without
+experiences scores exactly as before (the row scorer itself).
+
+Tier 1 (``subset is None``) of a global method (over rows; then reduced per place):
 
 * exact FAISS type (``Flat``, the default): the method scores the stored (memory-mapped)
   matrix directly, so results are bit-identical to in-memory evaluation (``hmpf-eval``
@@ -48,6 +57,14 @@ from hmpf.index import layout
 from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
 from hmpf.index.models import attach_models, torch_needed
+from hmpf.index.places import (
+    Experience,
+    Places,
+    PlaceScorer,
+    augment_rows,
+    experience_of_row,
+    place_scorer,
+)
 from hmpf.index.storage import (
     open_h5,
     read_global,
@@ -180,7 +197,8 @@ class IndexReader:
         self._local_h5 = self._open(layout.LOCAL_H5) if has_local else None
         try:
             self.refs = read_ref_table(self._ref_h5)
-            self.n = len(self.refs)
+            #: rows N: original references, then experiences (what the stored arrays hold)
+            self.n_rows = len(self.refs)
             # Stored: each reference's own descriptor; searched: after the method's
             # augmentation over the route (dba), which is the stored matrix itself without.
             self._stored = {
@@ -188,10 +206,7 @@ class IndexReader:
                 for mid, m in self.methods.items()
                 if m.kind == "global"
             }
-            self._globals = {
-                mid: self.methods[mid].augment_references(x)  # type: ignore[attr-defined]
-                for mid, x in self._stored.items()
-            }
+            self._globals = dict(self._stored)  # augmented once the places are known
             self._offsets = {
                 mid: read_local_offsets(self._local_h5, mid)
                 for mid, m in self.methods.items()
@@ -202,6 +217,13 @@ class IndexReader:
                 f"{self.path}: missing or damaged dataset ({exc}); run `hmpf-index verify`"
             ) from None
         self._check_shapes()
+        #: which rows belong to which place (:class:`~hmpf.index.places.Places`)
+        self.places = self._read_places()
+        #: places P: what the hierarchy, answers, routes and ground truth count
+        self.n = self.places.n
+        self._globals = {
+            mid: augment_rows(self.methods[mid], x, self.places) for mid, x in self._stored.items()
+        }
         #: the references' thumbnails (None: a version built before they were stored)
         self.thumbnails = self._open_thumbnails()
         self._faiss: dict[str, Any] = {}
@@ -210,7 +232,9 @@ class IndexReader:
         k1 = self.config.tiers[0].k
         self.approx_k = approx_k or max(256, 4 * k1)
         self._sample = np.unique(
-            np.linspace(0, max(self.n - 1, 0), min(self.n, SAMPLE_SIZE)).round().astype(np.int64)
+            np.linspace(0, max(self.n_rows - 1, 0), min(self.n_rows, SAMPLE_SIZE))
+            .round()
+            .astype(np.int64)
         )
 
     # -- opening and checks -------------------------------------------------------------------
@@ -269,7 +293,7 @@ class IndexReader:
         return methods
 
     def _check_shapes(self) -> None:
-        n = self.n
+        n = self.n_rows
         expect = self.manifest.get("images", {}).get("count")
         if expect != n or len(self.refs.sha256) != n:
             raise IndexCorruptError(
@@ -302,6 +326,21 @@ class IndexReader:
                         f"{local_h5}: local/{mid}/{key} has {rows} blocks for {n}"
                     )
 
+    def _read_places(self) -> Places:
+        """The grouping of rows into places, checked against the ``place`` column's invariant
+        and the manifest's ``places`` entry (absent: no experiences)."""
+        where = str(self.path / layout.REFERENCES_H5)
+        places = Places.from_column(self.refs.meta.get("place"), self.n_rows, where)
+        entry = self.manifest.get("places")
+        if entry is not None:
+            count = entry.get("count") if isinstance(entry, dict) else None
+            if count != places.n or entry.get("experiences", 0) != self.n_rows - places.n:
+                raise IndexCorruptError(
+                    f"{where}: {places.n} places and {self.n_rows - places.n} experiences, "
+                    f"the manifest says {entry}"
+                )
+        return places
+
     def _open_thumbnails(self) -> ThumbnailStore | None:
         entry = self.manifest.get("thumbnails")
         if not isinstance(entry, dict) or not entry.get("file"):
@@ -311,15 +350,18 @@ class IndexReader:
             raise IndexCorruptError(
                 f"{self.path / layout.MANIFEST}: thumbnails file {name!r} is not in its files"
             )
-        return ThumbnailStore(self._open(name), self.n)
+        return ThumbnailStore(self._open(name), self.n_rows)
 
     def thumbnail(self, i: int) -> bytes | None:
-        """Reference ``i``'s thumbnail (JPEG bytes), None when the version has none."""
+        """Row ``i``'s thumbnail (JPEG bytes; place ``i``'s for ``i < n``), None when the
+        version has none."""
         return None if self.thumbnails is None else self.thumbnails.get(i)
 
     def thumbnail_column(self) -> Ragged:
-        """Every reference's thumbnail (empty entries without one), for add / remove."""
-        return empty_thumbnails(self.n) if self.thumbnails is None else self.thumbnails.column()
+        """Every row's thumbnail (empty entries without one), for add / remove."""
+        if self.thumbnails is None:
+            return empty_thumbnails(self.n_rows)
+        return self.thumbnails.column()
 
     def _local_rows(self, mid: str, key: str, offsets: np.ndarray | None) -> int:
         g = self._local_h5["local"][mid][key]  # type: ignore[index]
@@ -340,34 +382,74 @@ class IndexReader:
     def __len__(self) -> int:
         return self.n
 
+    # -- places and experiences ----------------------------------------------------------------
+    @property
+    def has_experiences(self) -> bool:
+        """Whether some place holds more than its original reference."""
+        return self.places.has_experiences
+
+    @property
+    def place_names(self) -> list[str]:
+        """The places' names (their original references'), place order: what ground truth
+        and recall are computed over."""
+        return self.refs.names[: self.n]
+
+    def experience(self, row: int) -> Experience:
+        """Row ``row`` described: name, original or fleet experience, its provenance."""
+        if not 0 <= row < self.n_rows:
+            raise IndexError(f"row {row} out of range 0 .. {self.n_rows - 1}")
+        return experience_of_row(self.refs, self.places, row)
+
+    def experiences(self, place: int) -> list[Experience]:
+        """A place's stored images: its original reference first, then its experiences."""
+        if not 0 <= place < self.n:
+            raise IndexError(f"place {place} out of range 0 .. {self.n - 1}")
+        return [self.experience(int(r)) for r in self.places.rows(place)]
+
+    def matched_rows(self, score_fn: ScoreFn) -> np.ndarray | None:
+        """(P,) per place, the row (experience) that matched it for the query ``score_fn``
+        (from :meth:`scorer`) has scored: the winner of the final tier's first method, else
+        of the next method that scored the place (the final tier's, then earlier tiers'); -1
+        where none did. None in a version without experiences (every place is its row)."""
+        if not isinstance(score_fn, PlaceScorer):
+            return None
+        priority = [m for tier in reversed(self.config.tiers) for m in tier.methods]
+        return score_fn.matched_rows(list(dict.fromkeys(priority)))
+
     # -- data access -------------------------------------------------------------------------
     def hierarchy(self) -> Hierarchy:
         """The :class:`~hmpf.hierarchy.Hierarchy` the index was built for."""
         return Hierarchy(self.config, self.methods)
 
     def route_map(self) -> RouteMap:
-        """The mapped routes for sequence filtering (:mod:`hmpf.sequence`): the ``sequence``
-        column's routes, ordered by ``timestamp`` where given, junctions from ``lat``/``lon``
-        (built once per reader)."""
+        """The mapped routes over the places for sequence filtering (:mod:`hmpf.sequence`):
+        the ``sequence`` column's routes, ordered by ``timestamp`` where given, junctions from
+        ``lat``/``lon`` (the places' original references'; built once per reader)."""
         if self._routes is None:
-            meta = self.refs.meta
+            P = self.n
+
+            def col(name: str) -> np.ndarray | None:
+                v = self.refs.meta.get(name)
+                return None if v is None else v[:P]
+
             self._routes = RouteMap.from_metadata(
-                self.n,
-                sequence=meta.get("sequence"),
-                timestamp=meta.get("timestamp"),
-                lat=meta.get("lat"),
-                lon=meta.get("lon"),
+                P,
+                sequence=col("sequence"),
+                timestamp=col("timestamp"),
+                lat=col("lat"),
+                lon=col("lon"),
                 junction_m=self.config.sequence_params().junction_m,
             )
         return self._routes
 
     def reference_profile(self) -> ReferenceProfile:
-        """The references' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's
-        global methods (what absolute confidence evidence compares with; built once per
-        reader, about ``256 x N`` scores per method)."""
+        """The places' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's
+        global methods (what absolute confidence evidence compares with), from their original
+        references' descriptors (built once per reader, about ``256 x P`` scores per
+        method)."""
         if self._profile is None:
             tier1 = self.config.tiers[0].methods
-            db = {m: self._globals[m] for m in tier1 if m in self._globals}
+            db = {m: self._globals[m][: self.n] for m in tier1 if m in self._globals}
             self._profile = ReferenceProfile.build(
                 self.methods, db, [m for m in tier1 if m in db], self.route_map()
             )
@@ -389,11 +471,12 @@ class IndexReader:
         return extract_query(self.methods, image, ms, executor)
 
     def global_matrix(self, mid: str) -> np.ndarray:
-        """(N, D) stored vectors of a global method, in the dtype the method produced."""
+        """(N, D) stored vectors of a global method (every row), in the dtype the method
+        produced."""
         return self._globals[mid]
 
     def local_features(self, mid: str, idx: np.ndarray) -> list[Any]:
-        """Features of images ``idx`` of a local method, read without loading the others."""
+        """Features of rows ``idx`` of a local method, read without loading the others."""
         idx = np.asarray(idx, dtype=np.int64)
         method = self.methods[mid]
         per_key = {
@@ -403,7 +486,7 @@ class IndexReader:
         return [method.from_arrays({k: v[j] for k, v in per_key.items()}) for j in range(len(idx))]
 
     def columns(self, mid: str) -> Columns:
-        """Every image's stored arrays of one method (for add / remove)."""
+        """Every row's stored arrays of one method (for add / remove)."""
         if self.methods[mid].kind == "global":
             return np.asarray(self._stored[mid])
         return read_local_columns(self._local_h5, mid)
@@ -421,11 +504,11 @@ class IndexReader:
                 index = self._flat(mid, MetricSpec(**info["metric"]))
             else:
                 index = read_faiss(self.path / info["file"], info.get("params", ""))
-            if index.ntotal != self.n or index.d != self._globals[mid].shape[1]:
+            if index.ntotal != self.n_rows or index.d != self._globals[mid].shape[1]:
                 raise IndexCorruptError(
                     f"{self.path / (info['file'] or layout.REFERENCES_H5)}: {index.ntotal} x "
                     f"{index.d} vectors, "
-                    f"expected {self.n} x {self._globals[mid].shape[1]}"
+                    f"expected {self.n_rows} x {self._globals[mid].shape[1]}"
                 )
             self._faiss[mid] = index
         return self._faiss[mid]
@@ -445,10 +528,10 @@ class IndexReader:
         return info is None or bool(info["exact"])
 
     def search(self, mid: str, query: Any, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Top ``k`` references of a global method through FAISS.
+        """Top ``k`` rows of a global method through FAISS.
 
         Returns:
-            ``(ids, raw)``: (k,) int64 reference indices best first and their raw scores in
+            ``(ids, raw)``: (k,) int64 row indices best first and their raw scores in
             the method's units (re-scored exactly when the FAISS metric is only a proxy).
         """
         index = self.faiss_index(mid)
@@ -456,7 +539,7 @@ class IndexReader:
             raise IndexCorruptError(f"{self.path}: method {mid!r} has no FAISS index")
         metric = MetricSpec(**self.faiss_info(mid)["metric"])  # type: ignore[index]
         q = np.ascontiguousarray(np.asarray(query, dtype=np.float32).reshape(1, -1))
-        values, ids = index.search(q, min(k, self.n))
+        values, ids = index.search(q, min(k, self.n_rows))
         keep = ids[0] >= 0
         ids, raw = ids[0][keep].astype(np.int64), to_raw(values[0][keep], metric)
         if metric.proxy:
@@ -468,7 +551,20 @@ class IndexReader:
 
     # -- scoring -------------------------------------------------------------------------------
     def scorer(self, query: Mapping[str, Any]) -> ScoreFn:
-        """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against this index.
+        """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against the places.
+
+        Without experiences it is :meth:`row_scorer` itself (rows are places: results are
+        exactly those of a version built before experiences existed). With them, a
+        :class:`~hmpf.index.places.PlaceScorer` over it: a place scores by its best
+        experience, per method, and remembers which row won (:meth:`matched_rows`).
+        """
+        rows = self.row_scorer(query)
+        if not self.has_experiences:
+            return rows
+        return place_scorer(rows, self.places, self.methods)
+
+    def row_scorer(self, query: Mapping[str, Any]) -> ScoreFn:
+        """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against every row.
 
         Mirrors :func:`hmpf.hierarchy.feature_scorer` (whole-database scores remembered and
         gathered for later tiers), so exact indexes give identical results.
@@ -489,7 +585,7 @@ class IndexReader:
     def _full_scores(self, mid: str, q: Any) -> np.ndarray:
         method = self.methods[mid]
         if method.kind == "local":
-            refs = method.stack(self.local_features(mid, np.arange(self.n)))
+            refs = method.stack(self.local_features(mid, np.arange(self.n_rows)))
             return method.scores(q, refs, None)
         if self.is_exact(mid):
             return method.scores(q, self._globals[mid], None)
@@ -501,7 +597,7 @@ class IndexReader:
         cand = np.union1d(ids, self._sample)
         exact = method.scores(q, self._globals[mid], cand)
         worst = float(np.min(exact) if method.higher_is_better else np.max(exact))
-        out = np.full(self.n, worst)
+        out = np.full(self.n_rows, worst)
         out[cand] = exact
         return out
 

@@ -1,0 +1,304 @@
+"""Places and their experiences: what the hierarchy runs over in a version with fleet frames.
+
+A version's reference rows are the places' original references first (row ``p`` is place
+``p``), then *experiences*: further images of a place (frames from the fleet, in another
+light or season), whose ``place`` column names the place
+(:data:`hmpf.index.tables.EXPERIENCE_COLUMNS`).
+Candidates, answers, routes and ground truth are places, so adding experiences never
+crowds a tier's top k with two images of one place, never shares a place's normalisation
+between its experiences and never changes what a right answer is.
+
+* :class:`Places`: the grouping (which rows belong to which place), checked against the
+  format's invariant when read.
+* :class:`PlaceScorer`: a place scores by its best experience, per method: the raw scores of
+  its rows reduced (max for a similarity, min for a distance) *before* the hierarchy
+  normalises them; it remembers which row won, so an answer can say which experience matched.
+* :class:`Experience`: one row described for an answer (name, original or fleet, provenance).
+
+Pure numpy; the reader (:class:`hmpf.index.reader.IndexReader`) wires them to an index.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hmpf.hierarchy import ScoreFn
+from hmpf.index.layout import IndexCorruptError
+from hmpf.index.tables import RefTable, _ranges
+from hmpf.methods import Method
+
+__all__ = [
+    "Experience",
+    "PlaceScorer",
+    "Places",
+    "augment_rows",
+    "experience_of_row",
+    "place_scorer",
+    "reduce_rows",
+]
+
+
+@dataclass(frozen=True)
+class Places:
+    """Which rows of a version belong to which place.
+
+    Attributes:
+        n: number of places P (rows ``0 .. P-1`` are their original references).
+        place_of: (N,) int64, the place of every row (``place_of[p] == p`` for ``p < P``).
+        order: (N,) int64, the rows grouped by place: place ``p``'s rows are
+            ``order[starts[p]:starts[p + 1]]``, its original reference first, then its
+            experiences in row order.
+        starts: (P + 1,) int64 offsets into ``order``.
+    """
+
+    n: int
+    place_of: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+
+    @classmethod
+    def identity(cls, n: int) -> Places:
+        """``n`` places of one experience each (a version without experiences)."""
+        rows = np.arange(n, dtype=np.int64)
+        return cls(n, rows, rows, np.arange(n + 1, dtype=np.int64))
+
+    @classmethod
+    def from_column(cls, place: np.ndarray | None, n_rows: int, where: str = "") -> Places:
+        """The grouping a ``place`` column gives (None: no column, one experience per place).
+
+        Args:
+            place: (N,) float, NaN on an original reference, the place's index on an
+                experience.
+            n_rows: N, the version's rows.
+            where: the file the column was read from (named in errors).
+
+        Raises:
+            IndexCorruptError: the column breaks the format's invariant (an original after an
+                experience, a place that is not an original reference's row, a fraction), so
+                answers would name the wrong place.
+        """
+        if place is None:
+            return cls.identity(n_rows)
+        col = np.asarray(place, dtype=np.float64)
+        if col.shape != (n_rows,):
+            raise IndexCorruptError(f"{where}: meta/place has {col.shape}, expected ({n_rows},)")
+        original = np.isnan(col)
+        p = int(np.argmin(original)) if not original.all() else n_rows
+        if original[p:].any():
+            bad = p + int(np.argmax(original[p:]))
+            raise IndexCorruptError(
+                f"{where}: meta/place: row {bad} is an original reference after experience row "
+                f"{p}; original references must come first"
+            )
+        exp = col[p:]
+        wrong = ~((exp >= 0) & (exp < p) & (exp == np.floor(exp)))
+        if wrong.any():
+            bad = p + int(np.argmax(wrong))
+            raise IndexCorruptError(
+                f"{where}: meta/place: experience row {bad} names place "
+                f"{float(col[bad])!r}, which is not one of the {p} places (0 .. {p - 1})"
+            )
+        place_of = np.concatenate([np.arange(p, dtype=np.int64), exp.astype(np.int64)])
+        order = np.argsort(place_of, kind="stable").astype(np.int64)
+        counts = np.bincount(place_of, minlength=p)
+        starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        return cls(p, place_of, order, starts)
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.place_of)
+
+    @property
+    def has_experiences(self) -> bool:
+        """Whether some place has more than its original reference."""
+        return self.n_rows > self.n
+
+    def counts(self, places: np.ndarray | None = None) -> np.ndarray:
+        """Rows per place (of ``places``, default every place)."""
+        c = np.diff(self.starts)
+        return c if places is None else c[np.asarray(places, dtype=np.int64)]
+
+    def rows(self, place: int) -> np.ndarray:
+        """The rows of one place: its original reference first, then its experiences."""
+        return self.order[self.starts[place] : self.starts[place + 1]]
+
+    def expand(self, places: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rows of ``places`` (in that order, each place's rows together) and the offset of
+        each place's first row among them (what ``reduceat`` takes)."""
+        idx = np.asarray(places, dtype=np.int64)
+        counts = self.counts(idx)
+        rows = self.order[_ranges(self.starts[idx], counts)]
+        return rows, np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
+def augment_rows(method: Method, stored: np.ndarray, places: Places) -> np.ndarray:
+    """The searched matrix of a global method over every row (its route augmentation,
+    :meth:`~hmpf.methods.base.GlobalMethod.augment_references`, ``dba``).
+
+    The augmentation averages route neighbours, and the route is the places' order: the
+    original references are augmented among themselves exactly as in a version without
+    experiences, and an experience of place ``p`` as if it stood at ``p`` (its place's
+    route neighbours around it), never with the unrelated rows stored next to it.
+    """
+    augment = method.augment_references  # type: ignore[attr-defined]
+    P = places.n
+    if not places.has_experiences:
+        return augment(stored)
+    head = np.asarray(augment(stored[:P]))
+    k = int(getattr(method.config, "dba", 0) or 0)
+    if k == 0:
+        return np.concatenate([head, np.asarray(stored[P:]).astype(head.dtype)])
+    out = np.empty((places.n_rows, *head.shape[1:]), dtype=head.dtype)
+    out[:P] = head
+    for r in range(P, places.n_rows):
+        p = int(places.place_of[r])
+        lo, hi = max(0, p - k), min(P, p + k + 1)
+        window = np.array(stored[lo:hi])
+        window[p - lo] = stored[r]
+        out[r] = np.asarray(augment(window))[p - lo]
+    return out
+
+
+def reduce_rows(
+    raw: np.ndarray, rows: np.ndarray, seg: np.ndarray, higher_is_better: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment of ``raw`` (segments start at ``seg``, none empty): the best value and the
+    row (of ``rows``) that has it.
+
+    The best is the max for a similarity, the min for a distance; NaN counts only where a
+    segment holds nothing else (then the segment's first row wins), and ties go to the
+    earlier entry (a place's original reference before its experiences).
+    """
+    vals = np.asarray(raw)
+    reduce = np.fmax if higher_is_better else np.fmin
+    best = reduce.reduceat(vals, seg)
+    counts = np.diff(np.append(seg, len(vals)))
+    hit = vals == np.repeat(best, counts)
+    pos = np.where(hit, np.arange(len(vals)), len(vals))
+    first = np.minimum.reduceat(pos, seg)
+    first = np.where(first == len(vals), seg, first)
+    return best, rows[first]
+
+
+class PlaceScorer:
+    """A :data:`~hmpf.hierarchy.ScoreFn` over places from one over rows (see
+    :func:`place_scorer`).
+
+    Attributes:
+        winners: per method scored so far, (P,) int64: the row whose raw score the place
+            got (-1: the place was not scored by that method for this query).
+    """
+
+    def __init__(self, row_fn: ScoreFn, places: Places, methods: Mapping[str, Method]) -> None:
+        self.row_fn = row_fn
+        self.places = places
+        self.better = {mid: bool(m.higher_is_better) for mid, m in methods.items()}
+        self.winners: dict[str, np.ndarray] = {}
+
+    def __call__(self, mid: str, subset: np.ndarray | None) -> np.ndarray:
+        pl = self.places
+        if subset is None:
+            raw = np.asarray(self.row_fn(mid, None))
+            rows, seg = pl.order, pl.starts[:-1]
+            raw = raw[rows]
+            idx: np.ndarray | slice = slice(None)
+        else:
+            idx = np.asarray(subset, dtype=np.int64)
+            if len(idx) == 0:
+                return np.asarray(self.row_fn(mid, idx))
+            rows, seg = pl.expand(idx)
+            raw = np.asarray(self.row_fn(mid, rows))
+        best, won = reduce_rows(raw, rows, seg, self.better[mid])
+        if mid not in self.winners:
+            self.winners[mid] = np.full(pl.n, -1, dtype=np.int64)
+        self.winners[mid][idx] = won
+        return best
+
+    def matched_rows(self, priority: Sequence[str]) -> np.ndarray:
+        """(P,) per place the row that matched it for this query, -1 where no method scored
+        it: the winner of the first method of ``priority`` that scored the place."""
+        out = np.full(self.places.n, -1, dtype=np.int64)
+        for mid in reversed(priority):
+            w = self.winners.get(mid)
+            if w is not None:
+                out = np.where(w >= 0, w, out)
+        return out
+
+
+def place_scorer(row_fn: ScoreFn, places: Places, methods: Mapping[str, Method]) -> PlaceScorer:
+    """Score places instead of rows: a place scores by its best experience, per method.
+
+    Args:
+        row_fn: ``row_fn(method_id, rows)`` -> raw scores of those rows (``None``: every
+            row), e.g. :meth:`hmpf.index.reader.IndexReader.row_scorer`.
+        places: the grouping.
+        methods: method id -> instance (``higher_is_better`` picks max or min).
+
+    Returns:
+        a score function over places: tier 1 (``subset`` None) scores every row once and
+        reduces per place (vectorised, ``reduceat`` over the rows grouped by place); a subset
+        of places is expanded to their rows, scored and reduced. The reduction runs on the
+        *raw* scores, so the hierarchy's normalisation sees one value per place, and a place
+        with one experience scores exactly as that row.
+    """
+    return PlaceScorer(row_fn, places, methods)
+
+
+@dataclass(frozen=True)
+class Experience:
+    """One stored image of a place, described for an answer.
+
+    Attributes:
+        row: its row in the version.
+        place: the place it belongs to.
+        name: its name (``refs.names[row]``).
+        original: the place's original reference (else an experience added from the fleet).
+        log, vehicle, version: where a fleet experience came from: the log's id, the vehicle
+            and the index version that answered the frame (None on an original reference or
+            where not recorded).
+        time: when the frame was taken, seconds since the epoch (None: not known).
+        p_correct: the frame's ``p_correct`` when it was recorded (None: not known).
+    """
+
+    row: int
+    place: int
+    name: str
+    original: bool
+    log: str | None = None
+    vehicle: str | None = None
+    version: str | None = None
+    time: float | None = None
+    p_correct: float | None = None
+
+
+def experience_of_row(refs: RefTable, places: Places, row: int) -> Experience:
+    """Row ``row`` of ``refs`` as an :class:`Experience` (its provenance columns read where
+    the version stores them; missing values as None)."""
+    meta = refs.meta
+
+    def text(col: str) -> str | None:
+        v = meta.get(col)
+        s = "" if v is None else str(v[row])
+        return s or None
+
+    def num(col: str) -> float | None:
+        v = meta.get(col)
+        x = float("nan") if v is None else float(v[row])
+        return x if math.isfinite(x) else None
+
+    original = row < places.n
+    return Experience(
+        row=int(row),
+        place=int(places.place_of[row]),
+        name=refs.names[row],
+        original=original,
+        log=None if original else text("exp_log"),
+        vehicle=None if original else text("exp_vehicle"),
+        version=None if original else text("exp_version"),
+        time=None if original else num("exp_time"),
+        p_correct=None if original else num("exp_p_correct"),
+    )

@@ -1,0 +1,437 @@
+"""Places and experiences: the place-level scorer against a brute-force reference, and a real
+index version holding fleet experiences read, scored and answered place by place.
+
+The pure part runs on random scores and groupings; the real part builds a small index over
+Gardens Point day_right and publishes a version with experience rows (night_right and
+day_left frames of some places) through the indexer's own transaction, as a merge does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from hmpf.config import HierarchyConfig, build_methods, parse_config
+from hmpf.features import extract_images
+from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
+from hmpf.imageio import load_image
+from hmpf.index import IndexCorruptError, IndexReader, layout
+from hmpf.index.places import Places, PlaceScorer, augment_rows, place_scorer
+from hmpf.index.tables import Ragged, RefTable, columns_from_features, concat_columns
+from hmpf.index.thumbnails import make_thumbnails
+from hmpf.methods import Method, create_method
+from hmpf.methods.base import GlobalMethod
+from indexer.build import BuildOptions, NewVersion, VersionTransaction, build
+
+MODES = ["default", "faithful"]
+
+
+# -- pure: Places, the place scorer, the hierarchy over places --------------------------------
+
+
+class _Distance(GlobalMethod):
+    """A lower-is-better method the scorer reads only ``higher_is_better`` of."""
+
+    name = "test_distance"
+    dim = 1
+    higher_is_better = False
+
+    def _extract(self, image: np.ndarray) -> np.ndarray:
+        return np.zeros(1)
+
+    def pairwise(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
+        raise AssertionError("scored through score_fn only")
+
+
+class _Similarity(_Distance):
+    name = "test_similarity"
+    higher_is_better = True
+
+
+METHODS: dict[str, Method] = {"d": _Distance(), "s": _Similarity(), "e": _Distance()}
+
+
+def _grouping(rng: np.random.Generator, P: int, extra: int) -> np.ndarray:
+    """A ``place`` column: P originals (NaN), then ``extra`` experiences of random places."""
+    return np.concatenate([np.full(P, np.nan), rng.integers(0, P, extra).astype(np.float64)])
+
+
+def _raw(rng: np.random.Generator, n: int, ties: bool) -> dict[str, np.ndarray]:
+    """Random raw row scores per method (small integers when ``ties``, a NaN or two)."""
+    out = {}
+    for mid in METHODS:
+        x = rng.integers(0, 4, n).astype(np.float64) if ties else rng.normal(size=n)
+        x[rng.random(n) < 0.05] = np.nan
+        out[mid] = x
+    return out
+
+
+def _row_fn(raw: Mapping[str, np.ndarray]) -> ScoreFn:
+    def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        return raw[mid].copy() if subset is None else raw[mid][np.asarray(subset, np.int64)]
+
+    return fn
+
+
+def _brute(
+    raw: Mapping[str, np.ndarray], place: np.ndarray, P: int
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Per method and place, explicitly: the best raw score of its rows (max for a similarity,
+    min for a distance, NaN only when all are NaN) and the first row holding it (the
+    original, then experiences in row order)."""
+    place_of = np.where(np.isnan(place), np.arange(len(place)), place).astype(int)
+    best, win = {}, {}
+    for mid, x in raw.items():
+        hib = METHODS[mid].higher_is_better
+        b, w = np.full(P, np.nan), np.full(P, -1)
+        for p in range(P):
+            rows = [r for r in range(len(x)) if place_of[r] == p]
+            vals = [x[r] for r in rows if not np.isnan(x[r])]
+            if not vals:
+                b[p], w[p] = np.nan, rows[0]
+                continue
+            b[p] = max(vals) if hib else min(vals)
+            w[p] = next(r for r in rows if x[r] == b[p])
+        best[mid], win[mid] = b, w
+    return best, win
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_place_scorer_equals_brute_force(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    P, extra = int(rng.integers(1, 30)), int(rng.integers(1, 60))
+    place = _grouping(rng, P, extra)
+    raw = _raw(rng, P + extra, ties=seed % 2 == 0)
+    places = Places.from_column(place, P + extra)
+    assert (places.n, places.n_rows, places.has_experiences) == (P, P + extra, True)
+    best, win = _brute(raw, place, P)
+    for mid in METHODS:
+        fn = place_scorer(_row_fn(raw), places, METHODS)
+        np.testing.assert_array_equal(fn(mid, None), best[mid])
+        np.testing.assert_array_equal(fn.winners[mid], win[mid])
+        # A subset of places: unsorted, repeats allowed, as any caller may pass.
+        sub = rng.integers(0, P, int(rng.integers(0, 2 * P)))
+        fresh = place_scorer(_row_fn(raw), places, METHODS)
+        np.testing.assert_array_equal(fresh(mid, sub), best[mid][sub])
+        expect = np.full(P, -1)
+        expect[sub] = win[mid][sub]
+        np.testing.assert_array_equal(fresh.winners.get(mid, np.full(P, -1)), expect)
+
+
+def _config(mode: str, tiers: list[tuple[list[str], int]]) -> HierarchyConfig:
+    return HierarchyConfig.model_validate(
+        {"mode": mode, "tiers": [{"methods": m, "k": k} for m, k in tiers]}
+    )
+
+
+def _same(a: HierarchyResult, b: HierarchyResult) -> None:
+    eq = np.testing.assert_array_equal
+    assert a.match == b.match
+    eq(a.quality, b.quality)
+    eq(a.final_candidates, b.final_candidates)
+    eq(a.combined, b.combined)
+    for ta, tb in zip(a.tiers, b.tiers, strict=True):
+        eq(ta.candidates, tb.candidates)
+        for m in ta.scores:
+            eq(ta.scores[m], tb.scores[m])
+            eq(ta.raw[m], tb.raw[m])
+
+
+TIERS = [
+    [(["d", "s"], 5), (["e", "d"], 3), (["s", "e"], 1)],
+    [(["s"], 4), (["d"], 1)],
+    [(["d", "e"], 3)],
+]
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("tiers", range(len(TIERS)))
+def test_hierarchy_over_places_equals_brute_force(mode: str, tiers: int) -> None:
+    cfg = _config(mode, TIERS[tiers])
+    hier = Hierarchy(cfg, METHODS)
+    for seed in range(4):
+        rng = np.random.default_rng(100 + seed)
+        P, extra = int(rng.integers(8, 40)), int(rng.integers(1, 50))
+        place = _grouping(rng, P, extra)
+        raw = _raw(rng, P + extra, ties=seed % 2 == 1)
+        best, win = _brute(raw, place, P)
+        fn = place_scorer(_row_fn(raw), Places.from_column(place, P + extra), METHODS)
+        got = hier.run(fn, P)
+        _same(got, hier.run(_row_fn(best), P))
+        if got.match >= 0:  # the deciding method's winner for the answer's place
+            first = cfg.tiers[-1].methods[0]
+            rows = fn.matched_rows([m for t in reversed(cfg.tiers) for m in t.methods])
+            assert rows[got.match] == win[first][got.match]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_one_experience_per_place_equals_the_plain_hierarchy(mode: str) -> None:
+    cfg = _config(mode, TIERS[0])
+    hier = Hierarchy(cfg, METHODS)
+    rng = np.random.default_rng(7)
+    raw = _raw(rng, 30, ties=True)
+    for places in (Places.identity(30), Places.from_column(np.full(30, np.nan), 30)):
+        assert not places.has_experiences
+        fn = place_scorer(_row_fn(raw), places, METHODS)
+        _same(hier.run(fn, 30), hier.run(_row_fn(raw), 30))
+        assert set(fn.matched_rows(["s", "e", "d"])) <= set(range(30))
+
+
+@pytest.mark.parametrize(
+    ("place", "says"),
+    [
+        ([np.nan, np.nan, 0.0, np.nan], "row 3 is an original reference after experience row 2"),
+        ([np.nan, np.nan, 2.0], "names place 2.0"),
+        ([np.nan, np.nan, -1.0], "names place -1.0"),
+        ([np.nan, np.nan, 0.5], "names place 0.5"),
+        ([0.0, np.nan], "row 1 is an original reference"),
+    ],
+)
+def test_a_broken_place_column_is_corrupt(place: list[float], says: str) -> None:
+    with pytest.raises(IndexCorruptError, match="refs.h5") as err:
+        Places.from_column(np.array(place), len(place), "refs.h5")
+    assert says in str(err.value)
+    with pytest.raises(IndexCorruptError, match="has"):
+        Places.from_column(np.array(place), len(place) + 1, "refs.h5")
+
+
+def test_augment_rows_puts_an_experience_at_its_place() -> None:
+    """With route augmentation (dba) the originals are augmented exactly as without
+    experiences, and an experience as if it stood at its place: an experience identical to
+    its place's original gets the same augmented row."""
+    method = create_method("gist", {"dba": 2})
+    assert isinstance(method, GlobalMethod)
+    rng = np.random.default_rng(3)
+    stored = rng.normal(size=(7, 6)).astype(np.float32)
+    place = np.concatenate([np.full(7, np.nan), [4.0, 0.0]])
+    rows = np.concatenate([stored[:7], stored[[4, 0]]])
+    places = Places.from_column(place, 9)
+    out = augment_rows(method, rows, places)
+    np.testing.assert_array_equal(out[:7], method.augment_references(stored[:7]))
+    np.testing.assert_array_equal(out[7], out[4])
+    np.testing.assert_array_equal(out[8], out[0])
+    plain = create_method("gist")
+    np.testing.assert_array_equal(augment_rows(plain, rows, places), rows)
+
+
+# -- a real index with experiences ------------------------------------------------------------
+
+CONFIG = {
+    "name": "places-test",
+    "methods": {"kaze": {"max_keypoints": 40}},
+    "tiers": [{"methods": ["hog", "gist"], "k": 4}, {"methods": ["sad", "kaze"], "k": 1}],
+}
+OPTS = BuildOptions(workers=1, progress=False)
+P = 10
+#: (traverse, frame, place) of each experience row, in row order.
+EXPERIENCES = [
+    ("night_right", 2, 2),
+    ("night_right", 5, 5),
+    ("day_left", 5, 5),
+    ("night_right", 8, 8),
+]
+
+
+def publish_experiences(
+    index: Path,
+    frames: list[tuple[Path, int]],
+    *,
+    options: BuildOptions = OPTS,
+    vehicle: str = "car-7",
+) -> str:
+    """Publish a version of ``index`` with ``frames`` (image, place) appended as experience
+    rows, through the indexer's own transaction (what a merge of fleet frames writes)."""
+    tx = VersionTransaction(index, "add")
+    with tx, IndexReader(index) as parent:
+        paths = [p for p, _ in frames]
+        digests = [hashlib.sha256(p.read_bytes()).hexdigest() for p in paths]
+        n = len(frames)
+        exp = RefTable(
+            [f"exp-{parent.version}-{i:03d}-{p.name}" for i, p in enumerate(paths)],
+            digests,
+            {
+                "place": np.array([float(pl) for _, pl in frames]),
+                "exp_log": np.array(["log-a"] * n, dtype=object),
+                "exp_vehicle": np.array([vehicle] * n, dtype=object),
+                "exp_version": np.array([parent.version] * n, dtype=object),
+                "exp_time": 1.7e9 + np.arange(n, dtype=np.float64),
+                "exp_p_correct": np.full(n, 0.995),
+            },
+        )
+        feats = extract_images(paths, parent.methods, workers=1).features
+        cols = {
+            mid: concat_columns(parent.columns(mid), columns_from_features(m, feats[mid]))
+            for mid, m in parent.methods.items()
+        }
+        thumbs = make_thumbnails(paths, digests)
+        tx.begin({"operation": "add", "parent": parent.version, "test": paths[0].name})
+        new = NewVersion(
+            parent.config,
+            parent.methods,
+            parent.refs.concat(exp),
+            cols,
+            options,
+            parent,
+            retrain=False,
+            thumbnails=Ragged.concat([parent.thumbnail_column(), thumbs]),
+        )
+        return tx.publish(new, extracted=n).version
+
+
+@pytest.fixture(scope="module")
+def index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """v0001: 10 day_right places; v0002: the same with 4 experiences (places 2, 5, 5, 8)."""
+    gp = gardens_point
+    base = tmp_path_factory.mktemp("places")
+    refs = base / "refs"
+    refs.mkdir()
+    for p in sorted((gp / "day_right").iterdir())[:P]:
+        shutil.copy(p, refs / p.name)
+    root = base / "index"
+    build(parse_config(CONFIG), refs, root, options=OPTS)
+    frames = [(sorted((gp / t).iterdir())[i], pl) for t, i, pl in EXPERIENCES]
+    v2 = publish_experiences(root, frames)
+    return {"root": root, "refs": sorted(refs.iterdir()), "frames": frames, "v2": v2}
+
+
+def _reader_features(reader: IndexReader) -> dict[str, Any]:
+    """Every row's stored features as a method's reference set (in memory)."""
+    rows = np.arange(reader.n_rows)
+    db = {}
+    for mid, m in reader.methods.items():
+        if m.kind == "global":
+            db[mid] = np.asarray(reader.global_matrix(mid))
+        else:
+            db[mid] = m.stack(reader.local_features(mid, rows))
+    return db
+
+
+def _brute_place_fn(
+    methods: Mapping[str, Method], rows_fn: ScoreFn, place_of: np.ndarray, n: int
+) -> ScoreFn:
+    """Per place, explicitly, the best of its rows' raw scores."""
+    groups = [np.flatnonzero(place_of == p) for p in range(n)]
+
+    def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        raw = np.asarray(rows_fn(mid, None), dtype=np.float64)
+        pick = max if methods[mid].higher_is_better else min
+        best = np.array([pick(raw[g]) for g in groups])
+        return best if subset is None else best[np.asarray(subset, np.int64)]
+
+    return fn
+
+
+def test_version_with_experiences_counts_places(index) -> None:
+    with IndexReader(index["root"]) as r:
+        assert r.version == index["v2"]
+        assert (r.n, r.n_rows, len(r), r.has_experiences) == (P, P + 4, P, True)
+        assert r.manifest["images"]["count"] == P + 4
+        assert r.place_names == [p.name for p in index["refs"]]
+        assert r.route_map().n == P
+        assert r.reference_profile().n == P
+        assert r.faiss_index("hog").ntotal == P + 4
+        assert r.global_matrix("gist").shape[0] == P + 4
+        assert len(r.thumbnail_column()) == P + 4 and r.thumbnail(P + 3)
+        assert len(r.columns("kaze")["descriptors"]) == P + 4
+        five = r.experiences(5)
+        assert [e.row for e in five] == [5, P + 1, P + 2]
+        assert five[0].original and five[0].name == index["refs"][5].name
+        assert five[0].vehicle is None and five[0].time is None
+        e = five[1]
+        assert (e.original, e.place, e.vehicle, e.log, e.version) == (
+            False,
+            5,
+            "car-7",
+            "log-a",
+            "v0001",
+        )
+        assert (e.time, e.p_correct) == (1.7e9 + 1, 0.995)
+        assert [x.row for x in r.experiences(0)] == [0]
+
+
+def test_scores_place_by_place_as_brute_force(index) -> None:
+    """The index's place-level hierarchy equals one over in-memory row scores reduced per
+    place by an explicit loop; a query that is an experience answers its place with it."""
+    with IndexReader(index["root"]) as r:
+        db = _reader_features(r)
+        place_of = r.places.place_of
+        hier = r.hierarchy()
+        for path, place in index["frames"][1:2] + [(index["refs"][3], 3)]:
+            q = r.extract_query(load_image(path))
+            fn = r.scorer(q)
+            assert isinstance(fn, PlaceScorer)
+            got = hier.run(fn, r.n)
+            ref = hier.run(
+                _brute_place_fn(r.methods, feature_scorer(r.methods, q, db), place_of, r.n), r.n
+            )
+            _same(got, ref)
+            assert got.match == place
+            rows = r.matched_rows(fn)
+            assert rows is not None and rows.shape == (P,)
+            row = int(rows[place])
+            expect = P + 1 if path == index["frames"][1][0] else place
+            assert row == expect
+            assert r.experience(row).name == r.refs.names[expect]
+
+
+def test_old_version_answers_exactly_as_before(index) -> None:
+    """v0001 (no place column) is one experience per place: the row scorer itself, equal to
+    in-memory evaluation."""
+    with IndexReader(index["root"], "v0001") as r:
+        assert (r.n, r.n_rows, r.has_experiences) == (P, P, False)
+        assert "place" not in r.refs.meta
+        db = _reader_features(r)
+        hier = Hierarchy(r.config, build_methods(r.config))
+        for path, _ in index["frames"]:
+            q = r.extract_query(load_image(path))
+            fn = r.scorer(q)
+            assert not isinstance(fn, PlaceScorer)
+            got = r.hierarchy().run(fn, r.n)
+            _same(got, hier.run(feature_scorer(r.methods, q, db), r.n))
+            assert r.matched_rows(fn) is None
+            assert r.experience(got.match).original
+
+
+def test_approximate_tier_one_scores_rows_then_places(index, tmp_path) -> None:
+    """With an HNSW index for tier 1 the rows are searched, then reduced per place."""
+    root = tmp_path / "approx"
+    shutil.copytree(index["root"], root)
+    layout.set_current(root, "v0001")
+    opts = BuildOptions(workers=1, progress=False, faiss={"hog": "HNSW8"})
+    publish_experiences(root, index["frames"], options=opts)
+    with IndexReader(root) as r:
+        assert not r.is_exact("hog") and r.faiss_index("hog").ntotal == P + 4
+        path, place = index["frames"][3]
+        fn = r.scorer(r.extract_query(load_image(path)))
+        got = r.hierarchy().run(fn, r.n)
+        assert got.match == place
+        rows = r.matched_rows(fn)
+        assert rows is not None and rows[place] == P + 3
+
+
+@pytest.mark.parametrize(
+    ("place", "says"),
+    [
+        (lambda c: np.concatenate([c[:P], [3.0, np.nan, 5.0, 8.0]]), "original reference after"),
+        (lambda c: np.concatenate([c[:P], [2.0, 5.0, float(P), 8.0]]), f"names place {P}.0"),
+    ],
+)
+def test_corrupt_place_column_is_refused(index, tmp_path, place, says) -> None:
+    root = tmp_path / "bad"
+    shutil.copytree(index["root"], root)
+    with h5py.File(root / index["v2"] / layout.REFERENCES_H5, "r+") as f:
+        col = f["meta"]["place"][()]
+        del f["meta"]["place"]
+        f["meta"].create_dataset("place", data=place(col))
+    with pytest.raises(IndexCorruptError, match="corrupt"):
+        IndexReader(root)  # the checksums see it first
+    with pytest.raises(IndexCorruptError, match=says) as err:
+        IndexReader(root, verify=False)
+    assert layout.REFERENCES_H5 in str(err.value)
