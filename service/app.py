@@ -38,6 +38,7 @@ from service.errors import install_handlers
 from service.limits import ActiveLimit, BodyDeadline, BodyLimit, HeadLimit
 from service.metrics import Metrics
 from service.openapi import document_limits
+from service.recording import Recorder
 from service.reloader import CurrentWatch, update_behind
 from service.routes import health, index, inspect, localize
 from service.routes.docs import install_docs
@@ -99,7 +100,8 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """Open the index (unless the engine is loaded already) and close it at shutdown."""
+    """Open the index (unless the engine is loaded already) and close it at shutdown; with
+    recording on, start the experience recorder and, at shutdown, write what it holds."""
     settings: Settings = app.state.settings
     engine: Engine = app.state.engine
     if not settings.auth:
@@ -114,11 +116,17 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         watch = CurrentWatch(engine, app.state.metrics, settings.watch_current_s)
         watch.start()
         log.info("watching %s/CURRENT every %g s", engine.root, settings.watch_current_s)
+    recorder = Recorder.for_settings(settings, app.state.metrics)
+    app.state.recorder = recorder
+    if recorder is not None:
+        recorder.start()
     try:
         yield
     finally:
         if watch is not None:
             await watch.stop()
+        if recorder is not None:
+            recorder.stop()
         engine.close()
 
 

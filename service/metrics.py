@@ -16,6 +16,13 @@
   index_changed), ``hmpf_sequence_refused_total{reason}`` (track tokens answered 422:
   malformed, signature, vehicle), ``hmpf_sequence_answers_total{locked}`` (whether the answer
   was locked: accepted) and ``hmpf_sequence_update_seconds`` (the filter's time)
+* experience recording (setting ``experience_log``, :mod:`service.recording`):
+  ``hmpf_experience_recorded_total`` (frames appended to the log),
+  ``hmpf_experience_dropped_total{reason}`` (``queue_full``: the recorder's queue was full;
+  ``error``: the log could not be opened or written, e.g. a full disk; ``bound``: recorded
+  frames deleted with the oldest segments to keep the log within its size),
+  ``hmpf_experience_queue`` (frames waiting for the disk) and ``hmpf_experience_bytes`` (the
+  log's size on disk)
 
 Every label value comes from a fixed set in the code, never from a request.
 """
@@ -39,10 +46,13 @@ from starlette.responses import Response
 
 from service.track import REFUSALS, RESET_REASONS, STATUSES
 
-__all__ = ["RELOAD_TRIGGERS", "Metrics"]
+__all__ = ["DROP_REASONS", "RELOAD_TRIGGERS", "Metrics"]
 
 #: What started a reload: ``POST /v1/index/reload`` or the watch on ``CURRENT``.
 RELOAD_TRIGGERS = ("request", "watch")
+
+#: Why a frame meant for the experience log is not (or no longer) in it.
+DROP_REASONS = ("queue_full", "error", "bound")
 
 _BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0)
 _STAGES = ("queue", "decode", "extract", "hierarchy", "total")
@@ -125,7 +135,27 @@ class Metrics:
             buckets=_FILTER_BUCKETS,
             registry=self.registry,
         )
+        self.experience_recorded = Counter(
+            "hmpf_experience_recorded",
+            "frames appended to the experience log",
+            registry=self.registry,
+        )
+        self.experience_dropped = Counter(
+            "hmpf_experience_dropped",
+            "frames meant for the experience log that are not in it: queue_full, error "
+            "(open or write failed), bound (deleted with the oldest segments)",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.experience_queue = Gauge(
+            "hmpf_experience_queue", "frames waiting to be recorded", registry=self.registry
+        )
+        self.experience_bytes = Gauge(
+            "hmpf_experience_bytes", "the experience log's size on disk", registry=self.registry
+        )
         # Every series from the start (at 0), so that rates and alerts need no special case.
+        for reason in DROP_REASONS:
+            self.experience_dropped.labels(reason)
         for status in STATUSES:
             self.sequence_frames.labels(status)
         for reason in RESET_REASONS:

@@ -8,6 +8,7 @@ the same keys without the prefix::
     port: 8000
     keys_file: /etc/hmpf/keys.yaml
     workers: 2
+    experience_log: /var/lib/hmpf/experiences   # record accepted frames (off when unset)
 
 Unknown keys in the file, and unknown ``HMPF_*`` environment variables, are errors (a typo
 must not silently fall back to a default). The core's own variables (``HMPF_DATASETS``,
@@ -24,13 +25,19 @@ import os
 from collections.abc import Mapping
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import Field, SecretStr, ValidationError, model_validator
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, PydanticBaseSettingsSource, SettingsConfigDict
 
 from hmpf.errors import ConfigError
+from hmpf.experience_log import (
+    DEFAULT_MAX_BYTES,
+    DEFAULT_SEGMENT_BYTES,
+    DEFAULT_SYNC_EVERY,
+    DEFAULT_SYNC_INTERVAL_S,
+)
 from hmpf.methods.registry import format_validation_error
 
 __all__ = ["CORE_ENV", "Settings", "load_settings"]
@@ -147,7 +154,64 @@ class Settings(BaseSettings):
         "version it names when it changes, as POST /v1/index/reload does (replicas behind a "
         "balancer: e.g. 2); 0: only POST /v1/index/reload switches versions",
     )
+    # -- experience recording (service/recording.py) -----------------------------------------
+    experience_log: Path | None = Field(
+        None,
+        description="folder of the experience log: frames answered with an accepted match "
+        "of p_correct >= experience_min_p_correct are appended there, for `hmpf-index add "
+        "--experiences`; one service per folder; None: no recording",
+    )
+    experience_min_p_correct: float = Field(
+        0.99,
+        ge=0,
+        le=1,
+        description="the p_correct an accepted answer needs to be recorded (an answer "
+        "without p_correct, from a version without a confidence model, never is)",
+    )
+    experience_modes: Annotated[tuple[Literal["sequence", "single"], ...], NoDecode] = Field(
+        ("sequence",),
+        min_length=1,
+        description="answers recorded by where they come from: sequence (the filter's "
+        "estimate), single (one frame); several as a list or comma-separated",
+    )
+    experience_queue: int = Field(
+        64, ge=1, description="frames waiting for the disk; one more is dropped (counted)"
+    )
+    experience_max_bytes: int = Field(
+        DEFAULT_MAX_BYTES,
+        ge=2**20,
+        description="the log's size bound; over it its oldest segments are deleted (counted)",
+    )
+    experience_segment_bytes: int = Field(
+        DEFAULT_SEGMENT_BYTES,
+        ge=64 * 1024,
+        description="segment size: the unit the bound and prune delete in (at most half of "
+        "experience_max_bytes)",
+    )
+    experience_sync_every: int = Field(
+        DEFAULT_SYNC_EVERY, ge=1, description="records between fsyncs at most"
+    )
+    experience_sync_s: float = Field(
+        DEFAULT_SYNC_INTERVAL_S,
+        gt=0,
+        le=3600,
+        description="seconds a recorded frame waits for its fsync at most",
+    )
     log_level: str = "info"
+
+    @field_validator("experience_log", mode="before")
+    @classmethod
+    def _empty_is_off(cls, value: Any) -> Any:
+        # HMPF_EXPERIENCE_LOG= (empty) turns recording off; it must not mean the current folder.
+        return None if isinstance(value, str) and not value.strip() else value
+
+    @field_validator("experience_modes", mode="before")
+    @classmethod
+    def _split_modes(cls, value: Any) -> Any:
+        if isinstance(value, str):  # the environment: sequence,single (or a JSON list)
+            value = value.strip().strip("[]").replace('"', "").replace("'", "")
+            value = [m.strip() for m in value.split(",") if m.strip()]
+        return tuple(dict.fromkeys(value)) if isinstance(value, list | tuple) else value
 
     @model_validator(mode="after")
     def _check(self) -> Settings:
@@ -156,6 +220,15 @@ class Settings(BaseSettings):
                 "auth is on but no keys_file is set: set HMPF_KEYS_FILE (create keys with "
                 "`hmpf-serve keys add`), or HMPF_AUTH=false to run without authentication"
             )
+        if 2 * self.experience_segment_bytes > self.experience_max_bytes:
+            raise ValueError(
+                f"experience_segment_bytes ({self.experience_segment_bytes}) must be at most "
+                f"half of experience_max_bytes ({self.experience_max_bytes}): the bound "
+                "deletes whole segments"
+            )
+        log = self.experience_log
+        if log is not None and log.exists() and not log.is_dir():
+            raise ValueError(f"experience_log: {str(log)!r} is not a folder")
         return self
 
     @property

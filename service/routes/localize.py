@@ -17,11 +17,16 @@ error entry while the others are answered.
 With a ``vehicle_id`` a request is in sequence mode (:mod:`service.vehicle`): its ``track``
 token is checked before the images run, and the sequence filter runs over the answers, in
 order, after them.
+
+With recording on (setting ``experience_log``), each final answer and its uploaded bytes are
+then offered to the app's :class:`~service.recording.Recorder`, which keeps the confidently
+accepted ones for the map (it never waits or fails the request).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from collections.abc import Callable, Coroutine
 from typing import Annotated, Any, NamedTuple, NoReturn
@@ -57,6 +62,7 @@ from service.errors import (
 from service.images import ACCEPTED_TYPES, check_content_type, check_decode_budget
 from service.metrics import Metrics
 from service.query import ImageQuery
+from service.recording import Recorder
 from service.schemas import (
     TRACK_HEADER,
     VEHICLE_ID_HEADER,
@@ -216,12 +222,18 @@ class Localizer:
     """What the localisation routes use of the app: admit, run and answer images."""
 
     def __init__(
-        self, engine: Engine, settings: Settings, metrics: Metrics, tracker: Tracker
+        self,
+        engine: Engine,
+        settings: Settings,
+        metrics: Metrics,
+        tracker: Tracker,
+        recorder: Recorder | None = None,
     ) -> None:
         self.engine = engine
         self.settings = settings
         self.metrics = metrics
         self.tracker = tracker
+        self.recorder = recorder
 
     def check(self, params: LocalizeParams) -> None:
         """422 for a ``top_k`` over the service's limit."""
@@ -271,6 +283,7 @@ class Localizer:
 
     async def answer(self, params: LocalizeParams, upload: Upload) -> LocalizeResponse:
         """One image's answer (its error raised as the request's)."""
+        received = time.time()
         vehicle = self.tracker.open(params)
         queries = self.queries(params, [upload], vehicle is not None)
         ((ok, value),) = await self.engine.run(queries)
@@ -280,7 +293,22 @@ class Localizer:
         if vehicle is not None:
             (value,), _ = self.tracker.follow(vehicle, [value], queries)
         answer: LocalizeResponse = value
+        self.record(params, upload, answer, received)
         return answer
+
+    def record(
+        self, params: LocalizeParams, upload: Upload, answer: LocalizeResponse, received: float
+    ) -> None:
+        """Offer a final answer and its frame to the recorder (recording on; never waits)."""
+        if self.recorder is not None:
+            self.recorder.offer(
+                answer,
+                upload.data,
+                upload.content_type,
+                params.vehicle_id,
+                params.timestamp,
+                received,
+            )
 
     async def answer_batch(self, params: LocalizeParams, uploads: list[Upload]) -> BatchResponse:
         """Every image's answer or error, in order (in sequence mode the frames of one
@@ -289,6 +317,7 @@ class Localizer:
             raise invalid_request(
                 "timestamp: a batch's frames count as consecutive; send timed frames one by one"
             )
+        received = time.time()
         vehicle = self.tracker.open(params)
         queries = self.queries(params, uploads, vehicle is not None)
         version = self.engine.current.version
@@ -305,14 +334,23 @@ class Localizer:
                 (ok, new if ok else value)
                 for (ok, value), new in zip(outcomes, followed, strict=True)
             ]
+        for upload, (ok, value) in zip(uploads, outcomes, strict=True):
+            if ok:
+                self.record(params, upload, value, received)
         items = [_batch_item(i, ok, value) for i, (ok, value) in enumerate(outcomes)]
         return BatchResponse(results=items, index_version=version, track=track)
 
 
 async def _localizer(
-    engine: EngineDep, settings: SettingsDep, metrics: MetricsDep, tracker: TrackerDep
+    request: Request,
+    engine: EngineDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    tracker: TrackerDep,
 ) -> Localizer:
-    return Localizer(engine, settings, metrics, tracker)
+    # The recorder lives on the app from its lifespan's start (None: recording off).
+    recorder = getattr(request.app.state, "recorder", None)
+    return Localizer(engine, settings, metrics, tracker, recorder)
 
 
 LocalizerDep = Annotated[Localizer, Depends(_localizer)]

@@ -1,0 +1,407 @@
+"""Recording accepted frames into the experience log, through a real ``hmpf-serve`` (uvicorn
+in a subprocess) on a real index: the default preset (its shipped confidence models) over
+Gardens Point day_left, driven by day_right frames in sequence mode (the fleet pass of the
+experience loop: the other side of the road).
+
+* the recorded frames are exactly the answers accepted with p_correct >= the threshold in an
+  enabled mode, with their place, p_correct, vehicle, timestamp, version and bytes;
+* recording off records nothing;
+* a stuck log (its lock held, as by a long prune) and a log folder that cannot be created
+  never fail or hold up an answer: the frames are dropped and counted;
+* a kill -9 of the service while it records leaves a readable log, every record intact.
+
+The threshold here is 0.9, not the default 0.99: on this 40-reference stretch the shipped
+sequence model's p_correct stays between about 0.84 and 0.98 once locked (measured), and
+these tests are about what the service does with the answers it accepts, not about the
+model. Drives start at the route's first frame, where the filter locks on at once.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import re
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from hmpf.config import load_config
+from hmpf.experience_log import ExperienceLog, LogStats, Record, read_log
+from indexer.build import build
+from service.metrics import Metrics
+from service.recording import Recorder, recorded_mode
+from service.schemas import LocalizeResponse
+from service.settings import load_settings
+from tests.conftest import copy_gp
+from tests.service_helpers import BUILD_OPTIONS, Server
+
+N_REFS = 32
+THRESHOLD = 0.9
+#: The drive: day_right frames (frame-aligned with day_left), 2 per second.
+FPS = 2.0
+T0 = 1.7e9  # the vehicles' clock: seconds since the epoch
+
+
+@pytest.fixture(scope="module")
+def index(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    base = tmp_path_factory.mktemp("rec")
+    refs = copy_gp(gardens_point, "day_left", base / "refs", N_REFS)
+    build(load_config("default"), refs, base / "index", options=BUILD_OPTIONS)
+    return base / "index"
+
+
+@pytest.fixture(scope="module")
+def frames(gardens_point: Path) -> list[Path]:
+    return sorted((gardens_point / "day_right").iterdir())
+
+
+def _server(index: Path, log: Path | None, tmp: Path, **env: str) -> Server:
+    settings = {"auth": "false", "workers": "1", "experience_min_p_correct": str(THRESHOLD)}
+    if log is not None:
+        settings["experience_log"] = str(log)
+    return Server(index, tmp / "serve.log", **settings, **env)
+
+
+@pytest.fixture(scope="module")
+def recording(index: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A server recording sequence-mode answers; every frame its own segment (64 KiB)."""
+    tmp = tmp_path_factory.mktemp("rec-on")
+    srv = _server(
+        index,
+        tmp / "experiences",
+        tmp,
+        experience_segment_bytes=str(64 * 1024),
+        experience_max_bytes=str(64 << 20),
+        experience_queue="2",
+        experience_sync_every="4",
+    )
+    srv.experiences = tmp / "experiences"  # type: ignore[attr-defined]
+    yield srv
+    srv.stop()
+    assert "Traceback" not in srv.output()
+
+
+class Car:
+    """One vehicle driving its frames against a server (raw bodies, the vehicle headers)."""
+
+    def __init__(self, url: str, vehicle: str, frames: list[Path]) -> None:
+        self.http = httpx.Client(base_url=url, timeout=60)
+        self.vehicle, self.frames = vehicle, frames
+        self.track: str | None = None
+        #: (frame, answer, bytes, timestamp sent) of every frame answered
+        self.sent: list[tuple[int, dict[str, Any], bytes, float | None]] = []
+
+    def frame(self, i: int, timed: bool = True) -> dict[str, Any]:
+        data = self.frames[i].read_bytes()
+        headers = {"Content-Type": "image/jpeg", "X-Vehicle-Id": self.vehicle}
+        if self.track:
+            headers["X-Track"] = self.track
+        ts = T0 + i / FPS if timed else None
+        params = {} if ts is None else {"timestamp": ts}
+        r = self.http.post("/v1/localize", content=data, headers=headers, params=params)
+        assert r.status_code == 200, r.text
+        body = r.json()
+        self.track = body["sequence"]["track"]
+        self.sent.append((i, body, data, ts))
+        return dict(body)
+
+    def drive(self, indices: range) -> list[dict[str, Any]]:
+        return [self.frame(i) for i in indices]
+
+
+def _single(url: str, path: Path) -> dict[str, Any]:
+    r = httpx.post(
+        url + "/v1/localize",
+        content=path.read_bytes(),
+        headers={"Content-Type": "image/jpeg"},
+        timeout=60,
+    )
+    assert r.status_code == 200, r.text
+    return dict(r.json())
+
+
+def metrics(url: str) -> dict[str, float]:
+    """The experience metrics of a server: name (with labels) -> value."""
+    text = httpx.get(url + "/metrics", timeout=30).text
+    found = re.findall(r"^(hmpf_experience_\w+(?:\{[^}]*\})?) (\S+)$", text, re.M)
+    return {k: float(v) for k, v in found}
+
+
+def _dropped(m: dict[str, float], reason: str) -> float:
+    return m[f'hmpf_experience_dropped_total{{reason="{reason}"}}']
+
+
+def _wait_recorded(url: str, n: float, timeout: float = 20) -> dict[str, float]:
+    deadline = time.monotonic() + timeout
+    while True:
+        m = metrics(url)
+        if m["hmpf_experience_recorded_total"] >= n or time.monotonic() > deadline:
+            return m
+        time.sleep(0.1)
+
+
+def _settled(url: str, timeout: float = 20) -> dict[str, float]:
+    """The metrics once the recorder's queue is empty and its count stays put."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        m = metrics(url)
+        if m["hmpf_experience_queue"] == 0 and last == m["hmpf_experience_recorded_total"]:
+            return m
+        last = m["hmpf_experience_recorded_total"] if m["hmpf_experience_queue"] == 0 else None
+        time.sleep(0.3)
+    raise AssertionError(f"the recorder did not settle: {metrics(url)}")
+
+
+def _to_record(body: dict[str, Any]) -> bool:
+    """Whether an answer is one the service records here (the rule, read independently)."""
+    m = body["match"]
+    return bool(
+        m is not None
+        and m["accepted"]
+        and m["p_correct"] is not None
+        and m["p_correct"] >= THRESHOLD
+        and body["match_source"] == "sequence"
+    )
+
+
+def _read(log: Path) -> tuple[list[Record], LogStats]:
+    stats = LogStats()
+    return list(read_log(log, stats=stats)), stats
+
+
+def _answer(p: float | None, accepted: bool, source: str, place: int = 3) -> LocalizeResponse:
+    """An answer with just what the recording rule reads."""
+    match = {
+        "reference_id": place,
+        "name": f"Image{place:03d}.jpg",
+        "score": None,
+        "confidence": 0.5,
+        "p_correct": p,
+        "accepted": accepted,
+        "accepted_by": "p_correct",
+    }
+    return LocalizeResponse.model_validate(
+        {
+            "match": match,
+            "match_source": source,
+            "candidates": [],
+            "tiers": [],
+            "timing_ms": {},
+            "index_version": "v0001",
+            "threshold": 2.0,
+        }
+    )
+
+
+def test_the_rule_matches_the_settings() -> None:
+    """:func:`recorded_mode` is the rule the tests below read independently."""
+    s = load_settings(auth=False, experience_min_p_correct=THRESHOLD)
+    for p, accepted, source, want in (
+        (0.95, True, "sequence", "sequence"),
+        (0.89, True, "sequence", None),
+        (0.95, False, "sequence", None),
+        (None, True, "sequence", None),
+        (0.95, True, "single", None),
+    ):
+        answer = _answer(p, accepted, source)
+        assert recorded_mode(answer, s) == want, (p, accepted, source)
+        both = load_settings(
+            auth=False, experience_min_p_correct=THRESHOLD, experience_modes="sequence,single"
+        )
+        confident = accepted and p is not None and p >= THRESHOLD
+        assert recorded_mode(answer, both) == (source if confident else None)
+
+
+def test_the_recorder_counts_what_the_bound_drops_and_closes_on_stop(
+    frames: list[Path], tmp_path: Path
+) -> None:
+    """The recorder on its own (no server): a 1 MiB log of 64 KiB segments takes about 20
+    frames; more push the oldest segments out, counted as dropped for the bound; stop()
+    writes what is queued and lets the log go."""
+    log = tmp_path / "experiences"
+    s = load_settings(
+        auth=False,
+        experience_log=log,
+        experience_min_p_correct=THRESHOLD,
+        experience_max_bytes=2**20,
+        experience_segment_bytes=64 * 1024,
+        experience_queue=64,
+    )
+    m = Metrics()
+    rec = Recorder(s, m)
+    rec.start()
+    data = frames[0].read_bytes()
+    assert not rec.offer(_answer(0.5, True, "sequence"), data, "image/jpeg", "car", None, 1.0)
+    for i in range(40):
+        assert rec.offer(_answer(0.95, True, "sequence", i), data, "image/jpeg", "car", None, i)
+    rec.stop()
+    got, stats = _read(log)
+    value = m.registry.get_sample_value
+    dropped = value("hmpf_experience_dropped_total", {"reason": "bound"})
+    assert value("hmpf_experience_recorded_total") == 40 and dropped == 40 - len(got) > 0
+    assert [r.place for r in got] == list(range(40 - len(got), 40)) and stats.damaged == 0
+    on_disk = sum(p.stat().st_size for p in log.glob("*.seg"))
+    assert value("hmpf_experience_bytes") == on_disk <= 2**20
+    ExperienceLog(log).close()  # released
+
+
+def test_a_sequence_drive_records_its_accepted_answers(recording: Server, frames) -> None:
+    url, log = recording.url, recording.experiences  # type: ignore[attr-defined]
+    car = Car(url, "car-7", frames)
+    car.drive(range(0, 20))
+    singles = [_single(url, frames[i]) for i in (1, 4, 9)]  # single mode: not enabled
+    assert any(b["match"]["accepted"] and b["match"]["p_correct"] >= THRESHOLD for b in singles)
+    # A batch in sequence mode: each frame's final answer, stamped when it was received.
+    files = [("images", (frames[i].name, frames[i].read_bytes(), "image/jpeg")) for i in (20, 21)]
+    before = time.time()
+    r = car.http.post(
+        "/v1/localize/batch",
+        files=files,
+        headers={"X-Vehicle-Id": "car-7", "X-Track": car.track or ""},
+    )
+    assert r.status_code == 200, r.text
+    for item, i in zip(r.json()["results"], (20, 21), strict=True):
+        car.sent.append((i, item["result"], frames[i].read_bytes(), None))
+
+    expected = [sent for sent in car.sent if _to_record(sent[1])]
+    assert 5 <= len(expected) < len(car.sent), "some answers recorded, not all"
+    m = _wait_recorded(url, len(expected))
+    assert m["hmpf_experience_recorded_total"] == len(expected)
+    for reason in ("queue_full", "error", "bound"):
+        assert _dropped(m, reason) == 0
+    got, stats = _read(log)
+    assert stats.damaged == 0 and stats.torn == 0
+    assert len(got) == len(expected)
+    assert m["hmpf_experience_bytes"] == sum(s.stat().st_size for s in log.glob("*.seg"))
+    for rec, (_, body, data, ts) in zip(got, expected, strict=True):
+        match = body["match"]
+        assert rec.image == data and rec.content_type == "image/jpeg"
+        assert (rec.place, rec.place_name) == (match["reference_id"], match["name"])
+        assert rec.p_correct == match["p_correct"] >= THRESHOLD
+        assert rec.vehicle == "car-7" and rec.mode == "sequence"
+        assert rec.index_version == body["index_version"] == "v0001"
+        if ts is None:  # the batch: when it was received
+            assert before - 1 <= rec.timestamp <= time.time()
+        else:
+            assert rec.timestamp == ts
+        assert before - 120 <= rec.received <= time.time()
+    assert [r.seq for r in got] == list(range(len(got)))
+    # What the log holds is (nearly always) the right place: frame i shows place i.
+    right = sum(abs(rec.place - i) <= 2 for rec, (i, *_) in zip(got, expected, strict=True))
+    assert right >= 0.9 * len(got), f"{right}/{len(got)} recorded at the right place"
+
+
+def test_a_stuck_log_never_holds_up_an_answer(recording: Server, frames) -> None:
+    """The log's lock held (as a long prune holds it): the writer waits at its next segment,
+    the queue (2 frames) fills, later frames are dropped and counted; every answer comes
+    back as fast as ever. Released, the writer goes on and the log is whole."""
+    url, log = recording.url, recording.experiences  # type: ignore[attr-defined]
+    start = metrics(url)
+    car = Car(url, "car-9", frames)
+    fd = os.open(log / ".lock", os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        t = time.monotonic()
+        car.drive(range(0, 14))
+        seconds = time.monotonic() - t
+        m = metrics(url)
+    finally:
+        os.close(fd)
+    wanted = sum(_to_record(b) for _, b, _, _ in car.sent)
+    assert wanted > 4
+    dropped = _dropped(m, "queue_full") - _dropped(start, "queue_full")
+    assert dropped >= wanted - 3  # the queue holds 2, the writer 1 in hand
+    assert seconds < 14 * 5, "the answers did not wait for the disk"
+    end = _settled(url)
+    recorded = end["hmpf_experience_recorded_total"] - start["hmpf_experience_recorded_total"]
+    assert recorded + dropped == wanted and recorded >= 1
+    got, stats = _read(log)
+    assert stats.damaged == 0 and sum(r.vehicle == "car-9" for r in got) == recorded
+
+
+def test_recording_off_records_nothing(index: Path, frames, tmp_path: Path) -> None:
+    def files() -> list[str]:  # the sequence key may appear (it does with or without recording)
+        return sorted(str(p) for p in index.rglob("*") if p.name != ".sequence-key")
+
+    before = files()
+    srv = _server(index, None, tmp_path)
+    try:
+        car = Car(srv.url, "car-3", frames)
+        car.drive(range(0, 8))
+        assert any(_to_record(b) for _, b, _, _ in car.sent)
+        m = metrics(srv.url)
+    finally:
+        srv.stop()
+    assert m["hmpf_experience_recorded_total"] == 0 and m["hmpf_experience_bytes"] == 0
+    assert all(_dropped(m, r) == 0 for r in ("queue_full", "error", "bound"))
+    assert files() == before and [p.name for p in tmp_path.iterdir()] == ["serve.log"]
+    assert "recording accepted frames" not in srv.output()
+
+
+def test_a_log_that_cannot_be_created_never_fails_an_answer(
+    index: Path, frames, tmp_path: Path
+) -> None:
+    """The log's folder cannot be made (a file is in the way: refused even to root): the
+    service starts and answers, the frames it would record are dropped and counted, and the
+    log says why once."""
+    (tmp_path / "blocked").write_text("a file, not a folder")
+    srv = _server(index, tmp_path / "blocked" / "experiences", tmp_path)
+    try:
+        car = Car(srv.url, "car-4", frames)
+        car.drive(range(0, 8))
+        wanted = sum(_to_record(b) for _, b, _, _ in car.sent)
+        deadline = time.monotonic() + 20
+        while _dropped(m := metrics(srv.url), "error") < wanted and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        srv.stop()
+    assert wanted > 0
+    assert _dropped(m, "error") == wanted and m["hmpf_experience_recorded_total"] == 0
+    out = srv.output()
+    assert out.count("cannot be opened; frames are dropped") == 1, out
+    assert "Traceback" not in out
+
+
+def test_kill_9_while_recording_leaves_a_readable_log(recording: Server, frames) -> None:
+    """Frames are recorded while the server is killed (SIGKILL) mid-drive: the log reads
+    back whole (at most the frame being written is torn), at least every frame the server
+    had counted, and a new writer takes the log over and goes on counting."""
+    url, log = recording.url, recording.experiences  # type: ignore[attr-defined]
+    start = metrics(url)["hmpf_experience_recorded_total"]
+    car = Car(url, "car-11", frames)
+    stop = threading.Event()
+
+    def drive() -> None:
+        try:
+            for i in range(0, N_REFS):
+                if stop.is_set():
+                    return
+                car.frame(i)
+        except (httpx.HTTPError, AssertionError):
+            return  # the server is gone
+
+    t = threading.Thread(target=drive)
+    t.start()
+    deadline = time.monotonic() + 60
+    seen = start
+    while seen < start + 4 and time.monotonic() < deadline:
+        seen = metrics(url)["hmpf_experience_recorded_total"]
+        time.sleep(0.05)
+    assert seen >= start + 4, "the drive records"
+    recording.proc.send_signal(signal.SIGKILL)
+    recording.proc.wait(30)
+    stop.set()
+    t.join(60)
+    got, stats = _read(log)
+    assert stats.damaged == 0 and stats.torn <= 1
+    assert len(got) >= seen
+    assert [r.seq for r in got] == list(range(len(got)))
+    with ExperienceLog(log) as w:  # the dead server's hold on the log went with it
+        assert w.next_seq == len(got)
