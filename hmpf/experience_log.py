@@ -743,6 +743,7 @@ class PruneReport:
         rewritten: segments rewritten without their matching records.
         deleted: segments deleted (nothing was left in them).
         dry_run: nothing was changed.
+        stats: what reading the segments met (records, torn tails, damaged stretches).
     """
 
     removed: int
