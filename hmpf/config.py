@@ -19,6 +19,9 @@ Example (preset ``handcrafted``)::
     index:                      # optional, for hmpf-index (flags override)
       faiss: {"*": Flat, gem: "IVF4096,Flat"}
       faiss_params: {gem: nprobe=32}
+    experiences:                # optional, for hmpf-index add --experiences (flags override)
+      min_p_correct: 0.99
+      max_per_place: 4
 
 A method id may name a registered method directly, or be declared under ``methods`` with
 ``type: <registered name>`` plus parameters, so one method can appear with two settings.
@@ -45,6 +48,7 @@ from hmpf.sequence import FilterParams
 
 __all__ = [
     "AcceptanceSettings",
+    "ExperienceSettings",
     "HierarchyConfig",
     "IndexSettings",
     "TierConfig",
@@ -74,6 +78,50 @@ class IndexSettings(BaseModel):
 
     faiss: dict[str, str] = Field(default_factory=dict)
     faiss_params: dict[str, str] = Field(default_factory=dict)
+
+
+class ExperienceSettings(BaseModel):
+    """How ``hmpf-index add --experiences`` merges the fleet's recorded frames into a version
+    (:mod:`indexer.experiences`); command-line flags override these, and the values a merge used
+    are recorded in its manifest. Not part of the index's identity
+    (:meth:`HierarchyConfig.digest` ignores the section): they decide which frames become
+    experiences, never how any stored feature is computed.
+
+    Attributes:
+        min_p_correct: a frame is merged only when its recorded answer had at least this
+            ``p_correct`` (0.99: the service's default recording threshold, so a lower value
+            matters only for logs recorded with a lower one).
+        agreement_window: the frame, localised on its own (one frame, the version's whole
+            hierarchy, over places) against the version it is merged into, must land within
+            this many places of its recorded place along that place's route (the
+            ``sequence`` column, else index order); None turns the check off. It keeps
+            wrong frames out (a poisoned log, a wrong sequence-mode lock) at the price of the
+            frames a single frame cannot localise.
+        duplicate_similarity: a frame whose tier-1 descriptor (the first global method of
+            tier 1) has at least this cosine similarity to a stored image of its place, or to
+            a frame of the same place kept before it in this merge, adds nothing and is
+            skipped (a vehicle standing still records the same picture again and again);
+            None turns the check off.
+        max_per_place: images a place may hold after a merge, its original reference
+            included; the frames kept are those that differ most (greedy farthest point on
+            the tier-1 descriptor) from the images already there. A merge never drops a stored
+            experience (``hmpf-index remove --experiences-from`` does). None: no cap.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min_p_correct: float = Field(default=0.99, ge=0, le=1)
+    agreement_window: int | None = Field(default=3, ge=0)
+    duplicate_similarity: float | None = Field(default=0.99, gt=0, le=1)
+    max_per_place: int | None = Field(default=4, ge=1)
+
+    @classmethod
+    def open(cls) -> ExperienceSettings:
+        """Every gate open: each readable frame of a known place is merged (what a
+        measurement of the gates compares with)."""
+        return cls(
+            min_p_correct=0.0, agreement_window=None, duplicate_similarity=None, max_per_place=None
+        )
 
 
 class AcceptanceSettings(BaseModel):
@@ -165,6 +213,7 @@ class HierarchyConfig(BaseModel):
     index: IndexSettings = Field(default_factory=IndexSettings)
     acceptance: AcceptanceSettings | None = None
     sequence: dict[str, Any] | None = None
+    experiences: ExperienceSettings | None = None
 
     @model_validator(mode="after")
     def _check(self) -> HierarchyConfig:
@@ -209,12 +258,17 @@ class HierarchyConfig(BaseModel):
         settings over the defaults)."""
         return FilterParams.from_mapping(self.sequence)
 
+    @property
+    def experience_settings(self) -> ExperienceSettings:
+        """The ``experiences:`` section, or its defaults where the config has none."""
+        return self.experiences or ExperienceSettings()
+
     def digest(self) -> str:
-        """sha256 of the canonical JSON of this config (the acceptance threshold and the
-        sequence filter's settings excluded: they change no stored data, and indexes built
-        before they existed keep their identity; likewise ``tier_score`` when it is the
-        original's ``max``)."""
-        data = self.model_dump(exclude={"acceptance", "sequence"})
+        """sha256 of the canonical JSON of this config (the acceptance threshold, the
+        sequence filter's and the experience merge's settings excluded: they change no stored
+        feature, and indexes built before they existed keep their identity; likewise
+        ``tier_score`` when it is the original's ``max``)."""
+        data = self.model_dump(exclude={"acceptance", "sequence", "experiences"})
         if data["tier_score"] == "max":  # the original's: configs (and indexes) from before
             del data["tier_score"]  # the option existed keep their digest
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

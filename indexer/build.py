@@ -14,6 +14,12 @@ checksums, fsync, rename, ``CURRENT``). The work folder holds:
 
 An interruption at any point (Ctrl-C, kill -9, full disk) leaves ``CURRENT`` and every
 published version untouched.
+
+A version may hold fleet *experiences* (:mod:`indexer.experiences`): its rows are the places'
+original references first, then experience rows whose ``place`` column names their place
+(:data:`hmpf.index.tables.EXPERIENCE_COLUMNS`). ``add`` inserts new places before the
+experience rows and ``remove`` of a place removes its experiences and renumbers the places, so
+every version keeps that order; :func:`check_places` refuses to publish one that does not.
 """
 
 from __future__ import annotations
@@ -59,6 +65,7 @@ from hmpf.index.storage import (
     write_state,
 )
 from hmpf.index.tables import (
+    EXPERIENCE_COLUMNS,
     Columns,
     Ragged,
     RefTable,
@@ -66,11 +73,22 @@ from hmpf.index.tables import (
     concat_columns,
     select_columns,
 )
+from hmpf.index.thumbnails import empty_thumbnails
 from hmpf.methods import Method
 from indexer.distributed import RayOptions, extract_to_cache
 from indexer.inputs import ImageCheck, check_images, read_metadata, scan_images
 
-__all__ = ["BuildOptions", "NewVersion", "Summary", "VersionTransaction", "add", "build", "remove"]
+__all__ = [
+    "BuildOptions",
+    "NewVersion",
+    "Summary",
+    "VersionTransaction",
+    "add",
+    "build",
+    "check_places",
+    "place_count",
+    "remove",
+]
 
 
 @dataclass(frozen=True)
@@ -141,6 +159,9 @@ class Summary:
     #: bytes of the CNN models the version carries (``onnx/``): once per version, whatever
     #: its size, so not counted per reference
     bytes_models: int = 0
+    #: what a merge of fleet experiences or their removal did (the manifest's ``experiences``
+    #: entry, :mod:`indexer.experiences`); None for other operations
+    experiences: dict[str, Any] | None = None
 
     def lines(self) -> list[str]:
         n = max(self.images, 1)
@@ -161,7 +182,42 @@ class Summary:
             + f"; thumbnails {self.bytes_thumbnails / n / 1024:.1f} KiB",
         ]
         out += [f"skipped {s['name']}: {s['reason']}" for s in self.skipped]
+        if self.experiences is not None:
+            out += experience_lines(self.experiences)
         return out
+
+
+#: How the terminal names a merge's gates (:data:`indexer.experiences.GATES`).
+_GATE_LABELS = {
+    "already_merged": "already merged",
+    "below_p_correct": "below min_p_correct",
+    "unknown_place": "unknown place",
+    "over_cap": "over max_per_place",
+}
+
+
+def experience_lines(report: Mapping[str, Any]) -> list[str]:
+    """A merge's or an experience removal's report (the manifest's ``experiences`` entry) as
+    lines for the terminal."""
+    places = report.get("places", {})
+    tail = f"; now {places.get('count')} places, {places.get('experiences')} experiences"
+    if report.get("operation") == "remove":
+        return [
+            f"removed {report['removed']} experience(s) matching "
+            + " and ".join(report["filters"])
+            + (tail if places else "")
+        ]
+    gates = report["gates"]
+    lines = [
+        f"records {report['records']} from {len(report['logs'])} log(s): "
+        + ", ".join(f"{_GATE_LABELS.get(k, k)} {v}" for k, v in gates.items())
+        + f"; added {report['added']}"
+        + (tail if places else ""),
+        f"frames extracted {report['frames_extracted']} "
+        f"({report['frames_per_s']:.1f} frames/s, extraction, localisation and gates)",
+    ]
+    lines += [f"  {line}" for line in report.get("rejected_agreement", [])]
+    return lines
 
 
 # -- inputs ----------------------------------------------------------------------------------
@@ -425,6 +481,8 @@ class NewVersion:
         retrain: train approximate FAISS indexes anew instead of refilling the parent's.
         thumbnails: the references' thumbnails (:mod:`hmpf.index.thumbnails`), rows aligned
             with ``refs``; None: the version stores none (derived from a version without).
+        report: what a merge of experiences or their removal did (manifest ``experiences``,
+            :class:`Summary` ``experiences``); None for other operations.
     """
 
     config: HierarchyConfig
@@ -435,6 +493,7 @@ class NewVersion:
     parent: IndexReader | None = None
     retrain: bool = True
     thumbnails: Ragged | None = None
+    report: dict[str, Any] | None = None
 
 
 class VersionTransaction:
@@ -488,6 +547,7 @@ class VersionTransaction:
         """
         if len(new.refs) == 0:
             raise IndexBuildError("no readable reference image left; nothing to index")
+        check_places(new.refs)
         out = self.work.out
         if out.exists():
             shutil.rmtree(out)  # a partial write of an interrupted run: features are cached
@@ -514,6 +574,7 @@ class VersionTransaction:
                 bytes_per_method=sizes,
                 bytes_thumbnails=thumb_bytes,
             )
+            summary.experiences = new.report
             manifest = _manifest(name, self.operation, new, faiss_info, models)
             manifest["summary"] = asdict(summary)
             manifest["files"] = _file_entries(out)
@@ -580,7 +641,7 @@ def _manifest(
     ``models``: the exported CNN models stored (:func:`hmpf.index.models.write_models`)."""
     refs, config = new.refs, new.config
     sources = sorted(set(refs.sources))
-    return {
+    out: dict[str, Any] = {
         "format_version": layout.FORMAT_VERSION,
         "version": name,
         "parent": new.parent.version if new.parent is not None else None,
@@ -610,6 +671,12 @@ def _manifest(
             "quality": thumbnails.QUALITY,
         },
     }
+    places = _places_entry(refs)
+    if places is not None:
+        out["places"] = places
+    if new.report is not None:
+        out["experiences"] = new.report
+    return out
 
 
 def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dict[str, Any]:
@@ -688,6 +755,83 @@ def _kept(refs: RefTable, paths: Sequence[Path]) -> np.ndarray:
     return np.array([pos[p.name] for p in paths], dtype=np.int64)
 
 
+def _row_thumbnails(parent: IndexReader) -> Ragged:
+    """Every stored row's thumbnail (empty entries in a version without thumbnails)."""
+    if parent.thumbnails is None:
+        return empty_thumbnails(len(parent.refs))
+    return parent.thumbnail_column()
+
+
+# -- places and experiences ------------------------------------------------------------------
+def place_count(refs: RefTable) -> int:
+    """P, the number of places: the rows before the first experience row (every row in a
+    version without experiences). Computed from the ``place`` column, not from a reader's
+    count, so that it means the same whatever the reader counts."""
+    place = refs.meta.get("place")
+    if place is None:
+        return len(refs)
+    exp = ~np.isnan(np.asarray(place, dtype=np.float64))
+    return int(np.argmax(exp)) if exp.any() else len(refs)
+
+
+def check_places(refs: RefTable) -> int:
+    """P, after checking the rows keep the format's order: every original reference (``place``
+    NaN) before every experience, and each experience naming one of those places.
+
+    Raises:
+        IndexBuildError: the rows break it (a bug: the version is not written).
+    """
+    n_places = place_count(refs)
+    place = refs.meta.get("place")
+    if place is None:
+        return n_places
+    exp = np.asarray(place, dtype=np.float64)[n_places:]
+    if not ((exp >= 0) & (exp < n_places) & (exp == np.floor(exp))).all():
+        raise IndexBuildError(
+            f"refusing to write a version whose experience rows do not all follow the {n_places} "
+            "places they name (an internal error; the current version is untouched)"
+        )
+    return n_places
+
+
+def without_empty_experiences(refs: RefTable) -> RefTable:
+    """``refs`` without the experience columns when no experience row is left (the version
+    is then stored as one that never had any)."""
+    if place_count(refs) < len(refs):
+        return refs
+    meta = {k: v for k, v in refs.meta.items() if k not in EXPERIENCE_COLUMNS}
+    return RefTable(refs.names, refs.sha256, meta, refs.sources)
+
+
+def _places_entry(refs: RefTable) -> dict[str, int] | None:
+    """The manifest's ``places`` entry: P and N - P, only where some row is an experience."""
+    n_places = place_count(refs)
+    if n_places == len(refs):
+        return None
+    return {"count": n_places, "experiences": len(refs) - n_places}
+
+
+def _parent_options(parent: IndexReader, options: BuildOptions | None) -> BuildOptions:
+    """Storage options for a version derived from ``parent``: the parent's own (FAISS
+    factories and parameters, precision), those ``options`` name over them."""
+    stored = parent.manifest.get("options", {})
+    base = BuildOptions(
+        faiss=dict(stored.get("faiss", {})),
+        faiss_params=dict(stored.get("faiss_params", {})),
+        precision=stored.get("precision", "exact"),
+        strict=bool(stored.get("strict", False)),
+        progress=False,
+    )
+    if options is None:
+        return base
+    return replace(
+        options,
+        faiss={**base.faiss, **options.faiss},
+        faiss_params={**base.faiss_params, **options.faiss_params},
+        precision=base.precision,
+    )
+
+
 def _parent(root: Path, operation: str) -> IndexReader:
     """The current version, every file verified against its sha256 first: a derived version
     copies its rows, and its manifest would vouch for them.
@@ -712,17 +856,27 @@ def add(
     refit: bool = False,
     resume: bool = False,
 ) -> Summary:
-    """Publish a version with the images of ``images`` appended to the current version.
+    """Publish a version with the images of ``images`` as new places of the current version.
 
     Stored features of the current references are reused. With ``refit``, methods with
     fitted parameters are refitted on old + new images, which then must still be readable
     where they were indexed from (unchanged), and those methods are re-extracted for all.
+    In a version with experiences the new places go after the places and before the
+    experience rows (each experience keeps its place's index); ``refit`` is refused there.
     """
     tx = VersionTransaction(Path(index), "add")
     paths, new = _read_inputs(images, metadata)
     with tx, _parent(tx.root, "add") as parent:
         opt = (options or BuildOptions()).with_config(parent.config)
         _check_options(parent.config, parent.methods, opt)
+        n_places = place_count(parent.refs)
+        if refit and n_places < len(parent.refs):
+            raise IndexBuildError(
+                f"--refit re-extracts every reference from its image file, but {parent.version} "
+                f"holds {len(parent.refs) - n_places} fleet experience(s), whose frames are not "
+                "kept as files; add without --refit, or build anew from the reference images "
+                "and merge the experience logs again"
+            )
         clash = sorted(set(new.names) & set(parent.refs.names))
         if clash:
             raise IndexBuildError(
@@ -747,16 +901,33 @@ def add(
             for mid, m in reuse.items()
         }
         refs = parent.refs.concat(new)
+        # new places before the experience rows: rows 0 .. P-1 stay the places, in order
+        order = _insert_order(n_places, len(parent.refs), len(new))
+        refs = refs.select(order)
+        cols = {mid: select_columns(c, order) for mid, c in cols.items()}
         if refit_ids:
             all_paths = [Path(s) / n for s, n in zip(refs.sources, refs.names, strict=True)]
             fresh = {mid: methods[mid] for mid in refit_ids}
             feats_all, _ = _extract(all_paths, fresh, tx.work, opt)
             cols.update({mid: columns_from_features(fresh[mid], feats_all[mid]) for mid in fresh})
-        thumbs = Ragged.concat([parent.thumbnail_column(), _thumbnails(paths, new, tx.work)])
+        thumbs = Ragged.concat([_row_thumbnails(parent), _thumbnails(paths, new, tx.work)])
+        thumbs = thumbs.select(order)
         version = NewVersion(
             parent.config, methods, refs, cols, opt, parent, retrain=refit, thumbnails=thumbs
         )
         return tx.publish(version, extracted=len(new), resumed=resumed, skipped=skipped)
+
+
+def _insert_order(n_places: int, n_rows: int, n_new: int) -> np.ndarray:
+    """Row order of ``parent rows + new rows`` with the new rows moved before the parent's
+    experience rows (rows ``n_places ..``)."""
+    return np.concatenate(
+        [
+            np.arange(n_places),
+            np.arange(n_rows, n_rows + n_new),
+            np.arange(n_places, n_rows),
+        ]
+    ).astype(np.int64)
 
 
 def _refit(
@@ -786,7 +957,12 @@ def _refit(
 def remove(
     index: str | Path, names: Sequence[str], *, options: BuildOptions | None = None
 ) -> Summary:
-    """Publish a version of the current one without the references ``names``."""
+    """Publish a version of the current one without the references ``names``.
+
+    Removing a place's original reference removes the place with its experiences, and the
+    later places are renumbered (their experiences follow); an experience row may also be
+    removed by its name. The version keeps the parent's storage options.
+    """
     tx = VersionTransaction(Path(index), "remove")
     with tx, _parent(tx.root, "remove") as parent:
         present = set(parent.refs.names)
@@ -797,22 +973,42 @@ def remove(
                 + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
                 + "; see `hmpf-index info --names`"
             )
-        drop = set(names)
-        keep = np.array([i for i, n in enumerate(parent.refs.names) if n not in drop], np.int64)
-        if len(keep) == 0:
+        keep, refs = _without_rows(parent.refs, set(names))
+        if place_count(refs) == 0:
             raise IndexBuildError("removing every reference would leave an empty index")
         cols = {mid: select_columns(parent.columns(mid), keep) for mid in parent.methods}
-        tx.begin({"operation": "remove", "parent": parent.version, "names": sorted(drop)})
+        tx.begin({"operation": "remove", "parent": parent.version, "names": sorted(set(names))})
         new = NewVersion(
             parent.config,
             parent.methods,
-            parent.refs.select(keep),
+            refs,
             cols,
-            options or BuildOptions(),
+            _parent_options(parent, options),
             parent,
             retrain=False,
-            thumbnails=None
-            if parent.thumbnails is None
-            else parent.thumbnail_column().select(keep),
+            thumbnails=None if parent.thumbnails is None else _row_thumbnails(parent).select(keep),
         )
         return tx.publish(new, extracted=0)
+
+
+def _without_rows(refs: RefTable, drop: set[str]) -> tuple[np.ndarray, RefTable]:
+    """The rows kept when the rows named ``drop`` go, and the table of them: a dropped place
+    takes its experiences along, the places left are renumbered in order (the experiences'
+    ``place`` follows), and the experience columns go when no experience is left."""
+    n_places = place_count(refs)
+    names = refs.names
+    gone = np.array([n in drop for n in names], dtype=bool)
+    place = refs.meta.get("place")
+    if place is None:
+        keep = np.flatnonzero(~gone).astype(np.int64)
+        return keep, refs.select(keep)
+    place_of = np.concatenate([np.arange(n_places), place[n_places:]]).astype(np.int64)
+    gone |= gone[:n_places][place_of]  # a removed place's experiences go with it
+    keep = np.flatnonzero(~gone).astype(np.int64)
+    renumber = np.cumsum(~gone[:n_places]) - 1  # old place -> new place (kept ones)
+    out = refs.select(keep)
+    new_place = np.full(len(keep), np.nan)
+    exp = keep >= n_places
+    new_place[exp] = renumber[place_of[keep[exp]]]
+    out.meta["place"] = new_place
+    return keep, without_empty_experiences(out)

@@ -2,7 +2,9 @@
 
     hmpf-index build --config handcrafted --images refs/ --index maps/campus
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
+    hmpf-index add --index maps/campus --experiences fleet.log [more.log ...] [--dry-run]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
+    hmpf-index remove --index maps/campus --experiences-from vehicle=V|log=L|before=TIME
     hmpf-index verify --index maps/campus [--index-version v0002]   (default: every version)
     hmpf-index info --index maps/campus [--index-version v0002]
     hmpf-index use --index maps/campus v0002
@@ -27,7 +29,7 @@ from typing import TYPE_CHECKING
 # Only light modules at import time: the heavy ones (numpy, OpenCV, h5py, FAISS) load inside
 # ``run``, so Ctrl-C while they load is one line and exit 130 too, and --version is instant.
 from hmpf.cli.common import add_version, run
-from hmpf.errors import HmpfError
+from hmpf.errors import DatasetError, HmpfError
 
 if TYPE_CHECKING:
     from indexer.build import BuildOptions
@@ -112,17 +114,58 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--resume", action="store_true", help="continue an interrupted build")
     _add_write_options(b)
 
-    a = sub.add_parser("add", help="publish a version with more images")
+    a = sub.add_parser(
+        "add", help="publish a version with more places, or with the fleet's experiences"
+    )
     a.add_argument("--index", required=True)
-    a.add_argument("--images", required=True)
-    a.add_argument("--metadata")
+    what = a.add_mutually_exclusive_group(required=True)
+    what.add_argument("--images", help="folder of new reference images (new places)")
+    what.add_argument(
+        "--experiences",
+        nargs="+",
+        metavar="LOG",
+        help="experience logs the service recorded: their frames become experiences of the "
+        "places they were localised at (gated: confidence, agreement, duplicates, cap)",
+    )
+    a.add_argument("--metadata", help="with --images: CSV as for build")
     a.add_argument("--refit", action="store_true", help="refit fitted parameters on all images")
     a.add_argument("--resume", action="store_true", help="continue an interrupted add")
+    merge = a.add_argument_group("with --experiences (defaults: the config's experiences:)")
+    merge.add_argument(
+        "--dry-run", action="store_true", help="report what would be added; write nothing"
+    )
+    merge.add_argument("--min-p-correct", type=float, metavar="P", help="confidence gate")
+    merge.add_argument(
+        "--agreement-window",
+        type=int,
+        metavar="W",
+        help="agreement gate: places along the route (negative: off)",
+    )
+    merge.add_argument(
+        "--duplicate-similarity", type=float, metavar="S", help="near-duplicate gate (cosine)"
+    )
+    merge.add_argument(
+        "--max-per-place", type=int, metavar="N", help="images per place, original included"
+    )
+    merge.add_argument(
+        "--no-gates",
+        action="store_true",
+        help="open every gate: merge each readable frame of a known place (to measure them)",
+    )
     _add_write_options(a)
 
-    r = sub.add_parser("remove", help="publish a version without some images")
+    r = sub.add_parser("remove", help="publish a version without some images or experiences")
     r.add_argument("--index", required=True)
-    r.add_argument("names", nargs="+", help="image file names to drop")
+    r.add_argument(
+        "names", nargs="*", help="image file names to drop (a place: with its experiences)"
+    )
+    r.add_argument(
+        "--experiences-from",
+        action="append",
+        metavar="KEY=VALUE",
+        help="drop the experiences from vehicle=V, log=L or before=TIME (epoch seconds or ISO "
+        "8601); repeatable: values of one key are alternatives, different keys all apply",
+    )
 
     for name, helptext, default in (
         ("verify", "recompute checksums and shapes", "every version"),
@@ -195,6 +238,13 @@ def _print_info(args: argparse.Namespace) -> int:
     )
     print(f"config {data['config']['name']} sha256 {data['config']['sha256'][:16]}")
     print(f"references {data['images']['count']}, metadata: {data['images']['metadata_columns']}")
+    places = data.get("places") or {"count": data["images"]["count"], "experiences": 0}
+    print(f"places {places['count']}, experiences {places['experiences']}")
+    if data.get("experiences"):
+        from indexer.build import experience_lines
+
+        for line in experience_lines(data["experiences"]):
+            print(line)
     print(f"bytes {s.get('bytes_total')}  built in {s.get('seconds', 0):.1f} s")
     for mid, m in data["methods"].items():
         fa = m.get("faiss") or {}
@@ -235,6 +285,38 @@ def _verify(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
+_MERGE_KNOBS = ("min_p_correct", "agreement_window", "duplicate_similarity", "max_per_place")
+
+
+def _images_only(args: argparse.Namespace) -> None:
+    """Refuse the merge's options without --experiences (they would be silently ignored)."""
+    given = [
+        k for k in (*_MERGE_KNOBS, "dry_run", "no_gates") if getattr(args, k) not in (None, False)
+    ]
+    if given:
+        flags = ", ".join("--" + k.replace("_", "-") for k in given)
+        raise DatasetError(f"{flags}: only with --experiences")
+
+
+def _merge(args: argparse.Namespace) -> int:
+    from indexer.experiences import LogRecords, merge
+
+    if args.metadata or args.refit:
+        raise DatasetError("--metadata and --refit go with --images, not --experiences")
+    report = merge(
+        args.index,
+        LogRecords(args.experiences),
+        settings={k: getattr(args, k) for k in _MERGE_KNOBS},
+        gates=not args.no_gates,
+        options=_options(args),
+        dry_run=args.dry_run,
+        resume=args.resume,
+    )
+    for line in report.lines():
+        print(line)
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     from indexer import maintenance
     from indexer.build import add, build, remove
@@ -249,7 +331,10 @@ def _run(args: argparse.Namespace) -> int:
             options=_options(args),
             resume=args.resume,
         )
+    elif cmd == "add" and args.experiences:
+        return _merge(args)
     elif cmd == "add":
+        _images_only(args)
         summary = add(
             args.index,
             args.images,
@@ -258,7 +343,15 @@ def _run(args: argparse.Namespace) -> int:
             refit=args.refit,
             resume=args.resume,
         )
+    elif cmd == "remove" and args.experiences_from:
+        if args.names:
+            raise DatasetError("give image names or --experiences-from, not both")
+        from indexer.experiences import remove_experiences
+
+        summary = remove_experiences(args.index, args.experiences_from)
     elif cmd == "remove":
+        if not args.names:
+            raise DatasetError("name the images to remove, or give --experiences-from")
         summary = remove(args.index, args.names)
     elif cmd == "verify":
         return _verify(args)
