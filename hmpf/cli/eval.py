@@ -110,7 +110,8 @@ def _evaluate_index(args: argparse.Namespace) -> dict[str, Any]:
     expected = load_config(args.config) if args.config else None
     with IndexReader(args.index, expected_config=expected) as reader:
         qrys = list_images(args.query)[: args.limit]
-        gt, desc = ground_truth_from_args(args, qrys, reader.refs.names)
+        # Ground truth is on places (a fleet experience is not a place of its own).
+        gt, desc = ground_truth_from_args(args, qrys, reader.place_names)
         return evaluate_index(
             reader,
             qrys,

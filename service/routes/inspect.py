@@ -71,16 +71,19 @@ def page() -> FileResponse:
 
 @router.get("/v1/references", response_model=ReferenceList)
 def references(key: VehicleKey, engine: EngineDep) -> ReferenceList:
-    """Every reference of the loaded version, in row order: names and positions."""
+    """Every place of the loaded version, in place order (its original reference's name and
+    position; a fleet experience's image is reached by the row in an answer's
+    ``match.experience``)."""
     loaded = engine.lease()
     try:
-        meta = loaded.reader.refs.meta
+        reader = loaded.reader
+        meta, n = reader.refs.meta, reader.n
         has = loaded.has_positions
         return ReferenceList(
             index_version=loaded.version,
-            names=list(loaded.reader.refs.names),
-            lat=[_num(x) for x in meta["lat"]] if has else None,
-            lon=[_num(x) for x in meta["lon"]] if has else None,
+            names=list(reader.place_names),
+            lat=[_num(x) for x in meta["lat"][:n]] if has else None,
+            lon=[_num(x) for x in meta["lon"][:n]] if has else None,
             thumbnails=loaded.reader.thumbnails is not None,
         )
     finally:

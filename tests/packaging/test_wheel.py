@@ -125,7 +125,14 @@ def test_wheel_holds_the_inspection_page(wheel_env) -> None:
 
 def test_every_command_runs_from_the_wheel(wheel_env, gardens_point: Path) -> None:
     bindir, work, env = wheel_env
-    for command in ("hmpf-eval", "hmpf-calibrate", "hmpf-index", "hmpf-serve", "hmpf-replay"):
+    for command in (
+        "hmpf-eval",
+        "hmpf-calibrate",
+        "hmpf-index",
+        "hmpf-serve",
+        "hmpf-replay",
+        "hmpf-experiences",
+    ):
         assert (bindir / command).is_file(), command
         assert "usage:" in run_ok([str(bindir / command), "--help"], work, env)
         assert run_ok([str(bindir / command), "--version"], work, env).startswith(command)
