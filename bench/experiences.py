@@ -1,0 +1,561 @@
+"""The map learns from the fleet: record accepted frames with a real service, merge them into
+a new version, and measure what the merged map answers.
+
+    python -m bench.experiences [--config default] [--work DIR] [--nordland-places 600]
+        [--json docs/experiments/experiences/default.json] [--smoke]
+
+Every step is what an operator runs: ``hmpf-index build`` of the map, a real ``hmpf-serve``
+with recording on (``HMPF_EXPERIENCE_LOG``) driven in sequence mode by
+:class:`hmpf.client.Client` (one vehicle, frames in order, one a second), the service
+stopped, ``hmpf-index add --experiences LOG`` publishing the merged version, and
+:func:`hmpf.evaluation.evaluate.evaluate_index` (what ``hmpf-eval --index`` runs: the
+service's own path per query) on the bare and the merged versions.
+
+Runs (Gardens Point frames are aligned across traverses; a frame's place is right within
++-2 frames, as everywhere in hmpf):
+
+* ``gp``: map = day_left; the fleet drives day_right; test = night_right, single frame and
+  sequence mode, bare map against merged map (paired sign test on the same queries).
+* ``gp_halves``: map = day_left; the fleet drives the first half of night_right, merged;
+  the second half is the test; and the reverse.
+* ``nordland``: a stated proxy. Map = summer, the first ``--nordland-places`` frames; the
+  fleet drives winter's even frames, the test is winter's odd frames.
+* ``poison``: the ``gp`` log with 5 % of its records moved on purpose to a wrong place
+  (50 frames away) before the merge: how many the merge's gates keep out, and the recall
+  of the poisoned merge.
+* ``cost``: index bytes per experience, the resident memory of a reader, the hierarchy's
+  time per query with 1, 2 and 4 experiences per place (the extra experiences beyond the
+  recorded pass are other traverses' frames merged with the gates open), and the merge's
+  throughput (frames per second, extraction included).
+
+What the merge added is audited against the ground truth: an experience is wrong when its
+frame's true place is more than 2 frames from the place it was merged into.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.harness import ROOT, add_json, parser, write_record
+from hmpf.client import Client
+from hmpf.config import load_config
+from hmpf.datasets import dataset_root, list_images
+from hmpf.evaluation.data import frame_ground_truth
+from hmpf.evaluation.evaluate import evaluate_index
+from hmpf.evaluation.metrics import paired_test
+from hmpf.experience_log import ExperienceLog, read_log
+from hmpf.features import FeatureCache, file_digest
+from hmpf.imageio import load_image
+from hmpf.index.reader import IndexReader
+
+BIN = Path(sys.executable).parent
+TOLERANCE = 2
+POISON_SHARE = 0.05
+POISON_SHIFT = 50
+
+
+def main() -> int:
+    ap = parser(__doc__)
+    ap.add_argument("--config", default="default", help="preset or YAML of the map")
+    ap.add_argument("--work", type=Path, default=ROOT / "results" / "experiences")
+    ap.add_argument("--nordland-places", type=int, default=600)
+    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,cost")
+    ap.add_argument(
+        "--thresholds",
+        default="0.99,0.9",
+        help="p_correct thresholds to record at (the first is the default's, 0.99); the "
+        "drive records at the lowest, each merge keeps the frames at or above its own",
+    )
+    ap.add_argument(
+        "--keep-maps",
+        action="store_true",
+        help="reuse the bare maps a previous run built in --work",
+    )
+    add_json(ap, default=ROOT / "docs" / "experiments" / "experiences" / "default.json")
+    ap.smoke(nordland_places=120)
+    args = ap.parse_args()
+    runs = set(args.runs.split(","))
+    ts = [float(t) for t in args.thresholds.split(",")]
+    _fresh(args.work, args.keep_maps)
+    gp = dataset_root() / "gardens_point"
+    out: dict[str, Any] = {}
+    map_dl = build_map(args.work / "gp_map", gp / "day_left", args.config, args.keep_maps)
+    if runs & {"gp", "poison", "cost"}:
+        out["gp"] = gp_pass(map_dl, gp, ts)
+    if "gp_halves" in runs:
+        out["gp_halves"] = halves(map_dl, list_images(gp / "night_right"), ts)
+    if "nordland" in runs:
+        out["nordland"] = nordland(args.work, args.config, args.nordland_places, ts, args.keep_maps)
+    if "poison" in runs:
+        out["poison"] = poison(map_dl, out["gp"], list_images(gp / "night_right"), min(ts))
+    if "cost" in runs:
+        out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
+    config = load_config(args.config)
+    write_record(args.json, summary(out), args, config=config)
+    print(json.dumps(summary(out), indent=1))
+    return 0
+
+
+# -- the operator's steps ----------------------------------------------------------------------
+
+
+def _fresh(work: Path, keep_maps: bool) -> None:
+    """An empty ``work`` folder, or with ``keep_maps`` only its bare maps (``*_map``) kept."""
+    work.mkdir(parents=True, exist_ok=True)
+    for p in work.iterdir():
+        if keep_maps and (p.name.endswith("_map") or p.name.endswith("_map-images")):
+            continue
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def build_map(index: Path, images: Path | list[Path], config: str, keep: bool = False) -> Path:
+    """``hmpf-index build`` of ``images`` (a folder, or files copied into one); with ``keep``
+    a map already built there is reused."""
+    if keep and (index / "CURRENT").exists():
+        return index
+    if isinstance(images, list):
+        folder = index.parent / f"{index.name}-images"
+        folder.mkdir(parents=True, exist_ok=True)
+        for p in images:
+            shutil.copy(p, folder / p.name)
+        images = folder
+    run(
+        [str(BIN / "hmpf-index"), "build", "--config", config, "--images", str(images)]
+        + ["--index", str(index), "--quiet"]
+    )
+    return index
+
+
+def run(cmd: list[str]) -> str:
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} exited {done.returncode}:\n{done.stderr[-3000:]}")
+    return done.stdout
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def drive(
+    index: Path, frames: list[Path], log: Path, threshold: float, vehicle: str = "bench-car"
+) -> dict:
+    """A real ``hmpf-serve`` on ``index`` with recording on (at ``threshold``), ``frames``
+    sent in order in sequence mode (one a second of capture time), then stopped (SIGTERM:
+    the log flushed).
+
+    Returns each frame's answer (place index or -1, accepted, p_correct) and the time."""
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
+    if "HMPF_DATASETS" in os.environ:
+        env["HMPF_DATASETS"] = os.environ["HMPF_DATASETS"]
+    env.update(
+        HMPF_AUTH="false",
+        HMPF_LOG_LEVEL="warning",
+        HMPF_EXPERIENCE_LOG=str(log),
+        HMPF_EXPERIENCE_MIN_P_CORRECT=str(threshold),
+    )
+    out = log.parent / f"{log.name}.serve.log"
+    proc = subprocess.Popen(
+        [str(BIN / "hmpf-serve"), "--index", str(index), "--port", str(port)],
+        env=env,
+        stdout=out.open("wb"),
+        stderr=subprocess.STDOUT,
+    )
+    answers: list[tuple[int, bool, float | None]] = []
+    try:
+        with Client(f"http://127.0.0.1:{port}", timeout=60, retries=0) as client:
+            _wait_ready(client, proc, out)
+            t0 = time.perf_counter()
+            for i, path in enumerate(frames):
+                a = client.localize(path.read_bytes(), vehicle_id=vehicle, timestamp=float(i))
+                m = a.match
+                if m is None:
+                    answers.append((-1, False, None))
+                else:
+                    answers.append((m.reference_id, bool(m.accepted), m.p_correct))
+            seconds = time.perf_counter() - t0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return {"answers": answers, "seconds": seconds}
+
+
+def _wait_ready(client: Any, proc: subprocess.Popen, out: Path) -> None:
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"hmpf-serve exited {proc.returncode}:\n{out.read_text()[-3000:]}")
+        try:
+            client.index()
+            return
+        except Exception:  # not up yet: any transport error or 503 while it loads
+            time.sleep(0.3)
+    raise SystemExit("hmpf-serve did not become ready in 300 s")
+
+
+def merge(index: Path, logs: list[Path], *extra: str) -> dict[str, Any]:
+    """``hmpf-index add --experiences`` (timed); the new version's counts."""
+    t0 = time.perf_counter()
+    text = run(
+        [str(BIN / "hmpf-index"), "add", "--index", str(index), "--quiet"]
+        + ["--experiences", *map(str, logs), *extra]
+    )
+    seconds = time.perf_counter() - t0
+    with IndexReader(index) as reader:
+        version = reader.version
+        places = reader.manifest.get("places", {})
+    return {"version": version, "seconds": seconds, "places": places, "output": text[-2000:]}
+
+
+def evaluate(index: Path, queries: list[Path], gt: np.ndarray, version: str | None = None) -> dict:
+    """Single-frame and sequence recall@1 of ``queries`` on a version (places)."""
+    with IndexReader(index, version) as reader:
+        # The queries' features are cached per fitted state (the bare and merged versions of
+        # one map share it), in the bench's own folder: what the reader's methods computed.
+        cache = FeatureCache(index.parent / "query-cache")
+        rep = evaluate_index(
+            reader, queries, gt, f"frames +-{TOLERANCE}", cache=cache, sequence=True
+        )
+        names = {n: i for i, n in enumerate(reader.refs.names[: reader.n])}
+    matches = [names.get(m, -1) if m else -1 for m in rep["hierarchy"]["matches"]]
+    correct = np.array([m >= 0 and gt[q, m] for q, m in enumerate(matches)])
+    return {
+        "single": float(rep["hierarchy"]["combined_recall_at_1"]),
+        "sequence": float(rep["sequence"]["recall_at_1"]),
+        "correct": correct,
+        "seq_correct": np.array(rep["sequence"]["full_drive"]["correct"], bool),
+        "hierarchy_ms": float(rep["timing_ms"]["hierarchy_per_query"]),
+        "version": rep["index"]["version"],
+    }
+
+
+def audit(log: Path, truth: dict[str, int]) -> dict[str, Any]:
+    """The log's records against the ground truth: ``truth`` maps a frame's sha256 to its
+    true place; wrong = more than ``TOLERANCE`` frames from the recorded place."""
+    records = list(read_log(log))
+    wrong = [
+        r for r in records if abs(truth[hashlib.sha256(r.image).hexdigest()] - r.place) > TOLERANCE
+    ]
+    p = [r.p_correct for r in records]
+    return {
+        "recorded": len(records),
+        "wrong": len(wrong),
+        "p_correct_min": min(p) if p else None,
+    }
+
+
+def merged_rows(index: Path, truth: dict[str, int]) -> dict[str, Any]:
+    """What the current version holds beyond its places: count, and wrong experiences."""
+    with IndexReader(index) as reader:
+        place = reader.refs.meta.get("place")
+        if place is None:
+            return {"experiences": 0, "wrong": 0}
+        rows = np.flatnonzero(~np.isnan(place))
+        wrong = sum(
+            abs(truth.get(reader.refs.sha256[i], -(10**9)) - int(place[i])) > TOLERANCE
+            for i in rows
+        )
+    return {"experiences": int(len(rows)), "wrong": int(wrong)}
+
+
+def truth_of(frames: list[Path], offset: int = 0) -> dict[str, int]:
+    """sha256 of each aligned frame -> its true place (its position + ``offset``)."""
+    return {file_digest(p): i + offset for i, p in enumerate(frames)}
+
+
+# -- runs --------------------------------------------------------------------------------------
+
+
+def _copy(index: Path, name: str) -> Path:
+    dst = index.parent / name
+    shutil.copytree(index, dst)
+    return dst
+
+
+def fleet_pass(
+    base: Path,
+    name: str,
+    fleet: list[Path],
+    truth: dict[str, int],
+    test: list[Path],
+    gt: np.ndarray,
+    thresholds: list[float],
+) -> dict[str, Any]:
+    """One fleet pass: ``fleet`` driven against (a copy of) ``base`` with recording on at the
+    lowest of ``thresholds``; then, per threshold, a copy of ``base`` merged with the frames
+    at or above it (``--min-p-correct``: what recording at that threshold would have kept)
+    and ``test`` evaluated on it, against the bare map (paired sign tests)."""
+    bare = evaluate(base, test, gt)
+    log = base.parent / f"{name}.log"
+    drove = drive(_copy(base, f"{name}_served"), fleet, log, min(thresholds))
+    recorded = audit(log, truth)
+    print(f"{name}: recorded {recorded}", flush=True)
+    out: dict[str, Any] = {
+        "fleet_frames": len(fleet),
+        "drive_s": drove["seconds"],
+        "answers": answer_shares(drove["answers"], [truth[digest(p)] for p in fleet], thresholds),
+        "recorded": recorded,
+        "bare": _recall(bare),
+        "merges": {},
+    }
+    for t in sorted(thresholds, reverse=True):
+        index = _copy(base, f"{name}_at_{t:g}")
+        merged = merge(index, [log], "--min-p-correct", str(t))
+        rows = merged_rows(index, truth)
+        print(f"{name} at {t:g}: merged in {merged['seconds']:.0f} s: {rows}", flush=True)
+        after = evaluate(index, test, gt)
+        out["merges"][f"{t:g}"] = {
+            "index": str(index),
+            "merge": merged,
+            "added": rows,
+            "merged": _recall(after),
+            "single_test": paired_test(after["correct"], bare["correct"]),
+            "sequence_test": paired_test(after["seq_correct"], bare["seq_correct"]),
+        }
+    out["_log"] = str(log)
+    return out
+
+
+def answer_shares(
+    answers: list[tuple[int, bool, float | None]], places: list[int], thresholds: list[float]
+) -> dict[str, Any]:
+    """The drive's answers: accepted, and accepted at ``p_correct`` >= each threshold, with
+    how many of them were right (within ``TOLERANCE`` of the frame's place)."""
+
+    def count(keep: Any) -> dict[str, int]:
+        sel = [(a, p) for a, p in zip(answers, places, strict=True) if keep(a)]
+        return {"n": len(sel), "right": sum(abs(a[0] - p) <= TOLERANCE for a, p in sel)}
+
+    return {
+        "accepted": count(lambda a: a[1]),
+        "p_correct_at_least": {
+            f"{t:g}": count(lambda a, t=t: a[1] and a[2] is not None and a[2] >= t)
+            for t in thresholds
+        },
+    }
+
+
+def digest(path: Path) -> str:
+    return file_digest(path)
+
+
+def _recall(ev: dict[str, Any]) -> dict[str, Any]:
+    out = {k: ev[k] for k in ("single", "sequence", "hierarchy_ms", "version")}
+    print(f"  {out}", flush=True)
+    return out
+
+
+def gp_pass(base: Path, gp: Path, thresholds: list[float]) -> dict[str, Any]:
+    """Map day_left, the fleet drives day_right, night_right tested."""
+    fleet, test = list_images(gp / "day_right"), list_images(gp / "night_right")
+    gt = frame_ground_truth(len(test), _places(base), TOLERANCE)
+    return fleet_pass(base, "gp", fleet, truth_of(fleet), test, gt, thresholds)
+
+
+def _places(index: Path) -> int:
+    with IndexReader(index) as reader:
+        return reader.n
+
+
+def halves(base: Path, night: list[Path], thresholds: list[float]) -> dict[str, Any]:
+    """First half of night_right recorded and merged, second half tested; and the reverse.
+
+    The test's recall is over the test half's frames (its ground truth on the whole map)."""
+    h = len(night) // 2
+    gt_all = frame_ground_truth(len(night), _places(base), TOLERANCE)
+    truth = truth_of(night)
+    return {
+        name: fleet_pass(base, f"gp_{name}", fleet, truth, test, gt_all[sl], thresholds)
+        for name, fleet, test, sl in (
+            ("first_then_second", night[:h], night[h:], slice(h, None)),
+            ("second_then_first", night[h:], night[:h], slice(0, h)),
+        )
+    }
+
+
+def nordland(
+    work: Path, config: str, places: int, thresholds: list[float], keep: bool = False
+) -> dict[str, Any]:
+    """Summer map of the first ``places`` frames; winter even frames driven, odd tested."""
+    root = dataset_root() / "nordland_64x32"
+    summer, winter = list_images(root / "summer")[:places], list_images(root / "winter")[:places]
+    index = build_map(work / "nordland_map", summer, config, keep)
+    gt = frame_ground_truth(places, places, TOLERANCE)[1::2]
+    out = fleet_pass(
+        index, "nordland", winter[0::2], truth_of(winter), winter[1::2], gt, thresholds
+    )
+    out["proxy"] = (
+        f"summer map of the first {places} frames; winter even frames driven (recorded), "
+        "winter odd frames tested"
+    )
+    return out
+
+
+def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -> dict[str, Any]:
+    """The ``gp`` pass's log (recorded at ``threshold``) with ``POISON_SHARE`` of its records
+    moved ``POISON_SHIFT`` places away, merged into a copy of the bare map at that threshold:
+    with the gates, and with every gate open (``--no-gates``: what poisoning costs when
+    nothing keeps it out), against the clean merge at the same threshold."""
+    records = [r for r in read_log(gp["_log"]) if r.p_correct >= threshold]
+    rng = np.random.default_rng(0)
+    n_bad = max(1, round(POISON_SHARE * len(records)))
+    bad = {int(i) for i in rng.choice(len(records), n_bad, replace=False)}
+    with IndexReader(base) as reader:
+        names, n_map = list(reader.place_names), reader.n
+    log = base.parent / "poisoned.log"
+    with ExperienceLog(log) as writer:
+        for i, r in enumerate(records):
+            place = (r.place + POISON_SHIFT) % n_map if i in bad else r.place
+            writer.append(
+                r.image,
+                content_type=r.content_type,
+                place=place,
+                place_name=names[place],
+                index_version=r.index_version,
+                p_correct=r.p_correct,
+                vehicle="poisoner" if i in bad else r.vehicle,
+                timestamp=r.timestamp,
+                mode=r.mode,
+            )
+    truth = truth_of(list_images(dataset_root() / "gardens_point" / "day_right"))
+    clean = gp["merges"][f"{threshold:g}"]["merged"]
+    gt = frame_ground_truth(len(test), n_map, TOLERANCE)
+    out: dict[str, Any] = {"threshold": threshold, "records": len(records), "poisoned": n_bad}
+    for name, extra in (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",))):
+        index = _copy(base, f"poison_{name}")
+        merged = merge(index, [log], *extra)
+        rows = merged_rows(index, truth)
+        print(f"poison {name}: {rows}", flush=True)
+        after = evaluate(index, test, gt)
+        out[name] = {
+            "merge": merged,
+            "added": rows,
+            "merged": _recall(after),
+            "vs_clean_merge": {k: after[k] - clean[k] for k in ("single", "sequence")},
+        }
+    return out
+
+
+def cost(
+    base: Path, gp: dict[str, Any], gp_root: Path, test: list[Path], threshold: float
+) -> dict[str, Any]:
+    """Bytes and memory per experience, query time with 1, 2, 3, 4 images per place, merge
+    throughput (the ``gp`` pass's merge at ``threshold``)."""
+    at = gp["merges"][f"{threshold:g}"]
+    with IndexReader(base) as reader:
+        n_map, bare_bytes = reader.n, reader.manifest["summary"]["bytes_total"]
+    with IndexReader(Path(at["index"])) as reader:
+        extra = reader.n_rows - reader.n
+        merged_bytes = reader.manifest["summary"]["bytes_total"]
+    out: dict[str, Any] = {
+        "bytes_per_experience": (merged_bytes - bare_bytes) / extra if extra else None,
+        "merge": {
+            "frames": gp["recorded"]["recorded"],
+            "seconds": at["merge"]["seconds"],
+            "frames_per_s": gp["recorded"]["recorded"] / at["merge"]["seconds"],
+            "note": "the whole hmpf-index add --experiences run, reading the log, localising "
+            "every frame for the agreement gate, extracting and publishing",
+        },
+    }
+    # 2, 3, 4 images per place: day_right, night_right and day_left's own frames merged one
+    # after the other with the gates open (only the count matters here).
+    versions = {1: base}
+    index = _copy(base, "cost_many")
+    for k, name in zip((2, 3, 4), ("day_right", "night_right", "day_left"), strict=True):
+        log = base.parent / f"cost_{name}.log"
+        with ExperienceLog(log) as writer:
+            for i, p in enumerate(list_images(gp_root / name)[:n_map]):
+                writer.append(
+                    p.read_bytes(),
+                    content_type="image/jpeg",
+                    place=i,
+                    place_name=_name(base, i),
+                    index_version="v0001",
+                    p_correct=1.0,
+                    vehicle=f"cost-{name}",
+                    timestamp=float(i),
+                    mode="sequence",
+                )
+        merge(index, [log], "--no-gates")
+        versions[k] = _copy(index, f"cost_{k}")
+    out["query_ms_by_images_per_place"] = query_times(versions, test[:: max(1, len(test) // 40)])
+    out["rss_mb"] = {str(k): _reader_rss(p) for k, p in versions.items()}
+    return out
+
+
+def query_times(versions: dict[int, Path], images: list[Path]) -> dict[str, Any]:
+    """Per version, the median ms per query of extraction + hierarchy and of the hierarchy
+    alone (what the service runs per frame, one thread), the versions taking turns on each
+    image so that they share the machine's moments alike."""
+    readers = {k: IndexReader(p) for k, p in versions.items()}
+    samples: dict[int, dict[str, list[float]]] = {
+        k: {"total": [], "hierarchy": []} for k in readers
+    }
+    for warm in (True, False):
+        for path in images[:3] if warm else images:
+            image = load_image(path)
+            for k, r in readers.items():
+                t0 = time.perf_counter()
+                feats = r.extract_query(image)
+                t1 = time.perf_counter()
+                r.hierarchy().run(r.scorer(feats), r.n)
+                t2 = time.perf_counter()
+                if not warm:
+                    samples[k]["total"].append((t2 - t0) * 1e3)
+                    samples[k]["hierarchy"].append((t2 - t1) * 1e3)
+    for r in readers.values():
+        r.close()
+    med = {k: {m: float(np.median(v)) for m, v in s.items()} for k, s in samples.items()}
+    return {
+        "queries": len(images),
+        "median_ms": {str(k): v for k, v in med.items()},
+        "total_vs_one": {str(k): v["total"] / med[1]["total"] for k, v in med.items()},
+    }
+
+
+def _name(index: Path, i: int) -> str:
+    with IndexReader(index) as reader:
+        return reader.place_names[i]
+
+
+def _reader_rss(index: Path) -> float:
+    """Resident memory (MB) of a fresh process that opened the version and ran one query."""
+    code = (
+        "import sys, resource; from hmpf.index.reader import IndexReader; "
+        "r = IndexReader(sys.argv[1]); r.reference_profile(); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
+    )
+    return float(run([sys.executable, "-c", code, str(index)]).strip())
+
+
+def summary(out: dict[str, Any]) -> dict[str, Any]:
+    """The figures the goals name, for the console."""
+
+    def strip(d: Any) -> Any:
+        if isinstance(d, dict):
+            return {k: strip(v) for k, v in d.items() if not k.startswith("_") and k != "output"}
+        return d
+
+    return strip(out)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
