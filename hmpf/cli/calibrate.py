@@ -40,6 +40,14 @@ leaderboard.md says it was a fit-only run and gives the digest. ``--methods`` an
 restrict or rename the searched hierarchy and are errors with ``--fit-only``; the search's
 other flags (``--pool``, budget, cost model, search space) are ignored. ``--config``
 without ``--fit-only`` is an error too: the search chooses among the methods of ``--pool``.
+
+``--auto --references DIR [--metadata CSV] [--seed N] [--out config.yaml]`` needs no query
+at all: it chooses the hierarchy and fits its acceptance from the references alone, on
+pseudo-queries made from them (:mod:`hmpf.evaluation.auto`), and prints the candidates and
+why the choice was made, without building anything. ``--out`` writes the chosen config (the
+YAML ``hmpf-index build --config`` reads) and the record of the choice beside it
+(``<out>.reasons.json``: the candidates and their pseudo-query recall, the seed, the sample
+sizes, the time taken). ``hmpf-calibrate --auto --help`` lists its options.
 """
 
 from __future__ import annotations
@@ -53,8 +61,10 @@ from typing import TYPE_CHECKING, Any
 
 from hmpf.cli.args import (
     DEFAULT_POOL,
+    add_cache_args,
     add_sequence_arg,
     add_split_args,
+    cache_from_args,
     load_banks,
 )
 from hmpf.cli.common import add_version, run
@@ -99,6 +109,11 @@ def build_parser() -> argparse.ArgumentParser:
         "search, fit the acceptance of that hierarchy as it is.",
     )
     add_version(p)
+    p.add_argument(
+        "--auto",
+        action="store_true",
+        help="choose from the references alone, no query needed (hmpf-calibrate --auto --help)",
+    )
     add_split_args(p)
     p.add_argument(
         "--pool",
@@ -330,7 +345,174 @@ def run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- --auto: the choice from the references alone ---------------------------------------------
+
+
+def build_auto_parser() -> argparse.ArgumentParser:
+    """``hmpf-calibrate --auto``'s own options (no query, no split)."""
+    p = argparse.ArgumentParser(
+        prog="hmpf-calibrate --auto",
+        description="Choose a hierarchy and fit its acceptance from the references alone, on "
+        "pseudo-queries made from them; print the candidates and why, build nothing.",
+    )
+    add_version(p)
+    p.add_argument("--auto", action="store_true", help="this mode (required)")
+    p.add_argument("--references", required=True, help="folder of reference images")
+    p.add_argument(
+        "--metadata",
+        help="CSV: name[,lat,lon,heading,timestamp,sequence] (the indexer's): route order, and "
+        "with GPS what is right for a pseudo-query",
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--out",
+        help="write the chosen config here (YAML) and the record of the choice beside it "
+        "(<out>.reasons.json)",
+    )
+    p.add_argument("--name", default="auto", help="name of a config the search found")
+    p.add_argument(
+        "--pool", help="config whose methods the search may use (default: the automatic pool)"
+    )
+    p.add_argument("--budget-ms", type=float, default=150.0, help="per-query time budget (ms)")
+    p.add_argument(
+        "--costs",
+        help="a fixed cost model (a calibration.json or its 'costs'); default: the nominal "
+        "figures of the automatic pool's methods",
+    )
+    p.add_argument("--max-references", type=int, default=1000, help="references looked at")
+    p.add_argument("--max-queries", type=int, default=400, help="pseudo-queries made")
+    p.add_argument(
+        "--tolerance", type=int, default=2, help="right: within +-T positions along the route"
+    )
+    p.add_argument(
+        "--radius-m", type=float, default=25.0, help="right, with GPS: within this many metres"
+    )
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=0.05,
+        help="sign-test level for leaving the default on held-out pseudo-queries",
+    )
+    p.add_argument("--target-precision", type=float, default=0.99)
+    p.add_argument("--no-model", action="store_true", help="z threshold only, no models")
+    p.add_argument("--no-outside", action="store_true", help="models without out-of-map answers")
+    add_cache_args(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def _auto_check(args: argparse.Namespace) -> None:
+    if not 0 < args.target_precision <= 1:
+        raise HmpfError("--target-precision must be in (0, 1]")
+    if args.budget_ms <= 0:
+        raise HmpfError("--budget-ms must be positive")
+    if args.max_references < 8 or args.max_queries < 2:
+        raise HmpfError("--max-references must be >= 8 and --max-queries >= 2")
+    if not 0 < args.alpha < 1:
+        raise HmpfError("--alpha must be in (0, 1)")
+
+
+def run_auto(args: argparse.Namespace) -> int:
+    """``--auto``: plan, make and score the pseudo-queries, search, check, fit, print (and
+    with ``--out`` write)."""
+    from tqdm import tqdm  # a command: its modules load in run, --help stays instant
+
+    from hmpf.config import load_config
+    from hmpf.datasets import list_images
+    from hmpf.evaluation.auto import choose_config
+    from hmpf.evaluation.pseudo import read_metadata_csv
+
+    _auto_check(args)
+    refs = list_images(args.references)
+    if not refs:
+        raise HmpfError(f"no images in {args.references}")
+    metadata = read_metadata_csv(args.metadata, [r.name for r in refs]) if args.metadata else None
+    bar = tqdm(desc="search", unit="hierarchy", disable=True if args.quiet else None)
+    with bar:
+        config, reasons = choose_config(
+            refs,
+            metadata,
+            seed=args.seed,
+            cache=cache_from_args(args),
+            pool=load_config(args.pool) if args.pool else None,
+            budget_ms=args.budget_ms,
+            costs=load_costs(args.costs) if args.costs else None,
+            alpha=args.alpha,
+            max_references=args.max_references,
+            max_queries=args.max_queries,
+            tolerance=args.tolerance,
+            radius_m=args.radius_m,
+            target_precision=args.target_precision,
+            model=not args.no_model,
+            outside=not args.no_outside,
+            name=args.name,
+            workers=args.workers,
+            progress=not args.quiet,
+            search_progress=_bar_update(bar),
+        )
+    reasons["protocol"] = {"references": args.references, "metadata": args.metadata}
+    text = auto_markdown(reasons)
+    print(text)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_config(config, out, _auto_header(args, reasons))
+        side = out.with_name(out.name + ".reasons.json")
+        side.write_text(json.dumps(reasons, indent=1))
+        print(f"wrote {out} and {side}")
+    return 0
+
+
+def _auto_header(args: argparse.Namespace, reasons: dict[str, Any]) -> str:
+    ch, sample = reasons["chosen"], reasons["sample"]
+    return (
+        f"Written by hmpf-calibrate --auto (seed {args.seed}) from the references in "
+        f"{args.references} alone.\n"
+        f"Chosen: {ch['hierarchy']} (digest {reasons['digest'][:16]}): {ch['why']}.\n"
+        f"{sample['pseudo_queries']} pseudo-queries from {sample['sources']} of "
+        f"{sample['references']} references; the record of the choice: "
+        f"{Path(args.out).name}.reasons.json."
+    )
+
+
+def auto_markdown(reasons: dict[str, Any]) -> str:
+    """The record of an automatic choice as Markdown: the sample, the candidates, the
+    decision and the time taken."""
+    s, ch, t = reasons["sample"], reasons["chosen"], reasons["time_s"]
+    lines = [
+        f"# Automatic choice from the references ({reasons['machine']})",
+        "",
+        f"Seed {reasons['seed']}; {s['map']} of {s['references']} references looked at "
+        f"({s['fit']} fit the methods); {s['pseudo_queries']} pseudo-queries from "
+        f"{s['sources']} of them ({s['search']} rank the hierarchies, {s['check']} held out "
+        f"check the choice); right: {s['truth']}. Pool {reasons['pool']}, budget "
+        f"{reasons['budget_ms']} ms per query ({reasons['costs_source']} costs), "
+        f"{reasons['evaluated']} hierarchies searched.",
+        "",
+        "| hierarchy | pseudo recall@1 (search) | pseudo recall@1 (held out) | modelled ms |",
+        "|---|---|---|---|",
+    ]
+    for c in reasons["candidates"]:
+        check = "" if c["check_recall_at_1"] is None else f"{c['check_recall_at_1']:.3f}"
+        lines.append(
+            f"| {c['hierarchy']} | {c['search_recall_at_1']:.3f} | {check} | {c['model_ms']:.1f} |"
+        )
+    lines += [
+        "",
+        f"Chosen: **{ch['hierarchy']}** (config digest {reasons['digest'][:16]}): {ch['why']}.",
+        "",
+        f"Time: {t['total_s']:.0f} s (fit {t['fit_s']:.0f}, pseudo-queries {t['make_s']:.0f}, "
+        f"extraction {t['extract_s']:.0f}, scoring {t['score_s']:.0f}, search "
+        f"{t['search_s']:.0f}, check {t['check_s']:.0f}, acceptance {t['acceptance_s']:.0f}).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--auto" in argv:
+        auto_args = build_auto_parser().parse_args(argv)
+        return run("hmpf-calibrate", lambda: run_auto(auto_args))
     parser = build_parser()
     args = parser.parse_args(argv)
     error = mode_error(args)
