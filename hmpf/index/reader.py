@@ -63,6 +63,7 @@ from hmpf.index.places import (
     PlaceScorer,
     augment_rows,
     experience_of_row,
+    experience_sets,
     place_scorer,
 )
 from hmpf.index.storage import (
@@ -221,6 +222,8 @@ class IndexReader:
         self.places = self._read_places()
         #: places P: what the hierarchy, answers, routes and ground truth count
         self.n = self.places.n
+        #: each row's experience set (one log, vehicle and day), None without experiences
+        self._sets = experience_sets(self.refs, self.places)
         self._globals = {
             mid: augment_rows(self.methods[mid], x, self.places) for mid, x in self._stored.items()
         }
@@ -561,7 +564,7 @@ class IndexReader:
         rows = self.row_scorer(query)
         if not self.has_experiences:
             return rows
-        return place_scorer(rows, self.places, self.methods)
+        return place_scorer(rows, self.places, self.methods, self._sets)
 
     def row_scorer(self, query: Mapping[str, Any]) -> ScoreFn:
         """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against every row.

@@ -23,7 +23,15 @@ from hmpf.features import extract_images
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.index import IndexCorruptError, IndexReader, layout
-from hmpf.index.places import Places, PlaceScorer, augment_rows, place_scorer
+from hmpf.index.places import (
+    Places,
+    PlaceScorer,
+    align_sets,
+    augment_rows,
+    experience_sets,
+    place_scorer,
+    set_samples,
+)
 from hmpf.index.tables import Ragged, RefTable, columns_from_features, concat_columns
 from hmpf.index.thumbnails import make_thumbnails
 from hmpf.methods import Method, create_method
@@ -123,6 +131,70 @@ def test_place_scorer_equals_brute_force(seed: int) -> None:
         expect = np.full(P, -1)
         expect[sub] = win[mid][sub]
         np.testing.assert_array_equal(fresh.winners.get(mid, np.full(P, -1)), expect)
+
+
+def test_set_shift_removes_what_lifts_a_whole_set() -> None:
+    """A set of experiences all lifted by the conditions they were taken in (every score +5)
+    does not take the places it covers to the top; the one experience that stands out within
+    its set (+3 over the set) still wins its place. Against an explicit computation."""
+    rng = np.random.default_rng(3)
+    P, extra = 40, 12
+    place = np.concatenate([np.full(P, np.nan), np.arange(extra, dtype=np.float64)])
+    x = rng.normal(size=P + extra)
+    x[P:] += 5.0
+    x[P + 7] += 3.0
+    raw = {"s": x, "d": -x, "e": -x}
+    places = Places.from_column(place, P + extra)
+    sets = np.r_[np.zeros(P, np.int64), np.ones(extra, np.int64)]
+    sample = set_samples(sets)
+    assert sorted(sample[sets[sample] == 0]) == sorted(
+        np.unique(np.linspace(0, P - 1, min(P, 48)).round().astype(int))
+    )
+    for mid in ("s", "d"):
+        fn = place_scorer(_row_fn(raw), places, METHODS, sets)
+        got = fn(mid, None)
+        r = raw[mid]
+        shift = np.median(r[sample[sets[sample] == 1]]) - np.median(r[sample[sets[sample] == 0]])
+        adj = r.copy()
+        adj[P:] -= shift
+        pick = np.maximum if mid == "s" else np.minimum
+        expect = adj[:P].copy()
+        expect[:extra] = pick(expect[:extra], adj[P:])
+        np.testing.assert_allclose(got, expect)
+        best = np.argmax(got) if mid == "s" else np.argmin(got)
+        assert best == 7 and fn.winners[mid][7] == P + 7
+        # Without the sets, the lifted set takes every place it covers to the top.
+        plain = place_scorer(_row_fn(raw), places, METHODS)(mid, None)
+        top = np.argsort(-plain if mid == "s" else plain)[:extra]
+        assert set(top.tolist()) == set(range(extra))
+    # A subset of places reads the same shift (from the same sampled rows).
+    fn = place_scorer(_row_fn(raw), places, METHODS, sets)
+    full = place_scorer(_row_fn(raw), places, METHODS, sets)("s", None)
+    np.testing.assert_allclose(fn("s", np.array([7, 30, 2])), full[[7, 30, 2]])
+
+
+def test_align_sets_is_the_difference_of_medians() -> None:
+    values = np.array([1.0, 2.0, 3.0, 10.0, 11.0, 12.0, np.nan, 7.0])
+    sets = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+    np.testing.assert_allclose(align_sets(values, sets, 4), [0.0, 9.0, 5.0, 0.0])
+
+
+def test_experience_sets_are_one_log_vehicle_and_day() -> None:
+    day = 86400.0
+    place = np.array([np.nan, np.nan, 0, 1, 0, 1, 0])
+    refs = RefTable(
+        [f"r{i}" for i in range(7)],
+        ["0" * 64] * 7,
+        {
+            "place": place,
+            "exp_log": np.array(["", "", "a", "a", "a", "b", "a"], dtype=object),
+            "exp_vehicle": np.array(["", "", "v", "v", "w", "v", "v"], dtype=object),
+            "exp_time": np.array([np.nan, np.nan, 10, 20, 30, 40, day + 5]),
+        },
+    )
+    places = Places.from_column(place, 7)
+    assert experience_sets(refs, places).tolist() == [0, 0, 1, 1, 2, 3, 4]
+    assert experience_sets(refs.select(np.arange(2)), Places.identity(2)) is None
 
 
 def _config(mode: str, tiers: list[tuple[list[str], int]]) -> HierarchyConfig:
@@ -316,11 +388,14 @@ def _reader_features(reader: IndexReader) -> dict[str, Any]:
 def _brute_place_fn(
     methods: Mapping[str, Method], rows_fn: ScoreFn, place_of: np.ndarray, n: int
 ) -> ScoreFn:
-    """Per place, explicitly, the best of its rows' raw scores."""
+    """Per place, explicitly, the best of its rows' raw scores, the experiences (one set here:
+    one log, vehicle and day, every row of it sampled) first shifted by the difference of
+    their median and the originals' median."""
     groups = [np.flatnonzero(place_of == p) for p in range(n)]
 
     def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
-        raw = np.asarray(rows_fn(mid, None), dtype=np.float64)
+        raw = np.asarray(rows_fn(mid, None), dtype=np.float64).copy()
+        raw[n:] -= np.median(raw[n:]) - np.median(raw[:n])
         pick = max if methods[mid].higher_is_better else min
         best = np.array([pick(raw[g]) for g in groups])
         return best if subset is None else best[np.asarray(subset, np.int64)]
