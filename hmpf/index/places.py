@@ -228,7 +228,10 @@ class PlaceScorer:
                 return np.asarray(self.row_fn(mid, idx))
             rows, seg = pl.expand(idx)
             raw = np.asarray(self.row_fn(mid, rows))
-        if self.sets is not None:
+        if self.sets is not None and (full is not None or mid in self._align):
+            # Only methods that scored every row (tier 1): their sample is a gather. A
+            # later tier's method would score the sample too, several times its candidates
+            # (OLO: seconds per query), for what tier 1 has already kept out.
             raw = self._aligned(mid, raw, rows, full)
         best, won = reduce_rows(raw, rows, seg, self.better[mid])
         if mid not in self.winners:

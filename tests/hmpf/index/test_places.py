@@ -167,10 +167,15 @@ def test_set_shift_removes_what_lifts_a_whole_set() -> None:
         plain = place_scorer(_row_fn(raw), places, METHODS)(mid, None)
         top = np.argsort(-plain if mid == "s" else plain)[:extra]
         assert set(top.tolist()) == set(range(extra))
-    # A subset of places reads the same shift (from the same sampled rows).
+    # A later tier's call for a tier-1 method (scored whole before) reads the same shift; a
+    # method only ever scored on candidates is not shifted (its sample would cost more than
+    # the candidates themselves).
     fn = place_scorer(_row_fn(raw), places, METHODS, sets)
-    full = place_scorer(_row_fn(raw), places, METHODS, sets)("s", None)
+    full = fn("s", None)
     np.testing.assert_allclose(fn("s", np.array([7, 30, 2])), full[[7, 30, 2]])
+    plain = place_scorer(_row_fn(raw), places, METHODS)("s", None)
+    later = place_scorer(_row_fn(raw), places, METHODS, sets)
+    np.testing.assert_allclose(later("s", np.array([7, 30, 2])), plain[[7, 30, 2]])
 
 
 def test_align_sets_is_the_difference_of_medians() -> None:
@@ -388,14 +393,18 @@ def _reader_features(reader: IndexReader) -> dict[str, Any]:
 def _brute_place_fn(
     methods: Mapping[str, Method], rows_fn: ScoreFn, place_of: np.ndarray, n: int
 ) -> ScoreFn:
-    """Per place, explicitly, the best of its rows' raw scores, the experiences (one set here:
-    one log, vehicle and day, every row of it sampled) first shifted by the difference of
-    their median and the originals' median."""
+    """Per place, explicitly, the best of its rows' raw scores; for a tier-1 method (scored
+    whole first) the experiences (one set here: one log, vehicle and day, every row of it
+    sampled) first shifted by the difference of their median and the originals' median."""
     groups = [np.flatnonzero(place_of == p) for p in range(n)]
+    whole: set[str] = set()
 
     def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
         raw = np.asarray(rows_fn(mid, None), dtype=np.float64).copy()
-        raw[n:] -= np.median(raw[n:]) - np.median(raw[:n])
+        if subset is None:
+            whole.add(mid)
+        if mid in whole:
+            raw[n:] -= np.median(raw[n:]) - np.median(raw[:n])
         pick = max if methods[mid].higher_is_better else min
         best = np.array([pick(raw[g]) for g in groups])
         return best if subset is None else best[np.asarray(subset, np.int64)]
