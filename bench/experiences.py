@@ -103,7 +103,7 @@ def main() -> int:
     if "cost" in runs:
         out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
     config = load_config(args.config)
-    write_record(args.json, summary(out), args, config=config)
+    write_record(args.json, summary(out), args, preset=args.config, config=config)
     print(json.dumps(summary(out), indent=1))
     return 0
 
@@ -537,13 +537,19 @@ def _name(index: Path, i: int) -> str:
 
 
 def _reader_rss(index: Path) -> float:
-    """Resident memory (MB) of a fresh process that opened the version and ran one query."""
+    """Resident memory (MB, ``VmRSS``) of a fresh process once it has opened the version,
+    built its reference profile and answered one query (models loaded, files mapped)."""
     code = (
-        "import sys, resource; from hmpf.index.reader import IndexReader; "
+        "import sys, re, pathlib; from hmpf.index.reader import IndexReader; "
+        "from hmpf.imageio import load_image; "
         "r = IndexReader(sys.argv[1]); r.reference_profile(); "
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
+        "img = next(iter(sorted(pathlib.Path(sys.argv[2]).iterdir()))); "
+        "r.hierarchy().run(r.scorer(r.extract_query(load_image(img))), r.n); "
+        "s = pathlib.Path('/proc/self/status').read_text(); "
+        "print(int(re.search(r'VmRSS:\\s+(\\d+)', s)[1]) / 1024)"
     )
-    return float(run([sys.executable, "-c", code, str(index)]).strip())
+    query_dir = dataset_root() / "gardens_point" / "night_right"
+    return float(run([sys.executable, "-c", code, str(index), str(query_dir)]).strip())
 
 
 def summary(out: dict[str, Any]) -> dict[str, Any]:

@@ -562,6 +562,110 @@ def speed_service_load(root: Path) -> str:
     return "\n".join(out)
 
 
+EXPERIENCES = "docs/experiments/experiences/default.json"
+
+
+def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
+    """One fleet pass of ``bench.experiences``: a row per recording threshold."""
+    rows = []
+    bare = run["bare"]
+    for t, m in run["merges"].items():
+        shares = run["answers"]["p_correct_at_least"][t]
+        st, qt = m["single_test"], m["sequence_test"]
+        rows.append(
+            [
+                label,
+                f"{run['fleet_frames']}",
+                t,
+                f"{shares['n']} ({shares['n'] - shares['right']} wrong)",
+                f"{m['added']['experiences']} ({m['added']['wrong']} wrong)",
+                f"{f3(bare['single'])} -> {f3(m['merged']['single'])}",
+                f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
+                f"{f3(bare['sequence'])} -> {f3(m['merged']['sequence'])}",
+                f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
+            ]
+        )
+    return rows
+
+
+@generator("experiences.summary")
+def experiences_summary(root: Path) -> str:
+    """``python -m bench.experiences``: record, merge, test; poisoning; cost."""
+    data = load(root, EXPERIENCES)
+    passes = [("GP: map day_left; fleet day_right; test night_right", data["gp"])]
+    for name, run in data.get("gp_halves", {}).items():
+        first, second = name.split("_then_")
+        passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
+    if "nordland" in data:
+        passes.append((f"Nordland proxy: {data['nordland']['proxy']}", data["nordland"]))
+    header = [
+        "pass",
+        "fleet frames",
+        "record at p_correct >=",
+        "recorded",
+        "merged",
+        "single-frame recall@1 (bare -> merged)",
+        "wins/losses",
+        "sequence recall@1",
+        "wins/losses",
+    ]
+    out = [table(header, [r for label, run in passes for r in _pass_rows(label, run)])]
+    poison = data.get("poison")
+    if poison:
+        rows = []
+        for name in ("gated", "open"):
+            g = poison[name]
+            d = g["vs_clean_merge"]
+            rows.append(
+                [
+                    "merge's gates on" if name == "gated" else "every gate off (`--no-gates`)",
+                    f"{g['added']['experiences']} ({g['added']['wrong']} wrong)",
+                    f"{f3(g['merged']['single'])} ({d['single'] * 100:+.1f} points)",
+                    f"{f3(g['merged']['sequence'])} ({d['sequence'] * 100:+.1f} points)",
+                ]
+            )
+        out.append(
+            f"\nPoisoning: the Gardens Point pass's log at p_correct >= {poison['threshold']:g} "
+            f"({poison['records']} frames) with {poison['poisoned']} of them moved on purpose to "
+            "a place 50 frames away; recall on night_right against the clean merge:\n\n"
+            + table(["merge", "merged", "single-frame recall@1", "sequence recall@1"], rows)
+        )
+    cost = data.get("cost")
+    if cost:
+        q = cost["query_ms_by_images_per_place"]
+        rows = [
+            [
+                k,
+                f1(v["total"]),
+                f1(v["hierarchy"]),
+                f"{q['total_vs_one'][k]:.2f}x",
+                f1(cost["rss_mb"][k]),
+            ]
+            for k, v in q["median_ms"].items()
+        ]
+        merge = cost["merge"]
+        bpe = cost["bytes_per_experience"]
+        out.append(
+            f"\nCost (median of {q['queries']} night_right queries, one thread; the versions "
+            "take turns on each image):\n\n"
+            + table(
+                [
+                    "images per place",
+                    "ms per query (extraction + hierarchy)",
+                    "hierarchy ms",
+                    "vs 1",
+                    "reader RSS (MB)",
+                ],
+                rows,
+            )
+            + f"\nIndex growth: {thousands(bpe)} bytes per experience. Merge: "
+            f"{merge['frames']} frames in {f1(merge['seconds'])} s, "
+            f"{f1(merge['frames_per_s'])} frames/s ({merge['note']}).\n"
+        )
+    out.append(source(EXPERIENCES, data))
+    return "\n".join(out)
+
+
 LOCAL = "docs/experiments/local_descriptors.json"
 LOCAL_STRUCTURES = {
     "kaze alone": "`kaze` alone",
