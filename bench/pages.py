@@ -647,7 +647,9 @@ def experiences_summary(root: Path) -> str:
         bpe = cost["bytes_per_experience"]
         out.append(
             f"\nCost (median of {q['queries']} night_right queries, one thread; the versions "
-            "take turns on each image):\n\n"
+            "take turns on each image, so the ratio is the figure; the absolute times are from a "
+            f"machine at load average {data['machine_details']['load_1min']:.1f} on its "
+            f"{data['machine_details']['cores']} cores, several times a quiet one's):\n\n"
             + table(
                 [
                     "images per place",
