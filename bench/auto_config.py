@@ -37,6 +37,7 @@ machine; the time per step, the sample sizes and the load average, written to ``
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import tempfile
@@ -341,6 +342,19 @@ def timing_markdown(record: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def resumed_routes(path: Path, protocols: list[str]) -> dict[str, Any]:
+    """The routes of an earlier (interrupted) run at ``path`` that are among ``protocols``,
+    each with the provenance of the run that measured it (``measured``)."""
+    old = json.loads(path.read_text())
+    keys = ("date", "commit", "code_changed_since_commit", "machine")
+    head = {k: old[k] for k in keys if k in old}
+    return {
+        name: {**route, "measured": route.get("measured", head)}
+        for name, route in old.get("routes", {}).items()
+        if name in protocols
+    }
+
+
 def main() -> int:
     ap = parser(__doc__)
     add_data(ap)
@@ -361,6 +375,11 @@ def main() -> int:
         help="measure the choice's time on the first N Nordland summer references instead",
     )
     add_json(ap, "--out", default=str(DEFAULT_OUT), help="the JSON record (and .md beside it)")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the routes already in --out (each keeps its own provenance) and run the rest",
+    )
     args = ap.parse_args()
     print(f"Machine: {machine()}", flush=True)
     prov = provenance("default", args=args)
@@ -380,8 +399,13 @@ def main() -> int:
     t0 = time.perf_counter()
     routes: dict[str, Any] = {}
     record: dict[str, Any] = {}
+    if args.resume and Path(args.out).exists():
+        routes = resumed_routes(Path(args.out), args.protocols)
     for name in args.protocols:
-        routes[name] = run_route(name, args, cache)
+        if name in routes:
+            print(f"[{name}] kept from {args.out}", flush=True)
+            continue
+        routes[name] = {**run_route(name, args, cache), "measured": provenance("default")}
         record = {
             **prov,
             "note": "2 cores shared with other sessions' jobs: times are indicative only",
