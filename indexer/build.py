@@ -43,6 +43,7 @@ import numpy as np
 import hmpf.features as hfeatures
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import ImageError
+from hmpf.evaluation.auto import choose_config
 from hmpf.features import FeatureCache, extract_images, file_digest
 from hmpf.index import layout, thumbnails
 from hmpf.index.ann import (
@@ -162,6 +163,9 @@ class Summary:
     #: what a merge of fleet experiences or their removal did (the manifest's ``experiences``
     #: entry, :mod:`indexer.experiences`); None for other operations
     experiences: dict[str, Any] | None = None
+    #: ``--config auto``: what was chosen, why, and how long the choice took (from the
+    #: manifest's ``choice``); None for a named config
+    choice: dict[str, Any] | None = None
 
     def lines(self) -> list[str]:
         n = max(self.images, 1)
@@ -184,6 +188,12 @@ class Summary:
         out += [f"skipped {s['name']}: {s['reason']}" for s in self.skipped]
         if self.experiences is not None:
             out += experience_lines(self.experiences)
+        if self.choice is not None:
+            ch = self.choice
+            out.append(
+                f"config auto (seed {ch['seed']}, {ch['time_s']['total_s']:.0f} s of the build): "
+                f"{ch['chosen']['hierarchy']}, digest {ch['digest'][:12]}: {ch['chosen']['why']}"
+            )
         return out
 
 
@@ -221,6 +231,10 @@ def experience_lines(report: Mapping[str, Any]) -> list[str]:
 
 
 # -- inputs ----------------------------------------------------------------------------------
+#: ``build``'s config that asks for the automatic choice (``hmpf-index build --config auto``).
+AUTO = "auto"
+
+
 def _load_config(config: str | Path | HierarchyConfig) -> HierarchyConfig:
     return config if isinstance(config, HierarchyConfig) else load_config(config)
 
@@ -483,6 +497,8 @@ class NewVersion:
             with ``refs``; None: the version stores none (derived from a version without).
         report: what a merge of experiences or their removal did (manifest ``experiences``,
             :class:`Summary` ``experiences``); None for other operations.
+        choice: why ``build --config auto`` chose the config (manifest ``choice``); None
+            otherwise.
     """
 
     config: HierarchyConfig
@@ -494,6 +510,7 @@ class NewVersion:
     retrain: bool = True
     thumbnails: Ragged | None = None
     report: dict[str, Any] | None = None
+    choice: dict[str, Any] | None = None
 
 
 class VersionTransaction:
@@ -575,6 +592,7 @@ class VersionTransaction:
                 bytes_thumbnails=thumb_bytes,
             )
             summary.experiences = new.report
+            summary.choice = _choice_summary(new.choice)
             manifest = _manifest(name, self.operation, new, faiss_info, models)
             manifest["summary"] = asdict(summary)
             manifest["files"] = _file_entries(out)
@@ -676,7 +694,16 @@ def _manifest(
         out["places"] = places
     if new.report is not None:
         out["experiences"] = new.report
+    if new.choice is not None:
+        out["choice"] = new.choice
     return out
+
+
+def _choice_summary(choice: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """What :class:`Summary` keeps of an automatic choice's record (the manifest has it all)."""
+    if choice is None:
+        return None
+    return {k: choice[k] for k in ("seed", "chosen", "digest", "time_s")}
 
 
 def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dict[str, Any]:
@@ -719,29 +746,73 @@ def build(
     metadata: str | Path | None = None,
     options: BuildOptions | None = None,
     resume: bool = False,
+    seed: int = 0,
+    cache: FeatureCache | None = None,
+    auto_options: Mapping[str, Any] | None = None,
 ) -> Summary:
     """Extract every method for every image of ``images`` and publish a new version.
+
+    ``config`` ``"auto"`` (:data:`AUTO`) chooses the hierarchy and its acceptance models from
+    the readable references and ``metadata`` alone, on pseudo-queries made from them
+    (:func:`hmpf.evaluation.auto.choose_config`; deterministic for ``seed``; ``cache``: the
+    feature cache the choice reads and fills, so a rerun or ``resume`` does not extract the
+    sample again; ``auto_options``: more of its options, e.g. ``pool`` or ``budget_ms``),
+    under the writer lock and before any reference is extracted; the manifest's ``choice``
+    records why (candidates, their pseudo-query recall, the held-out test, the seed, the
+    sample, the time).
 
     Raises:
         ConfigError, DatasetError, IndexBuildError: bad input, before any extraction.
     """
     tx = VersionTransaction(Path(index), "build")
-    cfg = _load_config(config)
-    opt = (options or BuildOptions()).with_config(cfg)
-    methods = build_methods(cfg)
-    _check_options(cfg, methods, opt)
+    automatic = isinstance(config, str) and config == AUTO
+    base = options or BuildOptions()
+    if not automatic:
+        cfg = _load_config(config)
+        opt = base.with_config(cfg)
+        methods = build_methods(cfg)
+        _check_options(cfg, methods, opt)
     paths, refs = _read_inputs(images, metadata)
+    choice: dict[str, Any] | None = None
     with tx:
-        check, paths, skipped = _readable(paths, opt.strict)
+        check, paths, skipped = _readable(paths, base.strict)
         refs.sha256 = check.digests
+        if automatic:
+            cfg, choice = _choose(paths, refs, seed, cache, base, auto_options or {})
+            opt = base.with_config(cfg)
+            methods = build_methods(cfg)
+            _check_options(cfg, methods, opt)
         tx.begin(_job_identity("build", cfg, refs, options=opt.identity()), resume)
         _fit(methods, paths, tx.work)
         feats, resumed = _extract(paths, methods, tx.work, opt)
         refs = refs.select(_kept(refs, paths))
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
         thumbs = _thumbnails(paths, refs, tx.work)
-        new = NewVersion(cfg, methods, refs, cols, opt, thumbnails=thumbs)
+        new = NewVersion(cfg, methods, refs, cols, opt, thumbnails=thumbs, choice=choice)
         return tx.publish(new, extracted=len(refs), resumed=resumed, skipped=skipped)
+
+
+def _choose(
+    paths: Sequence[Path],
+    refs: RefTable,
+    seed: int,
+    cache: FeatureCache | None,
+    options: BuildOptions,
+    auto_options: Mapping[str, Any],
+) -> tuple[HierarchyConfig, dict[str, Any]]:
+    """``--config auto``: the hierarchy and its acceptance chosen from the readable
+    references ``paths`` and their metadata alone (:func:`hmpf.evaluation.auto.choose_config`),
+    and the record of why (stored in the version's manifest as ``choice``)."""
+    kept = _kept(refs, paths)
+    meta = {k: np.asarray(v)[kept] for k, v in refs.meta.items()}
+    cfg, reasons = choose_config(
+        list(paths),
+        meta,
+        seed=seed,
+        cache=cache,
+        **{"workers": options.workers, "progress": options.progress, **auto_options},
+    )
+    return cfg, reasons
 
 
 def _thumbnails(paths: Sequence[Path], refs: RefTable, work: WorkDir) -> Ragged:

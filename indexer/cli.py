@@ -1,6 +1,7 @@
 """``hmpf-index``: build, extend and maintain versioned reference indexes.
 
     hmpf-index build --config handcrafted --images refs/ --index maps/campus
+    hmpf-index build --config auto --images refs/ --index maps/campus [--metadata route.csv]
     hmpf-index add --index maps/campus --images new_refs/ [--metadata gps.csv] [--refit]
     hmpf-index add --index maps/campus --experiences fleet.log [more.log ...] [--dry-run]
     hmpf-index remove --index maps/campus img0001.jpg img0002.jpg
@@ -28,6 +29,7 @@ from typing import TYPE_CHECKING
 
 # Only light modules at import time: the heavy ones (numpy, OpenCV, h5py, FAISS) load inside
 # ``run``, so Ctrl-C while they load is one line and exit 130 too, and --version is instant.
+from hmpf.cli.args import cache_from_args, default_cache_dir
 from hmpf.cli.common import add_version, run
 from hmpf.errors import DatasetError, HmpfError
 
@@ -106,12 +108,25 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("build", help="extract every image and publish a new version")
     b.add_argument(
-        "--config", required=True, help="a preset name (e.g. default) or a hierarchy YAML file"
+        "--config",
+        required=True,
+        help="a preset name (e.g. default), a hierarchy YAML file, or auto: chosen from the "
+        "references (and --metadata's route order / GPS) alone, on pseudo-queries made from "
+        "them; why is recorded in the version's manifest (hmpf-index info [--json])",
     )
     b.add_argument("--images", required=True, help="folder of reference images")
     b.add_argument("--metadata", help="CSV: name[,lat,lon,heading,timestamp,sequence]")
     b.add_argument("--index", required=True, help="index folder (created if missing)")
     b.add_argument("--resume", action="store_true", help="continue an interrupted build")
+    b.add_argument(
+        "--seed", type=int, default=0, help="with --config auto: the choice's seed (default 0)"
+    )
+    b.add_argument(
+        "--cache-dir",
+        help=f"with --config auto: the feature cache the choice reads and fills (default "
+        f"{default_cache_dir()}), so a rerun or --resume does not extract its sample again",
+    )
+    b.add_argument("--no-cache", action="store_true", help="with --config auto: no cache")
     _add_write_options(b)
 
     a = sub.add_parser(
@@ -245,6 +260,13 @@ def _print_info(args: argparse.Namespace) -> int:
 
         for line in experience_lines(data["experiences"]):
             print(line)
+    choice = data.get("choice")
+    if choice:
+        print(
+            f"chosen by --config auto (seed {choice['seed']}, {len(choice['candidates'])} "
+            f"candidates, {choice['time_s']['total_s']:.0f} s): {choice['chosen']['hierarchy']}: "
+            f"{choice['chosen']['why']} (all of it: --json, key choice)"
+        )
     print(f"bytes {s.get('bytes_total')}  built in {s.get('seconds', 0):.1f} s")
     for mid, m in data["methods"].items():
         fa = m.get("faiss") or {}
@@ -330,6 +352,8 @@ def _run(args: argparse.Namespace) -> int:
             metadata=args.metadata,
             options=_options(args),
             resume=args.resume,
+            seed=args.seed,
+            cache=cache_from_args(args) if args.config == "auto" else None,
         )
     elif cmd == "add" and args.experiences:
         return _merge(args)
