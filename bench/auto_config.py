@@ -62,6 +62,7 @@ from bench.harness import (
     write_json,
 )
 from bench.one_pass import correct_flags
+from bench.pages import auto_config_tables
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import list_images
 from hmpf.evaluation.auto import AutoResult, auto, auto_pool, choose_config
@@ -244,50 +245,15 @@ def run_route(name: str, args: Any, cache: FeatureCache) -> dict[str, Any]:
 
 def markdown(record: dict[str, Any]) -> str:
     """The printout: one table of the test recall per route, the tests and the goals, one of
-    the rank correlations."""
-    lines = [
+    the rank correlations (:func:`bench.pages.auto_config_tables`)."""
+    head = [
         "# The automatic choice against the default, the oracle preset and hmpf-calibrate",
         "",
         f"{record['machine']}; commit {str(record.get('commit'))[:12]}; {record['date']}; "
-        f"seed {record['arguments']['seed']}. Test parts, recall@1 (+-2 frames); in brackets "
-        "auto's test queries won / lost against that column and the sign test's p.",
+        f"seed {record['arguments']['seed']}.",
         "",
-        "| route | auto | default | oracle (preset) | calibrate (real queries) | auto's choice "
-        "| goals met |",
-        "|---|---|---|---|---|---|---|",
     ]
-    for r in record["routes"].values():
-        rc, vs = r["recall_at_1"], r["vs"]
-
-        def cell(key: str, value: float, label: str = "", vs: dict[str, Any] = vs) -> str:
-            t = vs[key]
-            return f"{value:.3f}{label} ({t['wins']}/{t['losses']}, p {t['p']:.2g})"
-
-        met = ", ".join(f"{k}: {'yes' if v else 'NO'}" for k, v in r["goals"].items())
-        oracle = cell("oracle", r["presets"][r["oracle"]], f" ({r['oracle']})")
-        lines.append(
-            f"| {r['route']} | **{rc['auto']:.3f}** | {cell('default', rc['default'])} | "
-            f"{oracle} | {cell('calibrate', rc['calibrate'])} | {r['auto_hierarchy']} | {met} |"
-        )
-    lines += [
-        "",
-        "Spearman rank correlation of pseudo-query recall with real recall (test part; "
-        "training part in brackets):",
-        "",
-        "| route | auto's candidates | hierarchies spread along the search's ranking |",
-        "|---|---|---|",
-    ]
-
-    def rho(c: dict[str, Any]) -> str:
-        test, train = (
-            "n/a" if v is None else f"{v:+.2f}" for v in (c["spearman_test"], c["spearman_train"])
-        )
-        return f"{test} ({train}), n = {c['n']}"
-
-    for r in record["routes"].values():
-        c = r["correlation"]
-        lines.append(f"| {r['route']} | {rho(c['candidates'])} | {rho(c['spread'])} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(head) + auto_config_tables(record)
 
 
 def time_choice(sizes: list[int], args: Any) -> dict[str, Any]:

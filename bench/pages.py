@@ -588,6 +588,70 @@ def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
+AUTO_CONFIG = "docs/experiments/auto_config/auto_config.json"
+
+
+def auto_config_tables(record: dict[str, Any]) -> str:
+    """``bench.auto_config``'s report: test recall per route against the default, the oracle
+    and ``hmpf-calibrate`` with the sign tests and goals; then the rank correlations."""
+    lines = [
+        "Test parts, recall@1 (+-2 frames); in brackets auto's test queries won / lost against "
+        "that column and the sign test's p.",
+        "",
+        "| route | auto | default | oracle (preset) | calibrate (real queries) | auto's choice "
+        "| goals met |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in record["routes"].values():
+        rc, vs = r["recall_at_1"], r["vs"]
+
+        def cell(key: str, value: float, label: str = "", vs: dict[str, Any] = vs) -> str:
+            t = vs[key]
+            return f"{value:.3f}{label} ({t['wins']}/{t['losses']}, p {t['p']:.2g})"
+
+        met = ", ".join(f"{k}: {'yes' if v else 'NO'}" for k, v in r["goals"].items())
+        oracle = cell("oracle", r["presets"][r["oracle"]], f" ({r['oracle']})")
+        lines.append(
+            f"| {r['route']} | **{rc['auto']:.3f}** | {cell('default', rc['default'])} | "
+            f"{oracle} | {cell('calibrate', rc['calibrate'])} | {r['auto_hierarchy']} | {met} |"
+        )
+    lines += [
+        "",
+        "Spearman rank correlation of pseudo-query recall with real recall (test part; "
+        "training part in brackets):",
+        "",
+        "| route | auto's candidates | hierarchies spread along the search's ranking |",
+        "|---|---|---|",
+    ]
+
+    def rho(c: dict[str, Any]) -> str:
+        test, train = (
+            "n/a" if v is None else f"{v:+.2f}" for v in (c["spearman_test"], c["spearman_train"])
+        )
+        return f"{test} ({train}), n = {c['n']}"
+
+    for r in record["routes"].values():
+        c = r["correlation"]
+        lines.append(f"| {r['route']} | {rho(c['candidates'])} | {rho(c['spread'])} |")
+    measured = [
+        f"{name}: commit {str(r['measured'].get('commit'))[:7]}, {r['measured'].get('date')}"
+        for name, r in record["routes"].items()
+        if "measured" in r
+    ]
+    if measured:
+        lines += ["", "Routes measured by separate runs: " + "; ".join(measured) + "."]
+    return "\n".join(lines) + "\n"
+
+
+@generator("auto_config.summary")
+def auto_config_summary(root: Path) -> str:
+    """``python -m bench.auto_config``: auto against the default, the oracle, calibrate."""
+    data = load(root, AUTO_CONFIG)
+    if not data.get("complete"):
+        return "*The run in `" + AUTO_CONFIG + "` is not complete.*\n"
+    return auto_config_tables(data) + source(AUTO_CONFIG, data)
+
+
 @generator("experiences.summary")
 def experiences_summary(root: Path) -> str:
     """``python -m bench.experiences``: record, merge, test; poisoning; cost."""
