@@ -54,7 +54,7 @@ import numpy as np
 
 from bench.harness import ROOT, Parser, add_json, parser, provenance, write_json, write_record
 from hmpf.acceptance import STAY_P, Policy
-from hmpf.confidence import expected_calibration_error
+from hmpf.confidence import ConfidenceModel, expected_calibration_error
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -66,6 +66,7 @@ from hmpf.evaluation.acceptance import (
     decide,
     fit_pooled,
     outside_answers,
+    route_out_of_fold,
     sequence_answers,
     single_answers,
 )
@@ -213,8 +214,11 @@ def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, An
     seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
     q = apply_acceptance(policy, seq, sequence=True)
     acc = np.array(q["accepted_answers"], bool)
+    entry = apply_acceptance(replace(policy, sequence_stay_threshold=None), seq, sequence=True)
     out["sequence"] = {
         **_figures(q, seq),
+        # the same without the stay threshold: what the entry threshold alone accepts
+        "entry_only": {"accepted": entry["accepted"], "precision": entry["precision"]},
         "recall_at_1": float(seq.correct.mean()),
         "flips_per_100": 100.0 * flips(acc) / len(acc),
         "p_correct": q["p_correct"],
@@ -294,7 +298,62 @@ def fit(singles: list[RoutePart], seqs: list[RoutePart]) -> tuple[Policy, dict[s
     )
     stay = min(STAY_P, sthr)
     policy = replace(policy, sequence_stay_threshold=stay)
+    q_train["as_decided"] = as_decided(seqs, policy)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
+
+
+def _with_p(answers: Answers, p: np.ndarray) -> Answers:
+    """``answers`` whose only feature is ``p``'s log-odds (for :data:`_IDENTITY`)."""
+    q = np.clip(np.asarray(p, dtype=np.float64), 1e-12, 1 - 1e-12)
+    logit = np.log(q) - np.log1p(-q)
+    return Answers(
+        [{"p_logit": float(x)} for x in logit],
+        answers.correct,
+        answers.score,
+        answers.query,
+        answers.estimates,
+        answers.drive,
+    )
+
+
+#: A model that returns its one feature's probability: decides given predictions through the
+#: one policy (:func:`as_decided`).
+_IDENTITY = ConfidenceModel(("p_logit",), (0.0,), (1.0,), (1.0,), 0.0)
+
+
+def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
+    """The sequence model's out-of-fold predictions on the training drives (five stretches
+    of each route, as its threshold is chosen) decided as the service decides them
+    (:func:`decide`: the stay threshold, the off-map state), and at the entry threshold
+    alone (no stay). Per route: the in-map answers accepted and their precision, and the
+    out-of-map ones accepted. The threshold is chosen frame by frame, without the stay;
+    this says what it gives once the stay carries an accepted estimate on."""
+    pred, _, g, inside = route_out_of_fold(
+        seqs, SEQUENCE_FEATURES, outside_share=OFF_SHARE, by="folds"
+    )
+    rules = {
+        "with_stay": replace(policy, sequence_model=_IDENTITY),
+        "entry_only": replace(policy, sequence_model=_IDENTITY, sequence_stay_threshold=None),
+    }
+    out: dict[str, Any] = {}
+    for k, part in enumerate(p for p in seqs if len(p.answers)):
+        row: dict[str, Any] = {}
+        for label, rule in rules.items():
+            ans = _with_p(part.answers, pred[(g == k) & inside])
+            acc = np.array([d.accepted for d in decide(rule, ans, sequence=True)], bool)
+            fig = {
+                "accepted": float(acc.mean()),
+                "precision": float(ans.correct[acc].mean()) if acc.any() else None,
+            }
+            away = (g == k) & ~inside
+            if part.outside is not None and away.any():
+                o = _with_p(part.outside, pred[away])
+                fig["outside_accepted"] = float(
+                    np.mean([d.accepted for d in decide(rule, o, sequence=True)])
+                )
+            row[label] = fig
+        out[part.name] = row
+    return out
 
 
 def held_out(parts: list[tuple[RoutePart, RoutePart]]) -> list[tuple[Policy, dict[str, Any]]]:
