@@ -257,15 +257,25 @@ def markdown(record: dict[str, Any]) -> str:
 
 
 def time_choice(sizes: list[int], args: Any) -> dict[str, Any]:
-    """``--time``: the choice on the first N Nordland summer references, cold cache."""
-    refs = list_images(Path(args.datasets) / NORDLAND[0])
+    """``--time``: the choice on the first N Nordland references, cold cache: the summer
+    drive, then the winter drive (a map of two drives, each its own ``sequence``, for N
+    above one drive's 3,576)."""
+    drives = [list_images(Path(args.datasets) / folder) for folder in NORDLAND]
+    refs = [p for d in drives for p in d]
+    drive = np.array([name for name, d in zip(NORDLAND, drives, strict=True) for _ in d])
     out: dict[str, Any] = {}
     for n in sizes:
+        if n > len(refs):
+            raise SystemExit(f"--time {n}: Nordland has {len(refs)} distinct images")
         with tempfile.TemporaryDirectory(prefix="hmpf-auto-time-") as tmp:
             load = os.getloadavg()
             t0 = time.perf_counter()
             _, reasons = choose_config(
-                refs[:n], seed=args.seed, cache=FeatureCache(tmp), workers=args.workers
+                refs[:n],
+                {"sequence": drive[:n]},
+                seed=args.seed,
+                cache=FeatureCache(tmp),
+                workers=args.workers,
             )
             wall = time.perf_counter() - t0
         out[str(n)] = {
@@ -287,12 +297,13 @@ def timing_markdown(record: dict[str, Any]) -> str:
         "# How long the automatic choice takes",
         "",
         f"{record['machine']}; commit {str(record.get('commit'))[:12]}; {record['date']}; "
-        f"{record['note']}. Nordland summer references (64 x 32), seed "
+        f"{record['note']}. Nordland references (64 x 32: the summer drive, then the winter "
+        "drive), seed "
         f"{record['arguments']['seed']}; seconds.",
         "",
         "| references | looked at | pseudo-queries | total | fit | make | extract | score "
-        "| search | check | acceptance | load (start, end) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| search | check | acceptance | load (start, end) | measured |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in record["timing"].values():
         t, s = r["steps_s"], r["sample"]
@@ -303,7 +314,7 @@ def timing_markdown(record: dict[str, Any]) -> str:
         lines.append(
             f"| {r['references']} | {s['map']} | {s['pseudo_queries']} | **{r['wall_s']:.0f}** "
             f"| {steps} | {t['acceptance_s']:.0f} | {r['load_start'][0]:.1f}, "
-            f"{r['load_end'][0]:.1f} |"
+            f"{r['load_end'][0]:.1f} | {r.get('measured', record)['date'][:10]} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -344,16 +355,22 @@ def main() -> int:
     ap.add_argument(
         "--resume",
         action="store_true",
-        help="keep the routes already in --out (each keeps its own provenance) and run the rest",
+        help="keep the routes (with --time: the sizes) already in --out, each with the "
+        "provenance of its run, and run the rest",
     )
     args = ap.parse_args()
     print(f"Machine: {machine()}", flush=True)
     prov = provenance("default", args=args)
     if args.time:
+        rows = time_choice(args.time, args)
+        for row in rows.values():
+            row["measured"] = {k: prov.get(k) for k in ("date", "commit", "machine")}
+        if args.resume and Path(args.out).exists():  # keep the sizes measured before
+            rows = {**json.loads(Path(args.out).read_text())["timing"], **rows}
         timing = {
             **prov,
             "note": "one process on 2 cores shared with other sessions' jobs; empty cache",
-            "timing": time_choice(args.time, args),
+            "timing": dict(sorted(rows.items(), key=lambda kv: int(kv[0]))),
         }
         write_json(args.out, timing)
         text = timing_markdown(timing)
