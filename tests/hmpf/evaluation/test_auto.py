@@ -11,9 +11,15 @@ import numpy as np
 import pytest
 
 from hmpf.cli.calibrate import main as calibrate_main
-from hmpf.config import load_config, parse_config
+from hmpf.config import AcceptanceSettings, load_config, parse_config
 from hmpf.datasets import list_images
-from hmpf.evaluation.auto import auto, choose_config, mask_sources, pseudo_bank
+from hmpf.evaluation.auto import (
+    _kept_acceptance,
+    auto,
+    choose_config,
+    mask_sources,
+    pseudo_bank,
+)
 from hmpf.evaluation.calibrate import SearchSpace
 from hmpf.evaluation.pseudo import (
     ROLES,
@@ -253,3 +259,18 @@ def test_hmpf_calibrate_auto_needs_references(capsys: pytest.CaptureFixture[str]
         calibrate_main(["--auto"])
     assert exc.value.code == 2
     assert "--references" in capsys.readouterr().err
+
+
+def test_a_preset_kept_as_it_ships_keeps_its_shipped_models() -> None:
+    """The pseudo-query fit replaces no model a preset ships (measured worse on real queries:
+    docs/experiments/auto_config/acceptance.md); a hierarchy without shipped models gets it."""
+    default = load_config("default")
+    shipped = default.acceptance
+    assert shipped is not None and shipped.sequence_model is not None
+    pseudo = AcceptanceSettings(threshold=1.0, precision=0.99)
+    config, source = _kept_acceptance(default, default.model_copy(update={"acceptance": pseudo}))
+    assert source == "shipped" and config.acceptance == shipped
+    assert config.digest() == default.digest()
+    found = derive_config(default, [(["gem", "netvlad"], 5), (["olo", "gist"], 1)], name="auto")
+    config, source = _kept_acceptance(found, found.model_copy(update={"acceptance": pseudo}))
+    assert source == "pseudo-queries" and config.acceptance == pseudo
