@@ -647,9 +647,14 @@ def auto_config_tables(record: dict[str, Any]) -> str:
 def auto_config_summary(root: Path) -> str:
     """``python -m bench.auto_config``: auto against the default, the oracle, calibrate."""
     data = load(root, AUTO_CONFIG)
-    if not data.get("complete"):
-        return "*The run in `" + AUTO_CONFIG + "` is not complete.*\n"
-    return auto_config_tables(data) + source(AUTO_CONFIG, data)
+    missing = [p for p in data["arguments"]["protocols"] if p not in data["routes"]]
+    note = (
+        f"\n**Not measured yet:** {', '.join(missing)} (the run was stopped before it; "
+        "`python -m bench.auto_config --resume` measures the rest).\n"
+        if missing
+        else ""
+    )
+    return auto_config_tables(data) + note + source(AUTO_CONFIG, data)
 
 
 @generator("experiences.summary")
