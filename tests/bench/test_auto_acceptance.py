@@ -98,3 +98,68 @@ def test_pooled_counts_weigh_routes_by_their_answers(aa):
     assert got["accepted"] == pytest.approx(80 / 450)
     assert got["precision"] == pytest.approx(77 / 80)
     assert aa.pooled_counts([{"n": 10, "accepted": 0.0, "precision": None}])["precision"] is None
+
+
+def test_parse_cases_reads_route_hierarchy_pairs_and_rejects_the_rest(aa):
+    got = aa.parse_cases("nordland_s_w=auto, gp_dl_nr=netvlad-lite1,,gp_dr_nr=x.yaml")
+    assert got == [
+        ("nordland_s_w", "auto"),
+        ("gp_dl_nr", "netvlad-lite1"),
+        ("gp_dr_nr", "x.yaml"),
+    ]
+    for bad in ("", "nordland_s_w", "=auto", "nordland_s_w=", "elsewhere=auto", "a=b,a=b"):
+        with pytest.raises(ValueError):
+            aa.parse_cases(bad, routes=("a", "nordland_s_w"))
+
+
+def test_undefined_features_need_a_tier1_global_method_for_the_profile(aa):
+    from hmpf.config import parse_config
+
+    def config(tier1: list[str]):
+        return parse_config(
+            {
+                "name": "t",
+                "methods": {"sad_w": {"type": "sad", "whiten": 64}},
+                "tiers": [{"methods": tier1, "k": 5}, {"methods": ["gist", "sad_w"], "k": 1}],
+                "weights": [0.5, 1.0],
+            },
+            "t",
+        )
+
+    seq = ("sequence_logit", "sequence_ref_z", "sequence_agrees", "ref_z")
+    glob = config(["sad_w", "gist"])
+    assert aa.profile_methods(glob) == ("sad_w", "gist")
+    assert aa.undefined_features(seq, glob) == []
+    assert aa.undefined_features(("nonsense", "quality"), glob) == ["nonsense"]
+    local = config(["kaze"])
+    assert aa.profile_methods(local) == ()
+    assert aa.undefined_features(seq, local) == ["sequence_ref_z", "ref_z"]
+
+
+def test_baseline_flags_read_the_shipped_variant_of_a_record(aa):
+    kinds = ("single", "single_wrong", "sequence", "sequence_wrong")
+    kinds += ("foreign_single", "foreign_sequence")
+    flags = {f"{k}:{v}": [1, 0, 1] for k in kinds for v in ("shipped", "pseudo")}
+    flags["sequence:shipped"] = [0, 0, 1]
+    rec = {"routes": {"gp_dl_nr": {"flags": flags}}}
+    got = aa.baseline_flags(rec, "gp_dl_nr")
+    assert set(got) == set(kinds)
+    assert got["sequence"].tolist() == [False, False, True] and got["sequence"].dtype == bool
+    assert aa.baseline_flags(rec, "nordland_s_w") is None
+    assert aa.baseline_flags({}, "gp_dl_nr") is None
+
+
+def test_route_flags_decide_a_variant_on_its_own_answers(aa):
+    x = np.array([2.0, 1.0, 0.1])
+    correct = np.array([True, True, False])
+    hi, lo = np.array([0.995, 0.995, 0.995]), np.array([0.5, 0.5, 0.5])
+    base = {m: _answers(x, correct, hi) for m in ("single", "sequence")}
+    base |= {f"foreign_{m}": _answers(x, np.zeros(3, bool), hi) for m in ("single", "sequence")}
+    other = dict(base) | {"sequence": _answers(x, correct, lo)}
+    lock = Policy(model=_model("quality"), model_threshold=0.99)
+    got = aa.route_flags({"a": lock, "b": lock}, base, own={"b": other})
+    assert got["sequence"]["a"].tolist() == [True, True, False]
+    assert got["sequence"]["b"].tolist() == [False, False, False]
+    assert got["sequence_wrong"]["a"].tolist() == [False, False, True]
+    assert got["single"]["a"].tolist() == got["single"]["b"].tolist()
+    assert ("pseudo-seq", "default shipped") in aa.found_pairs()
