@@ -532,9 +532,9 @@ def choose_config(
     Returns:
         The config (a bundled preset chosen as it ships keeps its name and digest; a
         hierarchy the search found is named ``auto``) with its acceptance (fitted on the
-        pseudo-queries; a preset that ships models keeps them), and the JSON-able record of why (the candidates and their
-        pseudo-query recall, the held-out test, the seed, the sample sizes, the time
-        taken, the config).
+        pseudo-queries; a preset that ships models keeps them, :func:`_kept_acceptance`),
+        and the JSON-able record of why (the candidates and their pseudo-query recall, the
+        held-out test, the seed, the sample sizes, the time taken, the config).
     """
     result = auto(reference_paths, metadata, seed=seed, cache=cache, **options)
     return result.config, result.reasons
@@ -591,8 +591,8 @@ def auto(
 
     Returns:
         The config (a preset chosen as it ships keeps its name and digest; else ``name``)
-        with its acceptance (:func:`_kept_acceptance`), the JSON-able record of the choice, and what the
-        benches read (:class:`AutoResult`).
+        with its acceptance (:func:`_kept_acceptance`), the JSON-able record of the
+        choice, and what the benches read (:class:`AutoResult`).
     """
     t_start = time.perf_counter()
     pool = pool if pool is not None else auto_pool()
@@ -692,13 +692,39 @@ def _kept_acceptance(
     every route we have, single frame and sequence): on the routes' test parts they accepted
     more right answers than models fitted on the map's pseudo-queries (single frame 32 won,
     4 lost, pooled) and, unlike the lock rule the pseudo-query fit leaves sequence mode with,
-    no foreign frame (``docs/experiments/auto_config/acceptance.md``). A hierarchy the
-    search found has no shipped models: the pseudo-query fit (``fitted``) is its acceptance.
+    no foreign frame (``docs/experiments/auto_config/acceptance.md``).
+
+    A hierarchy without shipped models gets the pseudo-query fit (``fitted``) for single
+    frames, and for sequence mode the :data:`INCUMBENT` preset's shipped sequence model and
+    thresholds (its features are normalised per map; they need a global method in tier 1,
+    for the reference profile). Pseudo-queries are no drive, so a sequence model fitted on
+    them accepts nothing, and the lock rule accepted 8 % of foreign frames with auto's
+    Nordland choice, where the carried model accepted none at precision 0.989
+    (``docs/experiments/auto_config/acceptance_found.md``). Without a global tier-1 method
+    the lock rule stays.
     """
-    shipped = shipped_acceptance().get(chosen.digest())
-    if shipped is None:
+    shipped = shipped_acceptance()
+    own = shipped.get(chosen.digest())
+    if own is not None:
+        return chosen.model_copy(update={"acceptance": own}), "shipped"
+    donor = shipped.get(load_config(INCUMBENT).digest()) if INCUMBENT else None
+    acc = fitted.acceptance
+    methods = build_methods(fitted)
+    if acc is None or donor is None or donor.sequence_model is None:
         return fitted, "pseudo-queries"
-    return chosen.model_copy(update={"acceptance": shipped}), "shipped"
+    if not any(methods[m].kind == "global" for m in fitted.tiers[0].methods):
+        return fitted, "pseudo-queries; sequence: lock rule (no global method in tier 1)"
+    carried = acc.model_copy(
+        update={
+            "sequence_model": donor.sequence_model,
+            "sequence_threshold": donor.sequence_threshold,
+            "sequence_stay_threshold": donor.sequence_stay_threshold,
+        }
+    )
+    return (
+        fitted.model_copy(update={"acceptance": carried}),
+        f"pseudo-queries; sequence: the {INCUMBENT} preset's shipped sequence model",
+    )
 
 
 def _transform_kinds(plan_: PseudoPlan) -> dict[str, Any]:

@@ -271,6 +271,16 @@ def test_a_preset_kept_as_it_ships_keeps_its_shipped_models() -> None:
     config, source = _kept_acceptance(default, default.model_copy(update={"acceptance": pseudo}))
     assert source == "shipped" and config.acceptance == shipped
     assert config.digest() == default.digest()
+    # a found hierarchy: the pseudo-query fit for single frames, the default's sequence model
     found = derive_config(default, [(["gem", "netvlad"], 5), (["olo", "gist"], 1)], name="auto")
     config, source = _kept_acceptance(found, found.model_copy(update={"acceptance": pseudo}))
-    assert source == "pseudo-queries" and config.acceptance == pseudo
+    acc = config.acceptance
+    assert source.startswith("pseudo-queries; sequence: the default preset's") and acc
+    assert acc.threshold == 1.0 and acc.model is None
+    assert acc.sequence_model == shipped.sequence_model
+    assert acc.sequence_threshold == shipped.sequence_threshold
+    assert acc.sequence_stay_threshold == shipped.sequence_stay_threshold
+    # no global method in tier 1: no reference profile for the sequence features
+    local = derive_config(default, [(["olo"], 5), (["gist"], 1)], name="auto")
+    config, source = _kept_acceptance(local, local.model_copy(update={"acceptance": pseudo}))
+    assert config.acceptance == pseudo and "lock rule" in source
