@@ -191,7 +191,8 @@ class Summary:
         if self.choice is not None:
             ch = self.choice
             out.append(
-                f"config auto (seed {ch['seed']}, {ch['time_s']['total_s']:.0f} s of the build): "
+                f"config auto (seed {ch['seed']}, chosen in {ch['time_s']['total_s']:.0f} s "
+                "before extraction): "
                 f"{ch['chosen']['hierarchy']}, digest {ch['digest'][:12]}: {ch['chosen']['why']}"
             )
         return out
@@ -542,6 +543,10 @@ class VersionTransaction:
     def __exit__(self, *exc: object) -> None:
         self._lock.close()
 
+    def restart_clock(self) -> None:
+        """Time the operation from now on (what came before is timed on its own)."""
+        self._started = time.perf_counter()
+
     def begin(self, job: dict[str, Any], resume: bool = False) -> bool:
         """Create the work folder for ``job`` (see :meth:`WorkDir.start`)."""
         return self.work.start(job, resume)
@@ -779,6 +784,7 @@ def build(
         refs.sha256 = check.digests
         if automatic:
             cfg, choice = _choose(paths, refs, seed, cache, base, auto_options or {})
+            tx.restart_clock()  # the summary times the build; the choice says its own time
             opt = base.with_config(cfg)
             methods = build_methods(cfg)
             _check_options(cfg, methods, opt)
