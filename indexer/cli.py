@@ -345,6 +345,8 @@ def _run(args: argparse.Namespace) -> int:
 
     cmd = args.command
     if cmd == "build":
+        if args.config != "auto" and (args.seed != 0 or args.cache_dir or args.no_cache):
+            raise HmpfError("--seed, --cache-dir and --no-cache go with --config auto")
         summary = build(
             args.config,
             args.images,

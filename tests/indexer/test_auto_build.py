@@ -126,3 +126,11 @@ def test_bad_input_fails_before_the_choice(tmp_path: Path) -> None:
     )
     assert code == 2
     assert not (tmp_path / "m" / layout.CURRENT).exists()
+
+
+def test_the_choice_options_need_config_auto(
+    refs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["build", "--config", "single-tier", "--images", str(refs), "--index", str(tmp_path)]
+    assert cli.main([*argv, "--seed", "3"]) == 2
+    assert "go with --config auto" in capsys.readouterr().err
