@@ -73,7 +73,7 @@ import inspect
 import json
 import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -370,17 +370,24 @@ def table(report: Mapping[str, Any]) -> str:
         return f"{cal['ece']:.3f} ({cal['sampling_floor']:.3f})"
 
     for name, entry in report["routes"].items():
-        for v in VARIANTS:
-            s, q = entry[v]["single"], entry[v]["sequence"]
-            lines.append(
-                f"| {name} ({s['n']}) | {v} | {s['accepted']:.3f} ({_f(s['precision'])}) | "
-                f"{ece(s['calibration'])} | {q['rule']} | {q['accepted']:.3f} "
-                f"({_f(q['precision'])}) | {ece(q['calibration'])} | "
-                f"{q['flips_per_100']:.1f} | {s['foreign']['accepted']:.3f} / "
-                f"{_f(s['foreign']['mean_p'])} | {q['foreign']['accepted']:.3f} / "
-                f"{_f(q['foreign']['mean_p'])} |"
-            )
+        lines += [variant_row(name, v, entry[v], ece) for v in VARIANTS]
     return "\n".join(lines)
+
+
+def variant_row(
+    label: str, variant: str, figures: Mapping[str, Any], ece: Callable[[Mapping[str, Any]], str]
+) -> str:
+    """One table row of a variant's single and sequence figures, in the map and off it
+    (``ece`` formats a mode's calibration entry)."""
+    s, q = figures["single"], figures["sequence"]
+    return (
+        f"| {label} ({s['n']}) | {variant} | {s['accepted']:.3f} ({_f(s['precision'])}) | "
+        f"{ece(s['calibration'])} | {q['rule']} | {q['accepted']:.3f} "
+        f"({_f(q['precision'])}) | {ece(q['calibration'])} | "
+        f"{q['flips_per_100']:.1f} | {s['foreign']['accepted']:.3f} / "
+        f"{_f(s['foreign']['mean_p'])} | {q['foreign']['accepted']:.3f} / "
+        f"{_f(q['foreign']['mean_p'])} |"
+    )
 
 
 def tests_table(report: Mapping[str, Any]) -> str:
@@ -728,16 +735,7 @@ def found_table(report: Mapping[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, e in report["cases"].items():
-        for v in FOUND_VARIANTS:
-            s, q = e[v]["single"], e[v]["sequence"]
-            lines.append(
-                f"| {key} ({s['n']}) | {v} | {s['accepted']:.3f} ({_f(s['precision'])}) | "
-                f"{_f(s['calibration'].get('ece'))} | {q['rule']} | {q['accepted']:.3f} "
-                f"({_f(q['precision'])}) | {_f(q['calibration'].get('ece'))} | "
-                f"{q['flips_per_100']:.1f} | {s['foreign']['accepted']:.3f} / "
-                f"{_f(s['foreign']['mean_p'])} | {q['foreign']['accepted']:.3f} / "
-                f"{_f(q['foreign']['mean_p'])} |"
-            )
+        lines += [variant_row(key, v, e[v], lambda cal: _f(cal.get("ece"))) for v in FOUND_VARIANTS]
         b = e.get(BASELINE)
         if b is not None:
             s, q = b["single"], b["sequence"]
