@@ -709,9 +709,9 @@ def _kept_acceptance(
         return chosen.model_copy(update={"acceptance": own}), "shipped"
     donor = shipped.get(load_config(INCUMBENT).digest()) if INCUMBENT else None
     acc = fitted.acceptance
-    methods = build_methods(fitted)
     if acc is None or donor is None or donor.sequence_model is None:
         return fitted, "pseudo-queries"
+    methods = build_methods(fitted)
     if not any(methods[m].kind == "global" for m in fitted.tiers[0].methods):
         return fitted, "pseudo-queries; sequence: lock rule (no global method in tier 1)"
     carried = acc.model_copy(
