@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hmpf.errors import HmpfError
+from hmpf.fusion import Spread, top_k
 from hmpf.methods.base import GlobalMethod
 from hmpf.sequence import Estimate, RouteMap
 
@@ -40,6 +41,10 @@ __all__ = [
     "FORMAT_VERSION",
     "LOGIT_CLIP",
     "PROFILE_FEATURES",
+    "PROFILE_SAMPLE",
+    "PROFILE_SEED",
+    "PROFILE_VERSION",
+    "PROFILE_WINDOW",
     "SEQUENCE_FEATURES",
     "ConfidenceModel",
     "ModelError",
@@ -49,6 +54,7 @@ __all__ = [
     "answer_features",
     "expected_calibration_error",
     "feature_matrix",
+    "profile_params",
     "reliability",
     "threshold_for_precision",
 ]
@@ -91,6 +97,39 @@ class ModelError(HmpfError):
 
 def _finite(x: float, default: float) -> float:
     return float(x) if math.isfinite(x) else default
+
+
+def _scored(scores: Mapping[str, np.ndarray], mid: str) -> int:
+    """How many references a tier's score array of ``mid`` covers (without making a
+    :class:`~hmpf.hierarchy.Spread` whole)."""
+    return scores.n if isinstance(scores, Spread) else len(scores[mid])
+
+
+def _best_of(scores: Mapping[str, np.ndarray], mid: str) -> int:
+    """The reference with the highest finite score of ``mid`` (the lowest on ties), -1
+    when none is finite."""
+    if isinstance(scores, Spread):
+        return scores.best(mid)
+    s = np.asarray(scores[mid], dtype=np.float64)
+    if not np.isfinite(s).any():
+        return -1
+    return int(np.nanargmax(np.where(np.isfinite(s), s, np.nan)))
+
+
+def _best_outside_all(
+    values: np.ndarray, answer: int, routes: RouteMap, window: int, look: int = 64
+) -> float | None:
+    """:func:`_best_outside` over every reference, looking first at the ``look`` highest
+    values (finite, no NaN): the first of them far from ``answer`` is the best far one
+    (every other value is at most as high). Only when none of them is far (more than
+    ``look`` high values within ``window`` steps) is every reference looked at."""
+    n = len(values)
+    if n > 4 * look and np.isfinite(values).all():
+        top = top_k(values, look)
+        far = routes.separation(top, answer) > window
+        if far.any():
+            return float(values[top[np.argmax(far)]])
+    return _best_outside(values, np.arange(n), answer, routes, window)
 
 
 def _best_outside(
@@ -158,10 +197,11 @@ def answer_features(
         raise HmpfError("window must be >= 0")
     n_db = routes.n
     for tier in result.tiers:
-        for mid, score in tier.scores.items():
-            if len(score) != n_db:
+        for mid in tier.scores:
+            size = _scored(tier.scores, mid)
+            if size != n_db:
                 raise HmpfError(
-                    f"method {mid!r} scored {len(score)} references; the route map has {n_db}"
+                    f"method {mid!r} scored {size} references; the route map has {n_db}"
                 )
     match = int(result.match)
     out: dict[str, float] = {}
@@ -178,9 +218,8 @@ def answer_features(
     final_methods = tiers[-1].methods if tiers else []
     if answered:
         for mid in final_methods:
-            s = np.asarray(tiers[-1].scores[mid], dtype=np.float64)
-            if np.isfinite(s).any():
-                best = int(np.nanargmax(np.where(np.isfinite(s), s, np.nan)))
+            best = _best_of(tiers[-1].scores, mid)
+            if best >= 0:
                 agree += bool(routes.separation(best, match) <= window)
     out["agreement"] = agree / len(final_methods) if final_methods else 0.0
     # Tier 1: the whole database.
@@ -193,7 +232,7 @@ def answer_features(
             rank = n_db
         out["tier1_rank"] = math.log1p(rank)
         score0 = np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
-        rival1 = _best_outside(score0, np.arange(n_db), match, routes, window)
+        rival1 = _best_outside_all(score0, match, routes, window)
         out["tier1_margin"] = float(score0[match]) - (0.0 if rival1 is None else rival1)
         fin = mean[np.isfinite(mean)]
         sd = float(fin.std()) if fin.size > 1 else 0.0
@@ -224,6 +263,25 @@ def answer_features(
 
 
 # -- absolute evidence: how a reference scores against unrelated ones -------------------------
+
+#: :meth:`ReferenceProfile.build`'s defaults: unrelated references sampled, the route steps
+#: around a reference that are not unrelated to it, the sample's seed.
+PROFILE_SAMPLE, PROFILE_WINDOW, PROFILE_SEED = 256, 2, 0
+#: Version of what :meth:`ReferenceProfile.build` computes: raised when the same parameters
+#: would give other numbers, so that a profile stored with an index version is built anew.
+PROFILE_VERSION = 1
+
+
+def profile_params() -> dict[str, int]:
+    """What a default :meth:`ReferenceProfile.build` computes: ``version``
+    (:data:`PROFILE_VERSION`), ``sample``, ``window`` and ``seed``. A stored profile records
+    them and is used only where they are still these."""
+    return {
+        "version": PROFILE_VERSION,
+        "sample": PROFILE_SAMPLE,
+        "window": PROFILE_WINDOW,
+        "seed": PROFILE_SEED,
+    }
 
 
 @dataclass(frozen=True)
@@ -257,10 +315,10 @@ class ReferenceProfile:
         method_ids: Sequence[str],
         routes: RouteMap,
         *,
-        sample: int = 256,
-        window: int = 2,
+        sample: int = PROFILE_SAMPLE,
+        window: int = PROFILE_WINDOW,
         chunk: int = 16384,
-        seed: int = 0,
+        seed: int = PROFILE_SEED,
     ) -> ReferenceProfile:
         """Profile the references of ``db`` for the global methods among ``method_ids``
         (local methods are skipped; none left: an empty profile whose :meth:`z` is NaN).
@@ -311,6 +369,43 @@ class ReferenceProfile:
     @property
     def n(self) -> int:
         return int(self.mean.shape[1])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """``sign`` (M,), ``mean`` and ``std`` (M, N), float64: with :attr:`methods`, what
+        :meth:`from_arrays` restores the profile from, bit for bit."""
+        return {
+            "sign": np.asarray(self.sign, dtype=np.float64),
+            "mean": np.asarray(self.mean, dtype=np.float64),
+            "std": np.asarray(self.std, dtype=np.float64),
+        }
+
+    @classmethod
+    def from_arrays(
+        cls, methods: Sequence[str], arrays: Mapping[str, np.ndarray]
+    ) -> ReferenceProfile:
+        """Inverse of :meth:`to_arrays` (the arrays are copied).
+
+        Raises:
+            HmpfError: an array missing, a duplicate method, shapes that disagree with
+                ``methods`` or with each other, a sign other than +1 or -1.
+        """
+        ids = tuple(str(m) for m in methods)
+        missing = [k for k in ("sign", "mean", "std") if k not in arrays]
+        if missing:
+            raise HmpfError(f"reference profile lacks {', '.join(missing)}")
+        if len(set(ids)) != len(ids):
+            raise HmpfError(f"reference profile names a method twice: {list(ids)}")
+        sign = np.array(arrays["sign"], dtype=np.float64)
+        mean = np.array(arrays["mean"], dtype=np.float64)
+        std = np.array(arrays["std"], dtype=np.float64)
+        if sign.shape != (len(ids),) or not np.isin(sign, (1.0, -1.0)).all():
+            raise HmpfError(f"reference profile: sign must be +-1 for each of {len(ids)} methods")
+        if mean.ndim != 2 or mean.shape[0] != len(ids) or std.shape != mean.shape:
+            raise HmpfError(
+                f"reference profile: mean {mean.shape} and std {std.shape} must both be "
+                f"({len(ids)}, N)"
+            )
+        return cls(ids, tuple(float(s) for s in sign), mean, std)
 
     def subset(self, keep: np.ndarray) -> ReferenceProfile:
         """The profile of the references ``keep`` (a map with some references removed)."""

@@ -15,12 +15,13 @@ Two modes, selected with ``faithful``:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 
 __all__ = [
     "DEFAULT_WEIGHTS",
+    "Spread",
     "combined_score",
     "default_weights",
     "flat_fusion",
@@ -57,13 +58,29 @@ def minmax_normalise(
         (n,) float64.
     """
     x = np.asarray(raw, dtype=np.float64)
-    finite = x[~np.isnan(x)]
-    if finite.size == 0:
+    # fmin / fmax skip NaN without copying the non-NaN entries out (one pass each; a map of
+    # a million references pays for every pass); NaN only when every entry is NaN.
+    lo, hi = np.fmin.reduce(x, initial=np.nan), np.fmax.reduce(x, initial=np.nan)
+    if np.isnan(lo):
         return np.full(x.shape, np.nan)
-    lo, hi = finite.min(), finite.max()
     if hi == lo:
         return np.full(x.shape, np.nan) if faithful else np.where(np.isnan(x), np.nan, 1.0)
     return (x - lo) / (hi - lo) if higher_is_better else (hi - x) / (hi - lo)
+
+
+def _kth_largest_bound(s: np.ndarray, k: int, blocks: int = 1024) -> float:
+    """A value <= the ``k``-th largest of ``s`` (no NaN, ``k < len(s)``) that few entries
+    exceed: the ``k``-th largest of ``blocks`` block maxima (k distinct entries, so the top
+    k are all at least as high), or the exact ``k``-th largest for short arrays, a large
+    ``k``, or when ties at the bound would let through most of the array."""
+    n = s.size
+    if n >= 16 * blocks and 4 * k <= blocks:
+        step = -(-n // blocks)
+        maxima = np.maximum.reduceat(s, np.arange(0, n, step))
+        bound = float(np.partition(maxima, maxima.size - k)[maxima.size - k])
+        if np.count_nonzero(s >= bound) <= 64 * blocks:
+            return bound
+    return float(np.partition(s, n - k)[n - k])
 
 
 def top_k(scores: np.ndarray, k: int) -> np.ndarray:
@@ -73,8 +90,16 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
     entries give a shorter list.
     """
     s = np.asarray(scores, dtype=np.float64)
+    if k <= 0 or s.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if k < s.size and not np.isnan(s).any():
+        # No NaN (a whole-database tier): every entry of the top k is >= the k-th largest of
+        # any k distinct entries, e.g. of block maxima (one pass); order what passes.
+        kth = _kth_largest_bound(s, k)
+        keep = np.flatnonzero(s >= kth)
+        return keep[np.lexsort((keep, -s[keep]))][:k].astype(np.int64)
     valid = np.flatnonzero(~np.isnan(s))
-    if k <= 0 or valid.size == 0:
+    if valid.size == 0:
         return np.zeros(0, dtype=np.int64)
     v = s[valid]
     if k < valid.size:
@@ -168,3 +193,50 @@ def flat_fusion(
         for r, h in zip(raw_by_method, higher_is_better, strict=True)
     ]
     return np.mean(norm, axis=0)
+
+
+class Spread(Mapping[str, np.ndarray]):
+    """Per method, an ``(n,)`` array that is NaN except at ``index`` (ascending, unique),
+    where it holds ``values[method]``: a later tier's scores, which cover a few candidates
+    of a database that may hold a million references. Reading a method (``spread[m]``)
+    makes its whole array once (the same values the tier always reported); :meth:`at` and
+    :meth:`best` read the entries without making it.
+    """
+
+    def __init__(self, n: int, index: np.ndarray, values: Mapping[str, np.ndarray]) -> None:
+        self.n = int(n)
+        self.index = np.asarray(index, dtype=np.int64)
+        self.values = {m: np.asarray(v, dtype=np.float64) for m, v in values.items()}
+        self._whole: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, mid: str) -> np.ndarray:
+        if mid not in self._whole:
+            whole = np.full(self.n, np.nan)
+            whole[self.index] = self.values[mid]
+            self._whole[mid] = whole
+        return self._whole[mid]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.values)
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def at(self, mid: str, idx: np.ndarray) -> np.ndarray:
+        """``self[mid][idx]``, read from the entries."""
+        idx = np.asarray(idx, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self.index, idx), max(len(self.index) - 1, 0))
+        out = np.full(len(idx), np.nan)
+        if len(self.index):
+            hit = self.index[pos] == idx
+            out[hit] = self.values[mid][pos[hit]]
+        return out
+
+    def best(self, mid: str) -> int:
+        """``nanargmax(self[mid])`` (the lowest index among equal bests), -1 without a
+        finite entry."""
+        v = self.values[mid]
+        finite = np.isfinite(v)
+        if not finite.any():
+            return -1
+        return int(self.index[np.nanargmax(np.where(finite, v, np.nan))])

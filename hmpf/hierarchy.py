@@ -29,7 +29,15 @@ from typing import Any
 import numpy as np
 
 from hmpf.config import HierarchyConfig
-from hmpf.fusion import combined_score, minmax_normalise, nan_argmax, top_k, union, zscore
+from hmpf.fusion import (
+    Spread,
+    combined_score,
+    minmax_normalise,
+    nan_argmax,
+    top_k,
+    union,
+    zscore,
+)
 from hmpf.methods import Method
 
 __all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult", "feature_scorer"]
@@ -65,6 +73,12 @@ def feature_scorer(
     return score_fn
 
 
+def _entries(x: Mapping[str, np.ndarray], mid: str, at: np.ndarray | None) -> np.ndarray:
+    if at is None:
+        return x[mid]
+    return x.at(mid, at) if isinstance(x, Spread) else x[mid][at]
+
+
 @dataclass
 class TierResult:
     """One tier of one query.
@@ -85,18 +99,20 @@ class TierResult:
 
     methods: list[str]
     inputs: np.ndarray | None
-    scores: dict[str, np.ndarray]
+    scores: Mapping[str, np.ndarray]
     candidates: np.ndarray
     time_ms: float
-    raw: dict[str, np.ndarray] = field(default_factory=dict)
+    raw: Mapping[str, np.ndarray] = field(default_factory=dict)
 
-    def mean_score(self) -> np.ndarray:
-        """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input)."""
-        return np.mean([self.scores[m] for m in self.methods], axis=0)
+    def mean_score(self, at: np.ndarray | None = None) -> np.ndarray:
+        """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input);
+        with ``at``, just those entries (the same values)."""
+        return np.mean([_entries(self.scores, m, at) for m in self.methods], axis=0)
 
-    def max_score(self) -> np.ndarray:
-        """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``)."""
-        stack = np.stack([self.scores[m] for m in self.methods])
+    def max_score(self, at: np.ndarray | None = None) -> np.ndarray:
+        """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``); with ``at``,
+        just those entries (the same values)."""
+        stack = np.stack([_entries(self.scores, m, at) for m in self.methods])
         out = np.full(stack.shape[1], np.nan)
         has = ~np.isnan(stack).all(axis=0)
         out[has] = np.nanmax(stack[:, has], axis=0)
@@ -156,7 +172,7 @@ class Hierarchy:
                 method = self.methods[mid]
                 if inputs is None:
                     raw = np.asarray(score_fn(mid, None), dtype=np.float64)
-                    full = minmax_normalise(raw, method.higher_is_better, faithful=faithful)
+                    scores[mid] = minmax_normalise(raw, method.higher_is_better, faithful=faithful)
                     raws[mid] = raw
                 else:
                     raw_u = np.asarray(score_fn(mid, uniq), dtype=np.float64)
@@ -164,24 +180,38 @@ class Hierarchy:
                     norm = minmax_normalise(
                         raw_u[inverse], method.higher_is_better, faithful=faithful
                     )
-                    full = np.full(n_db, off)
-                    full[inputs] = norm
-                    raw_full = np.full(n_db, np.nan)
-                    raw_full[uniq] = raw_u
-                    raws[mid] = raw_full
-                scores[mid] = full
+                    scores[mid] = np.empty(len(uniq))
+                    scores[mid][inverse] = norm  # the same value at every duplicate
+                    raws[mid] = raw_u
+            # A later tier covers only its inputs: outside faithful mode the rest is NaN,
+            # which selection skips, so its scores stay entries at the inputs (ascending:
+            # ties still go to the lower index). Faithful mode's rest is 0, and can be
+            # selected: whole arrays, as the original.
+            sel = None if inputs is None or faithful else uniq
+            at = dict(scores) if inputs is None or not faithful else {}
+            if inputs is not None and faithful:
+                for mid in tier.methods:
+                    at[mid] = np.full(n_db, off)
+                    at[mid][uniq] = scores[mid]
+                    whole = np.full(n_db, np.nan)
+                    whole[uniq] = raws[mid]
+                    raws[mid] = whole
+                scores = at
             if t < n_tiers - 1:
-                cands = union([top_k(scores[m], tier.k) for m in tier.methods], faithful=faithful)
+                picks = [top_k(at[m], tier.k) for m in tier.methods]
             else:
-                cands = top_k(np.mean([scores[m] for m in tier.methods], axis=0), tier.k)
+                picks = [top_k(np.mean([at[m] for m in tier.methods], axis=0), tier.k)]
+            if sel is not None:
+                picks = [sel[p] for p in picks]
+            cands = union(picks, faithful=faithful) if t < n_tiers - 1 else picks[0]
             tiers.append(
                 TierResult(
                     list(tier.methods),
                     inputs,
-                    scores,
+                    Spread(n_db, sel, scores) if sel is not None else scores,
                     cands,
                     (time.perf_counter() - start) * 1e3,
-                    raws,
+                    Spread(n_db, sel, raws) if sel is not None else raws,
                 )
             )
             inputs = cands
@@ -190,7 +220,7 @@ class Hierarchy:
         F = np.arange(n_db, dtype=np.int64) if final_in is None else final_in
         mean_all = cfg.tier_score == "mean"
         values = [
-            (tr.mean_score() if mean_all or t == n_tiers - 1 else tr.max_score())[F]
+            tr.mean_score(F) if mean_all or t == n_tiers - 1 else tr.max_score(F)
             for t, tr in enumerate(tiers)
         ]
         if len(F) == 0:

@@ -1,0 +1,116 @@
+"""Fast paths for maps of a million references against their brute-force definitions:
+top-k through block maxima, later tiers kept as entries (:class:`~hmpf.fusion.Spread`),
+tier 1's best rival from its highest scores. Each must give exactly what the whole-array
+computation gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hmpf.confidence import _best_outside, _best_outside_all, answer_features
+from hmpf.config import parse_config
+from hmpf.fusion import Spread, top_k
+from hmpf.hierarchy import Hierarchy, HierarchyResult, TierResult
+from hmpf.methods import create_method
+from hmpf.sequence import RouteMap
+
+
+def _top_k_definition(s: np.ndarray, k: int) -> np.ndarray:
+    """Highest first, ties to the lower index, NaN skipped: a full stable sort."""
+    valid = np.flatnonzero(~np.isnan(s))
+    order = valid[np.lexsort((valid, -s[valid]))]
+    return order[:k]
+
+
+@pytest.mark.parametrize("n", [10, 1000, 20_000, 300_000])
+@pytest.mark.parametrize("kind", ["random", "ties", "constant_floor", "nan"])
+def test_top_k_equals_a_full_sort(n, kind):
+    rng = np.random.default_rng(n)
+    s = rng.random(n)
+    if kind == "ties":
+        s = np.round(s * 20) / 20  # many equal values, also at the cut
+    elif kind == "constant_floor":  # an approximate tier 1: a few scored, the rest the worst
+        s = np.full(n, 0.0)
+        s[rng.choice(n, min(n, 1300), replace=False)] = rng.random(min(n, 1300))
+    elif kind == "nan":
+        s[rng.random(n) < 0.3] = np.nan
+    for k in (1, 10, 100, 255):
+        assert np.array_equal(top_k(s, k), _top_k_definition(s, k)), (kind, k)
+
+
+def test_spread_reads_as_its_whole_array():
+    rng = np.random.default_rng(1)
+    idx = np.sort(rng.choice(5000, 40, replace=False))
+    vals = {"a": rng.random(40), "b": np.where(rng.random(40) < 0.5, np.nan, rng.random(40))}
+    vals["b"][:] = np.nan
+    vals["b"][[3, 9, 30]] = [0.5, 0.7, 0.7]  # the best twice: the lower index wins
+    sp = Spread(5000, idx, vals)
+    for m, v in vals.items():
+        whole = np.full(5000, np.nan)
+        whole[idx] = v
+        assert np.array_equal(sp[m], whole, equal_nan=True)
+        probe = np.concatenate([idx[::3], rng.integers(0, 5000, 50)])
+        assert np.array_equal(sp.at(m, probe), whole[probe], equal_nan=True)
+        assert sp.best(m) == int(np.nanargmax(whole))
+    assert Spread(10, np.array([2]), {"c": np.array([np.nan])}).best("c") == -1
+    assert sorted(sp) == ["a", "b"] and len(sp) == 2
+
+
+def _whole(result: HierarchyResult) -> HierarchyResult:
+    """The same result with every tier's scores as whole arrays (what the tiers held
+    before they kept entries)."""
+    tiers = [
+        TierResult(
+            t.methods,
+            t.inputs,
+            {m: t.scores[m] for m in t.scores},
+            t.candidates,
+            t.time_ms,
+            {m: t.raw[m] for m in t.raw},
+        )
+        for t in result.tiers
+    ]
+    return HierarchyResult(
+        result.match, result.quality, result.final_candidates, result.combined, tiers
+    )
+
+
+def test_answer_features_are_the_same_from_entries_and_whole_arrays():
+    config = parse_config(
+        {
+            "name": "fast-paths",
+            "tiers": [{"methods": ["gist", "hog"], "k": 8}, {"methods": ["sad", "hog"], "k": 1}],
+        }
+    )
+    methods = {m: create_method(m) for m in ("gist", "hog", "sad")}
+    n = 50_000
+    rng = np.random.default_rng(2)
+    full = {m: rng.random(n) for m in ("gist", "hog")}
+
+    def score_fn(mid, subset):
+        x = full.get(mid, full["hog"][::-1].copy())
+        return x if subset is None else x[subset]
+
+    routes = RouteMap.from_metadata(n, sequence=np.repeat(np.arange(50), 1000))
+    result = Hierarchy(config, methods).run(score_fn, n)
+    assert isinstance(result.tiers[1].scores, Spread)
+    got = answer_features(result, routes)
+    want = answer_features(_whole(result), routes)
+    assert got == want
+
+
+def test_best_rival_from_the_highest_scores_equals_every_reference():
+    rng = np.random.default_rng(3)
+    n = 20_000
+    routes = RouteMap.from_metadata(n, sequence=np.repeat(np.arange(20), 1000))
+    for trial in range(20):
+        v = rng.random(n)
+        answer = int(rng.integers(n))
+        if trial % 2:  # the answer's own neighbourhood holds the highest values
+            lo = max(0, answer - 2)
+            v[lo : answer + 3] = 2.0 + rng.random(len(v[lo : answer + 3]))
+        for window in (0, 2, 5):
+            assert _best_outside_all(v, answer, routes, window) == _best_outside(
+                v, np.arange(n), answer, routes, window
+            )
