@@ -1,4 +1,5 @@
-"""Cost of verifying an index version on load (sha256 of every file) against the map's size.
+"""Cost of verifying an index version on load against the map's size: the full check (sha256
+of every file) and the verification stamp's check (a ``stat`` of every file).
 
     python -m bench.verify_scale [--sizes 10000,100000] [--global-kib 17.8] [--local-kib 37.9]
                                  [--repeat 3] [--extrapolate 1000000] [--dir /tmp]
@@ -20,7 +21,13 @@ Per size, the median of ``--repeat`` runs of:
   file_entry`) on one thread per core, with the files in the page cache (e.g. right after
   they were written or copied);
 * ``check (cold)``: the same after evicting the files from the page cache
-  (``posix_fadvise(DONTNEED)``, these files only), so the disk is read too.
+  (``posix_fadvise(DONTNEED)``, these files only), so the disk is read too;
+* ``1 thread (cold)``: the same check on one thread from a cold cache, as the service runs
+  it in the background after opening a version by its stamp (``workers=1``);
+* ``stamp``: :func:`~hmpf.index.layout.stamp_matches`, what the service runs instead before
+  it answers when the version carries a matching verification stamp (written here once by
+  :func:`~hmpf.index.layout.write_stamp`, as publish and ``hmpf-index verify`` do): the
+  stamp read, the manifest's digest and one ``stat`` per file, whatever the files' size.
 
 Sizes larger than memory or disk can be extrapolated (``--extrapolate``): the check reads
 and hashes every byte once, so its time is linear in the bytes (the per-GB rate of the
@@ -114,9 +121,10 @@ def main() -> int:
     )
     print(
         f"{'references':>10} {'GB':>6} {'streamed':>9} {'check warm':>11} {'check cold':>11} "
-        f"{'warm GB/s':>9} {'cold GB/s':>9}  load average (other jobs on the cores)"
+        f"{'warm GB/s':>9} {'cold GB/s':>9} {'1 thr cold':>10} {'stamp':>9}  "
+        "load average (other jobs on the cores)"
     )
-    last: tuple[int, float, float, float] | None = None
+    last: tuple[int, float, float, float, float] | None = None
     for n in (int(s) for s in args.sizes.split(",")):
         with tempfile.TemporaryDirectory(dir=args.dir, prefix="hmpf-verify-") as tmp:
             folder = Path(tmp) / "v0001"
@@ -130,22 +138,34 @@ def main() -> int:
             def check(folder: Path = folder, manifest: dict = manifest) -> None:
                 layout.check_files(folder, manifest)
 
+            def one_thread(folder: Path = folder, manifest: dict = manifest) -> None:
+                assert not layout.file_problems(folder, manifest, workers=1)
+
+            def stamp(folder: Path = folder, manifest: dict = manifest) -> None:
+                assert layout.stamp_matches(folder, manifest)
+
+            assert layout.write_stamp(folder, manifest)
             load = os.getloadavg()[0]
             t_base = median_time(streamed, args.repeat, lambda: None)
             t_warm = median_time(check, args.repeat, lambda: None)
             t_cold = median_time(check, args.repeat, lambda folder=folder: evict(folder))
+            t_one = median_time(one_thread, args.repeat, lambda folder=folder: evict(folder))
+            t_stamp = median_time(stamp, max(args.repeat, 25), lambda: None)
             print(
                 f"{n:>10} {gb:>6.2f} {t_base:>8.2f}s {t_warm:>10.2f}s {t_cold:>10.2f}s "
-                f"{gb / t_warm:>9.2f} {gb / t_cold:>9.2f}  {load:.1f} -> {os.getloadavg()[0]:.1f}"
+                f"{gb / t_warm:>9.2f} {gb / t_cold:>9.2f} {t_one:>9.2f}s {t_stamp * 1e3:>7.2f}ms  "
+                f"{load:.1f} -> {os.getloadavg()[0]:.1f}"
             )
-            last = (n, gb, t_warm, t_cold)
+            last = (n, gb, t_warm, t_cold, t_one)
             shutil.rmtree(folder)
     if last is not None and args.extrapolate > last[0]:
-        n, gb, t_warm, t_cold = last
+        n, gb, t_warm, t_cold, t_one = last
         big_gb = args.extrapolate * per_ref / 1e9
         print(
             f"{args.extrapolate:>10} {big_gb:>6.1f} (extrapolated from {n}, linear in bytes): "
-            f"check warm {t_warm * big_gb / gb:.1f} s, cold {t_cold * big_gb / gb:.1f} s"
+            f"check warm {t_warm * big_gb / gb:.1f} s, cold {t_cold * big_gb / gb:.1f} s, "
+            f"1 thread cold {t_one * big_gb / gb:.1f} s; stamp: not linear in bytes (one "
+            "stat per file), as measured"
         )
     return 0
 

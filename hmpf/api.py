@@ -51,6 +51,7 @@ __all__ = [
     "ReloadResponse",
     "SequenceReport",
     "TierReport",
+    "VerificationInfo",
     "VEHICLE_ID_PATTERN",
 ]
 
@@ -383,6 +384,26 @@ class BuildInfo(BaseModel):
     )
 
 
+class VerificationInfo(BaseModel):
+    """How the loaded version's files were checked against their manifest's sha256."""
+
+    state: Literal["full", "checking", "passed", "corrupt"] = Field(
+        description="full: every file hashed before the version answered; checking: opened "
+        "by its verification stamp (its files unchanged since a full check at publish or by "
+        "`hmpf-index verify`), the full check running in the background; passed: that check "
+        "found every file sound; corrupt: it did not, and the version answers no query (503)"
+    )
+    seconds: float | None = Field(
+        None, description="the hashing before the version answered (null: none, by stamp)"
+    )
+    check_seconds: float | None = Field(
+        None, description="the background check (null: not run, or not finished)"
+    )
+    problems: list[str] = Field(
+        default_factory=list, description="what the background check found, file by file"
+    )
+
+
 class IndexInfo(BaseModel):
     root: str | None = Field(
         None,
@@ -404,6 +425,9 @@ class IndexInfo(BaseModel):
     threshold: float
     acceptance: AcceptanceInfo
     loaded_at: float
+    verification: VerificationInfo | None = Field(
+        None, description="how the loaded version's files were verified"
+    )
 
 
 class ReferenceList(BaseModel):

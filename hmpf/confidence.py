@@ -340,7 +340,7 @@ class ReferenceProfile:
                 continue
             if mid not in db:
                 raise HmpfError(f"no stored descriptors of method {mid!r} to profile")
-            mat = np.asarray(db[mid])
+            mat = db[mid]  # indexed in chunks: rows read on demand stay on disk
             if len(mat) != n:
                 raise HmpfError(f"method {mid!r} holds {len(mat)} references; the map has {n}")
             q = mat[pick]

@@ -197,30 +197,30 @@ def flat_fusion(
 
 class Spread(Mapping[str, np.ndarray]):
     """Per method, an ``(n,)`` array that is NaN except at ``index`` (ascending, unique),
-    where it holds ``values[method]``: a later tier's scores, which cover a few candidates
+    where it holds ``entries[method]``: a later tier's scores, which cover a few candidates
     of a database that may hold a million references. Reading a method (``spread[m]``)
     makes its whole array once (the same values the tier always reported); :meth:`at` and
     :meth:`best` read the entries without making it.
     """
 
-    def __init__(self, n: int, index: np.ndarray, values: Mapping[str, np.ndarray]) -> None:
+    def __init__(self, n: int, index: np.ndarray, entries: Mapping[str, np.ndarray]) -> None:
         self.n = int(n)
         self.index = np.asarray(index, dtype=np.int64)
-        self.values = {m: np.asarray(v, dtype=np.float64) for m, v in values.items()}
+        self.entries = {m: np.asarray(v, dtype=np.float64) for m, v in entries.items()}
         self._whole: dict[str, np.ndarray] = {}
 
     def __getitem__(self, mid: str) -> np.ndarray:
         if mid not in self._whole:
             whole = np.full(self.n, np.nan)
-            whole[self.index] = self.values[mid]
+            whole[self.index] = self.entries[mid]
             self._whole[mid] = whole
         return self._whole[mid]
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self.values)
+        return iter(self.entries)
 
     def __len__(self) -> int:
-        return len(self.values)
+        return len(self.entries)
 
     def at(self, mid: str, idx: np.ndarray) -> np.ndarray:
         """``self[mid][idx]``, read from the entries."""
@@ -229,13 +229,13 @@ class Spread(Mapping[str, np.ndarray]):
         out = np.full(len(idx), np.nan)
         if len(self.index):
             hit = self.index[pos] == idx
-            out[hit] = self.values[mid][pos[hit]]
+            out[hit] = self.entries[mid][pos[hit]]
         return out
 
     def best(self, mid: str) -> int:
         """``nanargmax(self[mid])`` (the lowest index among equal bests), -1 without a
         finite entry."""
-        v = self.values[mid]
+        v = self.entries[mid]
         finite = np.isfinite(v)
         if not finite.any():
             return -1

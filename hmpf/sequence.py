@@ -64,6 +64,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.errors import HmpfError
+from hmpf.fusion import top_k
 
 __all__ = [
     "OFF_LLR_CLIP",
@@ -473,7 +474,8 @@ class Evidence:
         arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
         mean = np.nan_to_num(np.mean(arrays, axis=0), nan=0.0)
         k = min(proposals, len(mean))
-        top = np.argpartition(-mean, k - 1)[:k] if k < len(mean) else np.arange(len(mean))
+        # The k best (ties to the lower index): block maxima, not a partition of the map.
+        top = top_k(mean, k) if k < len(mean) else np.arange(len(mean))
         final = np.asarray(result.final_candidates, dtype=np.int64)
         z = np.asarray(result.combined, dtype=np.float64)
         comb = np.zeros(len(final))

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 import hmpf.features as hfeatures
+from hmpf.confidence import profile_params
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import ImageError
 from hmpf.evaluation.auto import choose_config
@@ -57,11 +58,18 @@ from hmpf.index.ann import (
 )
 from hmpf.index.layout import IndexBuildError, IndexCorruptError
 from hmpf.index.models import MODELS_DIR, write_models
+from hmpf.index.places import Places, augment_rows, augments, places_profile, route_map_of
 from hmpf.index.reader import IndexReader
+from hmpf.index.rows import DiskRows, disk_rows
 from hmpf.index.storage import (
     Precision,
+    RowBlocks,
+    open_h5,
+    read_global,
+    read_ref_table,
     read_state,
     write_local,
+    write_profile,
     write_references,
     write_state,
 )
@@ -425,8 +433,14 @@ def _write_faiss(
         if m.kind != "global":
             continue
         factory, params = opt.factory(mid), opt.params(mid)
-        assert isinstance(cols[mid], np.ndarray)
-        matrix = m.augment_references(cols[mid])  # type: ignore[attr-defined]  # dba
+        col = cols[mid]
+        assert isinstance(col, np.ndarray | RowBlocks)
+        if isinstance(col, RowBlocks) and int(getattr(m.config, "dba", 0) or 0):
+            raise IndexBuildError(
+                f"method {mid!r}: dba averages route neighbours over the whole matrix, which "
+                "rows given block by block (RowBlocks) do not allow"
+            )
+        matrix = m.augment_references(col)  # type: ignore[attr-defined]  # dba
         metric = _tier1_metric(mid, m, factory)
         if metric is None:
             info[mid] = None
@@ -475,11 +489,42 @@ def _faiss_for(
         index = read_faiss(parent.path / old["file"])  # type: ignore[union-attr]
         if index.d == matrix.shape[1]:
             index.reset()
-            index.add(np.ascontiguousarray(matrix, dtype=np.float32))
+            _add_rows(index, matrix)
             if params:
                 set_search_params(index, params)
             return index, MetricSpec(**old["metric"])
+    if isinstance(matrix, RowBlocks):
+        return _faiss_from_blocks(matrix, metric, factory, params)
     return build_faiss(matrix, metric, factory, params)
+
+
+#: Rows an approximate FAISS index of rows given block by block (:class:`RowBlocks`) is
+#: trained on: an evenly spaced sample (every row when fewer).
+FAISS_TRAIN_ROWS = 65_536
+
+
+def _faiss_from_blocks(
+    rows: RowBlocks, metric: MetricSpec, factory: str, params: str
+) -> tuple[Any, MetricSpec]:
+    """:func:`~hmpf.index.ann.build_faiss` trained on an evenly spaced sample of
+    :data:`FAISS_TRAIN_ROWS` rows, then emptied and filled block by block (a million
+    NetVLAD rows are 24 GiB as float32)."""
+    n = rows.shape[0]
+    pick = np.unique(np.linspace(0, n - 1, min(n, FAISS_TRAIN_ROWS)).round().astype(np.int64))
+    index, metric = build_faiss(rows.take(pick), metric, factory, params)
+    index.reset()
+    _add_rows(index, rows)
+    return index, metric
+
+
+def _add_rows(index: Any, matrix: np.ndarray | RowBlocks) -> None:
+    """Add every row of ``matrix`` to a trained FAISS ``index`` (block by block for
+    :class:`RowBlocks`)."""
+    if isinstance(matrix, RowBlocks):
+        for _, block in matrix.blocks():
+            index.add(np.ascontiguousarray(block, dtype=np.float32))
+    else:
+        index.add(np.ascontiguousarray(matrix, dtype=np.float32))
 
 
 @dataclass
@@ -560,7 +605,8 @@ class VersionTransaction:
         skipped: Sequence[dict[str, str]] = (),
     ) -> Summary:
         """Write ``new`` into ``.build/out``, fsync it, rename it to the next version name,
-        switch ``CURRENT`` to it and delete ``.build``.
+        stamp it as verified (its sha256 were computed from its files:
+        :func:`hmpf.index.layout.write_stamp`), switch ``CURRENT`` to it and delete ``.build``.
 
         Args:
             extracted: references whose features this operation computed (the rest reused).
@@ -576,7 +622,7 @@ class VersionTransaction:
         out.mkdir()
         name = layout.next_version_name(self.root)
         try:
-            sizes, faiss_info = _write_data(out, new)
+            sizes, faiss_info, profile = _write_data(out, new)
             models = write_models(out, new.methods)  # the CNN models queries run (ONNX)
             thumb_bytes = 0
             if new.thumbnails is not None:
@@ -599,7 +645,9 @@ class VersionTransaction:
             summary.experiences = new.report
             summary.choice = _choice_summary(new.choice)
             manifest = _manifest(name, self.operation, new, faiss_info, models)
+            manifest["profile"] = profile
             manifest["summary"] = asdict(summary)
+            stats = layout.file_stats(out)  # before hashing: the stamp vouches for these
             manifest["files"] = _file_entries(out)
             summary.bytes_total = sum(f["bytes"] for f in manifest["files"].values())
             summary.bytes_models = sum(
@@ -609,10 +657,13 @@ class VersionTransaction:
             )
             manifest["summary"]["bytes_total"] = summary.bytes_total
             manifest["summary"]["bytes_models"] = summary.bytes_models
-            layout.write_manifest(out, manifest)
+            sealed = layout.write_manifest(out, manifest)
             layout.fsync_tree(out)
             out.rename(self.root / name)
             layout.fsync_dir(self.root)
+            # Every sha256 was just computed from these files: stamp them as checked in full
+            # (a reader opening them by stamp hashes nothing), before CURRENT names them.
+            layout.write_stamp(self.root / name, sealed, stats)
             layout.set_current(self.root, name)
         except OSError as exc:
             if exc.errno == errno.ENOSPC:
@@ -627,10 +678,11 @@ class VersionTransaction:
 
 def _write_data(
     out: Path, new: NewVersion
-) -> tuple[dict[str, int], dict[str, dict[str, Any] | None]]:
-    """The HDF5 and FAISS files of ``new``; returns bytes per method and the FAISS entries."""
+) -> tuple[dict[str, int], dict[str, dict[str, Any] | None], dict[str, Any]]:
+    """The HDF5 and FAISS files of ``new`` and its places' reference profile; returns bytes
+    per method, the FAISS entries and the manifest's ``profile`` entry."""
     opt = new.options
-    glob = {m: c for m, c in new.cols.items() if isinstance(c, np.ndarray)}
+    glob = {m: c for m, c in new.cols.items() if isinstance(c, np.ndarray | RowBlocks)}
     loc = {m: c for m, c in new.cols.items() if isinstance(c, dict)}
     sizes = write_references(out / layout.REFERENCES_H5, new.refs, glob, new.methods, opt.precision)
     if loc:
@@ -641,7 +693,53 @@ def _write_data(
     for mid, fi in faiss_info.items():
         if fi is not None and fi["file"]:
             sizes[mid] += (out / fi["file"]).stat().st_size
-    return sizes, faiss_info
+    return sizes, faiss_info, _write_profile(out, new.config, new.methods)
+
+
+def _write_profile(
+    out: Path, config: HierarchyConfig, methods: Mapping[str, Method]
+) -> dict[str, Any]:
+    """Write ``profile.h5``: the places' :class:`~hmpf.confidence.ReferenceProfile` of the
+    version being written in ``out``, computed as a reader of the version would compute it at
+    load (:func:`~hmpf.index.places.places_profile` over the descriptors and metadata read
+    back from its ``references.h5``, so stored precision included), so that no reader has to.
+
+    Returns:
+        the manifest's ``profile`` entry: the file, the profiled methods, the parameters
+        (:func:`~hmpf.confidence.profile_params`) and the seconds it took.
+    """
+    started = time.perf_counter()
+    tier1 = [m for m in config.tiers[0].methods if methods[m].kind == "global"]
+    with open_h5(out / layout.REFERENCES_H5) as f:
+        refs = read_ref_table(f)
+        where = str(out / layout.REFERENCES_H5)
+        places = Places.from_column(refs.meta.get("place"), len(refs), where)
+        P = places.n
+        searched: dict[str, Any] = {}
+        for m in tier1:
+            # Without dba, the places' rows as a reader reads them on demand (a million
+            # NetVLAD rows do not fit in memory as float32); the profile reads them in chunks.
+            rows = None if augments(methods[m]) else disk_rows(f["global"][m])
+            if rows is not None:
+                searched[m] = rows.head(P)
+                rows.close()
+                continue
+            # The places' rows are augmented among themselves whatever follows them
+            # (augment_rows' first P rows), so the experience rows need not be.
+            stored = read_global(f, m)[:P]
+            searched[m] = augment_rows(methods[m], stored, Places.identity(P))
+        profile = places_profile(config, methods, searched, route_map_of(refs.meta, P, config))
+        for rows in searched.values():
+            if isinstance(rows, DiskRows):
+                rows.close()
+    params = profile_params()
+    write_profile(out / layout.PROFILE_H5, profile, params)
+    return {
+        "file": layout.PROFILE_H5,
+        "methods": list(profile.methods),
+        "params": params,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
 
 
 # -- the manifest ------------------------------------------------------------------------------
@@ -711,7 +809,9 @@ def _choice_summary(choice: Mapping[str, Any] | None) -> dict[str, Any] | None:
     return {k: choice[k] for k in ("seed", "chosen", "digest", "time_s")}
 
 
-def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dict[str, Any]:
+def _method_entry(
+    m: Method, cols: Columns | RowBlocks, faiss: dict[str, Any] | None
+) -> dict[str, Any]:
     """A method's manifest entry: type, version, parameters, state hash, FAISS, shapes."""
     entry: dict[str, Any] = {
         "type": type(m).name,
@@ -723,15 +823,20 @@ def _method_entry(m: Method, cols: Columns, faiss: dict[str, Any] | None) -> dic
         "state_sha256": m.state_digest(),
         "faiss": faiss,
     }
-    if isinstance(cols, np.ndarray):
+    if isinstance(cols, np.ndarray | RowBlocks):
         entry["dim"] = int(cols.shape[1])
         entry["dtype"] = cols.dtype.str
     else:
-        entry["arrays"] = {
-            k: {"dtype": r.data.dtype.str, "item_shape": list(r.data.shape[1:])}
-            for k, r in cols.items()
-        }
+        entry["arrays"] = {k: _array_entry(r) for k, r in cols.items()}
     return entry
+
+
+def _array_entry(r: Ragged | RowBlocks) -> dict[str, Any]:
+    """A local array's dtype and per-row shape (:class:`RowBlocks` ``(N, n, ...)``: the
+    rows of its ``n``-row items)."""
+    if isinstance(r, RowBlocks):
+        return {"dtype": r.dtype.str, "item_shape": list(r.shape[2:])}
+    return {"dtype": r.data.dtype.str, "item_shape": list(r.data.shape[1:])}
 
 
 def _file_entries(out: Path) -> dict[str, dict[str, Any]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -21,6 +22,7 @@ __all__ = [
     "info",
     "stale_temporary_files",
     "list_versions",
+    "stale_stamps",
     "use",
     "verify",
     "verify_all",
@@ -39,6 +41,11 @@ _WRITER_TMP = re.compile(r"^\.(?:CURRENT|sequence-key)\.(\d{1,10})(?:\.[0-9a-f]+
 def verify(index: str | Path, version: str | None = None) -> list[str]:
     """Recompute every data file's sha256 and size, then open the version and check shapes.
 
+    A sound version gets a fresh verification stamp (:func:`hmpf.index.layout.write_stamp`,
+    from the files' stats before they were hashed: a server then opens it without hashing
+    it again); a corrupt one loses its stamp, so that every reader hashes it in full (and
+    refuses it).
+
     Returns:
         Problems found, one line each naming the file (empty: the version is sound).
     """
@@ -46,16 +53,22 @@ def verify(index: str | Path, version: str | None = None) -> list[str]:
     try:
         manifest = layout.read_manifest(path)
     except HmpfError as exc:
+        layout.remove_stamp(path)
         return [str(exc)]
+    listed = manifest.get("files")
+    before = layout.file_stats(path, sorted(listed)) if isinstance(listed, dict) else None
     problems = layout.file_problems(path, manifest)
+    if not problems:
+        try:
+            with IndexReader(path.parent, path.name, verify=False) as reader:  # just verified
+                for mid in reader.methods:
+                    reader.faiss_index(mid)  # loads and checks ntotal / d
+        except HmpfError as exc:
+            problems.append(str(exc))
     if problems:
-        return problems
-    try:
-        with IndexReader(path.parent, path.name, verify=False) as reader:  # just verified
-            for mid in reader.methods:
-                reader.faiss_index(mid)  # loads and checks ntotal / d
-    except HmpfError as exc:
-        problems.append(str(exc))
+        layout.remove_stamp(path)
+    else:
+        layout.write_stamp(path, manifest, before)
     return problems
 
 
@@ -154,6 +167,9 @@ def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
     a ``gc`` killed midway leaves every version whole or gone; the next ``gc`` deletes what
     it left.
 
+    A deleted version's verification stamp (``.verified/<name>.json``) goes first, and so do
+    stamps of versions no longer there (:func:`stale_stamps`); neither is in the list returned.
+
     Returns:
         the deleted paths (their names before the rename).
     """
@@ -170,14 +186,41 @@ def gc(index: str | Path, keep: int = 0, dry_run: bool = False) -> list[str]:
         leftovers = sorted(root.glob(layout.DELETING + "*"))
         stale = stale_temporary_files(root)
         if not dry_run:
+            for v in doomed:
+                layout.remove_stamp(root / v)  # first: a version never outlives its stamp
             for p in leftovers:
                 shutil.rmtree(p)
             for p in paths:
                 shutil.rmtree(_move_away(p))
+            for p in stale_stamps(root):
+                p.unlink(missing_ok=True)
             for p in stale:
                 p.unlink(missing_ok=True)
             layout.fsync_dir(root)
     return [str(p) for p in paths + leftovers + stale]
+
+
+def stale_stamps(root: Path, now: float | None = None) -> list[Path]:
+    """Files of ``.verified`` that vouch for nothing: the stamp of a version that is not (or
+    no longer) published, and a stamp's temporary file older than
+    :data:`STALE_TMP_MIN_AGE_S` (a stamp is written in milliseconds; deleting a live
+    writer's temporary file only makes its stamp fail to appear, which is safe: the version
+    is then hashed in full when opened)."""
+    folder = root / layout.VERIFIED_DIR
+    if not folder.is_dir():
+        return []
+    now = time.time() if now is None else now
+    versions = set(layout.list_versions(root))
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.suffix == ".json" and not p.name.startswith("."):
+            if p.stem not in versions:
+                out.append(p)
+        elif p.name.endswith(".tmp") and p.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                if now - p.stat().st_mtime > STALE_TMP_MIN_AGE_S:
+                    out.append(p)
+    return out
 
 
 def stale_temporary_files(root: Path, now: float | None = None) -> list[Path]:

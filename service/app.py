@@ -64,6 +64,8 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         accept_threshold=settings.accept_threshold,
     )
     metrics = Metrics()
+    # versions the background check finds corrupt (service.engine), counted
+    engine.on_corrupt = lambda loaded: metrics.index_corrupt.inc()
     app = FastAPI(
         title="hmpf",
         summary="Visual place recognition: which stored reference image does this frame show?",

@@ -15,6 +15,22 @@
   running its images in that many lanes); beyond that :meth:`Engine.admit` refuses and the
   API answers 503 + Retry-After. Slots and leases are released by the pool threads when
   their work ends, so a client that disconnects never frees capacity that is still in use.
+* Verification (:attr:`Loaded.verification`): a version is opened by its verification stamp
+  when it has a matching one (:func:`hmpf.index.layout.stamp_matches`: its files are, inode
+  and change times, those a full sha256 check passed at publish or in ``hmpf-index
+  verify``), so that it answers within seconds of the start whatever its size; otherwise
+  every byte is hashed before it answers (on every core), and a corrupt version is refused
+  (start-up exits, a reload keeps the loaded version). A version opened by its stamp is then
+  checked in full anyway, on one background thread at low priority (one check at a time),
+  because a stamp cannot see a byte changed below the file system (a failing disk) or a
+  forged stamp. If that check finds a damaged file, the version is marked ``corrupt``:
+  its stamp is deleted, the error logged and counted (:attr:`Engine.on_corrupt`), and no
+  new query is answered from it: :meth:`Engine.lease` raises :class:`IndexVersionCorrupt`
+  (the API's 503 ``index_corrupt``; ``/readyz`` says not ready), unless the version it
+  replaced in a reload is still held, sound: a version opened by its stamp on a reload keeps
+  the previous sound version open until its check passes (memory for both meanwhile, as
+  during any reload), and a failed check switches back to that one. Queries already
+  running when the damage is found finish on the version they started on.
 """
 
 from __future__ import annotations
@@ -22,6 +38,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -36,17 +53,42 @@ from hmpf.acceptance import DEFAULT_ACCEPT_THRESHOLD, Policy
 from hmpf.confidence import ReferenceProfile
 from hmpf.datasets import haversine_m
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
+from hmpf.index import layout
 from hmpf.index.reader import IndexReader
 from hmpf.runtime import set_compute_threads
 from hmpf.sequence import SequenceFilter
 from service.track import binding_digest
 
-__all__ = ["DEFAULT_ACCEPT_THRESHOLD", "Acceptance", "Engine", "Loaded", "Prior", "confidence"]
+__all__ = [
+    "DEFAULT_ACCEPT_THRESHOLD",
+    "VERIFICATION_STATES",
+    "Acceptance",
+    "Engine",
+    "IndexVersionCorrupt",
+    "Loaded",
+    "Prior",
+    "confidence",
+]
 
 log = logging.getLogger("hmpf.service")
 T = TypeVar("T")
 #: What one job of a lane ended with: (True, its value) or (False, the exception it raised).
 JobResult = tuple[bool, Any]
+#: How a loaded version's files were verified (:attr:`Loaded.verification`): ``full``, every
+#: sha256 before it answered; ``checking``, opened by its verification stamp and answering
+#: while the full check runs in the background; ``passed``, that check found every byte as
+#: the manifest lists it; ``corrupt``, it did not: the version answers no query.
+VERIFICATION_STATES = ("full", "checking", "passed", "corrupt")
+#: Niceness of the background check's thread (Linux: per thread), below the query threads.
+CHECK_NICENESS = 10
+
+
+class IndexVersionCorrupt(Exception):
+    """The loaded version failed its background check: it answers no query."""
+
+    def __init__(self, version: str) -> None:
+        super().__init__(f"index version {version} is corrupt")
+        self.version = version
 
 
 def confidence(quality: float, n: int) -> float:
@@ -94,13 +136,26 @@ class Loaded:
     lat: np.ndarray | None = field(default=None, repr=False)
     lon: np.ndarray | None = field(default=None, repr=False)
     profile: ReferenceProfile | None = field(default=None, repr=False)
+    #: how its files were verified, one of :data:`VERIFICATION_STATES`
+    verification: str = "full"
+    #: what the background check found, paths relative to the version (empty: nothing)
+    problems: list[str] = field(default_factory=list)
+    #: seconds the background check took (None: not run, or not finished)
+    check_seconds: float | None = None
+    #: set to stop the background check (the version is retired)
+    stop_check: threading.Event = field(default_factory=threading.Event, repr=False)
 
     @classmethod
-    def open(cls, root: Path, threshold: float | None) -> Loaded:
-        """Open the version ``CURRENT`` names, every file checked against the manifest's
-        sha256 before anything is read from it (a corrupt version raises
-        :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload answers 409)."""
-        reader = IndexReader(root, verify=True)
+    def open(
+        cls, root: Path, threshold: float | None, verify: layout.VerifyMode = "stamp"
+    ) -> Loaded:
+        """Open the version ``CURRENT`` names, its files verified before anything is read
+        from them (``verify``, :func:`hmpf.index.layout.verify_files`): by their
+        verification stamp when it matches (:attr:`verification` ``checking``: the caller
+        runs the full check), else every file against the manifest's sha256 (a corrupt
+        version raises :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload
+        answers 409)."""
+        reader = IndexReader(root, verify=verify)
         try:
             params = reader.config.sequence_params()
             acceptance = Policy.of(
@@ -131,11 +186,17 @@ class Loaded:
             lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
             lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
             profile=profile,
+            verification="checking" if reader.verified_by == "stamp" else "full",
         )
 
     @property
     def version(self) -> str:
         return self.reader.version
+
+    @property
+    def sound(self) -> bool:
+        """Every byte checked and found as listed (before it answered, or in the background)."""
+        return self.verification in ("full", "passed")
 
     @property
     def has_positions(self) -> bool:
@@ -146,6 +207,20 @@ class Loaded:
         assert self.lat is not None and self.lon is not None
         d = haversine_m(prior.lat, prior.lon, self.lat, self.lon)
         return np.flatnonzero(np.isfinite(d) & (d <= prior.radius_m)).astype(np.int64)
+
+
+def _lower_priority() -> None:
+    """Give the calling thread :data:`CHECK_NICENESS` (Linux; elsewhere nothing)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CHECK_NICENESS)
+    except (AttributeError, OSError):  # pragma: no cover - not Linux, or not allowed
+        pass
+
+
+def _relative(line: str, version_dir: Path) -> str:
+    """A problem line with the version folder's path dropped (answers must not show where the
+    index lies on the server)."""
+    return line.replace(f"{version_dir}/", "").replace(str(version_dir), version_dir.name)
 
 
 def restricted(score_fn: ScoreFn, allowed: np.ndarray) -> ScoreFn:
@@ -179,6 +254,12 @@ class Engine:
         self._lock = threading.Lock()
         self._reload_lock = asyncio.Lock()
         self._current: Loaded | None = None
+        #: the previous sound version, held while the current one's background check runs
+        self._fallback: Loaded | None = None
+        #: the background check's thread (one at a time)
+        self._checker: threading.Thread | None = None
+        #: called with a version the background check found corrupt (the app counts it)
+        self.on_corrupt: Callable[[Loaded], None] | None = None
         self._pool = ThreadPoolExecutor(
             max_workers=workers, thread_name_prefix="hmpf-query", initializer=self._init_thread
         )
@@ -191,7 +272,12 @@ class Engine:
         set_compute_threads(self.threads)
 
     def load(self) -> Loaded:
-        """Open the index's current version (blocking) and make it current."""
+        """Open the index's current version (blocking) and make it current.
+
+        A version opened by its verification stamp gets its full check on the background
+        thread; meanwhile the previous version, if sound, stays open to take over should
+        that check fail (see the module's docstring).
+        """
         loaded = Loaded.open(self.root, self.accept_threshold)
         try:
             self._warm_up(loaded)
@@ -200,19 +286,126 @@ class Engine:
             raise
         with self._lock:
             old, self._current = self._current, loaded
-            if old is not None:
-                old.retired = True
-                if old.leases == 0:
-                    old.reader.close()
+            keep = None if loaded.sound else self._sound_fallback(old)
+            for x in {id(x): x for x in (old, self._fallback) if x is not None}.values():
+                if x is not keep:
+                    self._retire(x)
+            self._fallback = keep
+        if loaded.verification == "checking":
+            self._start_check(loaded)
+        how = (
+            "files trusted by their verification stamp; full check started in the background"
+            if loaded.verification == "checking"
+            else f"files verified in {loaded.reader.verify_seconds or 0.0:.2f} s"
+        )
         log.info(
-            "index %s version %s loaded (%d references, %d experiences; files verified in %.2f s)",
+            "index %s version %s loaded (%d references, %d experiences; %s)",
             self.root,
             loaded.version,
             loaded.reader.n,
             loaded.reader.n_rows - loaded.reader.n,
-            loaded.reader.verify_seconds or 0.0,
+            how,
         )
         return loaded
+
+    def _sound_fallback(self, old: Loaded | None) -> Loaded | None:
+        """The version to hold while a new one's check runs: the one it replaces if sound,
+        else the one held already (under ``_lock``)."""
+        return old if old is not None and old.sound else self._fallback
+
+    def _retire(self, loaded: Loaded) -> None:
+        """No new lease on ``loaded``; stop its check; close it now or at its last release
+        (under ``_lock``)."""
+        loaded.retired = True
+        loaded.stop_check.set()
+        if loaded.leases == 0:
+            loaded.reader.close()
+
+    # -- the background check -----------------------------------------------------------------
+    def _start_check(self, loaded: Loaded) -> None:
+        """Run the full check of ``loaded`` on the background thread (the check of the
+        version it replaced, retired, has been told to stop: waited for first)."""
+        previous = self._checker
+        if previous is not None:
+            previous.join(timeout=30)
+            if previous.is_alive():  # pragma: no cover - a read blocked for 30 s
+                log.warning("the previous background check has not stopped yet")
+        self._checker = threading.Thread(
+            target=self._check, args=(loaded,), name="hmpf-verify", daemon=True
+        )
+        self._checker.start()
+
+    def check_done(self, timeout: float | None = None) -> bool:
+        """Wait for the background check (if any) to end; whether none is running."""
+        checker = self._checker
+        if checker is not None:
+            checker.join(timeout)
+        return checker is None or not checker.is_alive()
+
+    def _check(self, loaded: Loaded) -> None:
+        """Every byte of ``loaded`` against its manifest, on this one thread, at a lower
+        priority than the queries; the outcome goes to :meth:`_checked`."""
+        _lower_priority()
+        reader = loaded.reader
+        t = time.perf_counter()
+        try:
+            problems = layout.file_problems(
+                reader.path, reader.manifest, workers=1, stop=loaded.stop_check
+            )
+        except layout.CheckStopped:
+            log.info("background check of version %s stopped (replaced)", loaded.version)
+            return
+        except Exception as exc:  # a file that cannot be read is not served either
+            log.exception("background check of version %s failed", loaded.version)
+            problems = [f"{reader.path}: cannot be checked ({exc})"]
+        loaded.check_seconds = time.perf_counter() - t
+        self._checked(loaded, [_relative(line, reader.path) for line in problems])
+
+    def _checked(self, loaded: Loaded, problems: list[str]) -> None:
+        """Record the background check's outcome: ``passed`` (the held previous version is
+        let go), or ``corrupt`` (the held previous version, if any, answers again; the stamp
+        is deleted; logged and counted). Nothing for a version no longer current."""
+        with self._lock:
+            if loaded is not self._current or loaded.retired:
+                return
+            fallback, self._fallback = self._fallback, None
+            if not problems:
+                loaded.verification = "passed"
+                if fallback is not None:
+                    self._retire(fallback)
+            else:
+                loaded.verification = "corrupt"
+                loaded.problems = problems
+                if fallback is not None:
+                    self._current = fallback
+                    self._retire(loaded)
+        if not problems:
+            log.info(
+                "index %s version %s: background check passed (every file matches its "
+                "sha256, %.1f s)",
+                self.root,
+                loaded.version,
+                loaded.check_seconds or 0.0,
+            )
+            return
+        layout.remove_stamp(loaded.reader.path)
+        log.error(
+            "INDEX VERSION %s IS CORRUPT (%s/%s): %s. %s. Run `hmpf-index verify --index %s`, "
+            "switch to a sound version with `hmpf-index use VERSION` (or rebuild), then reload",
+            loaded.version,
+            self.root,
+            loaded.version,
+            "; ".join(problems),
+            f"Version {fallback.version} answers again"
+            if fallback is not None
+            else "This server answers no query from it (503 index_corrupt; /readyz not ready)",
+            self.root,
+        )
+        if self.on_corrupt is not None:
+            try:
+                self.on_corrupt(loaded)
+            except Exception:  # pragma: no cover - a metric
+                log.exception("on_corrupt failed")
 
     def _warm_up(self, loaded: Loaded) -> None:
         """Load weights and build lazy structures now rather than in the first request."""
@@ -233,9 +426,13 @@ class Engine:
         self._pool.shutdown(wait=True, cancel_futures=True)
         self.compute.shutdown(wait=True, cancel_futures=True)
         with self._lock:
-            if self._current is not None:
-                self._current.reader.close()
-                self._current = None
+            held = [x for x in (self._current, self._fallback) if x is not None]
+            self._current = self._fallback = None
+        for x in held:
+            x.stop_check.set()
+        self.check_done(timeout=30)
+        for x in held:
+            x.reader.close()
 
     @property
     def ready(self) -> bool:
@@ -249,8 +446,15 @@ class Engine:
 
     # -- leases and admission -----------------------------------------------------------------
     def lease(self) -> Loaded:
+        """The current version, held until :meth:`release`.
+
+        Raises:
+            IndexVersionCorrupt: it failed its background check (it answers nothing).
+        """
         with self._lock:
             loaded = self.current
+            if loaded.verification == "corrupt":
+                raise IndexVersionCorrupt(loaded.version)
             loaded.leases += 1
             return loaded
 

@@ -2,11 +2,12 @@
 
 This module is the one place that builds that body (:func:`error_body`) and maps errors to
 HTTP: our own :class:`ApiError`, FastAPI's validation errors (422), a body over the limit
-(413, :class:`~service.limits.BodyTooLarge`), Starlette's HTTP errors (404, 405, ...), a client
-that hung up before its request was read (:data:`CLIENT_CLOSED`: one log line, no answer can
-reach it) and, as a last resort, any other exception (500 with a generic message; the
-traceback goes to the log, never to the client). The constructors below name the errors
-several routes raise.
+(413, :class:`~service.limits.BodyTooLarge`), a loaded index version found corrupt (503
+``index_corrupt``, :class:`~service.engine.IndexVersionCorrupt`), Starlette's HTTP errors
+(404, 405, ...), a client that hung up before its request was read (:data:`CLIENT_CLOSED`:
+one log line, no answer can reach it) and, as a last resort, any other exception (500 with a
+generic message; the traceback goes to the log, never to the client). The constructors below
+name the errors several routes raise.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import Response
 
+from service.engine import IndexVersionCorrupt
 from service.schemas import ErrorBody
 
 __all__ = [
@@ -29,6 +31,7 @@ __all__ = [
     "ERROR_RESPONSES",
     "ApiError",
     "error_body",
+    "index_corrupt",
     "install_handlers",
     "invalid_request",
     "malformed_body",
@@ -93,6 +96,18 @@ def overloaded(retry_after_s: int) -> ApiError:
     )
 
 
+def index_corrupt(version: str) -> ApiError:
+    """The loaded version failed its background check (:class:`IndexVersionCorrupt`)."""
+    return ApiError(
+        503,
+        "index_corrupt",
+        f"index version {version} is corrupt (a file differs from the sha256 its manifest "
+        "lists) and this server answers nothing from it; operators: run `hmpf-index verify` "
+        "on the index, switch to a sound version with `hmpf-index use VERSION` (or rebuild), "
+        "then reload (POST /v1/index/reload, or wait for the watch on CURRENT)",
+    )
+
+
 _HTTP_CODES = {
     400: "bad_request",
     401: "unauthorized",
@@ -118,6 +133,10 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
         return exc.response()
+
+    @app.exception_handler(IndexVersionCorrupt)
+    async def _corrupt(request: Request, exc: IndexVersionCorrupt) -> JSONResponse:
+        return index_corrupt(exc.version).response()
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:

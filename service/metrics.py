@@ -8,6 +8,13 @@
 * ``hmpf_index_info{version}``: 1 for the loaded index version
 * ``hmpf_index_behind``: 1 while the index's ``CURRENT`` names another version than the loaded
   one (or cannot be read), checked at each scrape: a replica left on an old version says so
+* ``hmpf_index_verification{state}``: 1 for how the loaded version's files were verified
+  (:data:`~service.engine.VERIFICATION_STATES`: ``full``, hashed before it answered;
+  ``checking``, opened by its verification stamp, the full check running in the background;
+  ``passed``, that check found every byte sound; ``corrupt``, it did not: no answers),
+  checked at each scrape
+* ``hmpf_index_corrupt_total``: versions the background check found corrupt (each logged
+  as an error; alert on any increase)
 * ``hmpf_index_reloads_total{trigger}`` and ``hmpf_index_reload_failures_total{trigger}``:
   reloads that switched versions and reloads that failed (the loaded version stayed), by
   ``request`` (``POST /v1/index/reload``) or ``watch`` (``watch_current_s``)
@@ -29,6 +36,7 @@ Every label value comes from a fixed set in the code, never from a request.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
@@ -44,6 +52,7 @@ from prometheus_client import (
 from starlette.requests import Request
 from starlette.responses import Response
 
+from service.engine import VERIFICATION_STATES
 from service.track import REFUSALS, RESET_REASONS, STATUSES
 
 __all__ = ["DROP_REASONS", "RELOAD_TRIGGERS", "Metrics"]
@@ -91,6 +100,19 @@ class Metrics:
         self.index_behind = Gauge(
             "hmpf_index_behind",
             "1 while the index's CURRENT names another version than the loaded one",
+            registry=self.registry,
+        )
+        self.index_verification = Gauge(
+            "hmpf_index_verification",
+            "1 for how the loaded index version's files were verified: full (hashed before "
+            "it answered), checking (opened by its verification stamp, full check running "
+            "in the background), passed (that check found them sound), corrupt (it did not)",
+            ["state"],
+            registry=self.registry,
+        )
+        self.index_corrupt = Counter(
+            "hmpf_index_corrupt",
+            "index versions the background check found corrupt",
             registry=self.registry,
         )
         self.reloads = Counter(
@@ -167,6 +189,8 @@ class Metrics:
         for trigger in RELOAD_TRIGGERS:
             self.reloads.labels(trigger)
             self.reload_failures.labels(trigger)
+        for state in VERIFICATION_STATES:
+            self.index_verification.labels(state)
 
     async def middleware(
         self, request: Request, call_next: Callable[[Request], Awaitable[Response]]
@@ -195,10 +219,19 @@ class Metrics:
         self.running.set(running)
 
     def set_index(self, version: str) -> None:
+        """``hmpf_index_info``: 1 for ``version`` only (also called at each scrape)."""
+        if version == self._version:
+            return
         if self._version is not None:
-            self.index.remove(self._version)
+            with contextlib.suppress(KeyError):  # a concurrent call removed it
+                self.index.remove(self._version)
         self.index.labels(version).set(1)
         self._version = version
+
+    def set_verification(self, state: str) -> None:
+        """``hmpf_index_verification``: 1 for ``state``, 0 for the others."""
+        for s in VERIFICATION_STATES:
+            self.index_verification.labels(s).set(int(s == state))
 
     def response(self) -> Response:
         return Response(generate_latest(self.registry), media_type=CONTENT_TYPE_LATEST)

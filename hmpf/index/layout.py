@@ -6,6 +6,7 @@
       CURRENT                 name of the version in use (switched with os.replace)
       .lock                   advisory lock held by a writer (build / add / remove / gc)
       .build/                 an interrupted or running build (resumable), never read
+      .verified/<name>.json   verification stamp of a version checked in full (optional)
       v0001/                  an immutable version
         manifest.json         config + hash, methods, package versions, counts, checksums
         references.h5         names, sha256, metadata columns, global descriptors (N x D)
@@ -22,12 +23,19 @@ version to ``.deleting-<name>`` before deleting it, so a killed ``gc`` leaves it
 
 Integrity: the manifest lists every data file's size and sha256 (and, for files over
 :data:`CHUNK_BYTES`, the sha256 of each piece, :func:`file_entry`). Whoever reads a version
-checks every file against it first (:func:`check_files`; the reader does unless told not to),
-so no reader serves, evaluates or copies into a new version a byte that differs from what
-was written. The manifest itself carries the sha256 of its own canonical content
-(:data:`MANIFEST_SHA256`, :func:`manifest_digest`), checked by :func:`read_manifest`, which
-every reader and ``hmpf-index verify`` go through: a field edited after the build (a method's
-params, the config, the package versions) is refused like a damaged file.
+checks every file against it first (:func:`check_files`; the reader does unless told not
+to), so no reader serves, evaluates or copies into a new version a byte that differs from
+what was written. A version is hashed whole once where it is made or checked (at publish, by
+``hmpf-index verify``), which then writes its *verification stamp*,
+``.verified/<name>.json`` (:func:`write_stamp`): the manifest's digest and each file's size,
+mtime, ctime, inode and device. A reader that asks for it (``verify="stamp"``, the service)
+skips the hashing when the stamp still matches (:func:`stamp_matches`, one ``stat`` per
+file; why that is sound and what it cannot see is said there), and hashes everything
+otherwise; the service then checks every byte in the background (``service.engine``). The
+manifest itself carries the sha256 of its own canonical content (:data:`MANIFEST_SHA256`,
+:func:`manifest_digest`), checked by :func:`read_manifest`, which every reader and
+``hmpf-index verify`` go through: a field edited after the build (a method's params, the
+config, the package versions) is refused like a damaged file.
 """
 
 from __future__ import annotations
@@ -41,18 +49,24 @@ import logging
 import os
 import platform
 import re
+import stat
+import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from hmpf.errors import HmpfError
 from hmpf.features import file_digest
 
 __all__ = [
     "FORMAT_VERSION",
+    "VERIFIED_DIR",
+    "CheckStopped",
+    "FileStats",
+    "VerifyMode",
     "IndexBuildError",
     "IndexCorruptError",
     "HmpfIndexError",
@@ -63,6 +77,7 @@ __all__ = [
     "RECORDED_PACKAGES",
     "check_files",
     "current_version",
+    "file_stats",
     "file_entry",
     "file_problems",
     "fsync_dir",
@@ -74,10 +89,15 @@ __all__ = [
     "next_version_name",
     "package_versions",
     "read_manifest",
+    "remove_stamp",
     "set_current",
     "sha256_file",
+    "stamp_matches",
+    "stamp_path",
+    "verify_files",
     "write_json_atomic",
     "write_manifest",
+    "write_stamp",
     "writer_lock",
 ]
 
@@ -98,6 +118,9 @@ BUILD_DIR = ".build"
 REFERENCES_H5 = "references.h5"
 LOCAL_H5 = "local.h5"
 STATE_H5 = "state.h5"
+#: The places' reference profile (:func:`hmpf.index.storage.write_profile`), computed once
+#: when the version is written; a version written before it existed has none.
+PROFILE_H5 = "profile.h5"
 FAISS_DIR = "faiss"
 #: A file larger than this also gets a sha256 per piece of this size (hashed in parallel).
 CHUNK_BYTES = 1 << 26
@@ -158,6 +181,10 @@ class IndexBuildError(HmpfIndexError):
 
 class IndexLockedError(HmpfIndexError):
     """Another writer holds the index lock."""
+
+
+class CheckStopped(HmpfIndexError):
+    """A check of a version's files was stopped before it finished (nothing was found)."""
 
 
 sha256_file = file_digest  # sha256 hex digest of a file's bytes
@@ -358,14 +385,20 @@ def file_entry(path: Path) -> dict[str, Any]:
     return entry
 
 
-def _range_digest(path: Path, offset: int, length: int) -> str:
-    """sha256 of ``length`` bytes of ``path`` from ``offset`` (read in 1 MiB blocks)."""
+def _range_digest(path: Path, offset: int, length: int, stop: threading.Event | None = None) -> str:
+    """sha256 of ``length`` bytes of ``path`` from ``offset`` (read in 1 MiB blocks).
+
+    Raises:
+        CheckStopped: ``stop`` was set (looked at before each block).
+    """
     h = hashlib.sha256()
     buf = bytearray(1 << 20)
     view = memoryview(buf)
     with open(path, "rb", buffering=0) as fh:
         fh.seek(offset)
         while length > 0:
+            if stop is not None and stop.is_set():
+                raise CheckStopped(f"{path}: check stopped")
             got = fh.readinto(view[: min(length, len(buf))])
             if not got:
                 break
@@ -386,7 +419,13 @@ def _pieces(p: Path, entry: Mapping[str, Any]) -> list[tuple[int, int, str]] | s
     return [(i * step, min(step, size - i * step), sha) for i, sha in enumerate(chunks)]
 
 
-def file_problems(version_dir: Path, manifest: Mapping[str, Any]) -> list[str]:
+def file_problems(
+    version_dir: Path,
+    manifest: Mapping[str, Any],
+    *,
+    workers: int | None = None,
+    stop: threading.Event | None = None,
+) -> list[str]:
     """Every file of a version against its manifest's ``files`` (size and sha256 of each).
 
     Every listed file is read whole and hashed (sha256, about 2 GB/s per core with SHA
@@ -394,8 +433,16 @@ def file_problems(version_dir: Path, manifest: Mapping[str, Any]) -> list[str]:
     on one thread per core (hashlib releases the GIL), largest first. A file that is missing,
     of another size, of another digest, or present but not listed is a problem.
 
+    Args:
+        workers: hashing threads (default: one per core); 1 hashes on the calling thread
+            (the service's background check, which must not take the query cores).
+        stop: when set, the check ends within one 1 MiB read (:class:`CheckStopped`).
+
     Returns:
         one line per problem, naming the file (empty: every file is as written).
+
+    Raises:
+        CheckStopped: ``stop`` was set before the check finished.
     """
     listed = manifest.get("files")
     if not isinstance(listed, Mapping) or not listed:
@@ -419,8 +466,12 @@ def file_problems(version_dir: Path, manifest: Mapping[str, Any]) -> list[str]:
                     pieced.add(p)
     todo.sort(key=lambda t: -t[2])
     if todo:
-        with ThreadPoolExecutor(min(len(todo), os.cpu_count() or 1)) as pool:
-            digests = list(pool.map(lambda t: _range_digest(*t[:3]), todo))
+        threads = min(len(todo), workers or os.cpu_count() or 1)
+        if threads == 1:
+            digests = [_range_digest(t[0], t[1], t[2], stop) for t in todo]
+        else:
+            with ThreadPoolExecutor(threads) as pool:
+                digests = list(pool.map(lambda t: _range_digest(t[0], t[1], t[2], stop), todo))
         bad: dict[Path, list[int]] = {}
         for (p, offset, _, want), got in zip(todo, digests, strict=True):
             if got != want:
@@ -428,13 +479,19 @@ def file_problems(version_dir: Path, manifest: Mapping[str, Any]) -> list[str]:
         for p, offsets in bad.items():
             where = f" from byte {min(offsets)}" if p in pieced else ""
             problems.append(f"{p}: sha256 differs from the manifest{where} (file is corrupt)")
-    extra = {
+    extra = _unlisted(version_dir, listed)
+    problems += [f"{version_dir / rel}: not listed in the manifest" for rel in sorted(extra)]
+    return sorted(problems)
+
+
+def _unlisted(version_dir: Path, listed: Mapping[str, Any]) -> set[str]:
+    """Files under ``version_dir`` (relative, POSIX) other than the manifest and those in
+    ``listed``."""
+    return {
         p.relative_to(version_dir).as_posix()
         for p in version_dir.rglob("*")
         if p.is_file() and p.name != MANIFEST
     } - set(listed)
-    problems += [f"{version_dir / rel}: not listed in the manifest" for rel in sorted(extra)]
-    return sorted(problems)
 
 
 def check_files(version_dir: Path, manifest: Mapping[str, Any]) -> float:
@@ -464,3 +521,192 @@ def check_files(version_dir: Path, manifest: Mapping[str, Any]) -> float:
         seconds,
     )
     return seconds
+
+
+# -- verification stamps -----------------------------------------------------------------------
+#: Folder of the verification stamps, in the index folder beside the versions (never inside
+#: one: a version folder holds only its manifest and the files the manifest lists).
+VERIFIED_DIR = ".verified"
+#: Per file, what a stamp records of it: ``os.stat``'s size, mtime_ns, ctime_ns, ino, dev.
+FileStats = dict[str, dict[str, int]]
+#: What opening a version checks (:func:`verify_files`).
+VerifyMode = bool | Literal["full", "stamp"]
+
+
+def stamp_path(version_dir: Path) -> Path:
+    """The verification stamp of ``version_dir``: ``<index>/.verified/<version>.json``."""
+    return version_dir.parent / VERIFIED_DIR / f"{version_dir.name}.json"
+
+
+def file_stats(version_dir: Path, names: Iterable[str] | None = None) -> FileStats | None:
+    """Each file's size, identity (inode, device) and last change (mtime, ctime, in ns), by
+    its path relative to ``version_dir``.
+
+    Args:
+        names: the files (default: every file under the folder but the manifest).
+
+    Returns:
+        the stats, or None when one of the files is missing or not a regular file.
+    """
+    if names is None:
+        names = sorted(_unlisted(version_dir, {}))
+    out: FileStats = {}
+    for rel in names:
+        try:
+            st = os.stat(version_dir / rel)
+        except OSError:
+            return None
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        out[rel] = {
+            "size": st.st_size,
+            "mtime_ns": st.st_mtime_ns,
+            "ctime_ns": st.st_ctime_ns,
+            "ino": st.st_ino,
+            "dev": st.st_dev,
+        }
+    return out
+
+
+def write_stamp(
+    version_dir: Path, manifest: Mapping[str, Any], before: FileStats | None = None
+) -> bool:
+    """Record that ``version_dir``'s files were just checked whole against ``manifest``.
+
+    Call it only once every byte has been found as the manifest lists it: after
+    :func:`file_problems` found nothing, or at publish, whose sha256 were computed from these
+    very files. The stamp (:func:`stamp_path`, written atomically) holds the manifest's digest
+    (:func:`manifest_digest`) and each listed file's :func:`file_stats`.
+
+    Args:
+        before: the files' stats taken before that check began: the stamp is written only
+            if they are unchanged, so that it never vouches for a byte written while the
+            check was reading (a write changes mtime and ctime).
+
+    Returns:
+        whether a stamp was written: False when a file changed or is missing, or the index
+        folder cannot be written (logged; the next load then checks every file again).
+    """
+    listed = manifest.get("files")
+    if not isinstance(listed, Mapping) or not listed:
+        return False
+    now = file_stats(version_dir, sorted(listed))
+    if now is None or (before is not None and any(before.get(k) != v for k, v in now.items())):
+        log.warning(
+            "%s: files changed while they were checked; no verification stamp written (the "
+            "next load checks every file again)",
+            version_dir,
+        )
+        return False
+    stamp = {
+        "version": version_dir.name,
+        MANIFEST_SHA256: manifest_digest(manifest),
+        "stamped_at": time.time(),
+        "files": now,
+    }
+    path = stamp_path(version_dir)
+    try:
+        path.parent.mkdir(exist_ok=True)
+        write_json_atomic(path, stamp)
+    except OSError as exc:
+        log.info(
+            "%s: no verification stamp written (%s); the next load checks every file again",
+            version_dir,
+            exc,
+        )
+        return False
+    return True
+
+
+def stamp_matches(version_dir: Path, manifest: Mapping[str, Any]) -> bool:
+    """Whether ``version_dir``'s files are, to the file system, those its stamp vouches for.
+
+    True when the stamp names this version and this manifest (its digest), and every file
+    the manifest lists has exactly the stamp's size, mtime, ctime, inode and device (and the
+    manifest's size), with no unlisted file beside them. Only metadata is read (one
+    ``stat`` per file): milliseconds, whatever the files' size.
+
+    Why that is enough to skip hashing, and what it does not catch: any write to a file
+    through the file system (``write``, ``truncate``, ``mmap``) sets its mtime and ctime;
+    ctime is set by the kernel, to the clock, and no call sets it back (``utime`` restores
+    mtime but sets ctime); a file replaced, restored from a copy or moved in from elsewhere
+    is another inode. A matching stamp thus means that no byte was written through the file
+    system since the full check the stamp records. What it cannot see: bytes changed below
+    the file system (a failing disk, a write to the raw device), a system clock set back to
+    the second a file was written, and a stamp forged by someone who may write the index
+    folder (who could also rewrite the manifest). The service therefore checks a version it
+    opened by its stamp in full in the background (``service.engine``), and
+    ``hmpf-index verify`` checks every byte.
+    """
+    try:
+        stamp = json.loads(stamp_path(version_dir).read_text())
+    except (OSError, ValueError):
+        return False
+    listed = manifest.get("files")
+    if not isinstance(stamp, dict) or not isinstance(listed, Mapping) or not listed:
+        return False
+    if stamp.get("version") != version_dir.name:
+        return False
+    if stamp.get(MANIFEST_SHA256) != manifest_digest(manifest):
+        return False
+    now = file_stats(version_dir, sorted(listed))
+    if now is None or stamp.get("files") != now:
+        return False
+    for rel, entry in listed.items():
+        if not isinstance(entry, Mapping) or now[rel]["size"] != entry.get("bytes"):
+            return False
+    return not _unlisted(version_dir, listed)
+
+
+def remove_stamp(version_dir: Path) -> bool:
+    """Delete ``version_dir``'s stamp (the version was found corrupt, or is deleted): the
+    next load checks every file. Returns whether there was one to delete."""
+    try:
+        stamp_path(version_dir).unlink()
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        log.warning("%s: its verification stamp cannot be deleted (%s)", version_dir, exc)
+        return False
+    return True
+
+
+def verify_files(
+    version_dir: Path, manifest: Mapping[str, Any], mode: VerifyMode = True
+) -> tuple[str | None, float | None]:
+    """What opening a version checks before anything is read from it, by ``mode``:
+
+    * ``True`` or ``"full"``: every byte of every file (:func:`check_files`);
+    * ``"stamp"``: nothing more when the files are those a full check stamped
+      (:func:`stamp_matches`: a ``stat`` per file), else every byte, and once that passes
+      a fresh stamp (:func:`write_stamp`, from the files' stats before the check);
+    * ``False``: nothing (for a caller that has just checked them, ``hmpf-index verify``).
+
+    Returns:
+        (how the files were verified: ``"full"``, ``"stamp"`` or None; the seconds their
+        hashing took, None when nothing was hashed).
+
+    Raises:
+        IndexCorruptError: a file does not match (from :func:`check_files`).
+        ValueError: another mode.
+    """
+    if mode is False:
+        return None, None
+    if mode is True or mode == "full":
+        return "full", check_files(version_dir, manifest)
+    if mode != "stamp":
+        raise ValueError(f"verify: True, False, 'full' or 'stamp', not {mode!r}")
+    t = time.perf_counter()
+    if stamp_matches(version_dir, manifest):
+        log.info(
+            "%s: files unchanged since their full check (verification stamp, %.3f s): not "
+            "hashed again",
+            version_dir,
+            time.perf_counter() - t,
+        )
+        return "stamp", None
+    listed = manifest.get("files")
+    before = file_stats(version_dir, sorted(listed)) if isinstance(listed, Mapping) else None
+    seconds = check_files(version_dir, manifest)
+    write_stamp(version_dir, manifest, before)
+    return "full", seconds

@@ -18,6 +18,8 @@ between its experiences and never changes what a right answer is.
   query (:func:`align_sets`), so that images taken in the query's own conditions do not
   attract it whatever place they show.
 * :class:`Experience`: one row described for an answer (name, original or fleet, provenance).
+* :func:`route_map_of`, :func:`places_profile`: the places' routes and reference profile, as
+  the reader computes them at load and the indexer when it writes a version.
 
 Pure numpy; the reader (:class:`hmpf.index.reader.IndexReader`) wires them to an index.
 """
@@ -27,13 +29,18 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from hmpf.confidence import ReferenceProfile
+from hmpf.config import HierarchyConfig
 from hmpf.hierarchy import ScoreFn
 from hmpf.index.layout import IndexCorruptError
+from hmpf.index.rows import DiskRows
 from hmpf.index.tables import RefTable, _ranges
 from hmpf.methods import Method
+from hmpf.sequence import RouteMap
 
 __all__ = [
     "Experience",
@@ -44,7 +51,9 @@ __all__ = [
     "experience_of_row",
     "experience_sets",
     "place_scorer",
+    "places_profile",
     "reduce_rows",
+    "route_map_of",
 ]
 
 
@@ -141,6 +150,12 @@ class Places:
         return rows, np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
 
 
+def augments(method: Method) -> bool:
+    """Whether a global method's searched rows differ from its stored ones (``dba``: its
+    route augmentation averages neighbours, so the searched matrix is made at load)."""
+    return bool(int(getattr(method.config, "dba", 0) or 0))
+
+
 def augment_rows(method: Method, stored: np.ndarray, places: Places) -> np.ndarray:
     """The searched matrix of a global method over every row (its route augmentation,
     :meth:`~hmpf.methods.base.GlobalMethod.augment_references`, ``dba``).
@@ -188,6 +203,50 @@ def reduce_rows(
     first = np.minimum.reduceat(pos, seg)
     first = np.where(first == len(vals), seg, first)
     return best, rows[first]
+
+
+def route_map_of(
+    meta: Mapping[str, np.ndarray], n_places: int, config: HierarchyConfig
+) -> RouteMap:
+    """The mapped routes over a version's places (:mod:`hmpf.sequence`): the ``sequence``
+    column's routes, ordered by ``timestamp`` where given, junctions from ``lat``/``lon``
+    within the config's ``junction_m``; from the places' original references (rows
+    ``0 .. n_places - 1`` of the metadata columns ``meta``)."""
+
+    def col(name: str) -> np.ndarray | None:
+        v = meta.get(name)
+        return None if v is None else v[:n_places]
+
+    return RouteMap.from_metadata(
+        n_places,
+        sequence=col("sequence"),
+        timestamp=col("timestamp"),
+        lat=col("lat"),
+        lon=col("lon"),
+        junction_m=config.sequence_params().junction_m,
+    )
+
+
+def places_profile(
+    config: HierarchyConfig,
+    methods: Mapping[str, Method],
+    searched: Mapping[str, Any],
+    routes: RouteMap,
+) -> ReferenceProfile:
+    """The places' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's global
+    methods (the default parameters, :func:`~hmpf.confidence.profile_params`): from each
+    method's searched matrix (``searched``, after :func:`augment_rows`: an array, or rows
+    read on demand; its first ``routes.n`` rows, the places' original references). Tier-1
+    methods without a matrix in ``searched`` (local ones) are left out."""
+    tier1 = config.tiers[0].methods
+    db = {m: _first_rows(searched[m], routes.n) for m in tier1 if m in searched}
+    return ReferenceProfile.build(methods, db, [m for m in tier1 if m in db], routes)
+
+
+def _first_rows(matrix: Any, n: int) -> Any:
+    """The first ``n`` rows, still on disk where ``matrix`` is (a million rows of NetVLAD do
+    not fit in memory as float32)."""
+    return matrix.head(n) if isinstance(matrix, DiskRows) else matrix[:n]
 
 
 class PlaceScorer:

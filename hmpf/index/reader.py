@@ -31,15 +31,29 @@ Tier 1 (``subset is None``) of a global method (over rows; then reduced per plac
   unless they were among the top k.
 
 Later tiers read only the candidates' rows: global rows from the matrix, local features
-(KAZE ragged rows, OLO blocks) from ``local.h5`` by offsets.
+(KAZE ragged rows, OLO blocks) from ``local.h5`` by offsets, decoded ones kept in a cache
+bounded in bytes (``local_cache_bytes``).
+
+What stays in memory (:meth:`IndexReader.on_demand`): the matrix of a global method that
+scores the whole database exactly (tier 1 on an exact FAISS type) or is augmented along
+the route (``dba``). Every other global method's rows are read from ``references.h5`` when a
+query needs them (:class:`~hmpf.index.rows.DiskRows`: the FAISS candidates of an
+approximate tier 1, a later tier's candidates), and of an approximate tier-1 method only
+its FAISS index and the fixed sample's rows are resident. So a map on an approximate tier 1
+holds a few hundred bytes per reference in memory (the FAISS codes, the reference table)
+whatever its descriptors' size; :attr:`IndexReader.read_stats` counts what was read.
 
 Opening a version first checks every one of its files against the size and sha256 in the
 manifest (:func:`hmpf.index.layout.check_files`): a damaged byte anywhere, even inside a
-dataset where HDF5 cannot see it, is an :class:`IndexCorruptError` naming the file.
+dataset where HDF5 cannot see it, is an :class:`IndexCorruptError` naming the file. With
+``verify="stamp"`` a version whose files are unchanged since their last full check (its
+verification stamp, :func:`hmpf.index.layout.stamp_matches`) opens without hashing them, and
+the caller checks them in full afterwards (the service, in the background).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Collection, Mapping
 from concurrent.futures import Executor
@@ -62,10 +76,14 @@ from hmpf.index.places import (
     Places,
     PlaceScorer,
     augment_rows,
+    augments,
     experience_of_row,
     experience_sets,
     place_scorer,
+    places_profile,
+    route_map_of,
 )
+from hmpf.index.rows import DiskRows, LruCache, ReadStats, disk_rows
 from hmpf.index.storage import (
     open_h5,
     read_global,
@@ -74,6 +92,7 @@ from hmpf.index.storage import (
     read_local_offsets,
     read_ref_table,
     read_state,
+    stored_profile,
 )
 from hmpf.index.tables import Columns, Ragged
 from hmpf.index.thumbnails import ThumbnailStore, empty_thumbnails
@@ -83,6 +102,8 @@ from hmpf.sequence import RouteMap
 __all__ = ["IndexReader", "check_packages", "resolve_version"]
 
 SAMPLE_SIZE = 1024
+#: default bound of the decoded local features a reader keeps (bytes)
+LOCAL_CACHE_BYTES = 64 << 20
 log = logging.getLogger("hmpf.index")
 
 #: Packages whose major version changes what the methods compute (OpenCV: HOG, KAZE, image
@@ -92,6 +113,18 @@ log = logging.getLogger("hmpf.index")
 #: in it: a version whose CNN methods run their stored ONNX models (:mod:`hmpf.index.models`,
 #: the default runtime) does not depend on torch, which need not even be installed.
 STRICT_PACKAGES = (*layout.OPENCV_DISTS, "torch", "faiss-cpu")
+
+
+def _nbytes(feature: Any) -> int:
+    """Memory a decoded feature holds in its arrays (an array, or an object / tuple of
+    them), for the local-feature cache's bound."""
+    if isinstance(feature, np.ndarray):
+        return int(feature.nbytes)
+    if dataclasses.is_dataclass(feature):
+        parts: Any = [getattr(feature, f.name) for f in dataclasses.fields(feature)]
+    else:
+        parts = feature if isinstance(feature, tuple) else getattr(feature, "__dict__", {}).values()
+    return sum(int(v.nbytes) for v in parts if isinstance(v, np.ndarray)) or 64
 
 
 def resolve_version(root: Path, version: str | None = None) -> Path:
@@ -160,9 +193,13 @@ class IndexReader:
         expected_config: when given, the index must have been built for exactly this
             hierarchy config (same digest), else :class:`IndexVersionError`.
         mmap: memory-map global matrices stored in their own dtype (else read into RAM).
-        verify: check every file of the version against the manifest's sha256 before
-            reading anything (:func:`~hmpf.index.layout.check_files`: the whole version is
-            read once). Only ``hmpf-index verify``, which has just done so, turns it off.
+        verify: what is checked before anything is read
+            (:func:`~hmpf.index.layout.verify_files`): ``True`` / ``"full"``, every file
+            against the manifest's sha256 (the whole version is read once); ``"stamp"``,
+            nothing more when the version's verification stamp matches (a ``stat`` per file;
+            :attr:`verified_by` then says ``"stamp"`` and the caller owes the full check,
+            as the service runs it in the background), else every file, then a fresh stamp;
+            ``False``, nothing (only ``hmpf-index verify``, which has just checked them).
         approx_k: FAISS candidates per approximate tier-1 search (default ``max(256, 4 k)``).
 
     Raises:
@@ -176,15 +213,20 @@ class IndexReader:
         *,
         expected_config: HierarchyConfig | None = None,
         mmap: bool = True,
-        verify: bool = True,
+        verify: layout.VerifyMode = True,
         approx_k: int | None = None,
+        local_cache_bytes: int = LOCAL_CACHE_BYTES,
     ) -> None:
         self.root = Path(root)
         self.path = resolve_version(self.root, version)
         self.version = self.path.name
         self.manifest = layout.read_manifest(self.path)
-        #: seconds spent checking the files' sha256 (None: not checked, ``verify=False``)
-        self.verify_seconds = layout.check_files(self.path, self.manifest) if verify else None
+        #: how the files were verified before reading: "full" (every sha256), "stamp" (the
+        #: verification stamp matched, nothing hashed) or None (``verify=False``); and the
+        #: seconds spent hashing them (None: nothing hashed)
+        self.verified_by, self.verify_seconds = layout.verify_files(
+            self.path, self.manifest, verify
+        )
         self.config = self._check_config(expected_config)
         self.methods: dict[str, Method] = self._load_methods()
         # The CNN methods run the version's exported models (ONNX Runtime, no torch), or, in a
@@ -202,8 +244,11 @@ class IndexReader:
             self.n_rows = len(self.refs)
             # Stored: each reference's own descriptor; searched: after the method's
             # augmentation over the route (dba), which is the stored matrix itself without.
+            #: what this reader has read from disk on demand (rows of the matrices it
+            #: does not hold, local features): bytes, rows, calls
+            self.read_stats = ReadStats()
             self._stored = {
-                mid: read_global(self._ref_h5, mid, mmap)
+                mid: self._global_rows(mid, mmap)
                 for mid, m in self.methods.items()
                 if m.kind == "global"
             }
@@ -225,7 +270,8 @@ class IndexReader:
         #: each row's experience set (one log, vehicle and day), None without experiences
         self._sets = experience_sets(self.refs, self.places)
         self._globals = {
-            mid: augment_rows(self.methods[mid], x, self.places) for mid, x in self._stored.items()
+            mid: x if isinstance(x, DiskRows) else augment_rows(self.methods[mid], x, self.places)
+            for mid, x in self._stored.items()
         }
         #: the references' thumbnails (None: a version built before they were stored)
         self.thumbnails = self._open_thumbnails()
@@ -239,8 +285,38 @@ class IndexReader:
             .round()
             .astype(np.int64)
         )
+        # The sample every approximate tier-1 search scores exactly stays resident (a fixed
+        # SAMPLE_SIZE x D per method, whatever the map's size).
+        self._sample_rows = {
+            mid: np.asarray(x[self._sample])
+            for mid, x in self._globals.items()
+            if mid in self.config.tiers[0].methods and not self.is_exact(mid)
+        }
+        #: decoded local features of recent candidates (bounded in bytes)
+        self.local_cache = LruCache(local_cache_bytes)
 
     # -- opening and checks -------------------------------------------------------------------
+    def on_demand(self, mid: str) -> bool:
+        """Whether global method ``mid``'s rows are read from disk when a query needs them,
+        rather than held in memory: every global method that never scores the whole
+        database exactly (one of a later tier only, or of tier 1 through an approximate
+        FAISS type, whose candidates and sample are re-scored exactly) and has no route
+        augmentation (``dba`` averages neighbours when the version loads)."""
+        m = self.methods[mid]
+        if m.kind != "global" or augments(m):
+            return False
+        return mid not in self.config.tiers[0].methods or not self.is_exact(mid)
+
+    def _global_rows(self, mid: str, mmap: bool) -> np.ndarray | DiskRows:
+        """Method ``mid``'s stored matrix: on demand (:class:`~hmpf.index.rows.DiskRows`)
+        when :meth:`on_demand` and stored contiguously, else as
+        :func:`~hmpf.index.storage.read_global` gives it (memory-mapped or in memory)."""
+        if mmap and self.on_demand(mid):
+            rows = disk_rows(self._ref_h5["global"][mid], self.read_stats)
+            if rows is not None:
+                return rows
+        return read_global(self._ref_h5, mid, mmap)
+
     def _open(self, name: str) -> Any:
         f = open_h5(self.path / name)
         self._files.append(f)
@@ -375,6 +451,9 @@ class IndexReader:
         for f in self._files:
             f.close()
         self._files.clear()
+        for x in getattr(self, "_stored", {}).values():
+            if isinstance(x, DiskRows):
+                x.close()
 
     def __enter__(self) -> IndexReader:
         return self
@@ -427,34 +506,31 @@ class IndexReader:
     def route_map(self) -> RouteMap:
         """The mapped routes over the places for sequence filtering (:mod:`hmpf.sequence`):
         the ``sequence`` column's routes, ordered by ``timestamp`` where given, junctions from
-        ``lat``/``lon`` (the places' original references'; built once per reader)."""
+        ``lat``/``lon`` (the places' original references',
+        :func:`~hmpf.index.places.route_map_of`; built once per reader)."""
         if self._routes is None:
-            P = self.n
-
-            def col(name: str) -> np.ndarray | None:
-                v = self.refs.meta.get(name)
-                return None if v is None else v[:P]
-
-            self._routes = RouteMap.from_metadata(
-                P,
-                sequence=col("sequence"),
-                timestamp=col("timestamp"),
-                lat=col("lat"),
-                lon=col("lon"),
-                junction_m=self.config.sequence_params().junction_m,
-            )
+            self._routes = route_map_of(self.refs.meta, self.n, self.config)
         return self._routes
 
     def reference_profile(self) -> ReferenceProfile:
         """The places' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's
-        global methods (what absolute confidence evidence compares with), from their original
-        references' descriptors (built once per reader, about ``256 x P`` scores per
-        method)."""
+        global methods (what absolute confidence evidence compares with): the one the version
+        stores (``profile.h5``, computed when it was written), else (a version written before
+        versions stored it) built from the places' descriptors
+        (:func:`~hmpf.index.places.places_profile`, about ``256 x P`` scores per method).
+        Read or built once per reader.
+
+        Raises:
+            IndexCorruptError: the stored profile is unreadable, or not of this version's
+                tier-1 global methods and places (:func:`~hmpf.index.storage.stored_profile`).
+        """
         if self._profile is None:
-            tier1 = self.config.tiers[0].methods
-            db = {m: self._globals[m][: self.n] for m in tier1 if m in self._globals}
-            self._profile = ReferenceProfile.build(
-                self.methods, db, [m for m in tier1 if m in db], self.route_map()
+            tier1 = [m for m in self.config.tiers[0].methods if m in self._globals]
+            stored = stored_profile(self.path, self.manifest, tier1, self.n)
+            self._profile = (
+                stored
+                if stored is not None
+                else places_profile(self.config, self.methods, self._globals, self.route_map())
             )
         return self._profile
 
@@ -473,20 +549,33 @@ class IndexReader:
         """
         return extract_query(self.methods, image, ms, executor)
 
-    def global_matrix(self, mid: str) -> np.ndarray:
+    def global_matrix(self, mid: str) -> np.ndarray | DiskRows:
         """(N, D) stored vectors of a global method (every row), in the dtype the method
-        produced."""
+        produced: an array, or rows read on demand (:meth:`on_demand`; index it, or
+        ``np.asarray`` it to read everything)."""
         return self._globals[mid]
 
     def local_features(self, mid: str, idx: np.ndarray) -> list[Any]:
         """Features of rows ``idx`` of a local method, read without loading the others."""
         idx = np.asarray(idx, dtype=np.int64)
         method = self.methods[mid]
-        per_key = {
-            key: read_local_items(self._local_h5, mid, key, idx, o)
-            for key, o in self._offsets[mid].items()
-        }
-        return [method.from_arrays({k: v[j] for k, v in per_key.items()}) for j in range(len(idx))]
+        found: dict[int, Any] = {}
+        for i in dict.fromkeys(idx.tolist()):
+            hit, value = self.local_cache.lookup((mid, i))
+            if hit:
+                found[i] = value
+        todo = np.array([i for i in dict.fromkeys(idx.tolist()) if i not in found], np.int64)
+        if len(todo):
+            per_key = {
+                key: read_local_items(self._local_h5, mid, key, todo, o)
+                for key, o in self._offsets[mid].items()
+            }
+            for j, i in enumerate(todo.tolist()):
+                arrays = {k: v[j] for k, v in per_key.items()}
+                self.read_stats.add(1, sum(int(np.asarray(a).nbytes) for a in arrays.values()))
+                found[i] = method.from_arrays(arrays)
+                self.local_cache.put((mid, i), found[i], _nbytes(found[i]))
+        return [found[i] for i in idx.tolist()]
 
     def columns(self, mid: str) -> Columns:
         """Every row's stored arrays of one method (for add / remove)."""
@@ -530,12 +619,16 @@ class IndexReader:
         info = self.faiss_info(mid)
         return info is None or bool(info["exact"])
 
-    def search(self, mid: str, query: Any, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(
+        self, mid: str, query: Any, k: int, *, rescore: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Top ``k`` rows of a global method through FAISS.
 
         Returns:
             ``(ids, raw)``: (k,) int64 row indices best first and their raw scores in
-            the method's units (re-scored exactly when the FAISS metric is only a proxy).
+            the method's units (re-scored exactly when the FAISS metric is only a proxy,
+            unless ``rescore`` is False: then FAISS's order and values, for a caller that
+            re-scores the rows itself).
         """
         index = self.faiss_index(mid)
         if index is None:
@@ -545,7 +638,7 @@ class IndexReader:
         values, ids = index.search(q, min(k, self.n_rows))
         keep = ids[0] >= 0
         ids, raw = ids[0][keep].astype(np.int64), to_raw(values[0][keep], metric)
-        if metric.proxy:
+        if metric.proxy and rescore:
             method = self.methods[mid]
             raw = method.scores(query, self._globals[mid], ids)
             order = np.argsort(-raw if method.higher_is_better else raw, kind="stable")
@@ -595,13 +688,18 @@ class IndexReader:
         return self._approx_scores(mid, q)
 
     def _approx_scores(self, mid: str, q: Any) -> np.ndarray:
+        """Tier 1 of an approximate method: FAISS's candidates and the fixed sample scored
+        exactly (the sample from its resident rows, the other candidates' rows read from
+        the stored matrix), every other row the worst of those scores."""
         method = self.methods[mid]
-        ids, _ = self.search(mid, q, self.approx_k)
-        cand = np.union1d(ids, self._sample)
-        exact = method.scores(q, self._globals[mid], cand)
+        ids, _ = self.search(mid, q, self.approx_k, rescore=False)
+        extra = np.setdiff1d(ids, self._sample)
+        sampled = method.scores(q, self._sample_rows[mid], None)
+        exact = np.concatenate([sampled, method.scores(q, self._globals[mid], extra)])
         worst = float(np.min(exact) if method.higher_is_better else np.max(exact))
         out = np.full(self.n_rows, worst)
-        out[cand] = exact
+        out[self._sample] = sampled
+        out[extra] = exact[len(sampled) :]
         return out
 
     def _subset_scores(self, mid: str, q: Any, subset: np.ndarray) -> np.ndarray:

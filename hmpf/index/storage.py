@@ -19,6 +19,10 @@
 
 ``state.h5``: ``/<id>/<name>`` fitted parameters (:meth:`Method.state_arrays`).
 
+``profile.h5``: the places' :class:`~hmpf.confidence.ReferenceProfile`, ``/mean`` and ``/std``
+(M, P) float64 (one row per profiled method), attrs ``methods`` (JSON list of ids), ``sign``
+(M,) and the parameters it was built with (:func:`write_profile`).
+
 Every dataset carries attrs ``dtype`` (the dtype the method produced, restored on read).
 
 Precision policy (``precision`` of the build): ``exact`` stores float arrays as float16 only
@@ -30,12 +34,17 @@ float16's range), except for methods that declare ``index_float16 = False``. Int
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import json
+import logging
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
+from hmpf.confidence import ReferenceProfile, profile_params
+from hmpf.errors import HmpfError
+from hmpf.index import layout
 from hmpf.index.ann import faiss_module
 from hmpf.index.layout import IndexCorruptError
 from hmpf.index.tables import STORED_COLUMNS, TEXT_COLUMNS, Ragged, RefTable
@@ -43,17 +52,91 @@ from hmpf.methods import Method
 
 __all__ = [
     "Precision",
+    "RowBlocks",
     "read_local_offsets",
+    "read_profile",
     "read_ref_table",
     "read_state",
     "storage_dtype",
+    "stored_profile",
     "write_local",
+    "write_profile",
     "write_references",
     "write_state",
 ]
 
 Precision = Literal["exact", "compact"]
+log = logging.getLogger("hmpf.index")
 _F16_MAX = float(np.finfo(np.float16).max)
+
+
+class RowBlocks:
+    """An ``(N, ...)`` array given block by block, for an array too large to hold in memory.
+
+    The writers take it wherever they take an array (:func:`write_references`' global
+    matrices; :func:`write_local`'s arrays, as the equal-count ``blocks`` layout ``(N, n,
+    ...)``) and store the same contiguous dataset the whole array would give, by the same
+    precision policy (:func:`storage_dtype`), holding one block at a time;
+    :mod:`indexer.build` trains and fills a FAISS index from it the same way.
+
+    Args:
+        shape: ``(N, ...)``.
+        dtype: the dtype of the rows (the method's, as an array of them would have).
+        rows: ``rows(start, stop)`` -> rows ``start .. stop - 1`` as an array; the same
+            values on every call (a writer may read them more than once).
+        block_rows: rows asked for at once.
+    """
+
+    def __init__(
+        self,
+        shape: Sequence[int],
+        dtype: Any,
+        rows: Callable[[int, int], np.ndarray],
+        block_rows: int = 8192,
+    ) -> None:
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+        self._rows = rows
+        self.block_rows = max(1, int(block_rows))
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start .. stop - 1``, checked against :attr:`shape` and :attr:`dtype`."""
+        out = np.asarray(self._rows(start, stop), dtype=self.dtype)
+        if out.shape != (stop - start, *self.shape[1:]):
+            raise ValueError(
+                f"rows({start}, {stop}) gave shape {out.shape}, expected "
+                f"{(stop - start, *self.shape[1:])}"
+            )
+        return out
+
+    def blocks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(start, rows)`` of every block, in order."""
+        for start in range(0, self.shape[0], self.block_rows):
+            yield start, self.rows(start, min(self.shape[0], start + self.block_rows))
+
+    def take(self, idx: np.ndarray) -> np.ndarray:
+        """Rows ``idx`` (sorted, unique), reading only the blocks that hold some of them."""
+        idx = np.asarray(idx, dtype=np.int64)
+        out = np.empty((len(idx), *self.shape[1:]), dtype=self.dtype)
+        which = idx // self.block_rows
+        for b in np.unique(which):
+            start = int(b) * self.block_rows
+            sel = np.flatnonzero(which == b)
+            out[sel] = self.rows(start, min(self.shape[0], start + self.block_rows))[
+                idx[sel] - start
+            ]
+        return out
 
 
 def _h5py() -> Any:
@@ -63,8 +146,10 @@ def _h5py() -> Any:
     return h5py
 
 
-def storage_dtype(method: Method, array: np.ndarray, precision: Precision) -> np.dtype:
+def storage_dtype(method: Method, array: np.ndarray | RowBlocks, precision: Precision) -> np.dtype:
     """The dtype ``array`` is stored in (see the module docstring)."""
+    if isinstance(array, RowBlocks):
+        return _blocks_dtype(method, array, precision)
     a = np.asarray(array)
     if a.dtype.kind != "f" or a.dtype == np.float16 or a.size == 0:
         return a.dtype
@@ -76,7 +161,28 @@ def storage_dtype(method: Method, array: np.ndarray, precision: Precision) -> np
     return np.dtype(np.float16) if np.array_equal(half.astype(a.dtype), a) else a.dtype
 
 
-def _put(group: Any, name: str, array: np.ndarray, dtype: np.dtype) -> int:
+def _blocks_dtype(method: Method, rows: RowBlocks, precision: Precision) -> np.dtype:
+    """:func:`storage_dtype` of rows given block by block: the same decision, one block at a
+    time (stopping at the first block that keeps the rows' own dtype)."""
+    dtype = rows.dtype
+    if dtype.kind != "f" or dtype == np.float16 or rows.size == 0:
+        return dtype
+    compact = precision == "compact" and getattr(type(method), "index_float16", True) is not False
+    for _, a in rows.blocks():
+        if not np.isfinite(a).all() or float(np.abs(a).max()) > _F16_MAX:
+            return dtype
+        if not compact and not np.array_equal(a.astype(np.float16).astype(dtype), a):
+            return dtype
+    return np.dtype(np.float16)
+
+
+def _put(group: Any, name: str, array: np.ndarray | RowBlocks, dtype: np.dtype) -> int:
+    if isinstance(array, RowBlocks):  # the same contiguous dataset, written block by block
+        ds = group.create_dataset(name, shape=array.shape, dtype=dtype)
+        for start, block in array.blocks():
+            ds[start : start + len(block)] = block.astype(dtype, copy=False)
+        ds.attrs["dtype"] = array.dtype.str
+        return int(ds.id.get_storage_size())
     ds = group.create_dataset(name, data=np.asarray(array).astype(dtype, copy=False))
     ds.attrs["dtype"] = np.asarray(array).dtype.str
     return int(ds.id.get_storage_size())
@@ -91,11 +197,12 @@ def _get(ds: Any, sel: Any = None) -> np.ndarray:
 def write_references(
     path: Path,
     refs: RefTable,
-    globals_: Mapping[str, np.ndarray],
+    globals_: Mapping[str, np.ndarray | RowBlocks],
     methods: Mapping[str, Method],
     precision: Precision,
 ) -> dict[str, int]:
-    """Write ``references.h5``; returns bytes stored per global method id."""
+    """Write ``references.h5``; returns bytes stored per global method id (a matrix may be
+    :class:`RowBlocks`)."""
     h5py = _h5py()
     sizes: dict[str, int] = {}
     with h5py.File(path, "w", libver="latest") as f:
@@ -125,11 +232,12 @@ def write_references(
 
 def write_local(
     path: Path,
-    locals_: Mapping[str, dict[str, Ragged]],
+    locals_: Mapping[str, Mapping[str, Ragged | RowBlocks]],
     methods: Mapping[str, Method],
     precision: Precision,
 ) -> dict[str, int]:
-    """Write ``local.h5``; returns bytes stored per local method id."""
+    """Write ``local.h5``; returns bytes stored per local method id (an array may be
+    :class:`RowBlocks` ``(N, n, ...)``: ``n`` rows per image, the equal-count layout)."""
     h5py = _h5py()
     sizes: dict[str, int] = {}
     with h5py.File(path, "w", libver="latest") as f:
@@ -139,6 +247,11 @@ def write_local(
             total = 0
             for key, rag in arrays.items():
                 sub = g.create_group(key)
+                if isinstance(rag, RowBlocks):
+                    sub.attrs["scalar"] = False
+                    dtype = storage_dtype(methods[mid], rag, precision)
+                    total += _put(sub, "blocks", rag, dtype)
+                    continue
                 sub.attrs["scalar"] = rag.scalar
                 dtype = storage_dtype(methods[mid], rag.data, precision)
                 counts = rag.counts
@@ -258,3 +371,84 @@ def read_local_columns(f: Any, mid: str) -> dict[str, Ragged]:
         else:
             out[key] = Ragged(_get(sub["data"]), np.asarray(sub["offsets"][()]), scalar)
     return out
+
+
+def write_profile(path: Path, profile: ReferenceProfile, extra_attrs: Mapping[str, Any]) -> None:
+    """Write ``profile.h5``: a :class:`~hmpf.confidence.ReferenceProfile` in float64, so
+    :func:`read_profile` restores it bit for bit; ``extra_attrs`` (the parameters it was built
+    with: ``sample``, ``window``, ``seed``) are stored as attributes beside ``methods`` and
+    ``sign``."""
+    h5py = _h5py()
+    arrays = profile.to_arrays()
+    with h5py.File(path, "w", libver="latest") as f:
+        f.attrs["methods"] = json.dumps(list(profile.methods))
+        f.attrs["sign"] = arrays["sign"]
+        for k, v in extra_attrs.items():
+            f.attrs[k] = v
+        for k in ("mean", "std"):
+            f.create_dataset(k, data=arrays[k])
+
+
+def read_profile(path: Path) -> ReferenceProfile:
+    """The :class:`~hmpf.confidence.ReferenceProfile` :func:`write_profile` wrote.
+
+    Raises:
+        IndexCorruptError: naming the file: missing, unreadable, or not a whole profile
+            (an attribute or dataset missing, shapes that disagree).
+    """
+    with open_h5(path) as f:
+        try:
+            methods = json.loads(f.attrs["methods"])
+            if not isinstance(methods, list):
+                raise ValueError("attribute methods is not a list")
+            arrays = {"sign": np.asarray(f.attrs["sign"]).reshape(-1)}
+            arrays.update({k: np.asarray(f[k][()]) for k in ("mean", "std")})
+            return ReferenceProfile.from_arrays(methods, arrays)
+        except (KeyError, ValueError, TypeError, OSError, HmpfError) as exc:
+            raise IndexCorruptError(
+                f"{path}: not a readable reference profile ({exc}); run `hmpf-index verify`"
+            ) from None
+
+
+def stored_profile(
+    version_dir: Path, manifest: Mapping[str, Any], methods: Sequence[str], n: int
+) -> ReferenceProfile | None:
+    """The reference profile a version stores (its manifest's ``profile`` entry), checked
+    against what a reader of it would build: the profiled ``methods`` (tier 1's global
+    methods, in order) over ``n`` places.
+
+    Returns:
+        the profile; None where the version stores none (written before versions stored
+        it) or one built with other parameters than this hmpf's
+        (:func:`hmpf.confidence.profile_params`): the caller builds it.
+
+    Raises:
+        IndexCorruptError: naming the file: an entry whose file the manifest's checksums do
+            not cover, an unreadable file, or a profile of other methods or another number
+            of places than the version's.
+    """
+    entry = manifest.get("profile")
+    if entry is None:
+        return None
+    name = entry.get("file") if isinstance(entry, Mapping) else None
+    if not isinstance(name, str) or name not in manifest.get("files", {}):
+        raise IndexCorruptError(
+            f"{version_dir / layout.MANIFEST}: profile entry {entry!r} names no file of the "
+            "version; run `hmpf-index verify`"
+        )
+    if entry.get("params") != profile_params():
+        log.info(
+            "%s: stored reference profile built with %s, this hmpf builds %s: building it anew",
+            version_dir,
+            entry.get("params"),
+            profile_params(),
+        )
+        return None
+    path = version_dir / name
+    profile = read_profile(path)
+    if list(profile.methods) != list(methods) or profile.n != n:
+        raise IndexCorruptError(
+            f"{path}: a profile of methods {list(profile.methods)} over {profile.n} places, "
+            f"the version has {list(methods)} over {n}; run `hmpf-index verify`"
+        )
+    return profile

@@ -101,6 +101,12 @@ def _index_info(engine: Engine) -> dict[str, Any]:
         "threshold": loaded.threshold,
         "acceptance": _acceptance(loaded.acceptance),
         "loaded_at": loaded.loaded_at,
+        "verification": {
+            "state": loaded.verification,
+            "seconds": reader.verify_seconds,
+            "check_seconds": loaded.check_seconds,
+            "problems": loaded.problems,
+        },
     }
 
 

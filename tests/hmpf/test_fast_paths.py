@@ -55,6 +55,8 @@ def test_spread_reads_as_its_whole_array():
         assert sp.best(m) == int(np.nanargmax(whole))
     assert Spread(10, np.array([2]), {"c": np.array([np.nan])}).best("c") == -1
     assert sorted(sp) == ["a", "b"] and len(sp) == 2
+    as_dict = dict(sp.items())  # a Mapping like the dict a tier held before
+    assert list(as_dict) == ["a", "b"] and all(len(v) == 5000 for v in sp.values())
 
 
 def _whole(result: HierarchyResult) -> HierarchyResult:

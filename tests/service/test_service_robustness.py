@@ -42,7 +42,7 @@ class IdleEngine:
     workers = 1
     queued = 0
     running = 0
-    current = SimpleNamespace(version="v-test")
+    current = SimpleNamespace(version="v-test", verification="full")
     root = Path("/nonexistent/hmpf-index")  # no CURRENT: /metrics says the index is behind
 
     def load(self) -> None:

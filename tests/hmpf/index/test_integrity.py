@@ -197,7 +197,14 @@ def test_gc_killed_midway_leaves_no_half_deleted_version(
     assert indexer.maintenance.verify_all(index) == {"v0002": []}
     # the next gc removes what the killed one left
     indexer.maintenance.gc(index)
-    assert {p.name for p in index.iterdir()} == {layout.CURRENT, layout.LOCK, "v0002"}
+    assert {p.name for p in index.iterdir()} == {
+        layout.CURRENT,
+        layout.LOCK,
+        layout.VERIFIED_DIR,
+        "v0002",
+    }
+    # and the stamp of the version it deleted
+    assert [p.name for p in (index / layout.VERIFIED_DIR).iterdir()] == ["v0002.json"]
 
 
 # -- use ------------------------------------------------------------------------------------------
