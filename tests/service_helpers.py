@@ -10,6 +10,7 @@ each test module scopes its own).
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -170,3 +171,21 @@ def nan_in_final_tier(real: ScoreFn, method: str = "sad") -> ScoreFn:
         return scores
 
     return score_fn
+
+
+#: one sample line of the Prometheus text format: name, labels, value
+_SAMPLE = re.compile(r"^([a-zA-Z_:][a-zA-Z0-9_:]*)(?:\{(.*)\})?\s+(\S+)$")
+
+
+def metric_sum(text: str, name: str, **labels: str) -> float:
+    """The sum of the samples of metric ``name`` in a /metrics ``text`` whose labels include
+    ``labels``."""
+    total = 0.0
+    for line in text.splitlines():
+        m = _SAMPLE.match(line)
+        if m is None or m.group(1) != name:
+            continue
+        have = dict(re.findall(r'(\w+)="([^"]*)"', m.group(2) or ""))
+        if all(have.get(k) == v for k, v in labels.items()):
+            total += float(m.group(3))
+    return total

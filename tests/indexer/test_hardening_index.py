@@ -18,25 +18,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
-from hmpf.config import parse_config
 from hmpf.index import IndexReader, layout
 from indexer import maintenance
-from indexer.build import BuildOptions, build
+from indexer.build import BuildOptions
 from indexer.cli import main as index_main
-from tests.conftest import SMALL_INDEX_CONFIG, write_synthetic_images
 
 OPTS = BuildOptions(workers=1, progress=False)
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture
-def index(tmp_path: Path) -> Path:
-    refs = write_synthetic_images(tmp_path / "refs", 3)
-    root = tmp_path / "index"
-    build(parse_config(yaml.safe_load(SMALL_INDEX_CONFIG)), refs, root, options=OPTS)
-    return root
 
 
 def _killed_between_fsync_and_replace(root: Path, version: str) -> Path:

@@ -15,24 +15,13 @@ import threading
 from pathlib import Path
 
 import pytest
-import yaml
 
-from hmpf.config import parse_config
 from hmpf.index import IndexCorruptError, IndexReader, layout
 from indexer import maintenance
-from indexer.build import BuildOptions, build, remove
+from indexer.build import BuildOptions, remove
 from indexer.cli import main as index_main
-from tests.conftest import SMALL_INDEX_CONFIG, write_synthetic_images
 
 OPTS = BuildOptions(workers=1, progress=False)
-
-
-@pytest.fixture
-def index(tmp_path: Path) -> Path:
-    refs = write_synthetic_images(tmp_path / "refs", 3)
-    root = tmp_path / "index"
-    build(parse_config(yaml.safe_load(SMALL_INDEX_CONFIG)), refs, root, options=OPTS)
-    return root
 
 
 def _largest(version: Path) -> Path:

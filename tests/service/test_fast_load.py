@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 import shutil
 import threading
 import time
@@ -37,9 +36,9 @@ from service.engine import Engine
 from service.server import uvicorn_config
 from service.settings import load_settings
 from tests.conftest import SERVICE_CONFIG, synthetic_image, write_synthetic_images
+from tests.service_helpers import metric_sum
 
 OPTS = BuildOptions(workers=1, progress=False)
-_SAMPLE = re.compile(r"^(\w+)(?:\{([^}]*)\})? (\S+)$")
 
 
 class Records(logging.Handler):
@@ -94,15 +93,7 @@ class RealServer:
 
     def metric(self, name: str, **labels: str) -> float:
         """The sum of ``name``'s samples whose labels include ``labels``."""
-        total = 0.0
-        for line in self.get("/metrics").text.splitlines():
-            m = _SAMPLE.match(line)
-            if m is None or m.group(1) != name:
-                continue
-            have = dict(re.findall(r'(\w+)="([^"]*)"', m.group(2) or ""))
-            if all(have.get(k) == v for k, v in labels.items()):
-                total += float(m.group(3))
-        return total
+        return metric_sum(self.get("/metrics").text, name, **labels)
 
 
 PNG = cv2.imencode(".png", cv2.cvtColor(synthetic_image(2), cv2.COLOR_RGB2BGR))[1].tobytes()

@@ -50,7 +50,14 @@ from service.auth import add_key
 from service.replicas import HaproxyOptions, error_files, haproxy_config, write_haproxy
 from service.settings import load_settings
 from tests.conftest import SERVICE_CONFIG, copy_gp
-from tests.service_helpers import BUILD_OPTIONS, ROOT, LoggedProcess, Server, free_port
+from tests.service_helpers import (
+    BUILD_OPTIONS,
+    ROOT,
+    LoggedProcess,
+    Server,
+    free_port,
+    metric_sum,
+)
 
 N_REFS = 20
 #: How often the replicas look at CURRENT (s), and the longest a switch may take here.
@@ -234,22 +241,10 @@ def frames(gardens_point: Path) -> list[Path]:
     return sorted((gardens_point / "night_right").iterdir())[:N_REFS]
 
 
-_SAMPLE = re.compile(r"^([a-zA-Z_:][a-zA-Z0-9_:]*)(?:\{(.*)\})?\s+(\S+)$")
-
-
 def metric(server: Server, name: str, **labels: str) -> float:
     """The sum of ``name``'s samples in ``server``'s /metrics whose labels include
     ``labels``."""
-    text = httpx.get(server.url + "/metrics", timeout=10).text
-    total = 0.0
-    for line in text.splitlines():
-        m = _SAMPLE.match(line)
-        if m is None or m.group(1) != name:
-            continue
-        have = dict(re.findall(r'(\w+)="([^"]*)"', m.group(2) or ""))
-        if all(have.get(k) == v for k, v in labels.items()):
-            total += float(m.group(3))
-    return total
+    return metric_sum(httpx.get(server.url + "/metrics", timeout=10).text, name, **labels)
 
 
 def answered(server: Server, status: str = "200") -> float:
