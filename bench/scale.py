@@ -74,7 +74,7 @@ from hmpf.index import layout
 from hmpf.index.ann import set_search_params
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import RowBlocks, open_h5
-from hmpf.index.tables import RefTable
+from hmpf.index.tables import Ragged, RefTable
 from hmpf.methods.base import euclidean
 
 #: The bench's default hierarchy (the default preset with OLO at 25 regions).
@@ -370,6 +370,12 @@ def global_rows(
     return rows
 
 
+def select_items(items: Ragged, rows: np.ndarray, chunk: int = 8192) -> Ragged:
+    """``items.select(rows)`` a chunk at a time (select indexes every byte it copies with
+    an int64: 8 GB for a million thumbnails at once)."""
+    return Ragged.concat([items.select(rows[i : i + chunk]) for i in range(0, len(rows), chunk)])
+
+
 def copied_rows(lay: Layout, blocks: np.ndarray) -> Callable[[int, int], np.ndarray]:
     return lambda a, b: blocks[lay.source_rows(a, b)]
 
@@ -429,15 +435,14 @@ def print_check(check: Mapping[str, Any]) -> None:
 
 # -- query features ----------------------------------------------------------------------------
 def query_features(
-    reader: IndexReader, folder: Path, cache_dir: Path, mids: Sequence[str]
+    reader: IndexReader, folder: Path, cache_dir: Path, mids: Sequence[str], every: int = 1
 ) -> dict[str, np.ndarray]:
-    """(Q, D) features of every frame of ``folder`` for the global methods ``mids``, extracted
-    once by ``reader`` (the version's fitted methods) and cached in a .npz named by the
-    methods' cache keys."""
+    """(Q, D) features of every ``every``-th frame of ``folder`` for the global methods
+    ``mids``, extracted once by ``reader`` (the version's fitted methods) and cached in a .npz
+    named by the methods' cache keys."""
+    what = [str(folder.resolve())] + ([every] if every != 1 else [])
     key = hashlib.sha256(
-        json.dumps(
-            [str(folder.resolve())] + [[m, reader.methods[m].cache_key()] for m in sorted(mids)]
-        ).encode()
+        json.dumps(what + [[m, reader.methods[m].cache_key()] for m in sorted(mids)]).encode()
     ).hexdigest()[:16]
     path = cache_dir / f"queries-{folder.name}-{key}.npz"
     if path.exists():
@@ -445,7 +450,7 @@ def query_features(
             return {m: z[m] for m in mids}
     feats: dict[str, list[np.ndarray]] = {m: [] for m in mids}
     t = time.perf_counter()
-    for p in list_images(folder):
+    for p in list_images(folder)[::every]:
         f = reader.extract_query(load_image(p))
         for m in mids:
             feats[m].append(np.asarray(f[m], dtype=np.float32))
@@ -529,7 +534,7 @@ def cmd_write(a: argparse.Namespace) -> None:
             key: RowBlocks((n, *b.shape[1:]), b.dtype, copied_rows(lay, b), BLOCK_ROWS)
             for key, b in src.blocks(mid).items()
         }
-    thumbs = src.thumbs.select(lay.source_rows(0, n))
+    thumbs = select_items(src.thumbs, lay.source_rows(0, n))
     nlist = a.nlist or max(1, round(4 * math.sqrt(n)))
     faiss = {mid: _expand(spec, nlist) for mid, spec in _pairs(a.faiss).items()}
     params = _pairs(a.faiss_params, _PARAMS_FOR_METHOD)  # as hmpf-index build parses them
@@ -590,7 +595,7 @@ def cmd_write(a: argparse.Namespace) -> None:
         "checks": checks,
     }
     path = a.json or OUT / f"write-{size_label(n)}.json"
-    write_json(path, {**provenance(config=config, args=a), **results})
+    write_json(path, {**provenance(config.name, config, a), **results})
     print(f"wrote {path}")
 
 
@@ -837,6 +842,102 @@ def _timing_p50(timings: list[Mapping[str, Any]]) -> dict[str, float]:
     return {k: float(np.median([t[k] for t in timings if k in t])) for k in keys}
 
 
+def cmd_factories(a: argparse.Namespace) -> None:
+    """Other FAISS types for one tier-1 method of a written version, without writing it
+    again: each trained on the build's sample and filled from the stored matrix in blocks,
+    then searched as the reader searches (top ``approx_k``, united with the reader's fixed
+    sample, re-scored exactly) against exact search, per ``--nprobe``."""
+    import faiss
+
+    from hmpf.index.reader import SAMPLE_SIZE
+
+    reader = IndexReader(a.index, verify=False)
+    mid, n = a.method, reader.n_rows
+    method = reader.methods[mid]
+    qdir = a.queries or Path(a.datasets) / QUERY_FOLDER
+    glob = [m for m, meth in reader.methods.items() if meth.kind == "global"]
+    q = query_features(reader, qdir, a.cache_dir, glob, a.every)[mid]
+    approx_k = a.approx_k or reader.approx_k
+    sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
+    planted = planted_rows(reader)
+    gt = [planted[max(0, i - TOLERANCE) : i + TOLERANCE + 1] for i in range(len(q))]
+    if len(q) != len(planted):  # other queries than the planted route's: no ground truth
+        gt = [np.zeros(0, np.int64)] * len(q)
+    print(machine(), f"(load {os.getloadavg()[0]:.2f})")
+    print(
+        f"{a.index}: {n} references, {mid}; {len(q)} queries (every {a.every}. of {qdir}); "
+        f"{config_line(reader.config)}"
+    )
+    t = time.perf_counter()
+    exact = exact_top(reader, mid, q, 100)
+    print(f"exact top 100 of {len(q)} queries in {time.perf_counter() - t:.0f} s")
+    rows_out = []
+    rows = reader.global_matrix(mid)  # what the reader re-scores (on demand where it reads so)
+    with open_h5(reader.path / layout.REFERENCES_H5) as f:
+        ds = f["global"][mid]
+        d = ds.shape[1]
+        for spec in a.factory:
+            nlist = a.nlist or max(1, round(4 * math.sqrt(n)))
+            factory = _expand(spec, nlist)
+            train_n = min(n, a.train_rows or max(65_536, 40 * nlist))
+            pick = np.unique(np.linspace(0, n - 1, train_n).round().astype(np.int64))
+            t = time.perf_counter()
+            index = faiss.index_factory(d, factory, faiss.METRIC_L2)
+            index.train(np.asarray(ds[pick], dtype=np.float32))
+            train_s = time.perf_counter() - t
+            t = time.perf_counter()
+            for lo in range(0, n, 32768):
+                index.add(np.asarray(ds[lo : lo + 32768], dtype=np.float32))
+            add_s = time.perf_counter() - t
+            nbytes = faiss.serialize_index(index).size
+            for nprobe in a.nprobe or [None]:
+                if nprobe is not None:
+                    faiss.ParameterSpace().set_index_parameters(index, f"nprobe={nprobe}")
+                top = np.empty((len(q), 100), dtype=np.int64)
+                ms = []
+                for j in range(len(q)):
+                    t = time.perf_counter()
+                    _, ids = index.search(q[j : j + 1].astype(np.float32), approx_k)
+                    ms.append((time.perf_counter() - t) * 1e3)
+                    cand = np.union1d(ids[0][ids[0] >= 0], sample)
+                    s = method.scores(q[j], rows, cand)
+                    top[j] = cand[np.argsort(s, kind="stable")[:100]]
+                row = {
+                    "factory": factory,
+                    "nprobe": nprobe,
+                    "approx_k": approx_k,
+                    "bytes_per_reference": nbytes / n,
+                    "train_rows": len(pick),
+                    "train_s": train_s,
+                    "add_s": add_s,
+                    "recall_at_100": _overlap(top, exact, 100),
+                    "recall_at_10": _overlap(top, exact, 10),
+                    "right_in_exact_top10": _right(exact, gt, 10),
+                    "right_in_approx_top10": _right(top, gt, 10),
+                    "faiss_ms_p50": statistics.median(ms),
+                }
+                rows_out.append(row)
+                print(
+                    f"  {factory:24s} nprobe {nprobe}: recall@100 {row['recall_at_100']:.4f}, "
+                    f"@10 {row['recall_at_10']:.4f}; right in top 10 exact "
+                    f"{row['right_in_exact_top10']:.3f} / approx {row['right_in_approx_top10']:.3f}"
+                    f"; {nbytes / n:.0f} B per reference; FAISS {row['faiss_ms_p50']:.2f} ms "
+                    f"p50 (top {approx_k}); train {train_s:.0f} s, add {add_s:.0f} s",
+                    flush=True,
+                )
+            del index
+    path = a.json or OUT / f"factories-{mid}-{size_label(n)}.json"
+    results = {
+        "index": str(a.index),
+        "references": n,
+        "method": mid,
+        "queries": {"folder": str(qdir), "every": a.every, "count": len(q)},
+        "settings": rows_out,
+    }
+    write_json(path, {**provenance(reader.config.name, reader.config, a), **results})
+    print(f"wrote {path}")
+
+
 def cmd_measure(a: argparse.Namespace) -> None:
     qdir = a.queries or Path(a.datasets) / QUERY_FOLDER
     out: dict[str, Any] = {}
@@ -874,7 +975,7 @@ def cmd_measure(a: argparse.Namespace) -> None:
         print_serve(s, n)
     path = a.json or OUT / f"measure-{size_label(n)}.json"
     results = {"index": str(a.index), "references": n, "disk_bytes": disk, **out}
-    write_json(path, {**provenance(config=config, args=a), **results})
+    write_json(path, {**provenance(config.name, config, a), **results})
     print(f"wrote {path}")
 
 
@@ -903,35 +1004,39 @@ def print_serve(s: Mapping[str, Any], n: int) -> None:
 
 # -- report ------------------------------------------------------------------------------------
 def cmd_report(a: argparse.Namespace) -> None:
-    """One table of the measure records given, with the p50 and memory ratios to the smallest."""
-    recs = sorted(
-        (json.loads(Path(p).read_text()) for p in a.records), key=lambda r: r["references"]
-    )
+    """One table of the measure records given: per size, the disk, the service's figures,
+    the ratios to the smallest size and tier-1 recall@100 at the version's stored nprobe."""
+    recs = [json.loads(Path(p).read_text()) for p in a.records]
+    recs.sort(key=lambda r: r["references"])
     base = next((r for r in recs if "serve" in r), None)
     print(
-        "| references | config | disk KiB/ref | first answer s | RSS MiB (anon / file) | "
-        "KiB/ref | p50 ms | p99 ms | p50 / smallest | recall@1 | tier-1 recall@100 |"
+        "| references | config | disk KiB/ref | first answer s | RSS MiB (anonymous / file) | "
+        "KiB/ref (slope) | p50 ms | p99 ms | p50 / smallest | recall@1 | tier-1 recall@100 |"
     )
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in recs:
         s = r.get("serve", {})
         rec = "; ".join(
-            f"{mid} {st['nprobe']}: {st['recall_at_100']:.3f}"
+            f"{mid} {st['recall_at_100']:.3f}"
             for mid, m in r.get("recall", {}).items()
             for st in m["settings"]
+            if f"nprobe={st['nprobe']}" == m["stored_params"] or st["nprobe"] == m["stored_params"]
         )
-        if s:
-            rss = s["rss_after_queries_mib"]
-            ratio = s["p50_ms"] / base["serve"]["p50_ms"] if base else float("nan")
-            print(
-                f"| {r['references']} | {r['preset'] or ''}{r['digest'][:12]} | "
-                f"{r['disk_bytes'] / r['references'] / 1024:.1f} | {s['first_answer_s']:.1f} | "
-                f"{rss['VmRSS']:.0f} ({rss['RssAnon']:.0f} / {rss['RssFile']:.0f}) | "
-                f"{rss['VmRSS'] * 1024 / r['references']:.2f} | {s['p50_ms']:.1f} | "
-                f"{s['p99_ms']:.1f} | {ratio:.2f} | {s['recall_at_1']:.3f} | {rec} |"
-            )
-        else:
-            print(f"| {r['references']} | {r['digest'][:12]} | | | | | | | | | {rec} |")
+        cfg = f"{r.get('preset') or ''} {r['digest'][:12]}"
+        disk = r["disk_bytes"] / r["references"] / 1024
+        if not s:
+            print(f"| {r['references']} | {cfg} | {disk:.1f} | | | | | | | | {rec} |")
+            continue
+        rss, b = s["rss_after_queries_mib"], (base or r)["serve"]
+        dn = r["references"] - (base or r)["references"]
+        slope = (rss["VmRSS"] - b["rss_after_queries_mib"]["VmRSS"]) * 1024 / dn if dn else math.nan
+        print(
+            f"| {r['references']} | {cfg} | {disk:.1f} | {s['first_answer_s']:.1f} | "
+            f"{rss['VmRSS']:.0f} ({rss['RssAnon']:.0f} / {rss['RssFile']:.0f}) | "
+            f"{rss['VmRSS'] * 1024 / r['references']:.2f} ({slope:.2f}) | {s['p50_ms']:.1f} | "
+            f"{s['p99_ms']:.1f} | {s['p50_ms'] / b['p50_ms']:.2f} | {s['recall_at_1']:.3f} | "
+            f"{rec} |"
+        )
 
 
 # -- main --------------------------------------------------------------------------------------
@@ -969,9 +1074,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     m.add_argument("--warmup", type=int, default=5)
     m.add_argument("--no-serve", action="store_true")
     m.add_argument("--no-recall", action="store_true")
+    fa = sub.add_parser("factories", help="other FAISS types for one method of a version")
+    fa.add_argument("--index", type=Path, required=True)
+    fa.add_argument("--method", required=True)
+    fa.add_argument("--factory", nargs="+", required=True, help="{nlist} replaced")
+    fa.add_argument("--nlist", type=int, default=None, help="default round(4 sqrt(N))")
+    fa.add_argument("--train-rows", type=int, default=None, help="default max(65536, 40 nlist)")
+    fa.add_argument("--nprobe", type=int, nargs="*", default=None)
+    fa.add_argument("--approx-k", type=int, default=None, help="default the reader's")
+    fa.add_argument("--queries", type=Path, default=None, help="default night_right")
+    fa.add_argument("--every", type=int, default=1, help="every N-th query frame")
     r = sub.add_parser("report", help="one table of measure records")
     r.add_argument("records", nargs="+")
-    for sp in (w, m):
+    for sp in (w, m, fa):
         sp.add_argument("--datasets", default=str(dataset_root()))
         sp.add_argument("--cache-dir", type=Path, default=WORK, help="query features' cache")
         sp.add_argument("--json", type=Path, default=None, help=f"default {OUT}/<cmd>-<size>.json")
@@ -982,6 +1097,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         cmd_write(a)
     elif a.cmd == "measure":
         cmd_measure(a)
+    elif a.cmd == "factories":
+        cmd_factories(a)
     else:
         cmd_report(a)
 
