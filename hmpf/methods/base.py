@@ -595,6 +595,10 @@ def _as_f64_with_norms(references: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ref = weakref.ref(references)
     except TypeError:  # not weak-referenceable (e.g. a list): do not remember it
         return r, norms
+    # Entries of arrays that are gone first (e.g. the rows a previous query gathered), so
+    # that they do not push out the matrices every query scores against.
+    for k in [k for k, v in _REF_CACHE.items() if v[0]() is None]:
+        del _REF_CACHE[k]
     if len(_REF_CACHE) >= _REF_CACHE_SIZE:
         _REF_CACHE.pop(next(iter(_REF_CACHE)))
     _REF_CACHE[key] = (ref, r, norms)

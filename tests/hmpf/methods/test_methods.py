@@ -590,3 +590,21 @@ def test_cache_key_tracks_config(name: str, change: dict[str, object]) -> None:
     assert base == create_method(name).cache_key()
     assert base.startswith(f"{name}-")
     assert create_method(name, change).cache_key() != base
+
+
+def test_euclidean_cache_keeps_the_matrix_across_temporary_row_sets() -> None:
+    """A large matrix scored every query keeps its float64 copy while the rows gathered
+    per query (temporaries, each large enough to be remembered) come and go."""
+    from hmpf.methods import base
+
+    rng = np.random.default_rng(0)
+    matrix = rng.standard_normal((300, 256)).astype(np.float32)
+    q = rng.standard_normal((1, 256))
+    first = base.euclidean(q, matrix)
+    kept = base._as_f64_with_norms(matrix)[0]
+    for _ in range(3 * base._REF_CACHE_SIZE):
+        base.euclidean(q, rng.standard_normal((300, 256)).astype(np.float32))
+    assert base._as_f64_with_norms(matrix)[0] is kept
+    np.testing.assert_array_equal(base.euclidean(q, matrix), first)
+    want = np.sqrt(((q.astype(np.float64) - matrix.astype(np.float64)) ** 2).sum(1))
+    np.testing.assert_allclose(first[0], want, rtol=1e-9)
