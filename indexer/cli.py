@@ -9,6 +9,7 @@
     hmpf-index verify --index maps/campus [--index-version v0002]   (default: every version)
     hmpf-index info --index maps/campus [--index-version v0002]
     hmpf-index use --index maps/campus v0002
+    hmpf-index shard --index maps/city --shards 4 --overlap 20 --out maps/city-shards
     hmpf-index list|gc --index maps/campus
     hmpf-index --version
 
@@ -202,6 +203,20 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--index", required=True)
     u.add_argument("name", metavar="VERSION", help="the version to use, e.g. v0002")
 
+    sh = sub.add_parser(
+        "shard", help="split the current version into region shards (hmpf-serve-shards)"
+    )
+    sh.add_argument("--index", required=True)
+    sh.add_argument("--shards", type=int, required=True, metavar="N", help="number of shards")
+    sh.add_argument(
+        "--overlap",
+        type=int,
+        default=0,
+        metavar="K",
+        help="places along the route on either side of a border held by both neighbours",
+    )
+    sh.add_argument("--out", required=True, help="the shard folder (created if missing)")
+
     ls = sub.add_parser("list", help="list versions")
     ls.add_argument("--index", required=True)
 
@@ -381,6 +396,12 @@ def _run(args: argparse.Namespace) -> int:
         summary = remove(args.index, args.names)
     elif cmd == "verify":
         return _verify(args)
+    elif cmd == "shard":
+        from indexer.shard import split
+
+        for line in split(args.index, args.shards, args.overlap, args.out).lines():
+            print(line)
+        return 0
     elif cmd == "use":
         old, new = maintenance.use(args.index, args.name)
         print(

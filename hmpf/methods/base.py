@@ -611,6 +611,10 @@ def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
     Uses the ``|q|^2 + |r|^2 - 2 q.r`` expansion in float64 (clipped at 0): fast for the
     full-database matrices and accurate enough for descriptors of moderate norm. The
     float64 copy of a large reference matrix and its norms are computed once per matrix.
+
+    One query (a hierarchy's every call) takes one dot product per reference, each on its
+    own (:func:`_row_dots`): a reference's distance is then the same number whichever other
+    references are scored with it (the whole map, a GPS prior's subset, a region shard).
     """
     q = np.asarray(queries, dtype=np.float64)
     if isinstance(references, np.ndarray) and references.size >= 1 << 16:
@@ -618,5 +622,15 @@ def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
     else:
         r = np.asarray(references, dtype=np.float64)
         rn = (r * r).sum(1)
-    d2 = (q * q).sum(1)[:, None] + rn[None, :] - 2.0 * (q @ r.T)
+    dots = _row_dots(q[0], r)[None, :] if q.shape[0] == 1 else q @ r.T
+    d2 = (q * q).sum(1)[:, None] + rn[None, :] - 2.0 * dots
     return np.sqrt(np.maximum(d2, 0.0))
+
+
+def _row_dots(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(n,) ``r[i] . q``, each a dot product of its own (a stack of 1 x D by D x 1
+    products). A matrix-vector product (``r @ q``) is as fast on one thread but not the same
+    to the last bit for every row: BLAS kernels sum a block of rows in one order and the last
+    few rows of a call in another (OpenBLAS's dgemv: blocks of 4), so a row's value would
+    depend on how many rows the call held and where the row sat."""
+    return np.matmul(r[:, None, :], q[:, None])[:, 0, 0]

@@ -1,0 +1,108 @@
+"""The service over a sharded map: the same app, with an engine whose version is every shard.
+
+:class:`ShardedEngine` is an :class:`~service.engine.Engine` whose loaded version
+(:func:`open_sharded`) reads the whole map through a :class:`~hmpf.sharded.ShardedReader`:
+the routes, their answers and errors are ``hmpf-serve``'s own (:func:`service.app.create_app`
+with this engine), and each query's scores are scattered to the shards. How the shards are
+reached is the reader factory's business: in this process (:class:`~hmpf.sharded.LocalShards`)
+or on Ray Serve (:mod:`service.ray_shards`).
+
+A reload (``POST /v1/index/reload``) opens the map anew: the shards' versions as they are now.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from hmpf.acceptance import Policy
+from hmpf.sequence import SequenceFilter
+from hmpf.sharded import ShardedReader
+from service.engine import Engine, Loaded
+from service.track import binding_digest
+
+__all__ = ["ShardedEngine", "open_sharded"]
+
+log = logging.getLogger("hmpf.service")
+
+
+def open_sharded(reader: ShardedReader, threshold: float | None) -> Loaded:
+    """A :class:`~service.engine.Loaded` over the whole sharded map (``reader``): the same
+    acceptance, profile, sequence filter and positions an unsharded version of the same
+    places has (its files were verified by the shards themselves)."""
+    try:
+        params = reader.config.sequence_params()
+        acceptance = Policy.of(
+            reader.config.acceptance,
+            threshold=threshold,
+            lock_mass=params.lock_mass,
+            label=str(reader.path),
+        )
+        profile = reader.reference_profile()
+        meta, n = reader.refs.meta, reader.n
+        lat = None if meta.get("lat") is None else meta["lat"][:n]
+        lon = None if meta.get("lon") is None else meta["lon"][:n]
+        has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
+        return Loaded(
+            cast(Any, reader),
+            reader.hierarchy(),
+            acceptance.threshold,
+            time.time(),
+            SequenceFilter(reader.route_map(), params),
+            binding_digest(reader.manifest, params),
+            acceptance,
+            lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
+            lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
+            profile=profile,
+            verification="full",
+        )
+    except BaseException:
+        reader.close()
+        raise
+
+
+class ShardedEngine(Engine):
+    """An :class:`~service.engine.Engine` over a shard folder; ``open_reader`` opens the
+    whole map (called at start and on each reload)."""
+
+    def __init__(
+        self,
+        folder: Path,
+        open_reader: Callable[[], ShardedReader],
+        *,
+        workers: int,
+        queue: int,
+        threads_per_worker: int,
+        accept_threshold: float | None = None,
+    ) -> None:
+        super().__init__(
+            folder,
+            workers=workers,
+            queue=queue,
+            threads_per_worker=threads_per_worker,
+            accept_threshold=accept_threshold,
+        )
+        self.open_reader = open_reader
+
+    def load(self) -> Loaded:
+        """Open the map (every shard as it is now) and make it current; the previous one is
+        closed when its last query ends."""
+        loaded = open_sharded(self.open_reader(), self.accept_threshold)
+        try:
+            self._warm_up(loaded)
+        except BaseException:
+            loaded.reader.close()
+            raise
+        with self._lock:
+            old, self._current = self._current, loaded
+            if old is not None:
+                self._retire(old)
+        log.info(
+            "sharded map %s loaded (%d places; %s)", self.root, loaded.reader.n, loaded.version
+        )
+        return loaded

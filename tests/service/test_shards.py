@@ -1,0 +1,205 @@
+"""Region shards without Ray (:mod:`hmpf.shards`, :mod:`indexer.shard`, :mod:`hmpf.sharded`):
+a real index of Gardens Point day_left (62 places with positions; GeM, a CNN, and Gist in
+tier 1, HOG, SAD and KAZE deciding; a confidence model in its config) split by
+``hmpf-index shard`` into 3 shards of 26 to 30 places (no shard, nor the map, a multiple of
+a BLAS kernel's block) with an overlap; every night_right frame
+of the same stretch answered by the sharded map equals, bit for bit, the unsharded answer
+(match, scores, candidates, tiers, p_correct, accepted, the confidence features, the
+sequence filter's estimates); a GPS prior reaches only the shards covering it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from hmpf.confidence import FEATURES, ConfidenceModel, answer_features
+from hmpf.config import parse_config
+from hmpf.sequence import Evidence
+from hmpf.sharded import ShardedReader
+from hmpf.shards import ShardError, ShardMap, plan, read_shard_map
+from indexer.build import build
+from indexer.cli import main as index_main
+from service.answer import localize_response, on_references
+from service.engine import Loaded, Prior, run_query
+from service.schemas import LocalizeParams
+from service.shards import open_sharded
+from tests.conftest import copy_gp, write_positions
+from tests.service_helpers import BUILD_OPTIONS
+
+#: Places of the map and queries (night_right frames aligned with them).
+N = 62
+#: A CNN and Gist narrow (scored at every shard), HOG, SAD and KAZE (local) decide (scored
+#: where the candidates live).
+CONFIG = {
+    "name": "shards-test",
+    "methods": {"kaze": {"max_keypoints": 40}},
+    "tiers": [{"methods": ["gem", "gist"], "k": 6}, {"methods": ["hog", "sad", "kaze"], "k": 1}],
+    "sequence": {"lock_mass": 0.9},
+}
+SINGLE = (*FEATURES, "ref_z")
+
+
+def _model() -> dict[str, Any]:
+    """A fixed confidence model over the single-frame features (its numbers are not fitted:
+    what matters is that p_correct reads every feature, the whole-map ones included)."""
+    k = len(SINGLE)
+    coef = (0.9, 0.7, 0.5, -0.6, 0.4, 0.8, -0.3, 0.6)
+    model = ConfidenceModel(SINGLE, (1.0,) * k, (1.0,) * k, coef[:k], -1.0, 1.0)
+    return {"threshold": 2.0, "model": model.to_dict(), "model_threshold": 0.5}
+
+
+@pytest.fixture(scope="module")
+def maps(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("shards")
+    refs = copy_gp(gardens_point, "day_left", base / "refs", N)
+    csv = write_positions(refs, base / "meta.csv")
+    config = dict(CONFIG, acceptance=_model())
+    index = base / "index"
+    build(parse_config(config), refs, index, metadata=csv, options=BUILD_OPTIONS)
+    out = base / "shards"
+    assert index_main(["shard", "--index", str(index), "--shards", "3", "--overlap", "5",
+                       "--out", str(out)]) == 0  # fmt: skip
+    return {"index": index, "shards": out}
+
+
+@pytest.fixture(scope="module")
+def night(gardens_point: Path) -> list[np.ndarray]:
+    paths = sorted((gardens_point / "night_right").iterdir())[:N]
+    return [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in paths]
+
+
+@pytest.fixture(scope="module")
+def loaded(maps: dict[str, Path]) -> Any:
+    whole = Loaded.open(maps["index"], None)
+    sharded = open_sharded(ShardedReader.open_local(maps["shards"]), None)
+    yield whole, sharded
+    whole.reader.close()
+    sharded.reader.close()
+
+
+# -- the plan -------------------------------------------------------------------------------------
+def test_plan_owns_every_place_once_and_overlaps_borders() -> None:
+    order = np.array([5, 3, 9, 0, 1, 2, 8, 7, 6, 4])
+    plans = plan(order, 3, 2)
+    owned = np.concatenate([p.owned for p in plans])
+    assert sorted(owned.tolist()) == list(range(10))
+    # stretches along the order, each widened by 2 places on either side
+    assert [p.owned.tolist() for p in plans] == [[3, 5, 9], [0, 1, 2, 8], [4, 6, 7]]
+    assert plans[0].covered.tolist() == [0, 1, 3, 5, 9]
+    assert plans[1].covered.tolist() == [0, 1, 2, 3, 6, 7, 8, 9]
+    assert plans[2].covered.tolist() == [2, 4, 6, 7, 8]
+    m = ShardMap.from_plans(10, plans)
+    # a subset inside one shard's overlap goes to that shard only; a spread one to owners
+    assert list(m.route(np.array([1, 9]))) == [0]
+    assert m.route(np.array([1, 9]))[0][1].tolist() == [1, 4]  # local ids in shard 0
+    spread = m.route(np.array([5, 4]))
+    assert sorted(spread) == [0, 2]
+
+
+@pytest.mark.parametrize(("shards", "overlap"), [(0, 0), (11, 0), (2, -1)])
+def test_plan_refuses_bad_numbers(shards: int, overlap: int) -> None:
+    with pytest.raises(ShardError):
+        plan(np.arange(10), shards, overlap)
+
+
+def test_split_writes_real_versions(maps: dict[str, Path]) -> None:
+    shard_map, info = read_shard_map(maps["shards"])
+    assert shard_map.shards == 3 and shard_map.n == N
+    for s in range(3):
+        cur = (maps["shards"] / shard_map.names[s] / "CURRENT").read_text().strip()
+        assert cur == info["written"][s]
+    counts = [len(c) for c in shard_map.covered]
+    assert sum(len(shard_map.owned(s)[1]) for s in range(3)) == N
+    assert sum(counts) == N + 2 * 2 * 5  # two borders, 5 places each side
+    assert counts == [26, 30, 26]  # no size a multiple of a BLAS block (4), nor N
+
+
+def test_split_cli_refuses_bad_input(maps: dict[str, Path], tmp_path: Path, capsys: Any) -> None:
+    args = ["shard", "--index", str(maps["index"]), "--shards", "0", "--out", str(tmp_path / "x")]
+    assert index_main(args) == 2
+    assert "at least 1" in capsys.readouterr().err
+
+
+# -- equality ------------------------------------------------------------------------------------
+def _answer(loaded: Loaded, image: np.ndarray, params: LocalizeParams) -> tuple[dict, Any, Any]:
+    timing: dict[str, Any] = {}
+    result, allowed = run_query(loaded, image, params_prior(params), timing)
+    answer = localize_response(loaded, result, allowed, params, timing).model_dump()
+    answer.pop("timing_ms")
+    answer.pop("index_version")
+    for tier in answer["tiers"]:
+        tier.pop("time_ms")  # wall time, the only number that may differ
+    return answer, result, allowed
+
+
+def params_prior(params: LocalizeParams) -> Prior | None:
+    if params.lat is None:
+        return None
+    assert params.lon is not None and params.radius_m is not None
+    return Prior(params.lat, params.lon, params.radius_m)
+
+
+def test_sharded_answers_equal_unsharded_on_every_query(
+    loaded: tuple[Loaded, Loaded], night: list[np.ndarray]
+) -> None:
+    whole, sharded = loaded
+    params = LocalizeParams(top_k=10)
+    routes = whole.sequence.routes
+    accepted = 0
+    state_w, state_s = whole.sequence.start(), sharded.sequence.start()
+    for i, image in enumerate(night):
+        a, ra, _ = _answer(whole, image, params)
+        b, rb, _ = _answer(sharded, image, params)
+        assert a == b, f"frame {i}"
+        assert a["match"]["p_correct"] is not None
+        accepted += a["match"]["accepted"]
+        # the evidence behind it, to the last bit
+        assert np.array_equal(ra.final_candidates, rb.final_candidates)
+        assert np.array_equal(ra.combined, rb.combined, equal_nan=True)
+        for ta, tb in zip(ra.tiers, rb.tiers, strict=True):
+            for m in ta.methods:
+                assert np.array_equal(ta.scores[m], tb.scores[m], equal_nan=True), (i, m)
+                assert np.array_equal(ta.raw[m], tb.raw[m], equal_nan=True), (i, m)
+        fa = answer_features(ra, routes, profile=whole.profile)
+        fb = answer_features(rb, sharded.sequence.routes, profile=sharded.profile)
+        assert fa == fb
+        # the sequence filter fed by either gives the same estimates
+        ea = Evidence.from_result(ra, whole.reader.n)
+        eb = Evidence.from_result(rb, sharded.reader.n)
+        state_w, est_w = whole.sequence.update(state_w, ea)
+        state_s, est_s = sharded.sequence.update(state_s, eb)
+        assert (est_w.ref, est_w.mass) == (est_s.ref, est_s.mass)
+    assert 0 < accepted < len(night)  # the model's decision is exercised both ways
+
+
+def test_gps_prior_reaches_only_covering_shards(
+    loaded: tuple[Loaded, Loaded], night: list[np.ndarray]
+) -> None:
+    whole, sharded = loaded
+    reader = sharded.reader
+    backend = reader.backend
+    assert isinstance(reader, ShardedReader)
+    # a prior around a place owned by the last shard, far from its first border
+    shard_map = reader.map
+    _, own = shard_map.owned(2)
+    centre = int(own[len(own) // 2])
+    lat, lon = float(whole.lat[centre]), float(whole.lon[centre])  # type: ignore[index]
+    params = LocalizeParams(lat=lat, lon=lon, radius_m=40.0)
+    for i in (centre - 2, centre, centre + 2):
+        backend.calls.clear()
+        a, ra, allowed_a = _answer(whole, night[i], params)
+        b, rb, allowed_b = _answer(sharded, night[i], params)
+        assert a == b
+        assert np.array_equal(allowed_a, allowed_b) and len(allowed_a) < N
+        assert backend.calls and all(c == [2] for c in backend.calls), backend.calls
+        fa = answer_features(on_references(ra, allowed_a, N), whole.sequence.routes)
+        fb = answer_features(on_references(rb, allowed_b, N), sharded.sequence.routes)
+        assert fa == fb
+    # without a prior, tier 1 reaches every shard
+    backend.calls.clear()
+    _answer(sharded, night[0], LocalizeParams())
+    assert backend.calls[0] == [0, 1, 2]
