@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("name", metavar="VERSION", help="the version to use, e.g. v0002")
 
     sh = sub.add_parser(
-        "shard", help="split the current version into region shards (hmpf-serve-shards)"
+        "shard", help="split the current version into region shards (hmpf-serve shards)"
     )
     sh.add_argument("--index", required=True)
     sh.add_argument("--shards", type=int, required=True, metavar="N", help="number of shards")

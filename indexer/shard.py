@@ -12,7 +12,7 @@ writes, in ``--out``::
     shard-00/ ...        one index folder per shard: a published version (CURRENT) of its
                          places, written as ``hmpf-index remove`` writes one (the parent's
                          rows, fitted state, models, storage options), served by
-                         ``hmpf-serve-shards`` (or ``hmpf-serve --index`` on its own)
+                         ``hmpf-serve shards`` (or ``hmpf-serve --index`` on its own)
 
 The stretches follow the routes (the version's route order: ``sequence``, then
 ``timestamp``); ``--overlap`` places on either side of a border are in both neighbours.
@@ -69,7 +69,7 @@ class ShardSummary:
                 f"({self.owned[i]} owned, {self.covered[i] - self.owned[i]} in the overlap), "
                 f"{s.bytes_total / 1e6:.1f} MB, {s.seconds:.1f} s"
             )
-        out.append(f"serve them with: hmpf-serve-shards --shards {self.out}")
+        out.append(f"serve them with: hmpf-serve shards --shards {self.out}")
         return out
 
 

@@ -4,6 +4,7 @@
                [--keys-file KEYS.yaml]                 (no subcommand: serve)
     hmpf-serve keys add --file KEYS.yaml --name car-17 [--role vehicle|admin]
     hmpf-serve keys list --file KEYS.yaml
+    hmpf-serve shards --shards DIR [--replicas N] ...  (a sharded map on Ray Serve)
     hmpf-serve --version
 
 Every serving flag can also come from the environment (``HMPF_INDEX``, ``HMPF_PORT``, ...) or
@@ -67,10 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
     add.add_argument("--role", default="vehicle", choices=["vehicle", "admin"])
     listing = key_commands.add_parser("list", help="names and roles in a keys file")
     listing.add_argument("--file", type=Path, required=True)
+    commands.add_parser(
+        "shards",
+        add_help=False,
+        help="serve a sharded map (hmpf-index shard) on Ray Serve; see hmpf-serve shards --help",
+    )
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["shards"]:
+        from service.ray_shards import main as shards_main
+
+        return shards_main(argv[1:])
     args = build_parser().parse_args(argv)
     if args.command == "keys":
         return run(f"{PROG} keys", lambda: _keys(args))

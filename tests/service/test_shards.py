@@ -203,3 +203,18 @@ def test_gps_prior_reaches_only_covering_shards(
     backend.calls.clear()
     _answer(sharded, night[0], LocalizeParams())
     assert backend.calls[0] == [0, 1, 2]
+
+
+def test_serve_shards_command_help_and_errors(maps: dict[str, Path], capsys: Any) -> None:
+    """``hmpf-serve shards``: its help, and bad input refused (exit 2) before Ray starts."""
+    from service.cli import main as serve_main
+
+    with pytest.raises(SystemExit) as done:
+        serve_main(["shards", "--help"])
+    assert done.value.code == 0
+    assert "--replicas-of NAME=N" in capsys.readouterr().out
+    assert serve_main(["shards", "--shards", str(maps["index"])]) == 2
+    assert "no shards.json" in capsys.readouterr().err
+    assert serve_main(["shards", "--shards", str(maps["shards"]), "--replicas-of", "x=2"]) == 2
+    assert "no shard 'x'" in capsys.readouterr().err
+    assert serve_main(["shards", "--shards", str(maps["shards"]), "--replicas", "0"]) == 2
