@@ -16,6 +16,7 @@ always re-scored exactly by the method (see :mod:`hmpf.index.reader`).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -80,8 +81,92 @@ def _faiss_metric(kind: MetricKind) -> int:
     }[kind]
 
 
+#: ``PCA<D>:<d>,<codes>[,k<F>]``: hmpf's own tier-1 type (see :func:`projected_scan`)
+_PROJECTED = re.compile(r"^PCA(\d+):(\d+),(SQfp16|SQ8)(?:,k(\d+))?$")
+
+
+def projected_spec(factory: str) -> tuple[int, int, str, int] | None:
+    """``(D, d, codes, k_factor)`` of a projected-scan factory string, else None."""
+    m = _PROJECTED.match(factory.replace(" ", ""))
+    if m is None:
+        return None
+    big, small, codes, k_factor = int(m[1]), int(m[2]), m[3], int(m[4] or PROJECTED_K_FACTOR)
+    return big, small, codes, k_factor
+
+
+#: candidates of the short scan per row a projected-scan index returns (its default)
+PROJECTED_K_FACTOR = 8
+
+
+def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of the (N, D) rows ``x`` and their top ``dim`` principal directions
+    ((dim, D), orthonormal rows, largest variance first)."""
+    from scipy.linalg import eigh
+
+    x = np.asarray(x, dtype=np.float32)
+    n, d = x.shape
+    if not 0 < dim < d:
+        raise IndexBuildError(f"PCA to {dim} dimensions of {d}-dimensional rows")
+    if n < 2:
+        raise IndexBuildError(f"a PCA needs 2 references or more, got {n}")
+    mean = x.mean(axis=0, dtype=np.float64)
+    xc = (x - mean.astype(np.float32)).astype(np.float32)
+    cov = (xc.T @ xc).astype(np.float64)
+    _, vec = eigh(cov, subset_by_index=[d - dim, d - 1])
+    return mean, np.ascontiguousarray(vec[:, ::-1].T)
+
+
+def projected_scan(x: np.ndarray, factory: str) -> Any:
+    """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
+
+    ``PCA<D>:<d>,<codes>[,k<F>]``: rows projected on their top ``D`` principal directions
+    and stored as ``codes`` (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans
+    every row on the first ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and
+    re-ranks them on all ``D`` (FAISS: a PCA ``LinearTransform`` in front of an
+    ``IndexRefine`` whose base sees the first ``d`` dimensions). No partition: every row
+    is looked at, which keeps the neighbours that IVF's lists lose where distances are
+    concentrated (NetVLAD), at ``(D + d) x codes`` bytes per row. ``F`` is also the
+    search parameter ``k_factor_rf``.
+    """
+    faiss = faiss_module()
+    spec = projected_spec(factory)
+    assert spec is not None
+    big, small, codes, k_factor = spec
+    d = x.shape[1]
+    if not small < big < d:
+        raise IndexBuildError(
+            f"FAISS factory string {factory!r}: needs {small} < {big} < {d} (the rows' size)"
+        )
+    mean, comps = pca_rows(x, big)
+    pca = faiss.LinearTransform(d, big, True)
+    faiss.copy_array_to_vector(comps.astype(np.float32).ravel(), pca.A)
+    faiss.copy_array_to_vector((-(comps @ mean)).astype(np.float32), pca.b)
+    pca.is_trained = True
+    first = faiss.LinearTransform(big, small, False)
+    faiss.copy_array_to_vector(np.eye(small, big, dtype=np.float32).ravel(), first.A)
+    first.is_trained = True
+    qtype = getattr(faiss.ScalarQuantizer, "QT_fp16" if codes == "SQfp16" else "QT_8bit")
+    short = faiss.IndexPreTransform(first, faiss.IndexScalarQuantizer(small, qtype))
+    full = faiss.IndexScalarQuantizer(big, qtype)
+    refine = faiss.IndexRefine(short, full)
+    refine.k_factor = float(k_factor)
+    index = faiss.IndexPreTransform(pca, refine)
+    y = pca.apply(np.ascontiguousarray(x, dtype=np.float32))
+    full.train(y)
+    short.train(y)
+    refine.is_trained = True
+    index.is_trained = True
+    return index
+
+
 def _make(factory: str, x: np.ndarray, kind: MetricKind) -> Any:
     faiss = faiss_module()
+    if projected_spec(factory) is not None:
+        if kind != "l2":
+            raise RuntimeError(f"{factory!r} searches L2 only")  # the caller's L2 proxy
+        index = projected_scan(x, factory)
+        index.add(np.ascontiguousarray(x, dtype=np.float32))
+        return index
     try:
         index = faiss.index_factory(x.shape[1], factory, _faiss_metric(kind))
     except RuntimeError as exc:
@@ -117,7 +202,7 @@ def build_faiss(
     try:
         index = _make(factory, x, metric.kind)
     except RuntimeError:
-        if metric.kind != "l1":
+        if metric.kind != "l1" and projected_spec(factory) is None:
             raise
         metric = MetricSpec("l2", 1.0, proxy=True)
         index = _make(factory, x, "l2")

@@ -49,12 +49,12 @@ def exact_index(gp, tmp_path_factory) -> Path:
     return index
 
 
-@pytest.fixture(scope="module")
-def approx_index(gp, tmp_path_factory) -> Path:
+@pytest.fixture(scope="module", params=["IVF2,Flat|nprobe=1", "PCA8:2,SQfp16,k2|"])
+def approx_index(gp, tmp_path_factory, request) -> Path:
+    """The same references on an approximate tier 1: IVF, and the projected scan."""
+    factory, params = request.param.split("|")
     index = tmp_path_factory.mktemp("approx") / "map"
-    opts = BuildOptions(
-        workers=1, progress=False, faiss={"*": "IVF2,Flat"}, faiss_params={"*": "nprobe=1"}
-    )
+    opts = BuildOptions(workers=1, progress=False, faiss={"*": factory}, faiss_params={"*": params})
     build(parse_config(CONFIG), gp[0], index, options=opts)
     return index
 

@@ -1,0 +1,123 @@
+"""The projected-scan FAISS type (``PCA<D>:<d>,<codes>[,k<F>]``) against brute force:
+what it returns is what a scan of the projected rows returns, it keeps the exact
+neighbours where the rows live in fewer dimensions than ``D``, and it survives the
+round trips an index version puts it through (write / read, reset / refill)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hmpf.index.ann import (
+    build_faiss,
+    faiss_module,
+    pca_rows,
+    projected_spec,
+    read_faiss,
+    set_search_params,
+)
+from hmpf.index.layout import IndexBuildError
+from hmpf.methods.base import MetricSpec
+
+L2 = MetricSpec("l2", 1.0)
+
+
+def _rows(n: int = 2000, d: int = 64, rank: int = 24, noise: float = 0.0, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n, rank)) @ rng.standard_normal((rank, d)) + 3.0
+    x += noise * rng.standard_normal((n, d))
+    return x.astype(np.float32)
+
+
+def _brute(x: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
+    d2 = ((q[:, None, :].astype(np.float64) - x[None].astype(np.float64)) ** 2).sum(-1)
+    return np.argsort(d2, axis=1, kind="stable")[:, :k]
+
+
+def test_spec_parsing():
+    assert projected_spec("PCA1024:128,SQfp16") == (1024, 128, "SQfp16", 8)
+    assert projected_spec("PCA 256:32, SQ8, k16") == (256, 32, "SQ8", 16)
+    for other in ("Flat", "IVF64,PQ8", "PCA256,SQ8", "PCA256:32,PQ8", "PCA256:32,SQfp16,k"):
+        assert projected_spec(other) is None
+
+
+def test_pca_rows_are_the_principal_directions():
+    x = _rows(noise=0.01)
+    mean, comps = pca_rows(x, 8)
+    np.testing.assert_allclose(mean, x.mean(0, dtype=np.float64), rtol=1e-5)
+    np.testing.assert_allclose(comps @ comps.T, np.eye(8), atol=1e-6)
+    # the same subspace as numpy's SVD of the centred rows, largest variance first
+    _, s, vt = np.linalg.svd(x - x.mean(0), full_matrices=False)
+    proj = comps @ vt[:8].T
+    np.testing.assert_allclose(np.abs(np.linalg.det(proj)), 1.0, atol=1e-4)
+    var = ((x - mean) @ comps.T).var(0)
+    assert np.all(np.diff(var) <= 1e-6 * var[0])
+
+
+def test_equals_a_scan_of_the_projected_rows_when_the_short_list_covers_the_map():
+    """With F x k >= N every row reaches the re-ranking on all D dimensions: the answer is
+    brute force over the projected rows (fp16 codes, so up to their rounding)."""
+    x = _rows(n=500, noise=0.3)
+    q = _rows(n=20, noise=0.3, seed=1)
+    index, metric = build_faiss(x, L2, "PCA32:4,SQfp16,k64")
+    assert metric == L2 and index.ntotal == len(x)
+    mean, comps = pca_rows(x, 32)
+    y = ((x - mean) @ comps.T).astype(np.float16).astype(np.float32)
+    qy = ((q - mean) @ comps.T).astype(np.float32)
+    dist, ids = index.search(q, 10)
+    want = _brute(y, qy, 10)
+    assert (ids == want).mean() >= 0.95  # fp16 rounding may swap near-ties
+    np.testing.assert_allclose(dist[:, 0], ((y[ids[:, 0]] - qy) ** 2).sum(1), rtol=2e-3, atol=1e-3)
+
+
+def test_keeps_the_exact_neighbours_of_rows_of_lower_rank():
+    """Rows of rank 24 projected on 32 directions lose nothing: the top 10 are the exact
+    top 10 of the original rows, through the short scan on 16 dimensions and F = 32 (the
+    queries' own part outside the rows' subspace adds the same to every distance)."""
+    x = _rows(rank=24)
+    q = x[::67] + 0.05 * np.random.default_rng(3).standard_normal((len(x[::67]), 64)).astype(
+        np.float32
+    )
+    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,k32")
+    _, ids = index.search(q, 10)
+    want = _brute(x, q, 10)
+    hits = np.mean([len(np.intersect1d(a, b)) / 10 for a, b in zip(ids, want, strict=True)])
+    assert hits >= 0.99
+
+
+def test_round_trips(tmp_path):
+    faiss = faiss_module()
+    x = _rows(noise=0.2)
+    q = x[:7] + 0.01
+    index, _ = build_faiss(x, L2, "PCA40:10,SQ8,k4")
+    d0, i0 = index.search(q, 5)
+    path = tmp_path / "t.faiss"
+    faiss.write_index(index, str(path))
+    back = read_faiss(path)
+    d1, i1 = back.search(q, 5)
+    assert np.array_equal(i0, i1) and np.array_equal(d0, d1)
+    back.reset()
+    assert back.ntotal == 0
+    for lo in range(0, len(x), 300):  # refilled block by block, as a build does
+        back.add(x[lo : lo + 300])
+    d2, i2 = back.search(q, 5)
+    assert np.array_equal(i0, i2) and np.array_equal(d0, d2)
+    # the short list's length is a search parameter
+    set_search_params(back, "k_factor_rf=1")
+    refine = faiss.downcast_index(faiss.downcast_index(back).index)
+    assert refine.k_factor == 1.0
+
+
+def test_l1_methods_get_an_l2_proxy():
+    x = _rows(n=300, noise=0.2)
+    _, metric = build_faiss(x, MetricSpec("l1", 0.5), "PCA16:4,SQfp16")
+    assert metric == MetricSpec("l2", 1.0, proxy=True)
+
+
+@pytest.mark.parametrize(
+    ("factory", "match"),
+    [("PCA64:8,SQfp16", "64 < 64"), ("PCA32:32,SQfp16", "32 < 32"), ("PCA8:16,SQ8", "16 < 8")],
+)
+def test_bad_sizes_are_build_errors(factory, match):
+    with pytest.raises(IndexBuildError, match=match):
+        build_faiss(_rows(n=200), L2, factory)
