@@ -29,10 +29,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
 import time
 import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Hashable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any, ClassVar, Literal, NamedTuple
 
@@ -40,6 +43,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpf.imageio import to_rgb
+from hmpf.runtime import compute_threads
 
 __all__ = [
     "GlobalMethod",
@@ -627,10 +631,42 @@ def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 0.0))
 
 
+#: Rows x dimensions of one query's scoring above which it is split over the compute threads.
+_PARALLEL_DOTS = 1 << 22
+_dot_pool: ThreadPoolExecutor | None = None
+_dot_pool_lock = threading.Lock()
+
+
 def _row_dots(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(n,) ``r[i] . q``, each a dot product of its own (a stack of 1 x D by D x 1
     products). A matrix-vector product (``r @ q``) is as fast on one thread but not the same
     to the last bit for every row: BLAS kernels sum a block of rows in one order and the last
-    few rows of a call in another (OpenBLAS's dgemv: blocks of 4), so a row's value would
-    depend on how many rows the call held and where the row sat."""
-    return np.matmul(r[:, None, :], q[:, None])[:, 0, 0]
+    few rows of a call in another (OpenBLAS's dgemv: blocks of 4), and split the rows between
+    their threads, so a row's value would depend on how many rows the call held, where the
+    row sat and how many threads ran. A large matrix is split into row ranges scored on up to
+    :func:`~hmpf.runtime.compute_threads` threads at once (the same numbers: each row is
+    still its own product)."""
+    n = len(r)
+    parts = min(compute_threads(), (n * r.shape[1]) // _PARALLEL_DOTS) if n else 0
+    if parts <= 1:
+        return np.matmul(r[:, None, :], q[:, None])[:, 0, 0]
+    out = np.empty(n, dtype=np.result_type(r, q))
+    bounds = np.linspace(0, n, parts + 1).round().astype(np.int64)
+
+    def part(lo: int, hi: int) -> None:
+        out[lo:hi] = np.matmul(r[lo:hi, None, :], q[:, None])[:, 0, 0]
+
+    list(_pool().map(part, bounds[:-1].tolist(), bounds[1:].tolist()))
+    return out
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The threads large row products are split over (one pool per process, made on first
+    use, as many threads as cores)."""
+    global _dot_pool
+    with _dot_pool_lock:
+        if _dot_pool is None:
+            _dot_pool = ThreadPoolExecutor(
+                max_workers=os.cpu_count() or 1, thread_name_prefix="hmpf-dots"
+            )
+        return _dot_pool

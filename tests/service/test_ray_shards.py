@@ -4,7 +4,8 @@ GeM and Gist in tier 1, HOG and SAD deciding) split into two shards (the second 
 replicas), served by the router over HTTP; answers compared with ``hmpf-serve``'s app over
 the unsharded index (the same requests, through its HTTP interface):
 
-* every night_right frame, single frame, and a GPS-prior frame: equal answers;
+* every night_right frame, single frame, and a GPS-prior frame: equal answers; the same
+  places and thumbnails;
 * sequence mode: the same estimates, frame after frame, with the client keeping the track;
 * bad input: the same JSON 4xx;
 * one replica of a shard killed: every request still answered (the router sends a call
@@ -155,6 +156,14 @@ def test_answers_equal_unsharded_over_http(
             assert a.json() == b.json()
         r = sharded.post("/v1/localize/batch", content=b"x", headers={"content-type": "text/a"})
         assert r.status_code == 415 and r.json()["error"]["code"] == "unsupported_media_type"
+        # the places and their thumbnails (read from the owning shard)
+        a, b = whole.get("/v1/references").json(), sharded.get("/v1/references").json()
+        a.pop("index_version"), b.pop("index_version")
+        assert a == b and b["thumbnails"]
+        for ref in (2, 20, 33):
+            a, b = (c.get(f"/v1/references/{ref}/thumbnail") for c in (whole, sharded))
+            assert b.status_code == 200 and a.content == b.content
+        assert sharded.get(f"/v1/references/{N}/thumbnail").status_code == 404
 
 
 def test_sequence_mode_across_shards(cluster: str, whole: TestClient, frames: list[bytes]) -> None:

@@ -218,3 +218,29 @@ def test_serve_shards_command_help_and_errors(maps: dict[str, Path], capsys: Any
     assert serve_main(["shards", "--shards", str(maps["shards"]), "--replicas-of", "x=2"]) == 2
     assert "no shard 'x'" in capsys.readouterr().err
     assert serve_main(["shards", "--shards", str(maps["shards"]), "--replicas", "0"]) == 2
+
+
+def test_euclidean_distance_of_a_row_does_not_depend_on_the_others(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """What exactness rests on: one query's distance to a reference is the same number in a
+    call over the whole map, over a shard or subset of it (any length, any offset), and on
+    one or two threads (a large call is split over the compute threads)."""
+    from hmpf import runtime
+    from hmpf.methods.base import euclidean
+
+    rng = np.random.default_rng(3)
+    # unit descriptors (as GeM's), a query near one of them: distances of order 1, where a
+    # last-bit difference in a dot product shows
+    refs = rng.standard_normal((4099, 1031)).astype(np.float32)  # > the parallel threshold
+    refs /= np.linalg.norm(refs, axis=1, keepdims=True)
+    q = refs[100:101] + 0.05 * rng.standard_normal((1, 1031)).astype(np.float32)
+    q /= np.linalg.norm(q)
+    monkeypatch.setattr(runtime, "_threads", 2)
+    whole = euclidean(q, refs)[0]
+    monkeypatch.setattr(runtime, "_threads", 1)
+    assert np.array_equal(euclidean(q, refs)[0], whole)
+    for lo, hi in ((0, 1), (1, 4), (5, 26), (7, 2058), (4093, 4099)):
+        assert np.array_equal(euclidean(q, refs[lo:hi])[0], whole[lo:hi]), (lo, hi)
+    pick = rng.choice(len(refs), 37, replace=False)
+    assert np.array_equal(euclidean(q, refs[pick])[0], whole[pick])
