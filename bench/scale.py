@@ -71,11 +71,11 @@ from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.imageio import load_image
 from hmpf.index import layout
-from hmpf.index.ann import set_search_params
+from hmpf.index.ann import build_faiss, set_search_params
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import RowBlocks, open_h5
 from hmpf.index.tables import Ragged, RefTable
-from hmpf.methods.base import euclidean
+from hmpf.methods.base import MetricSpec, euclidean
 
 #: The bench's default hierarchy (the default preset with OLO at 25 regions).
 CONFIG = ROOT / "bench" / "scale" / "default-olo25.yaml"
@@ -461,6 +461,10 @@ def query_features(
     return out
 
 
+#: the metric the tier-1 FAISS types of ``factories`` are built for (GeM, NetVLAD)
+L2 = MetricSpec("l2", 1.0)
+
+
 # -- write -------------------------------------------------------------------------------------
 def _expand(spec: str, nlist: int) -> str:
     return spec.replace("{nlist}", str(nlist))
@@ -750,12 +754,12 @@ def measure_recall(
         exact_s = time.perf_counter() - t
         info = reader.faiss_info(mid) or {}
         rows = []
-        for nprobe in a.nprobe or [None]:
-            if nprobe is not None:
-                set_search_params(reader.faiss_index(mid), f"nprobe={nprobe}")
+        for setting in search_settings(a):
+            if setting is not None:
+                set_search_params(reader.faiss_index(mid), setting)
             approx, ms = approx_top(reader, mid, q, 100)
             row = {
-                "nprobe": nprobe or info.get("params"),
+                "params": setting or info.get("params"),
                 "recall_at_100": _overlap(approx, exact, 100),
                 "recall_at_10": _overlap(approx, exact, 10),
                 "right_in_exact_top10": _right(exact, gt, 10),
@@ -765,14 +769,14 @@ def measure_recall(
             }
             rows.append(row)
             print(
-                f"  {mid:8s} {info.get('factory')} nprobe {row['nprobe']}: recall@100 "
+                f"  {mid:8s} {info.get('factory')} {row['params']}: recall@100 "
                 f"{row['recall_at_100']:.4f}, @10 {row['recall_at_10']:.4f}; right place in "
                 f"top 10: exact {row['right_in_exact_top10']:.3f}, approximate "
                 f"{row['right_in_approx_top10']:.3f}; tier-1 {row['tier1_ms_p50']:.1f} ms "
                 f"(FAISS {row['faiss_ms_p50']:.2f} ms) p50",
                 flush=True,
             )
-        if a.nprobe and info.get("params"):  # back to the stored setting
+        if search_settings(a) != [None] and info.get("params"):  # back to the stored one
             set_search_params(reader.faiss_index(mid), str(info["params"]))
         out[mid] = {
             "factory": info.get("factory"),
@@ -822,6 +826,9 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
                     timings.append(ans.timing_ms)
                 out["cpu_ms_per_query"] = (cpu_seconds(proc.pid) - cpu0) / len(frames) * 1e3
                 out["rss_after_queries_mib"] = rss_mib(proc.pid)
+            if not a.no_reload:
+                out["reload"] = reload_under_queries(f"http://127.0.0.1:{port}", frames)
+                out["rss_after_reload_mib"] = rss_mib(proc.pid)
         finally:
             proc.terminate()
             proc.wait(60)
@@ -834,6 +841,57 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
     out["answers_on_distractors"] = int(sum(m not in planted for m in matches))
     out["server_timing_ms_p50"] = _timing_p50(timings)
     out["load_1min_after"] = os.getloadavg()[0]
+    return out
+
+
+def reload_under_queries(url: str, frames: Sequence[bytes]) -> dict[str, Any]:
+    """``POST /v1/index/reload`` while one client keeps querying, without retries (a
+    failed request is counted, not tried again): how long the reload took, how many
+    queries were answered meanwhile and how many failed."""
+    import threading
+
+    import httpx
+
+    from hmpf.client import Client
+
+    stop = threading.Event()
+    answered: list[float] = []
+    failures: list[str] = []
+
+    def drive() -> None:
+        with Client(url, timeout=600, retries=0) as client:
+            i = 0
+            while not stop.is_set():
+                try:
+                    client.localize(frames[i % len(frames)])
+                    answered.append(time.monotonic())
+                except Exception as exc:  # what a vehicle would see
+                    failures.append(repr(exc)[:300])
+                i += 1
+
+    thread = threading.Thread(target=drive, daemon=True)
+    thread.start()
+    time.sleep(2.0)
+    t0 = time.monotonic()
+    r = httpx.post(f"{url}/v1/index/reload", timeout=1800)
+    t1 = time.monotonic()
+    time.sleep(2.0)
+    stop.set()
+    thread.join(600)
+    out = {
+        "status": r.status_code,
+        "body": r.json(),
+        "reload_s": t1 - t0,
+        "answered_during_reload": sum(t0 <= t <= t1 for t in answered),
+        "answered": len(answered),
+        "failed": len(failures),
+        "failures": failures[:5],
+    }
+    print(
+        f"  reload under queries: {r.status_code} in {out['reload_s']:.1f} s, "
+        f"{out['answered_during_reload']} queries answered meanwhile, {out['failed']} failed",
+        flush=True,
+    )
     return out
 
 
@@ -875,24 +933,24 @@ def cmd_factories(a: argparse.Namespace) -> None:
     rows = reader.global_matrix(mid)  # what the reader re-scores (on demand where it reads so)
     with open_h5(reader.path / layout.REFERENCES_H5) as f:
         ds = f["global"][mid]
-        d = ds.shape[1]
         for spec in a.factory:
             nlist = a.nlist or max(1, round(4 * math.sqrt(n)))
             factory = _expand(spec, nlist)
             train_n = min(n, a.train_rows or max(65_536, 40 * nlist))
             pick = np.unique(np.linspace(0, n - 1, train_n).round().astype(np.int64))
             t = time.perf_counter()
-            index = faiss.index_factory(d, factory, faiss.METRIC_L2)
-            index.train(np.asarray(ds[pick], dtype=np.float32))
+            # trained and filled as a build does (indexer.build._faiss_from_blocks)
+            index, _ = build_faiss(np.asarray(ds[pick], dtype=np.float32), L2, factory)
+            index.reset()
             train_s = time.perf_counter() - t
             t = time.perf_counter()
             for lo in range(0, n, 32768):
                 index.add(np.asarray(ds[lo : lo + 32768], dtype=np.float32))
             add_s = time.perf_counter() - t
             nbytes = faiss.serialize_index(index).size
-            for nprobe in a.nprobe or [None]:
-                if nprobe is not None:
-                    faiss.ParameterSpace().set_index_parameters(index, f"nprobe={nprobe}")
+            for setting in search_settings(a):
+                if setting is not None:
+                    set_search_params(index, setting)
                 top = np.empty((len(q), 100), dtype=np.int64)
                 ms = []
                 for j in range(len(q)):
@@ -904,7 +962,7 @@ def cmd_factories(a: argparse.Namespace) -> None:
                     top[j] = cand[np.argsort(s, kind="stable")[:100]]
                 row = {
                     "factory": factory,
-                    "nprobe": nprobe,
+                    "params": setting,
                     "approx_k": approx_k,
                     "bytes_per_reference": nbytes / n,
                     "train_rows": len(pick),
@@ -918,7 +976,7 @@ def cmd_factories(a: argparse.Namespace) -> None:
                 }
                 rows_out.append(row)
                 print(
-                    f"  {factory:24s} nprobe {nprobe}: recall@100 {row['recall_at_100']:.4f}, "
+                    f"  {factory:24s} {setting}: recall@100 {row['recall_at_100']:.4f}, "
                     f"@10 {row['recall_at_10']:.4f}; right in top 10 exact "
                     f"{row['right_in_exact_top10']:.3f} / approx {row['right_in_approx_top10']:.3f}"
                     f"; {nbytes / n:.0f} B per reference; FAISS {row['faiss_ms_p50']:.2f} ms "
@@ -1003,6 +1061,21 @@ def print_serve(s: Mapping[str, Any], n: int) -> None:
 
 
 # -- report ------------------------------------------------------------------------------------
+def search_settings(a: argparse.Namespace) -> list[str | None]:
+    """The FAISS search parameters to try: ``--nprobe N`` as ``nprobe=N``, then every
+    ``--params`` string; [None] (the stored setting) when neither is given."""
+    out: list[str | None] = [f"nprobe={n}" for n in a.nprobe or []]
+    out += list(a.params or [])
+    return out or [None]
+
+
+def _setting(row: Mapping[str, Any]) -> str:
+    """A recall row's FAISS parameters (records before ``params`` said ``nprobe``)."""
+    if "params" in row:
+        return str(row["params"])
+    return f"nprobe={row['nprobe']}" if isinstance(row["nprobe"], int) else str(row["nprobe"])
+
+
 def cmd_report(a: argparse.Namespace) -> None:
     """One table of the measure records given: per size, the disk, the service's figures,
     the ratios to the smallest size and tier-1 recall@100 at the version's stored nprobe."""
@@ -1020,7 +1093,7 @@ def cmd_report(a: argparse.Namespace) -> None:
             f"{mid} {st['recall_at_100']:.3f}"
             for mid, m in r.get("recall", {}).items()
             for st in m["settings"]
-            if f"nprobe={st['nprobe']}" == m["stored_params"] or st["nprobe"] == m["stored_params"]
+            if _setting(st) in (m["stored_params"], f"nprobe={m['stored_params']}")
         )
         cfg = f"{r.get('preset') or ''} {r['digest'][:12]}"
         disk = r["disk_bytes"] / r["references"] / 1024
@@ -1071,9 +1144,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     m.add_argument("--index", type=Path, required=True)
     m.add_argument("--queries", type=Path, default=None, help="default night_right")
     m.add_argument("--nprobe", type=int, nargs="*", default=None, help="tier-1 settings to try")
+    m.add_argument(
+        "--params",
+        nargs="*",
+        default=None,
+        help="FAISS search settings to try (k_factor_rf=16)",
+    )
     m.add_argument("--warmup", type=int, default=5)
     m.add_argument("--no-serve", action="store_true")
     m.add_argument("--no-recall", action="store_true")
+    m.add_argument("--no-reload", action="store_true", help="skip the reload under queries")
     fa = sub.add_parser("factories", help="other FAISS types for one method of a version")
     fa.add_argument("--index", type=Path, required=True)
     fa.add_argument("--method", required=True)
@@ -1081,6 +1161,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     fa.add_argument("--nlist", type=int, default=None, help="default round(4 sqrt(N))")
     fa.add_argument("--train-rows", type=int, default=None, help="default max(65536, 40 nlist)")
     fa.add_argument("--nprobe", type=int, nargs="*", default=None)
+    fa.add_argument(
+        "--params",
+        nargs="*",
+        default=None,
+        help="FAISS search settings to try (k_factor_rf=16)",
+    )
     fa.add_argument("--approx-k", type=int, default=None, help="default the reader's")
     fa.add_argument("--queries", type=Path, default=None, help="default night_right")
     fa.add_argument("--every", type=int, default=1, help="every N-th query frame")
