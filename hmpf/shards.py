@@ -2,13 +2,14 @@
 
 A map too large for one machine is split into ``n`` *shards* (:func:`plan`): contiguous
 stretches of its routes (the places in :class:`~hmpf.sequence.RouteMap` order, route after
-route, each in driving order), each widened by ``overlap`` places on either side, so that a
-place near a border is held by both neighbours. Every place is *owned* by exactly one shard
-(the stretch before widening): only the owner's score for it is ever used, so a place in an
-overlap never counts twice. Each shard is an ordinary index version of its places
-(``hmpf-index shard``, :mod:`indexer.shard`), its places in ascending global id order; the map
-itself (every place's name and metadata, the whole map's reference profile) is written beside
-the shards for the router.
+route, each in driving order), or of a curve through their positions
+(:func:`position_order`: each shard a compact region), each widened by ``overlap`` places on
+either side, so that a place near a border is held by both neighbours. Every place is
+*owned* by exactly one shard (the stretch before widening): only the owner's score for it is
+ever used, so a place in an overlap never counts twice. Each shard is an ordinary index
+version of its places (``hmpf-index shard``, :mod:`indexer.shard`), its places in ascending
+global id order; the map itself (every place's name and metadata, the whole map's reference
+profile) is written beside the shards for the router.
 
 *Scatter / gather* (:class:`ShardedScorer`). The hierarchy (:class:`~hmpf.hierarchy.Hierarchy`)
 runs once, at the router, over the whole map's place ids; only its ``score_fn`` is
@@ -56,6 +57,7 @@ __all__ = [
     "ShardScores",
     "ShardedScorer",
     "plan",
+    "position_order",
     "read_shard_map",
     "shard_name",
 ]
@@ -123,6 +125,54 @@ def plan(ordered: np.ndarray, n_shards: int, overlap: int) -> list[ShardPlan]:
         wide = order[max(0, lo - overlap) : min(n, hi + overlap)]
         out.append(ShardPlan(np.sort(wide), np.sort(order[lo:hi])))
     return out
+
+
+#: Bits per axis of :func:`position_order`'s curve (a cell of about 1/65536 of the map's side).
+CURVE_BITS = 16
+
+
+def position_order(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """Place ids along a Hilbert curve over their positions: consecutive places on the curve
+    are near each other, so a stretch of it (a shard of :func:`plan`) is a compact region,
+    whatever the routes. Places without a position come last, in id order.
+
+    Positions are scaled alike on both axes (longitude by the cosine of the mean latitude),
+    over the square around every position.
+    """
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    ids = np.flatnonzero(ok)
+    rest = np.flatnonzero(~ok)
+    if len(ids) == 0:
+        return rest.astype(np.int64)
+    y = lat[ids]
+    x = lon[ids] * np.cos(np.radians(float(np.mean(y))))
+    side = max(float(np.ptp(x)), float(np.ptp(y)), 1e-12)
+    top = (1 << CURVE_BITS) - 1
+    xi = np.minimum((x - x.min()) / side * top, top).astype(np.int64)
+    yi = np.minimum((y - y.min()) / side * top, top).astype(np.int64)
+    d = _hilbert(xi, yi, CURVE_BITS)
+    return np.concatenate([ids[np.lexsort((ids, d))], rest]).astype(np.int64)
+
+
+def _hilbert(x: np.ndarray, y: np.ndarray, bits: int) -> np.ndarray:
+    """Distance along the Hilbert curve of order ``bits`` of the cells (x, y) (integers in
+    ``[0, 2**bits)``), the classic ``xy2d``, vectorised."""
+    x, y = x.copy(), y.copy()
+    n = 1 << bits
+    d = np.zeros(len(x), dtype=np.int64)
+    s = n >> 1
+    while s > 0:
+        rx = (x & s) > 0
+        ry = (y & s) > 0
+        d += s * s * ((3 * rx.astype(np.int64)) ^ ry.astype(np.int64))
+        flip = ~ry & rx
+        x[flip], y[flip] = n - 1 - x[flip], n - 1 - y[flip]
+        swap = ~ry
+        x[swap], y[swap] = y[swap], x[swap].copy()
+        s >>= 1
+    return d
 
 
 def _digest(ids: np.ndarray) -> str:

@@ -9,7 +9,7 @@
     hmpf-index verify --index maps/campus [--index-version v0002]   (default: every version)
     hmpf-index info --index maps/campus [--index-version v0002]
     hmpf-index use --index maps/campus v0002
-    hmpf-index shard --index maps/city --shards 4 --overlap 20 --out maps/city-shards
+    hmpf-index shard --index maps/city --shards 4 --overlap 20 [--by position] --out DIR
     hmpf-index list|gc --index maps/campus
     hmpf-index --version
 
@@ -215,6 +215,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="K",
         help="places along the route on either side of a border held by both neighbours",
     )
+    sh.add_argument(
+        "--by",
+        choices=["route", "position"],
+        default="route",
+        help="cut stretches of the routes (default) or of a curve through the places' "
+        "positions (each shard a compact region)",
+    )
     sh.add_argument("--out", required=True, help="the shard folder (created if missing)")
 
     ls = sub.add_parser("list", help="list versions")
@@ -399,7 +406,7 @@ def _run(args: argparse.Namespace) -> int:
     elif cmd == "shard":
         from indexer.shard import split
 
-        for line in split(args.index, args.shards, args.overlap, args.out).lines():
+        for line in split(args.index, args.shards, args.overlap, args.out, args.by).lines():
             print(line)
         return 0
     elif cmd == "use":

@@ -1,6 +1,7 @@
 """``hmpf-index shard``: split an index version into region shards (:mod:`hmpf.shards`).
 
     hmpf-index shard --index maps/city --shards 4 --overlap 20 --out maps/city-shards
+    hmpf-index shard --index maps/city --shards 4 --overlap 20 --by position --out ...
 
 writes, in ``--out``::
 
@@ -14,8 +15,11 @@ writes, in ``--out``::
                          rows, fitted state, models, storage options), served by
                          ``hmpf-serve shards`` (or ``hmpf-serve --index`` on its own)
 
-The stretches follow the routes (the version's route order: ``sequence``, then
-``timestamp``); ``--overlap`` places on either side of a border are in both neighbours.
+The stretches follow the routes (``--by route``, the default: the version's route order,
+``sequence`` then ``timestamp``) or the places' positions (``--by position``: a curve through
+the ``lat``/``lon`` of the places, so each shard is a compact region; places without a
+position go to the last shard); ``--overlap`` places on either side of a border are in both
+neighbours.
 Running it again into the same ``--out`` publishes a new version in every shard folder.
 """
 
@@ -34,7 +38,7 @@ from hmpf.index.places import augments
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import write_profile, write_references
 from hmpf.index.tables import select_columns
-from hmpf.shards import MAP_DIR, MAP_FILE, ShardError, ShardMap, plan
+from hmpf.shards import MAP_DIR, MAP_FILE, ShardError, ShardMap, plan, position_order
 from indexer.build import (
     NewVersion,
     Summary,
@@ -44,7 +48,10 @@ from indexer.build import (
     _row_thumbnails,
 )
 
-__all__ = ["ShardSummary", "split"]
+__all__ = ["SPLITS", "ShardSummary", "split"]
+
+#: How :func:`split` orders the places before cutting them into stretches.
+SPLITS = ("route", "position")
 
 
 @dataclass
@@ -88,20 +95,26 @@ def _refuse(parent: IndexReader) -> None:
         )
 
 
-def split(index: str | Path, shards: int, overlap: int, out: str | Path) -> ShardSummary:
-    """Split the current version of ``index`` into ``shards`` region shards in ``out``.
+def split(
+    index: str | Path, shards: int, overlap: int, out: str | Path, by: str = "route"
+) -> ShardSummary:
+    """Split the current version of ``index`` into ``shards`` region shards in ``out``,
+    along the routes or the positions (``by``, one of :data:`SPLITS`).
 
     Raises:
-        ShardError: a bad number of shards or overlap, a version that cannot be split.
+        ShardError: a bad number of shards or overlap, a version that cannot be split (or,
+            ``by="position"``, has no positions).
         IndexCorruptError: the version does not verify (nothing is written).
     """
     out = Path(out)
+    if by not in SPLITS:
+        raise ShardError(f"split by {by!r}: one of {', '.join(SPLITS)}")
     if out.resolve() == Path(index).resolve():
         raise ShardError("--out must be another folder than --index")
     with _parent(Path(index), "shard") as parent:
         _refuse(parent)
         n = parent.n
-        plans = plan(parent.route_map().ordered, shards, overlap)
+        plans = plan(_order(parent, by), shards, overlap)
         shard_map = ShardMap.from_plans(n, plans)
         out.mkdir(parents=True, exist_ok=True)
         options = _parent_options(parent, None)
@@ -130,7 +143,7 @@ def split(index: str | Path, shards: int, overlap: int, out: str | Path) -> Shar
                     thumbnails=None if thumbs is None else thumbs.select(p.covered),
                 )
                 summaries.append(tx.publish(new, extracted=0))
-        _write_map(out, parent, shard_map, [s.version for s in summaries])
+        _write_map(out, parent, shard_map, [s.version for s in summaries], by)
         return ShardSummary(
             out,
             f"{parent.root}@{parent.version}",
@@ -141,7 +154,20 @@ def split(index: str | Path, shards: int, overlap: int, out: str | Path) -> Shar
         )
 
 
-def _write_map(out: Path, parent: IndexReader, shard_map: ShardMap, versions: list[str]) -> None:
+def _order(parent: IndexReader, by: str) -> np.ndarray:
+    """The places in the order the stretches are cut from."""
+    if by == "route":
+        return parent.route_map().ordered
+    meta, n = parent.refs.meta, parent.n
+    lat, lon = meta.get("lat"), meta.get("lon")
+    if lat is None or lon is None or not np.isfinite(lat[:n] + lon[:n]).any():
+        raise ShardError(f"{parent.path}: no place has a position (lat, lon): split it --by route")
+    return position_order(lat[:n], lon[:n])
+
+
+def _write_map(
+    out: Path, parent: IndexReader, shard_map: ShardMap, versions: list[str], by: str
+) -> None:
     """The router's files: the whole map's reference table and profile, then (last, by an
     atomic rename) ``shards.json``."""
     folder = out / MAP_DIR
@@ -153,6 +179,7 @@ def _write_map(out: Path, parent: IndexReader, shard_map: ShardMap, versions: li
         "source": {"index": str(parent.root), "version": parent.version},
         "written": versions,
         "config_digest": parent.config.digest(),
+        "by": by,
         "profile": layout.PROFILE_H5,
     }
     data = shard_map.to_json(extra)

@@ -20,7 +20,7 @@ from hmpf.confidence import FEATURES, ConfidenceModel, answer_features
 from hmpf.config import parse_config
 from hmpf.sequence import Evidence
 from hmpf.sharded import ShardedReader
-from hmpf.shards import ShardError, ShardMap, plan, read_shard_map
+from hmpf.shards import ShardError, ShardMap, plan, position_order, read_shard_map
 from indexer.build import build
 from indexer.cli import main as index_main
 from service.answer import localize_response, on_references
@@ -100,6 +100,21 @@ def test_plan_owns_every_place_once_and_overlaps_borders() -> None:
     assert sorted(spread) == [0, 2]
 
 
+def test_position_order_cuts_compact_regions() -> None:
+    """Places on a 4 x 4 grid (about 110 m apart both ways) in 4 shards by position: each
+    shard owns one quadrant; places without a position come last."""
+    cells = np.array([(i, j) for i in range(4) for j in range(4)], dtype=np.float64)
+    lat = -27.0 + cells[:, 0] * 1e-3
+    lon = 153.0 + cells[:, 1] * 1e-3 / np.cos(np.radians(lat.mean()))
+    order = position_order(np.append(lat, np.nan), np.append(lon, 153.0))
+    assert order[-1] == 16 and sorted(order.tolist()) == list(range(17))
+    quadrants = []
+    for p in plan(order[:16], 4, 0):
+        owned = cells[p.owned].astype(int)
+        quadrants.append((tuple(np.unique(owned[:, 0] // 2)), tuple(np.unique(owned[:, 1] // 2))))
+    assert sorted(quadrants) == [((0,), (0,)), ((0,), (1,)), ((1,), (0,)), ((1,), (1,))]
+
+
 @pytest.mark.parametrize(("shards", "overlap"), [(0, 0), (11, 0), (2, -1)])
 def test_plan_refuses_bad_numbers(shards: int, overlap: int) -> None:
     with pytest.raises(ShardError):
@@ -174,6 +189,26 @@ def test_sharded_answers_equal_unsharded_on_every_query(
         state_s, est_s = sharded.sequence.update(state_s, eb)
         assert (est_w.ref, est_w.mass) == (est_s.ref, est_s.mass)
     assert 0 < accepted < len(night)  # the model's decision is exercised both ways
+
+
+def test_split_by_position_answers_equal(
+    maps: dict[str, Path], loaded: tuple[Loaded, Loaded], night: list[np.ndarray], tmp_path: Path
+) -> None:
+    whole, _ = loaded
+    out = tmp_path / "by-position"
+    args = ["shard", "--index", str(maps["index"]), "--shards", "4", "--overlap", "2"]
+    assert index_main([*args, "--by", "position", "--out", str(out)]) == 0
+    assert read_shard_map(out)[1]["by"] == "position"
+    sharded = open_sharded(ShardedReader.open_local(out), None)
+    try:
+        for i in range(0, N, 5):
+            params = LocalizeParams(top_k=5)
+            assert _answer(whole, night[i], params)[0] == _answer(sharded, night[i], params)[0]
+    finally:
+        sharded.reader.close()
+    with pytest.raises(SystemExit) as refused:
+        index_main([*args, "--by", "nowhere", "--out", str(out)])
+    assert refused.value.code == 2
 
 
 def test_gps_prior_reaches_only_covering_shards(
