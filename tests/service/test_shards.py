@@ -164,6 +164,8 @@ def test_sharded_answers_equal_unsharded_on_every_query(
     whole, sharded = loaded
     params = LocalizeParams(top_k=10)
     routes = whole.sequence.routes
+    backend = sharded.reader.backend  # type: ignore[attr-defined]
+    backend.calls.clear()
     accepted = 0
     state_w, state_s = whole.sequence.start(), sharded.sequence.start()
     for i, image in enumerate(night):
@@ -189,6 +191,11 @@ def test_sharded_answers_equal_unsharded_on_every_query(
         state_s, est_s = sharded.sequence.update(state_s, eb)
         assert (est_w.ref, est_w.mass) == (est_s.ref, est_s.mass)
     assert 0 < accepted < len(night)  # the model's decision is exercised both ways
+    # tier 1 at every shard; the deciding tier's candidates at one shard, or split between
+    # their owners (both happen)
+    sizes = [len(c) for c in backend.calls]
+    assert len(sizes) == 4 * len(night)  # tier 1 (both methods in one call), HOG, SAD, KAZE
+    assert sizes.count(1) > 0 and sizes.count(2) + sizes.count(3) > len(night), sizes
 
 
 def test_split_by_position_answers_equal(
