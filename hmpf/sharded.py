@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor
 from pathlib import Path
@@ -177,8 +176,6 @@ class ShardedReader:
         self.has_experiences = False
         self.verified_by: str | None = "full"
         self.verify_seconds: float | None = None
-        self.read_stats = extractor.read_stats
-        self.local_cache = extractor.local_cache
         described = [backend.describe(s) for s in range(self.map.shards)]
         for s, d in enumerate(described):
             want = [self.refs.names[i] for i in self.map.covered[s]]
@@ -207,7 +204,6 @@ class ShardedReader:
         self.manifest.pop("files", None)
         self._routes: RouteMap | None = None
         self._profile: ReferenceProfile | None = None
-        self.loaded_at = time.time()
 
     # -- what the service reads --------------------------------------------------------------
     @property

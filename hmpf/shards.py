@@ -39,12 +39,11 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from hmpf.errors import HmpfError
-from hmpf.hierarchy import ScoreFn
 
 __all__ = [
     "MAP_DIR",
@@ -239,13 +238,11 @@ class ShardMap:
             return {}
         owners = self.owner[ids]
         counts = np.bincount(owners, minlength=self.shards)
-        for s in np.argsort(-counts, kind="stable"):
-            cov = self.covered[int(s)]
-            pos = np.searchsorted(cov, ids)
-            pos_c = np.minimum(pos, len(cov) - 1)
-            if len(cov) and (cov[pos_c] == ids).all():
-                return {int(s): (np.arange(len(ids)), pos_c)}
-            break  # only the shard owning most is worth trying
+        most = int(np.argmax(counts))  # the only shard that can hold them all, if one does
+        cov = self.covered[most]
+        pos = np.minimum(np.searchsorted(cov, ids), len(cov) - 1)
+        if (cov[pos] == ids).all():
+            return {most: (np.arange(len(ids)), pos)}
         out = {}
         for s in np.flatnonzero(counts):
             at = np.flatnonzero(owners == s)
@@ -312,15 +309,6 @@ class ShardScores:
 
     version: str
     scores: list[np.ndarray]
-
-
-class ShardCall(Protocol):
-    """Scores one query's features at shard ``s``: ``requests`` are (method id, local ids
-    or None for every place of the shard)."""
-
-    def __call__(
-        self, s: int, features: Mapping[str, Any], requests: Sequence[tuple[str, np.ndarray | None]]
-    ) -> ShardScores: ...
 
 
 #: ``scatter(calls)``: run ``(shard, requests)`` calls, possibly at once; results in order.
@@ -412,8 +400,3 @@ class ShardedScorer:
         if mid in self.memo and self.exact.get(mid, False):
             return self.memo[mid][subset]
         return self._subset(mid, subset)
-
-
-def as_score_fn(scorer: ShardedScorer) -> ScoreFn:
-    """``scorer`` as a plain :data:`~hmpf.hierarchy.ScoreFn` (it is one already)."""
-    return scorer

@@ -189,8 +189,3 @@ def _write_map(
         os.fsync(f.fileno())
     os.replace(tmp, out / MAP_FILE)
     layout.fsync_dir(out)
-
-
-def shard_counts(shard_map: ShardMap) -> list[int]:
-    """Places per shard (overlap included)."""
-    return [len(np.asarray(c)) for c in shard_map.covered]
