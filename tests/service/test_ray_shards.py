@@ -11,8 +11,8 @@ the unsharded index (the same requests, through its HTTP interface):
 * one replica of a shard killed: every request still answered (the router sends a call
   whose replica died again), and Ray Serve starts a replacement;
 * a new version of one shard, rolled out by redeploying it: both of its replicas switch,
-  the router reloads the map (a client retries the one 503 ``shard_changed``), and the
-  answers stay equal.
+  the router reloads the map (a client retries the one 503 ``shard_changed``), the answers
+  stay equal, and a vehicle's track from before restarts (``index_changed``).
 """
 
 from __future__ import annotations
@@ -245,6 +245,11 @@ def _new_version(root: Path) -> str:
 def test_reload_of_one_shard_reaches_its_replicas(
     cluster: str, maps: dict[str, Path], whole: TestClient, frames: list[bytes]
 ) -> None:
+    seq = {"content-type": "image/jpeg", "X-Vehicle-Id": "car-2"}
+    with httpx.Client(base_url=cluster, timeout=60) as c:
+        r = c.post("/v1/localize", content=frames[10], headers=seq)
+        assert r.status_code == 200
+        token = r.json()["sequence"]["track"]  # a track on the versions before
     new = _new_version(maps["shards"] / "shard-01")
     _deploy(maps["shards"], versions={"shard-01": new})
     handle = serve.get_deployment_handle("shard-01", app_name=APP)
@@ -260,3 +265,8 @@ def test_reload_of_one_shard_reaches_its_replicas(
             assert _clean(got) == _clean(_post(whole, frames[i], top_k=5).json())
     assert os.path.isdir(maps["shards"] / "shard-01" / new)
     assert np.isfinite(got["match"]["score"])
+    # the vehicle's next frame: its track restarts on the new map, as on a new version
+    with httpx.Client(base_url=cluster, timeout=60) as c:
+        r = c.post("/v1/localize", content=frames[11], headers={**seq, "X-Track": token})
+        assert r.status_code == 200
+        assert r.json()["sequence"]["reset_reason"] == "index_changed"
