@@ -1177,6 +1177,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         sp.add_argument("--cache-dir", type=Path, default=WORK, help="query features' cache")
         sp.add_argument("--json", type=Path, default=None, help=f"default {OUT}/<cmd>-<size>.json")
     a = p.parse_args(argv)
+    if a.cmd in ("measure", "factories"):
+        # one thread, as a replica's query thread searches (hmpf-serve caps FAISS's OpenMP
+        # pool the same way); more would spin-wait on a busy machine
+        from hmpf.index.ann import faiss_module
+
+        faiss_module().omp_set_num_threads(1)
     if a.cmd == "write":
         a.faiss = a.faiss or ["gem=IVF{nlist},PQ64np", "netvlad=IVF{nlist},PQ256np"]
         a.faiss_params = a.faiss_params or ["nprobe=32"]

@@ -147,6 +147,14 @@ def _limit_threads(n: int) -> None:
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(n)
+    # FAISS's OpenMP pool, which is loaded later (with the index) and so escapes the limit
+    # above; left at the core count, one single-query search spin-waits on busy cores (an
+    # approximate tier 1 took 10x longer on a loaded two-core machine).
+    try:
+        import faiss
+    except ImportError:  # pragma: no cover - the index extra is part of a serving install
+        return
+    faiss.omp_set_num_threads(n)
 
 
 def _body_limits(settings: Settings) -> Callable[[str], int]:

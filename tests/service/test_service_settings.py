@@ -142,3 +142,19 @@ def test_serve_cli_help_lists_the_keys_command_and_version_exits_0(capsys) -> No
     with pytest.raises(SystemExit) as done:
         serve_main(["keys", "--help"])
     assert done.value.code == 0 and "add" in capsys.readouterr().out
+
+
+def test_thread_limit_reaches_faiss() -> None:
+    """FAISS's OpenMP pool is capped at the worker's threads like the BLAS pools."""
+    import faiss
+
+    from service.app import _limit_threads
+
+    before = faiss.omp_get_max_threads()
+    try:
+        _limit_threads(1)
+        assert faiss.omp_get_max_threads() == 1
+        _limit_threads(2)
+        assert faiss.omp_get_max_threads() == 2
+    finally:
+        faiss.omp_set_num_threads(before)
