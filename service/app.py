@@ -151,7 +151,7 @@ def _limit_threads(n: int) -> None:
     # above; left at the core count, one single-query search spin-waits on busy cores (an
     # approximate tier 1 took 10x longer on a loaded two-core machine).
     try:
-        import faiss
+        import faiss  # here, not at the top: only to cap its pool (the reader imports it)
     except ImportError:  # pragma: no cover - the index extra is part of a serving install
         return
     faiss.omp_set_num_threads(n)

@@ -101,7 +101,7 @@ PROJECTED_K_FACTOR = 8
 def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """The mean of the (N, D) rows ``x`` and their top ``dim`` principal directions
     ((dim, D), orthonormal rows, largest variance first)."""
-    from scipy.linalg import eigh
+    from scipy.linalg import eigh  # a build-time need only: readers never fit a PCA
 
     x = np.asarray(x, dtype=np.float32)
     n, d = x.shape
