@@ -12,6 +12,7 @@ single-frame answer (NaN when the version has none).
 
 from __future__ import annotations
 
+import logging
 import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ from typing import Any
 from hmpf.confidence import absolute_evidence
 from hmpf.errors import HmpfError
 from hmpf.hierarchy import HierarchyResult
+from hmpf.index.layout import HmpfIndexError
 from hmpf.sequence import Evidence
 from service.answer import localize_response, on_references
 from service.engine import Loaded, Prior, run_query
@@ -27,6 +29,8 @@ from service.errors import ApiError
 from service.images import decode_upload
 from service.schemas import LocalizeParams, LocalizeResponse
 from service.track import NO_EVIDENCE
+
+log = logging.getLogger("hmpf.service")
 
 __all__ = ["ImageQuery"]
 
@@ -83,6 +87,15 @@ class ImageQuery:
         timing["decode"] = _ms_since(t)
         try:
             result, allowed = run_query(loaded, image, _prior(self.params), timing, self.compute)
+        except HmpfIndexError as exc:  # the index, not the image (a row that cannot be read)
+            log.error("index version %s: %s", loaded.version, exc)
+            raise ApiError(
+                503,
+                "index_corrupt",
+                f"index version {loaded.version} could not be read while answering (a file "
+                "is damaged or truncated); operators: run `hmpf-index verify` on the index and "
+                "switch to a sound version (`hmpf-index use`) or rebuild, then reload",
+            ) from None
         except HmpfError as exc:
             raise ApiError(422, "invalid_image", f"{self.source}: {exc}") from None
         if result is None:

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from hmpf.index.layout import IndexCorruptError
+
 __all__ = ["DiskRows", "LruCache", "ReadStats", "disk_rows"]
 
 
@@ -107,9 +109,16 @@ class DiskRows:
         view = memoryview(buf).cast("B")  # type: ignore[arg-type]
         want, pos, done = count * self.row_bytes, self.offset + start * self.row_bytes, 0
         while done < want:
-            got = os.preadv(self._fd, [view[done:]], pos + done)
+            try:
+                got = os.preadv(self._fd, [view[done:]], pos + done)
+            except OSError as exc:
+                raise IndexCorruptError(
+                    f"{self.path}: cannot read byte {pos + done} ({exc.strerror})"
+                ) from None
             if got <= 0:
-                raise OSError(f"{self.path}: short read at byte {pos + done} (file truncated?)")
+                raise IndexCorruptError(
+                    f"{self.path}: short read at byte {pos + done} (file truncated?)"
+                )
             done += got
         self.stats.add(count, want)
         return buf

@@ -261,3 +261,29 @@ def test_reloads_while_clients_query_fail_no_request(index: Path) -> None:
         assert set(statuses) == {200} and versions["v0001"] > 0 and versions["v0002"] > 0
         assert s.metric("hmpf_index_reloads_total", trigger="request") == 6
         assert s.metric("hmpf_index_corrupt_total") == 0
+
+
+def test_a_file_truncated_while_serving_is_a_503_not_a_500(index: Path) -> None:
+    """A file damaged after its check passed (here: the rows the final tier reads from disk
+    cut off) is found by the query that needs them: a JSON 503 ``index_corrupt`` without
+    a server path, never a 500 blaming the image."""
+    import h5py
+
+    with RealServer(index, workers=1) as s:
+        assert s.localize().status_code == 200
+        assert s.engine.check_done(timeout=60)
+        reader = s.engine.current.reader
+        assert reader.on_demand("sad")  # a method of the later tier only: read from disk
+        path = reader.path / layout.REFERENCES_H5
+        with h5py.File(path, "r") as f:
+            cut = f["global"]["sad"].id.get_offset()
+        with open(path, "r+b") as fh:
+            fh.truncate(cut)
+        r = s.localize()
+        assert r.status_code == 503, r.text
+        assert r.headers["content-type"] == "application/json"
+        error = r.json()["error"]
+        assert error["code"] == "index_corrupt" and "hmpf-index verify" in error["message"]
+        assert str(index) not in r.text
+        assert s.metric("hmpf_requests_total", status="500") == 0
+        assert any("short read" in m for m in s.log.messages)
