@@ -156,6 +156,13 @@ class Loaded:
         version raises :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload
         answers 409)."""
         reader = IndexReader(root, verify=verify)
+        verification = "checking" if reader.verified_by == "stamp" else "full"
+        return cls.over(reader, threshold, verification)
+
+    @classmethod
+    def over(cls, reader: Any, threshold: float | None, verification: str = "full") -> Loaded:
+        """A :class:`Loaded` over an open ``reader`` (an :class:`IndexReader`, or a view of
+        the same shape such as a sharded map's), closed again when this fails."""
         try:
             params = reader.config.sequence_params()
             acceptance = Policy.of(
@@ -167,27 +174,27 @@ class Loaded:
             # Always: the models read it, and the sequence filter's off-map state weighs
             # each frame's absolute evidence with it.
             profile = reader.reference_profile()
+            # Positions are the places' (their original references', rows 0 .. P-1).
+            meta, P = reader.refs.meta, reader.n
+            lat = None if meta.get("lat") is None else meta["lat"][:P]
+            lon = None if meta.get("lon") is None else meta["lon"][:P]
+            has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
+            return cls(
+                reader,
+                reader.hierarchy(),
+                acceptance.threshold,
+                time.time(),
+                SequenceFilter(reader.route_map(), params),
+                binding_digest(reader.manifest, params),
+                acceptance,
+                lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
+                lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
+                profile=profile,
+                verification=verification,
+            )
         except BaseException:
             reader.close()
             raise
-        # Positions are the places' (their original references', rows 0 .. P-1).
-        meta, P = reader.refs.meta, reader.n
-        lat = None if meta.get("lat") is None else meta["lat"][:P]
-        lon = None if meta.get("lon") is None else meta["lon"][:P]
-        has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
-        return cls(
-            reader,
-            reader.hierarchy(),
-            acceptance.threshold,
-            time.time(),
-            SequenceFilter(reader.route_map(), params),
-            binding_digest(reader.manifest, params),
-            acceptance,
-            lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
-            lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
-            profile=profile,
-            verification="checking" if reader.verified_by == "stamp" else "full",
-        )
 
     @property
     def version(self) -> str:

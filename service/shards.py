@@ -13,18 +13,11 @@ A reload (``POST /v1/index/reload``) opens the map anew: the shards' versions as
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
 
-import numpy as np
-
-from hmpf.acceptance import Policy
-from hmpf.sequence import SequenceFilter
 from hmpf.sharded import ShardedReader
 from service.engine import Engine, Loaded
-from service.track import binding_digest
 
 __all__ = ["ShardedEngine", "open_sharded"]
 
@@ -35,35 +28,7 @@ def open_sharded(reader: ShardedReader, threshold: float | None) -> Loaded:
     """A :class:`~service.engine.Loaded` over the whole sharded map (``reader``): the same
     acceptance, profile, sequence filter and positions an unsharded version of the same
     places has (its files were verified by the shards themselves)."""
-    try:
-        params = reader.config.sequence_params()
-        acceptance = Policy.of(
-            reader.config.acceptance,
-            threshold=threshold,
-            lock_mass=params.lock_mass,
-            label=str(reader.path),
-        )
-        profile = reader.reference_profile()
-        meta, n = reader.refs.meta, reader.n
-        lat = None if meta.get("lat") is None else meta["lat"][:n]
-        lon = None if meta.get("lon") is None else meta["lon"][:n]
-        has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
-        return Loaded(
-            cast(Any, reader),
-            reader.hierarchy(),
-            acceptance.threshold,
-            time.time(),
-            SequenceFilter(reader.route_map(), params),
-            binding_digest(reader.manifest, params),
-            acceptance,
-            lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
-            lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
-            profile=profile,
-            verification="full",
-        )
-    except BaseException:
-        reader.close()
-        raise
+    return Loaded.over(reader, threshold, "full")
 
 
 class ShardedEngine(Engine):
