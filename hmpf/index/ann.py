@@ -220,11 +220,18 @@ def set_search_params(index: Any, params: str) -> None:
         raise IndexBuildError(f"FAISS search parameters {params!r}: {_first_line(exc)}") from None
 
 
-def read_faiss(path: Path, params: str = "") -> Any:
-    """Load a FAISS index file (corruption -> :class:`IndexCorruptError` naming the file)."""
+def read_faiss(path: Path, params: str = "", *, mmap: bool = False) -> Any:
+    """Load a FAISS index file (corruption -> :class:`IndexCorruptError` naming the file).
+
+    ``mmap``: the codes of a flat-codes type (the projected scan's scalar codes, ``Flat``,
+    ``SQ``, ``PQ``) are memory-mapped from the file instead of read into the process: they
+    load at once, are shared by every replica on the machine through the page cache and
+    are not the process's own memory. Such an index can be searched, not changed (a build
+    reads without it); other types (IVF) are read into memory either way.
+    """
     faiss = faiss_module()
     try:
-        index = faiss.read_index(str(path))
+        index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP_IFC if mmap else 0)
     except RuntimeError as exc:
         raise IndexCorruptError(
             f"{path}: unreadable FAISS index ({_first_line(exc)}); run `hmpf-index verify`"

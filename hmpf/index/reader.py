@@ -192,7 +192,8 @@ class IndexReader:
         version: version name (default: ``CURRENT``).
         expected_config: when given, the index must have been built for exactly this
             hierarchy config (same digest), else :class:`IndexVersionError`.
-        mmap: memory-map global matrices stored in their own dtype (else read into RAM).
+        mmap: memory-map global matrices stored in their own dtype, and the codes of
+            flat-codes FAISS types (:func:`~hmpf.index.ann.read_faiss`) (else read into RAM).
         verify: what is checked before anything is read
             (:func:`~hmpf.index.layout.verify_files`): ``True`` / ``"full"``, every file
             against the manifest's sha256 (the whole version is read once); ``"stamp"``,
@@ -218,6 +219,7 @@ class IndexReader:
         local_cache_bytes: int = LOCAL_CACHE_BYTES,
     ) -> None:
         self.root = Path(root)
+        self._mmap = mmap
         self.path = resolve_version(self.root, version)
         self.version = self.path.name
         self.manifest = layout.read_manifest(self.path)
@@ -595,7 +597,9 @@ class IndexReader:
             if info["file"] is None:
                 index = self._flat(mid, MetricSpec(**info["metric"]))
             else:
-                index = read_faiss(self.path / info["file"], info.get("params", ""))
+                index = read_faiss(
+                    self.path / info["file"], info.get("params", ""), mmap=self._mmap
+                )
             if index.ntotal != self.n_rows or index.d != self._globals[mid].shape[1]:
                 raise IndexCorruptError(
                     f"{self.path / (info['file'] or layout.REFERENCES_H5)}: {index.ntotal} x "
