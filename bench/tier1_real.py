@@ -39,7 +39,7 @@ from bench.harness import add_config, machine, parser
 from hmpf.config import build_methods, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
-from hmpf.index.ann import build_faiss, declared_metric, faiss_module
+from hmpf.index.ann import build_faiss, declared_metric, faiss_module, set_search_params
 from hmpf.index.reader import SAMPLE_SIZE
 
 TOLERANCE = 2
@@ -124,8 +124,10 @@ def report_method(
     right: np.ndarray,
     k: int,
     nprobes: list[int],
+    others: list[str] = [],  # noqa: B006 - read only
 ) -> None:
-    """One tier-1 method: exact search's figures, then each IVF index's (printed)."""
+    """One tier-1 method: exact search's figures, then each IVF index's and each of
+    ``others`` (``FACTORY|SETTING;SETTING``) (printed)."""
     faiss = faiss_module()
     n = len(x)
     exact, _ = build_faiss(x, metric, "Flat")
@@ -166,6 +168,20 @@ def report_method(
                 f"| {factory} | {ram:.0f} | {nprobe} | {ks[0]:.4f} ({kn[0]:.4f}) "
                 f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(ivf, q, approx_k):.2f} |"
             )
+    for spec in others:  # other types, each with its search settings ("FACTORY|a=1;a=2")
+        factory, _, settings = spec.partition("|")
+        index, _ = build_faiss(x, metric, factory)
+        ram = len(faiss.serialize_index(index)) / n
+        for setting in settings.split(";") if settings else [""]:
+            if setting:
+                set_search_params(index, setting)
+            _, cand = index.search(q, approx_k)
+            ks = kept(cand, sample, rank, top_exact, right, held, k)
+            kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
+            print(
+                f"| {factory} | {ram:.0f} | {setting or '-'} | {ks[0]:.4f} ({kn[0]:.4f}) "
+                f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(index, q, approx_k):.2f} |"
+            )
 
 
 def main() -> None:
@@ -176,6 +192,13 @@ def main() -> None:
     p.add_argument("--k", type=int, default=None, help="default: the config's tier-1 k")
     p.add_argument("--nprobe", type=int, nargs="*", default=[1, 2, 4, 8, 16, 32])
     p.add_argument("--workers", type=int, default=None)
+    p.add_argument(
+        "--factory",
+        action="append",
+        default=[],
+        metavar="[METHOD=]FACTORY[|SETTING;...]",
+        help="another FAISS type to measure, e.g. 'netvlad=PCA1024:128,SQfp16|k_factor_rf=1'",
+    )
     a = p.parse_args()
     faiss_module().omp_set_num_threads(1)
     config = load_config(a.config)
@@ -197,7 +220,9 @@ def main() -> None:
             continue
         x = np.ascontiguousarray(m.stack(r_feat.features[mid]), np.float32)
         q = np.ascontiguousarray(m.stack(q_feat.features[mid]), np.float32)
-        report_method(mid, x, q, metric, right, k, a.nprobe)
+        others = [f.partition("=")[2] if f.startswith(f"{mid}=") else f for f in a.factory]
+        others = [f for f in others if "=" not in f.partition("|")[0]]  # another method's
+        report_method(mid, x, q, metric, right, k, a.nprobe, others)
     print(f"\nload {os.getloadavg()[0]:.2f}")
 
 
