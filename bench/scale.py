@@ -1000,7 +1000,7 @@ def cmd_measure(a: argparse.Namespace) -> None:
     qdir = a.queries or Path(a.datasets) / QUERY_FOLDER
     out: dict[str, Any] = {}
     t = time.perf_counter()
-    reader = IndexReader(a.index, verify=False)
+    reader = IndexReader(a.index, verify=False, approx_k=a.approx_k)
     out["open_s"] = time.perf_counter() - t
     n = reader.n_rows
     config = reader.config
@@ -1154,6 +1154,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     m.add_argument("--no-serve", action="store_true")
     m.add_argument("--no-recall", action="store_true")
     m.add_argument("--no-reload", action="store_true", help="skip the reload under queries")
+    m.add_argument(
+        "--approx-k", type=int, default=None, help="recall: rows re-scored (default the reader's)"
+    )
     fa = sub.add_parser("factories", help="other FAISS types for one method of a version")
     fa.add_argument("--index", type=Path, required=True)
     fa.add_argument("--method", required=True)
