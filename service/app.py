@@ -62,6 +62,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         queue=settings.queue,
         threads_per_worker=settings.thread_count,
         accept_threshold=settings.accept_threshold,
+        approx_k=settings.approx_k,
     )
     metrics = Metrics()
     # versions the background check finds corrupt (service.engine), counted

@@ -147,7 +147,11 @@ class Loaded:
 
     @classmethod
     def open(
-        cls, root: Path, threshold: float | None, verify: layout.VerifyMode = "stamp"
+        cls,
+        root: Path,
+        threshold: float | None,
+        verify: layout.VerifyMode = "stamp",
+        approx_k: int | None = None,
     ) -> Loaded:
         """Open the version ``CURRENT`` names, its files verified before anything is read
         from them (``verify``, :func:`hmpf.index.layout.verify_files`): by their
@@ -155,7 +159,7 @@ class Loaded:
         runs the full check), else every file against the manifest's sha256 (a corrupt
         version raises :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload
         answers 409)."""
-        reader = IndexReader(root, verify=verify)
+        reader = IndexReader(root, verify=verify, approx_k=approx_k)
         verification = "checking" if reader.verified_by == "stamp" else "full"
         return cls.over(reader, threshold, verification)
 
@@ -250,8 +254,11 @@ class Engine:
         queue: int,
         threads_per_worker: int,
         accept_threshold: float | None = None,
+        approx_k: int | None = None,
     ) -> None:
         self.root = Path(root)
+        #: rows an approximate tier-1 search re-scores (None: the reader's default)
+        self.approx_k = approx_k
         self.workers = workers
         self.capacity = workers + queue
         self.threads = threads_per_worker
@@ -285,7 +292,7 @@ class Engine:
         thread; meanwhile the previous version, if sound, stays open to take over should
         that check fail (see the module's docstring).
         """
-        loaded = Loaded.open(self.root, self.accept_threshold)
+        loaded = Loaded.open(self.root, self.accept_threshold, approx_k=self.approx_k)
         try:
             self._warm_up(loaded)
         except BaseException:

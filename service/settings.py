@@ -130,6 +130,13 @@ class Settings(BaseSettings):
         description="Combined quality (z-score) an answer needs to be accepted; None: the "
         "index config's acceptance.threshold",
     )
+    approx_k: int | None = Field(
+        None,
+        ge=1,
+        description="rows an approximate tier-1 search re-scores exactly per method (its FAISS "
+        "candidates); None: max(256, 4 x tier-1 k). More keeps more of the exact top 100 at "
+        "a large map's cost in reads and time (docs/scale.md)",
+    )
     # -- sequence mode ----------------------------------------------------------------------
     sequence_key: SecretStr | None = Field(
         None,

@@ -158,3 +158,30 @@ def test_thread_limit_reaches_faiss() -> None:
         assert faiss.omp_get_max_threads() == 2
     finally:
         faiss.omp_set_num_threads(before)
+
+
+def test_approx_k_reaches_the_reader(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``approx_k`` (environment or flag) is what the engine's reader re-scores."""
+    from hmpf.config import parse_config
+    from indexer.build import BuildOptions, build
+    from service.engine import Engine
+    from tests.conftest import SERVICE_CONFIG, write_synthetic_images
+
+    refs = write_synthetic_images(tmp_path / "refs", 4)
+    build(
+        parse_config(SERVICE_CONFIG),
+        refs,
+        tmp_path / "index",
+        options=BuildOptions(workers=1, progress=False),
+    )
+    monkeypatch.setenv("HMPF_APPROX_K", "1024")
+    s = load_settings(auth=False, index=tmp_path / "index")
+    assert s.approx_k == 1024
+    for want, k in ((1024, s.approx_k), (256, None)):
+        engine = Engine(s.index, workers=1, queue=1, threads_per_worker=1, approx_k=k)
+        try:
+            assert engine.load().reader.approx_k == want
+        finally:
+            engine.close()
+    with pytest.raises(ConfigError):
+        load_settings(auth=False, approx_k=0)
