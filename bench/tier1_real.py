@@ -152,6 +152,18 @@ def report_method(
         "| right kept (no sample) | p50 ms (FAISS only) |"
     )
     print("|---|---:|---:|---|---|---:|")
+
+    def print_row(factory: str, ram: float, setting: str, index: Any) -> None:
+        """One table row: ``index``'s candidates through the reader's path, with and
+        without the sample."""
+        _, cand = index.search(q, approx_k)
+        ks = kept(cand, sample, rank, top_exact, right, held, k)
+        kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
+        print(
+            f"| {factory} | {ram:.0f} | {setting} | {ks[0]:.4f} ({kn[0]:.4f}) "
+            f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(index, q, approx_k):.2f} |"
+        )
+
     s1, s4 = int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))
     pq = pq_subquantizers(x.shape[1])
     for factory in (f"IVF{s1},Flat", f"IVF{s4},Flat", f"IVF{s1},PQ{pq}", f"IVF{s4},PQ{pq}"):
@@ -161,13 +173,7 @@ def report_method(
             if nprobe > int(ivf.nlist):
                 continue
             ivf.nprobe = nprobe
-            _, cand = ivf.search(q, approx_k)
-            ks = kept(cand, sample, rank, top_exact, right, held, k)
-            kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
-            print(
-                f"| {factory} | {ram:.0f} | {nprobe} | {ks[0]:.4f} ({kn[0]:.4f}) "
-                f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(ivf, q, approx_k):.2f} |"
-            )
+            print_row(factory, ram, str(nprobe), ivf)
     for spec in others:  # other types, each with its search settings ("FACTORY|a=1;a=2")
         factory, _, settings = spec.partition("|")
         index, _ = build_faiss(x, metric, factory)
@@ -175,13 +181,7 @@ def report_method(
         for setting in settings.split(";") if settings else [""]:
             if setting:
                 set_search_params(index, setting)
-            _, cand = index.search(q, approx_k)
-            ks = kept(cand, sample, rank, top_exact, right, held, k)
-            kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
-            print(
-                f"| {factory} | {ram:.0f} | {setting or '-'} | {ks[0]:.4f} ({kn[0]:.4f}) "
-                f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(index, q, approx_k):.2f} |"
-            )
+            print_row(factory, ram, setting or "-", index)
 
 
 def main() -> None:

@@ -292,7 +292,7 @@ class Engine:
         thread; meanwhile the previous version, if sound, stays open to take over should
         that check fail (see the module's docstring).
         """
-        loaded = Loaded.open(self.root, self.accept_threshold, approx_k=self.approx_k)
+        loaded = self._open()
         try:
             self._warm_up(loaded)
         except BaseException:
@@ -307,6 +307,14 @@ class Engine:
             self._fallback = keep
         if loaded.verification == "checking":
             self._start_check(loaded)
+        self._log_loaded(loaded)
+        return loaded
+
+    def _open(self) -> Loaded:
+        """The index's current version, opened (what :meth:`load` makes current)."""
+        return Loaded.open(self.root, self.accept_threshold, approx_k=self.approx_k)
+
+    def _log_loaded(self, loaded: Loaded) -> None:
         how = (
             "files trusted by their verification stamp; full check started in the background"
             if loaded.verification == "checking"
@@ -320,7 +328,6 @@ class Engine:
             loaded.reader.n_rows - loaded.reader.n,
             how,
         )
-        return loaded
 
     def _sound_fallback(self, old: Loaded | None) -> Loaded | None:
         """The version to hold while a new one's check runs: the one it replaces if sound,

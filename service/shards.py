@@ -54,20 +54,12 @@ class ShardedEngine(Engine):
         )
         self.open_reader = open_reader
 
-    def load(self) -> Loaded:
-        """Open the map (every shard as it is now) and make it current; the previous one is
-        closed when its last query ends."""
-        loaded = open_sharded(self.open_reader(), self.accept_threshold)
-        try:
-            self._warm_up(loaded)
-        except BaseException:
-            loaded.reader.close()
-            raise
-        with self._lock:
-            old, self._current = self._current, loaded
-            if old is not None:
-                self._retire(old)
+    def _open(self) -> Loaded:
+        """The map as every shard is now (a sharded map is verified by its shards: nothing
+        runs in the background, no fallback is kept)."""
+        return open_sharded(self.open_reader(), self.accept_threshold)
+
+    def _log_loaded(self, loaded: Loaded) -> None:
         log.info(
             "sharded map %s loaded (%d places; %s)", self.root, loaded.reader.n, loaded.version
         )
-        return loaded
