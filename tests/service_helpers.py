@@ -65,11 +65,15 @@ def free_port() -> int:
 
 def run_ok(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 600) -> str:
     """``args`` run in ``cwd`` with ``env``: its standard output; an assertion error with
-    both outputs when it fails."""
+    both outputs when it fails (without pip's warnings about package folders it does not
+    find, which bury its error)."""
     proc = subprocess.run(
         args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
     )
-    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    err = "\n".join(
+        line for line in proc.stderr.splitlines() if not line.startswith("WARNING: Location ")
+    )
+    assert proc.returncode == 0, f"{args} -> {proc.returncode}\n{proc.stdout}\n{err}"
     return proc.stdout
 
 

@@ -10,7 +10,7 @@ match the project's environment finds.
 * a version built before versions stored their models is refused there at start (exit 2)
   with what to do, instead of failing at the first query.
 
-Marked ``slow`` (an install of about 30 s, the session's venv shared by every test here):
+Marked ``slow`` (an install of about 30 s, one venv shared by every test here):
 ``pytest -m 'not slow'`` leaves it out; ``make test`` runs it.
 """
 
@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,10 +64,11 @@ class ServeEnv:
         return [str(self.bin / name), *args]
 
 
-@pytest.fixture(scope="session")
-def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
+@pytest.fixture(scope="module")
+def serve_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServeEnv]:
     """A fresh venv with ``hmpf[serve]`` installed from the project's wheel: its bin folder,
-    a work folder outside the checkout and the environment to run commands in."""
+    a work folder outside the checkout and the environment to run commands in. Removed after
+    this module's tests (about 600 MB: the suite's disk use stays bounded)."""
     base = tmp_path_factory.mktemp("serve-venv")
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PIP_", "HMPF_"))}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
@@ -81,7 +84,8 @@ def serve_env(tmp_path_factory: pytest.TempPathFactory) -> ServeEnv:
     seconds = time.monotonic() - t0
     size = sum(p.stat().st_size for p in venv.rglob("*") if p.is_file() and not p.is_symlink())
     print(f"\nserve venv: installed in {seconds:.0f} s, {size / 1e6:.0f} MB")
-    return ServeEnv(venv / "bin", work, env)
+    yield ServeEnv(venv / "bin", work, env)
+    shutil.rmtree(base, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -96,22 +96,24 @@ def _deploy(folder: Path, versions: dict[str, str] | None = None) -> None:
 def cluster(maps: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A local Ray cluster (2 CPUs, loopback), the shards deployed; the router's URL."""
     temp = tmp_path_factory.mktemp("ray")
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        _node_ip_address="127.0.0.1",
-        _temp_dir=str(temp),
-        runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}},
-        log_to_driver=False,
-    )
     try:
+        ray.init(
+            num_cpus=2,
+            include_dashboard=False,
+            _node_ip_address="127.0.0.1",
+            _temp_dir=str(temp),
+            runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}},
+            log_to_driver=False,
+        )
         port = free_port()
         serve.start(http_options={"host": "127.0.0.1", "port": port})
         _deploy(maps["shards"])
         yield f"http://127.0.0.1:{port}"
     finally:
-        serve.shutdown()
+        if ray.is_initialized():
+            serve.shutdown()
         ray.shutdown()
+        shutil.rmtree(temp, ignore_errors=True)  # Ray's session logs and spilled objects
 
 
 def _clean(answer: dict[str, Any]) -> dict[str, Any]:
