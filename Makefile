@@ -33,7 +33,7 @@ $(VENV)/.installed: pyproject.toml
 		$(PIP_INSTALL) torch==$(TORCH_VERSION) --index-url $(TORCH_INDEX); \
 	else $(PIP_INSTALL) torch==$(TORCH_VERSION); fi
 	$(PY) -c 'import torch, sys; sys.exit(f"torch {torch.__version__} is a CUDA build" if torch.version.cuda else 0)'
-	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report,ray]'
+	$(PIP_INSTALL) -e '.[dev,cnn,index,service,report,ray,openvino]'
 	$(PY) -c 'import cv2; cv2.xfeatures2d.TEBLID_create' 2>/dev/null || $(PIP_INSTALL) \
 		--force-reinstall --no-deps "$$($(VENV)/bin/pip list --format=freeze | grep -i '^opencv-contrib')"
 	$(PY) -c 'import cv2; cv2.xfeatures2d.TEBLID_create'

@@ -1,4 +1,5 @@
-"""Static int8 (QDQ) backbones for the default hierarchy: recall and time against float32.
+"""Cheaper CNN passes for the default hierarchy: static int8 (QDQ) backbones and other
+runtimes (OpenVINO in float32 and bfloat16), recall and time against ONNX Runtime float32.
 
     python -m bench.int8_recall [--variants static ...] [--calibration 32]
         [--nordland-frames 1000] [--images 20] [--rounds 3] [--out F.json]
@@ -28,6 +29,19 @@ Variants (``onnxruntime.quantization``; all after ``quant_pre_process``):
 * ``static_pct`` / ``static_entropy``: ``static`` with the activation ranges from the 99.999th
   percentile of the calibration values / the entropy (KL) method instead of min and max;
 * ``dynamic``: int8 weights, activations quantised per run (no calibration).
+
+Runtime variants (no calibration; the float32 model itself, run by another runtime, the
+reference and query extraction both in it, as a version built and served with
+``HMPF_CNN_RUNTIME`` set to it):
+
+* ``openvino``: OpenVINO on the CPU in float32 (within float32 rounding of ONNX Runtime);
+* ``openvino-bf16``: OpenVINO with bfloat16 inference precision (where the CPU has it).
+
+For runtime variants the route also gets the figure a server sees after changing its runtime
+(``served``): an index built with ONNX Runtime, queries through the version's stored models in
+the variant (:func:`served_figures`).
+
+Columns named ``int8`` in older records are the variant's figures (``variant`` in new ones).
 
 Time (Gardens Point day_right -> night_right, one compute thread, the variants interleaved
 ``--rounds`` times): each forward pass alone (median ms of ``--images`` preprocessed
@@ -63,20 +77,25 @@ from bench.harness import (
 from hmpf.backbones import backbone_class
 from hmpf.backbones.onnx_runtime import StoredModel, onnx_maps
 from hmpf.config import HierarchyConfig, build_methods, load_config
-from hmpf.evaluation.evaluate import EvalData, prepare
+from hmpf.evaluation.evaluate import EvalData, evaluate_index, prepare
 from hmpf.evaluation.metrics import paired_test
 from hmpf.evaluation.study import ScoreBank, measure_query_ms
 from hmpf.features import FeatureCache, file_digest
 from hmpf.imageio import load_image, to_rgb
+from hmpf.index import IndexReader
 from hmpf.methods.base import Method
 from hmpf.methods.cnn import CnnMethod
 from hmpf.runtime import compute_threads, default_cache_dir, set_cnn_runtime, set_compute_threads
+from indexer.build import BuildOptions, build
 
 OUT = ROOT / "docs" / "experiments" / "int8" / "int8_recall.json"
 GP = ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr")
 NL = "nordland_s_w"
 CNN = ("gem", "netvlad", "olo")
-VARIANTS = ("static", "static_ends", "static_pct", "static_entropy", "dynamic")
+INT8_VARIANTS = ("static", "static_ends", "static_pct", "static_entropy", "dynamic")
+#: The float32 models run by another runtime (:data:`hmpf.runtime.CNN_RUNTIMES`).
+RUNTIME_VARIANTS = ("openvino", "openvino-bf16")
+VARIANTS = INT8_VARIANTS + RUNTIME_VARIANTS
 #: Partial variants: the CNN methods whose passes are int8 (the others float32).
 SUBSETS = {
     "all": CNN,
@@ -186,6 +205,16 @@ def int8_models(
     calib_key = hashlib.sha256("".join(file_digest(p) for p in calib).encode()).hexdigest()
     rgb: list[np.ndarray] | None = None
     out: dict[str, dict[tuple[int, int], StoredModel]] = {}
+    if variant in RUNTIME_VARIANTS:  # the float32 export itself, in that runtime
+        for mid, m in methods.items():
+            net, layers = m.backbone(), sorted(m.layers())
+            out[mid] = {}
+            for size in m.input_sizes():
+                fp32 = onnx_maps(net, layers, size).path
+                key = hashlib.sha256(f"{variant}:{sha(fp32)}".encode()).hexdigest()[:24]
+                info = {"variant": variant, "key": key}
+                out[mid][size] = StoredModel(fp32, layers, size, info, runtime=variant)
+        return out
     for mid, m in methods.items():
         net = m.backbone()
         prep = backbone_class(m.cnn.backbone).preprocessor(m.cnn.backbone_options)
@@ -284,7 +313,7 @@ def route_figures(config: HierarchyConfig, fp32: ScoreBank, int8: ScoreBank) -> 
         a, b = int8.single_correct(mid), fp32.single_correct(mid)
         out["methods"][mid] = {
             "fp32": float(b.mean()),
-            "int8": float(a.mean()),
+            "variant": float(a.mean()),
             "sign_test": sign(a, b),
         }
     base = fp32.run(config).correct
@@ -292,8 +321,52 @@ def route_figures(config: HierarchyConfig, fp32: ScoreBank, int8: ScoreBank) -> 
     out["hierarchy_flags_fp32"] = base.astype(int).tolist()
     for name, which in SUBSETS.items():
         got = mixed(fp32, int8, which).run(config).correct
-        out["hierarchy"][name] = {"int8": float(got.mean()), "sign_test": sign(got, base)}
+        out["hierarchy"][name] = {"variant": float(got.mean()), "sign_test": sign(got, base)}
         out.setdefault("hierarchy_flags", {})[name] = got.astype(int).tolist()
+    return out
+
+
+def served_figures(
+    config: HierarchyConfig,
+    route: str,
+    data: EvalData,
+    variants: list[str],
+    work: Path,
+    cache: FeatureCache,
+) -> dict[str, Any]:
+    """The hierarchy as ``hmpf-serve`` answers after a change of runtime: an index of the
+    route's references built with ONNX Runtime (float32, what every existing index holds),
+    its queries extracted from the version's stored models in each runtime ``variants``
+    (:func:`~hmpf.evaluation.evaluate.evaluate_index`, the service's per-query path):
+    recall@1 and a sign test against the same queries in ONNX Runtime."""
+    base = work / "served" / route
+    refs, index = base / "refs", base / "index"
+    if not (index / "CURRENT").exists():
+        refs.mkdir(parents=True, exist_ok=True)
+        for p in data.reference:
+            link = refs / Path(p).name
+            if not link.exists():
+                link.symlink_to(Path(p).resolve())
+        build(config, refs, index, options=BuildOptions(progress=False))
+    column = {Path(p).name: j for j, p in enumerate(data.reference)}
+    correct: dict[str, np.ndarray] = {}
+    for rt in ("onnx", *variants):
+        set_cnn_runtime(rt)
+        try:
+            with IndexReader(index) as reader:
+                rep = evaluate_index(
+                    reader, list(data.query), data.gt, data.ground_truth, cache=cache, workers=1
+                )
+        finally:
+            set_cnn_runtime("onnx")
+        matches = rep["hierarchy"]["matches"]
+        correct[rt] = np.array(
+            [m is not None and bool(data.gt[qi, column[m]]) for qi, m in enumerate(matches)]
+        )
+    base_flags = correct["onnx"]
+    out: dict[str, Any] = {"index": str(index), "onnx": float(base_flags.mean())}
+    for v in variants:
+        out[v] = {"variant": float(correct[v].mean()), "sign_test": sign(correct[v], base_flags)}
     return out
 
 
@@ -357,12 +430,17 @@ def query_times(
 # -- report ------------------------------------------------------------------------------------
 
 
+def _got(entry: dict[str, Any]) -> float:
+    """The variant's recall of a figure (``int8`` in records before runtime variants)."""
+    return float(entry["variant"] if "variant" in entry else entry["int8"])
+
+
 def print_route(route: str, variant: str, fig: dict[str, Any]) -> None:
     print(f"\n{route}, {variant}:", flush=True)
     for mid, r in fig["methods"].items():
         t = r["sign_test"]
         print(
-            f"  {mid}: fp32 {r['fp32']:.3f} int8 {r['int8']:.3f} "
+            f"  {mid}: fp32 {r['fp32']:.3f} {variant} {_got(r):.3f} "
             f"({t['wins']} won / {t['losses']} lost, p {t['p']:.3g})",
             flush=True,
         )
@@ -370,7 +448,7 @@ def print_route(route: str, variant: str, fig: dict[str, Any]) -> None:
     for name in SUBSETS:
         t = h[name]["sign_test"]
         print(
-            f"  hierarchy, int8 {name}: fp32 {h['fp32']:.3f} int8 {h[name]['int8']:.3f} "
+            f"  hierarchy, {variant} {name}: fp32 {h['fp32']:.3f} {variant} {_got(h[name]):.3f} "
             f"({t['wins']} won / {t['losses']} lost, p {t['p']:.3g})",
             flush=True,
         )
@@ -379,7 +457,7 @@ def print_route(route: str, variant: str, fig: dict[str, Any]) -> None:
 def tables(report: dict[str, Any]) -> list[str]:
     """Markdown tables of a JSON record: recall per route, method and variant; times."""
     lines = [
-        "| route | variant | method | float32 | int8 | won / lost | sign test p |",
+        "| route | variant | method | float32 | variant | won / lost | sign test p |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for route, entry in report["routes"].items():
@@ -387,15 +465,15 @@ def tables(report: dict[str, Any]) -> list[str]:
             for mid, r in fig["methods"].items():
                 t = r["sign_test"]
                 lines.append(
-                    f"| {route} | {variant} | {mid} | {r['fp32']:.3f} | {r['int8']:.3f} "
+                    f"| {route} | {variant} | {mid} | {r['fp32']:.3f} | {_got(r):.3f} "
                     f"| {t['wins']} / {t['losses']} | {t['p']:.2g} |"
                 )
             h = fig["hierarchy"]
             for name in SUBSETS:
                 t = h[name]["sign_test"]
                 lines.append(
-                    f"| {route} | {variant} | hierarchy, int8 {name} | {h['fp32']:.3f} "
-                    f"| {h[name]['int8']:.3f} | {t['wins']} / {t['losses']} | {t['p']:.2g} |"
+                    f"| {route} | {variant} | hierarchy, variant {name} | {h['fp32']:.3f} "
+                    f"| {_got(h[name]):.3f} | {t['wins']} / {t['losses']} | {t['p']:.2g} |"
                 )
     if "pass_ms" in report:
         names = list(next(iter(report["pass_ms"].values())))
@@ -478,6 +556,19 @@ def main() -> int:
             if route == "gp_dr_nr":
                 timing_banks[variant] = mixed(fp32, int8, CNN)
                 partial[f"{variant}, netvlad only"] = mixed(fp32, int8, ("netvlad",))
+        runtimes = [v for v in args.variants if v in RUNTIME_VARIANTS]
+        if runtimes:
+            served = served_figures(config, route, data, runtimes, args.work, cache)
+            report["routes"][route]["served"] = served
+            for v in runtimes:
+                t = served[v]["sign_test"]
+                print(
+                    f"  served (index built in onnx, queries in {v}): onnx {served['onnx']:.3f} "
+                    f"{v} {served[v]['variant']:.3f} ({t['wins']} won / {t['losses']} lost, "
+                    f"p {t['p']:.3g})",
+                    flush=True,
+                )
+            save()
         if route == "gp_dr_nr":
             timing_banks["fp32"] = fp32
     if not args.no_time and "fp32" in timing_banks:

@@ -20,7 +20,10 @@ _threads: int | None = None
 _cnn_runtime: str | None = None
 
 #: Runtimes of the CNN backbones' forward passes (:func:`cnn_runtime`).
-CNN_RUNTIMES = ("onnx", "torch")
+CNN_RUNTIMES = ("onnx", "openvino", "openvino-bf16", "torch")
+#: The runtimes that run a backbone's exported ONNX model (cached, or stored in an index
+#: version): every one but ``torch``.
+EXPORTED_MODEL_RUNTIMES = ("onnx", "openvino", "openvino-bf16")
 
 
 def compute_threads() -> int:
@@ -34,16 +37,24 @@ def compute_threads() -> int:
 
 
 def cnn_runtime() -> str:
-    """Runtime of the CNN forward passes on the CPU: ``onnx`` (the default: the torch model
-    exported once to ONNX and run by ONNX Runtime, about 1.7-1.9x faster on one thread) or
-    ``torch`` (the reference implementation). Set by :func:`set_cnn_runtime` or
-    ``HMPF_CNN_RUNTIME``.
+    """Runtime of the CNN forward passes on the CPU. Set by :func:`set_cnn_runtime` or
+    ``HMPF_CNN_RUNTIME``:
 
-    It is how descriptors are computed, not what they are (both give the same maps within
-    float32 rounding, tests/hmpf/methods/test_cnn_runtime.py), so it is not part of a
-    config's digest nor of a method's :meth:`~hmpf.methods.base.Method.cache_key` (an index
-    built with one runtime serves queries with the other); the descriptor cache keeps the two
-    apart (:meth:`~hmpf.methods.base.Method.descriptor_key`).
+    * ``onnx`` (the default): the torch model exported once to ONNX and run by ONNX Runtime,
+      about 1.7-1.9x faster than torch on one thread;
+    * ``openvino``: the same exported model compiled by OpenVINO for the CPU, in float32
+      (the ``openvino`` extra);
+    * ``openvino-bf16``: the same, computing in bfloat16 where the CPU has it (AVX-512 BF16 or
+      AMX; elsewhere OpenVINO computes in float32);
+    * ``torch``: the reference implementation.
+
+    ``onnx``, ``openvino`` and ``torch`` give the same maps within float32 rounding
+    (tests/hmpf/methods/test_cnn_runtime.py): the runtime is how descriptors are computed,
+    not what they are, so it is not part of a config's digest nor of a method's
+    :meth:`~hmpf.methods.base.Method.cache_key` (an index built with one runtime serves
+    queries with another). ``openvino-bf16`` is not within float32 rounding: its recall
+    against the float32 runtimes is measured in ``bench/cnn_runtime.py``. The descriptor
+    cache keeps every runtime apart (:meth:`~hmpf.methods.base.Method.descriptor_key`).
     """
     if _cnn_runtime is not None:
         return _cnn_runtime

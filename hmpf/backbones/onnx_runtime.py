@@ -25,7 +25,10 @@ up to 33; ``tests/hmpf/methods/test_cnn_runtime.py``).
 * Index versions: a build copies the exported models into the version
   (:func:`export_model`, :mod:`hmpf.index.models`), and a reader runs them from there
   (:class:`StoredModel`) with onnxruntime alone: no torch, no onnx, no export, no cache.
-* Sessions: one per (model, compute threads) per process, with ``intra_op_num_threads`` =
+* OpenVINO (``HMPF_CNN_RUNTIME=openvino`` or ``openvino-bf16``): the same exported files,
+  cached or stored, compiled by OpenVINO for the CPU (:class:`OpenVinoSession`) instead of
+  loaded by ONNX Runtime; exporting still uses torch and onnx.
+* Sessions: one per (model, compute threads, runtime) per process, with ``intra_op_num_threads`` =
   :func:`hmpf.runtime.compute_threads` (1 in extraction workers, the service's per-worker
   threads), sequential execution, and no spinning of idle pool threads (a waiting worker
   burns no CPU). ``InferenceSession.run`` may be called from several threads at once.
@@ -50,7 +53,7 @@ import numpy as np
 
 from hmpf.backbones.base import Backbone
 from hmpf.errors import MissingDependencyError
-from hmpf.runtime import compute_threads, onnx_cache_dir
+from hmpf.runtime import EXPORTED_MODEL_RUNTIMES, cnn_runtime, compute_threads, onnx_cache_dir
 
 if TYPE_CHECKING:
     import onnxruntime
@@ -59,6 +62,7 @@ __all__ = [
     "EXPORT_VERSION",
     "OPSET",
     "OnnxMaps",
+    "OpenVinoSession",
     "StoredModel",
     "clear_sessions",
     "export_key",
@@ -77,14 +81,25 @@ OPSET = 17
 INPUT = "input"
 
 _LOCK = threading.Lock()
-_SESSIONS: dict[tuple[str, int], OnnxMaps] = {}
+_SESSIONS: dict[tuple[str, int, str], OnnxMaps] = {}
 _WEIGHTS: weakref.WeakKeyDictionary[Backbone, str] = weakref.WeakKeyDictionary()
 _FALLBACK_DIR: Path | None = None
 
 
-def require_onnxruntime(export: bool = True) -> None:
-    """Raise :class:`MissingDependencyError` with an install hint when onnxruntime (or, to
-    ``export``, onnx) is missing."""
+def require_onnxruntime(export: bool = True, runtime: str = "onnx") -> None:
+    """Raise :class:`MissingDependencyError` with an install hint when what ``runtime`` runs
+    an exported model with (onnxruntime, or openvino) is missing, or, to ``export``, onnx
+    (and onnxruntime, which checks an export)."""
+    if runtime.startswith("openvino"):
+        try:
+            import openvino  # noqa: F401
+        except ImportError:
+            raise MissingDependencyError(
+                f"HMPF_CNN_RUNTIME={runtime} runs the exported models with OpenVINO: pip "
+                "install 'hmpf[openvino]' (or make install), or set HMPF_CNN_RUNTIME=onnx"
+            ) from None
+        if not export:
+            return
     try:
         if export:
             import onnx  # noqa: F401
@@ -102,7 +117,8 @@ def require_onnxruntime(export: bool = True) -> None:
 
 
 class OnnxMaps:
-    """One exported backbone (layers, input size) in an ONNX Runtime session.
+    """One exported backbone (layers, input size) in an ONNX Runtime session (or an
+    :class:`OpenVinoSession`: the openvino runtimes).
 
     Calling it on a (B, 3, rows, cols) float32 batch returns {layer: (B, C, h, w) float32}.
     The session runs ``run_batch`` images at a time (the model takes any batch size): one
@@ -112,7 +128,7 @@ class OnnxMaps:
 
     def __init__(
         self,
-        session: onnxruntime.InferenceSession,
+        session: onnxruntime.InferenceSession | OpenVinoSession,
         layers: Sequence[str],
         path: Path,
         run_batch: int = 1,
@@ -253,7 +269,65 @@ def _export(net: Backbone, layers: Sequence[str], size: tuple[int, int], path: P
     log.info("exported %s %s at %s to %s", net.name, list(layers), size, path)
 
 
-def _session(path: Path, threads: int) -> onnxruntime.InferenceSession:
+def _runtime() -> str:
+    """The process's CNN runtime when it runs exported models (``onnx`` otherwise: a torch
+    process exports and checks its models with ONNX Runtime)."""
+    runtime = cnn_runtime()
+    return runtime if runtime in EXPORTED_MODEL_RUNTIMES else "onnx"
+
+
+class OpenVinoSession:
+    """An exported model compiled by OpenVINO for the CPU, run like an ONNX Runtime session
+    (:meth:`run`), one image at a time (the input's batch dimension is fixed at 1).
+
+    ``threads`` inference threads, one stream, threads not pinned to cores (replicas and
+    workers share the cores); ``precision`` ``f32`` or ``bf16`` (OpenVINO's inference
+    precision hint: computed in bfloat16 where the CPU has it, else in float32). An infer
+    request per calling thread, so :meth:`run` may be called from several threads at once,
+    as an ONNX Runtime session may.
+    """
+
+    def __init__(self, path: Path, threads: int, precision: str = "f32") -> None:
+        import openvino as ov  # the openvino extra: only the openvino runtimes need it
+
+        model = ov.Core().read_model(str(path))
+        shape = model.input(INPUT).get_partial_shape()
+        model.reshape({INPUT: [1, *(int(shape[i].get_length()) for i in (1, 2, 3))]})
+        self.compiled = ov.Core().compile_model(
+            model,
+            "CPU",
+            {
+                "INFERENCE_NUM_THREADS": int(threads),
+                "NUM_STREAMS": 1,
+                "PERFORMANCE_HINT": "LATENCY",
+                "ENABLE_CPU_PINNING": False,
+                "INFERENCE_PRECISION_HINT": precision,
+            },
+        )
+        # every name of an output (the model's own, e.g. "head", and OpenVINO's node names)
+        self._outputs = {n: o for o in self.compiled.outputs for n in o.get_names()}
+        self._local = threading.local()
+
+    def run(self, names: Sequence[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """The outputs ``names`` for ``feeds[INPUT]`` (B, 3, rows, cols), image by image."""
+        request = getattr(self._local, "request", None)
+        if request is None:
+            request = self._local.request = self.compiled.create_infer_request()
+        x = feeds[INPUT]
+        per_image: list[list[np.ndarray]] = []
+        for i in range(len(x)):
+            request.infer({INPUT: x[i : i + 1]})
+            per_image.append([request.get_tensor(self._outputs[n]).data.copy() for n in names])
+        return [np.concatenate([p[k] for p in per_image]) for k in range(len(names))]
+
+
+def _session(path: Path, threads: int, runtime: str = "onnx") -> Any:
+    """A session running ``path`` on ``threads`` threads in ``runtime`` (an
+    ONNX Runtime session or an :class:`OpenVinoSession`)."""
+    if runtime == "openvino":
+        return OpenVinoSession(path, threads, "f32")
+    if runtime == "openvino-bf16":
+        return OpenVinoSession(path, threads, "bf16")
     import onnxruntime as ort  # the onnx extra: CNN methods only
 
     so = ort.SessionOptions()
@@ -275,11 +349,12 @@ def onnx_maps(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> On
     one session per model and :func:`~hmpf.runtime.compute_threads` value per process.
     """
     global _FALLBACK_DIR
-    require_onnxruntime()
+    runtime = _runtime()
+    require_onnxruntime(runtime=runtime)
     threads = compute_threads()
     size = (int(size[0]), int(size[1]))
     path = model_path(net, layers, size)
-    key = (str(path), threads)
+    key = (str(path), threads, runtime)
     with _LOCK:
         hit = _SESSIONS.get(key)
         if hit is not None:
@@ -287,8 +362,8 @@ def onnx_maps(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> On
         session = None
         if _intact(path):
             try:
-                session = _session(path, threads)
-            except Exception as exc:  # onnxruntime's own error types (InvalidProtobuf, Fail...)
+                session = _session(path, threads, runtime)
+            except Exception as exc:  # the runtime's own error types (InvalidProtobuf, Fail...)
                 log.warning(
                     "cached ONNX model %s does not load (%s): exporting it again", path, exc
                 )
@@ -307,7 +382,7 @@ def onnx_maps(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> On
                 )
                 path = _FALLBACK_DIR / path.name
                 _export(net, layers, size, path)
-            session = _session(path, threads)
+            session = _session(path, threads, runtime)
         maps = OnnxMaps(session, layers, path)
         _SESSIONS[key] = maps
         return maps
@@ -327,9 +402,11 @@ class StoredModel:
     """An exported model kept outside the cache (in an index version, where the manifest's
     sha256 vouches for it): ``path`` computes ``layers`` at input ``size``.
 
-    Running it needs onnxruntime only (no torch, no onnx). Sessions are made on first use, one
-    per :func:`~hmpf.runtime.compute_threads` value, and live as long as this object (the
-    reader that holds it).
+    Running it needs onnxruntime (or openvino) only: no torch, no onnx. Sessions are made on
+    first use, one per :func:`~hmpf.runtime.compute_threads` value and runtime, and live as
+    long as this object (the reader that holds it). ``runtime`` runs it in that runtime
+    (``onnx``, ``openvino``, ``openvino-bf16``) whatever the process's; None (the default):
+    the process's (:func:`~hmpf.runtime.cnn_runtime`).
     """
 
     def __init__(
@@ -338,14 +415,19 @@ class StoredModel:
         layers: Sequence[str],
         size: tuple[int, int],
         info: dict[str, Any] | None = None,
+        runtime: str | None = None,
     ) -> None:
+        if runtime is not None and runtime not in EXPORTED_MODEL_RUNTIMES:
+            raise ValueError(f"runtime must be one of {EXPORTED_MODEL_RUNTIMES}, got {runtime!r}")
+        self.runtime = runtime
         self.path = Path(path)
         self.layers = list(layers)
         self.size = (int(size[0]), int(size[1]))
         #: what else is known of it (an index manifest's entry: export key, exporter...)
         self.info: dict[str, Any] = dict(info or {})
         self._lock = threading.Lock()
-        self._sessions: dict[int, onnxruntime.InferenceSession] = {}
+        #: by (compute threads, runtime)
+        self._sessions: dict[tuple[int, str], Any] = {}
 
     def __repr__(self) -> str:
         return f"StoredModel({str(self.path)!r}, {self.layers}, {self.size})"
@@ -357,12 +439,13 @@ class StoredModel:
         """The session computing ``layers`` (a subset of this model's outputs)."""
         if not self.covers(layers):
             raise ValueError(f"{self.path} computes {self.layers}, not {sorted(layers)}")
-        require_onnxruntime(export=False)
-        threads = compute_threads()
+        runtime = self.runtime or _runtime()
+        require_onnxruntime(export=False, runtime=runtime)
+        key = (compute_threads(), runtime)
         with self._lock:
-            session = self._sessions.get(threads)
+            session = self._sessions.get(key)
             if session is None:
-                session = self._sessions[threads] = _session(self.path, threads)
+                session = self._sessions[key] = _session(self.path, *key)
         return OnnxMaps(session, list(layers), self.path)
 
 

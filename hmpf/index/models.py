@@ -169,7 +169,7 @@ def torch_needed(methods: Mapping[str, Method]) -> bool:
         if not isinstance(m, CnnMethod):
             continue
         try:
-            if m.runtime() != "onnx" or m.stored_for(m.layers()) is None:
+            if m.runtime() == "torch" or m.stored_for(m.layers()) is None:
                 return True
         except MissingDependencyError:  # a torch-only backbone, and no torch here
             return True

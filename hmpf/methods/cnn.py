@@ -11,14 +11,15 @@ per image for every method of a group, and
 set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`~hmpf.methods.base.extract_many`
 and :func:`~hmpf.methods.base.fit_many` run that over every group of a hierarchy.
 
-The forward pass runs in ONNX Runtime or in torch (:meth:`CnnMethod.runtime`): ``onnx`` by
-default on the CPU, for backbones that export (:attr:`~hmpf.backbones.base.Backbone.onnx`,
+The forward pass runs the backbone's exported ONNX model or torch (:meth:`CnnMethod.runtime`):
+``onnx`` (ONNX Runtime) by default on the CPU, or ``openvino`` / ``openvino-bf16``, for
+backbones that export (:attr:`~hmpf.backbones.base.Backbone.onnx`,
 :mod:`hmpf.backbones.onnx_runtime`); ``torch``, the reference implementation, with
 ``HMPF_CNN_RUNTIME=torch`` (:func:`hmpf.runtime.set_cnn_runtime`), on other devices and for
-the other backbones. Both give the same maps within float32 rounding.
+the other backbones. All but ``openvino-bf16`` give the same maps within float32 rounding.
 
 Methods loaded from an index version run the ONNX models stored in it
-(:meth:`CnnMethod.use_stored_models`, :mod:`hmpf.index.models`) on the ``onnx`` runtime,
+(:meth:`CnnMethod.use_stored_models`, :mod:`hmpf.index.models`) on those runtimes,
 prepared by the backbone's numpy / OpenCV preprocessing: torch is not imported, so a server
 needs none (torch is imported lazily, only where a forward pass runs or exports in it).
 """
@@ -40,7 +41,7 @@ from hmpf.backbones.onnx_runtime import OnnxMaps, StoredModel, onnx_maps
 from hmpf.errors import MissingDependencyError
 from hmpf.imageio import to_rgb
 from hmpf.methods.base import GroupOutput, Method, MethodConfig
-from hmpf.runtime import cnn_runtime, compute_threads
+from hmpf.runtime import EXPORTED_MODEL_RUNTIMES, cnn_runtime, compute_threads
 
 __all__ = [
     "CnnConfig",
@@ -172,17 +173,18 @@ class CnnMethod(Method):
         return key if self.scales() == (1.0,) else (*key, self.scales())
 
     def runtime(self) -> str:
-        """Where the forward pass runs: ``onnx`` when that is the process's runtime
-        (:func:`~hmpf.runtime.cnn_runtime`), the device is the CPU and the backbone exports;
-        else ``torch``."""
-        if cnn_runtime() == "onnx" and self.cnn.device == "cpu":
+        """Where the forward pass runs: the process's runtime
+        (:func:`~hmpf.runtime.cnn_runtime`) when it runs exported models (``onnx``,
+        ``openvino``...), the device is the CPU and the backbone exports; else ``torch``."""
+        runtime = cnn_runtime()
+        if runtime in EXPORTED_MODEL_RUNTIMES and self.cnn.device == "cpu":
             if backbone_class(self.cnn.backbone).onnx:
-                return "onnx"
+                return runtime
         return "torch"
 
     def use_stored_models(self, models: Mapping[tuple[int, int], StoredModel], where: Path) -> None:
         """Run the forward passes from ``models`` (an index version's exported models, by input
-        size) when the runtime is ``onnx``: ONNX Runtime alone, torch is not imported.
+        size) when the runtime runs exported models: torch is not imported.
         ``where``, the version folder, is named when a model is missing there."""
         self.stored_models = {(int(k[0]), int(k[1])): v for k, v in models.items()}
         self.stored_from = Path(where)
@@ -198,8 +200,9 @@ class CnnMethod(Method):
         return out  # type: ignore[return-value]
 
     def descriptor_key(self) -> str:
-        """:meth:`cache_key`, plus ``-onnx`` when ONNX Runtime computes the maps: descriptors
-        of the two runtimes are cached apart (torch keeps the keys it always had)."""
+        """:meth:`cache_key`, plus ``-<runtime>`` when a runtime other than torch computes
+        the maps (``-onnx``, ``-openvino``...): descriptors of the runtimes are cached apart
+        (torch keeps the keys it always had)."""
         key = self.cache_key()
         runtime = self.runtime()
         return key if runtime == "torch" else f"{key}-{runtime}"
@@ -261,7 +264,8 @@ def forward_group(
     layers = sorted({layer for m in methods for layer in m.layers()})
     batch_size = max(m.cnn.batch_size for m in methods)
     onnx: list[OnnxMaps] | None = None
-    stored = head.stored_for(layers) if head.runtime() == "onnx" else None
+    runtime = head.runtime()
+    stored = head.stored_for(layers) if runtime != "torch" else None
     if stored is not None:
         # The index version's own exported models, in ONNX Runtime: torch is never imported
         # on this path (a server may have none), and the input is prepared by the backbone's
@@ -277,7 +281,7 @@ def forward_group(
         _require_torch_for(head, layers)
         net = head.backbone()
         preprocess = net.preprocess
-        if head.runtime() == "onnx":
+        if runtime != "torch":
             onnx = [onnx_maps(net, layers, size) for size in sizes]
         else:
             import torch  # imported here: only the torch runtime needs it (an optional extra)
@@ -312,7 +316,7 @@ def _require_torch_for(head: CnnMethod, layers: Sequence[str]) -> None:
     if torch_available():
         return
     c = head.cnn
-    if head.stored_from is not None and head.runtime() == "onnx":
+    if head.stored_from is not None and head.runtime() != "torch":
         raise MissingDependencyError(
             f"{head.stored_from}: this index version stores no exported model of "
             f"{c.backbone} {list(layers)} at {head.input_sizes()} (it was built before index "

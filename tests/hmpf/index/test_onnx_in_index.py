@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hmpf.backbones.onnx_runtime import OpenVinoSession
 from hmpf.config import build_methods, parse_config
 from hmpf.imageio import load_image
 from hmpf.index import IndexCorruptError, IndexReader, IndexVersionError
@@ -296,3 +297,29 @@ def test_torch_version_matters_only_where_torch_runs(built: dict[str, Path]) -> 
         assert torch_needed(reader.methods)
     with pytest.raises(IndexVersionError, match="torch"):
         check_packages(other_major, where)
+
+
+def test_stored_models_in_openvino_give_the_onnx_answers(
+    built: dict[str, Path], queries: list[np.ndarray]
+) -> None:
+    """A server run with ``HMPF_CNN_RUNTIME=openvino`` compiles the version's stored models
+    in OpenVINO: the descriptors of ONNX Runtime within float16 storage rounding, the same
+    answers."""
+    pytest.importorskip("openvino")
+    with IndexReader(built["new"]) as reader:
+        onnx = _features(reader, queries, "onnx")
+    with cnn_runtime_as("openvino"), IndexReader(built["new"]) as reader:
+        gem = reader.methods["gem"]
+        assert isinstance(gem, CnnMethod) and gem.runtime() == "openvino"
+        stored = gem.stored_for(gem.layers())
+        assert stored is not None
+        assert isinstance(stored[0].maps(gem.layers()).session, OpenVinoSession)
+        ov = [reader.extract_query(im) for im in queries]
+        hier = reader.hierarchy()
+        words = [_words_changed(a["olo"], b["olo"]) for a, b in zip(onnx, ov, strict=True)]
+        assert float(np.mean(words)) <= 0.01  # as between ONNX Runtime and torch
+        for a, b in zip(onnx, ov, strict=True):
+            for mid in ("gem", "olo"):
+                assert _max_diff(a[mid], b[mid]) <= ATOL
+            ra, rb = hier.run(reader.scorer(a), reader.n), hier.run(reader.scorer(b), reader.n)
+            assert ra.match == rb.match

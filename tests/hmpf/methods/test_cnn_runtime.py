@@ -1,17 +1,25 @@
-"""The CNN runtimes: ONNX Runtime (the default) against torch (the reference), and the cache of
-exported models.
+"""The CNN runtimes: ONNX Runtime (the default) and OpenVINO against torch (the reference),
+and the cache of exported models.
 
 * Real Gardens Point images, the default hierarchy's CNN methods (gem, netvlad, olo), fitted
-  once (torch) and shared by both runtimes: descriptors equal within :data:`ATOL` (they are
-  stored at float16 precision; the maps differ by float32 rounding, ~2e-5) and the
-  hierarchy's answers equal on 30 references x 30 queries.
+  once (torch) and shared by every runtime: the float32 runtimes' (``onnx``, ``openvino``)
+  descriptors equal torch's within :data:`ATOL` (they are stored at float16 precision; the
+  maps differ by float32 rounding, ~2e-5) and the hierarchy's answers are equal on 30
+  references x 30 queries; ``openvino-bf16``'s global descriptors are within
+  :data:`BF16_ATOL` and its answers nearly all equal (its recall is measured in
+  ``bench.int8_recall``).
+* OpenVINO's sessions: the compute threads, calls from several threads at once, a model run
+  in a runtime of its own (``StoredModel(runtime=)``), and a missing package.
 * The model cache: a second load exports nothing, a changed key exports anew, a corrupt file
   is exported again, an unwritable cache folder falls back to a temporary one.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +28,7 @@ import pytest
 
 from hmpf import runtime
 from hmpf.config import build_methods, load_config
-from hmpf.errors import ConfigError
+from hmpf.errors import ConfigError, MissingDependencyError
 from hmpf.hierarchy import Hierarchy, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.methods import create_method
@@ -38,6 +46,13 @@ from hmpf.backbones import onnx_runtime as ox  # noqa: E402
 ATOL = 1e-3
 #: Largest difference allowed between the runtimes' raw maps (float32, values up to ~30).
 MAPS_ATOL = 2e-4
+#: ``openvino-bf16`` against the float32 runtimes: bfloat16 keeps 8 bits of mantissa (about
+#: 0.4 % per value); measured up to 0.012 on unit-norm NetVLAD vectors.
+BF16_ATOL = 0.05
+#: The runtimes whose packages are installed (openvino is an extra of its own).
+RUNTIMES = [
+    r for r in runtime.CNN_RUNTIMES if not r.startswith("openvino") or find_spec("openvino")
+]
 N = 30  # references and queries of the Gardens Point subset
 
 
@@ -62,7 +77,7 @@ def both(gardens_point: Path) -> dict[str, Any]:
     others = {m: methods[m] for m in methods if m not in cnn}
     shared = {k: extract_many(others, imgs) for k, imgs in (("ref", refs), ("qry", qrys))}
     out: dict[str, Any] = {"config": config, "cnn": cnn, "methods": methods}
-    for name in runtime.CNN_RUNTIMES:
+    for name in RUNTIMES:
         ms = build_methods(config)
         for m, arrays in state.items():
             if arrays:
@@ -85,6 +100,42 @@ def _answers(config: Any, methods: dict[str, Any], feats: dict[str, Any]) -> lis
         query = {m: feats["qry"][m][qi] for m in methods}
         answers.append(hierarchy.run(feature_scorer(methods, query, db), N).match)
     return answers
+
+
+def _worst(both: dict[str, Any], name: str) -> tuple[dict[str, float], float]:
+    """Largest descriptor difference per CNN method between runtime ``name`` and torch, and
+    the share of OLO regions whose visual word differs."""
+    _, ft = both["torch"]
+    _, fo = both[name]
+    worst, words = {}, []
+    for m in both["cnn"]:
+        diffs = []
+        for part in ("ref", "qry"):
+            for a, b in zip(ft[part][m], fo[part][m], strict=True):
+                if m == "olo":
+                    assert a.regions.shape == b.regions.shape
+                    diffs.append(np.abs(a.regions - b.regions).max())
+                    words.append(np.mean(a.words != b.words))
+                else:
+                    assert a.shape == b.shape and a.dtype == b.dtype
+                    diffs.append(np.abs(a.astype(np.float32) - b.astype(np.float32)).max())
+        worst[m] = float(np.max(diffs))
+    return worst, float(np.mean(words))
+
+
+@pytest.mark.parametrize("name", ["openvino", "openvino-bf16"])
+def test_openvino_descriptors_against_torch(both: dict[str, Any], name: str) -> None:
+    if name not in both:
+        pytest.skip("openvino is not installed (the openvino extra)")
+    worst, words = _worst(both, name)
+    print(f"max |torch - {name}| per method:", worst, "olo words changed:", words)
+    if name == "openvino":  # float32: the same maps within rounding
+        assert max(worst.values()) <= ATOL, worst
+        assert words <= 0.01
+    else:  # bfloat16: the global descriptors stay close; OLO's regions and words do not
+        # (most of its words change, measured 65 %: a region's word is the nearest of many
+        # close words), which is why the answers are compared too, and recall measured
+        assert max(worst["gem"], worst["netvlad"]) <= BF16_ATOL, worst
 
 
 def test_runtimes_give_the_same_descriptors(both: dict[str, Any]) -> None:
@@ -112,9 +163,13 @@ def test_runtimes_give_the_same_descriptors(both: dict[str, Any]) -> None:
 
 def test_runtimes_give_the_same_answers(both: dict[str, Any]) -> None:
     config = both["config"]
-    got = {name: _answers(config, *both[name]) for name in runtime.CNN_RUNTIMES}
+    got = {name: _answers(config, *both[name]) for name in RUNTIMES}
     assert got["onnx"] == got["torch"]
     assert np.mean(np.array(got["onnx"]) == np.arange(N)) >= 0.8  # day -> day: mostly right
+    if "openvino" in got:
+        assert got["openvino"] == got["onnx"]
+        same = np.mean(np.array(got["openvino-bf16"]) == np.array(got["onnx"]))
+        assert same >= 0.9, got
 
 
 def test_maps_equal_torch_at_every_default_size(both: dict[str, Any]) -> None:
@@ -145,9 +200,13 @@ def test_runtime_setting_and_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     with cnn_runtime_as("torch"):
         torch_key = gem.descriptor_key()
         assert gem.runtime() == "torch" and torch_key == gem.cache_key()  # the keys it had
+    keys = {torch_key}
+    for name in ("onnx", "openvino", "openvino-bf16"):
+        with cnn_runtime_as(name):
+            assert gem.runtime() == name and gem.cache_key() == torch_key
+            keys.add(gem.descriptor_key())
+    assert len(keys) == 4  # every runtime's descriptors cached apart
     with cnn_runtime_as("onnx"):
-        assert gem.runtime() == "onnx"
-        assert gem.descriptor_key() != torch_key and gem.cache_key() == torch_key
         assert create_method("gem", {"device": "cuda"}).runtime() == "torch"  # ORT: CPU only
         vgg = create_method("gem", {"backbone": "vgg16", "weights": "x.pth"})
         assert vgg.runtime() == "torch"  # a backbone not checked under ONNX Runtime
@@ -157,7 +216,9 @@ def test_runtime_setting_and_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("HMPF_CNN_RUNTIME")
     assert runtime.cnn_runtime() == "onnx"  # the default
     monkeypatch.setenv("HMPF_CNN_RUNTIME", "tensorrt")
-    with pytest.raises(ConfigError, match="HMPF_CNN_RUNTIME must be one of onnx, torch"):
+    with pytest.raises(
+        ConfigError, match="HMPF_CNN_RUNTIME must be one of onnx, openvino, openvino-bf16, torch"
+    ):
         runtime.cnn_runtime()
     with pytest.raises(ConfigError, match="one of"):
         runtime.set_cnn_runtime("jax")
@@ -301,3 +362,47 @@ def test_session_threads_follow_compute_threads(
         opts = maps.session.get_session_options()
         assert opts.intra_op_num_threads == n and opts.inter_op_num_threads == 1
         assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+
+
+# ------------------------------------------------------------------------------ OpenVINO
+
+
+def test_openvino_sessions(cache_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exported model in OpenVINO: the maps of ONNX Runtime (float32), the compute
+    threads, one session per runtime, calls from several threads at once, and a model run in
+    a runtime of its own whatever the process's."""
+    pytest.importorskip("openvino")
+    net = load_backbone("efficientnet_lite0")
+    x = np.random.default_rng(3).standard_normal((3, 3, *SIZE)).astype(np.float32)
+    want = ox.onnx_maps(net, ["s4"], SIZE)(x)["s4"]
+    for threads in (1, 2):
+        monkeypatch.setattr(runtime, "_threads", threads)
+        with cnn_runtime_as("openvino"):
+            maps = ox.onnx_maps(net, ["s4"], SIZE)
+        assert isinstance(maps.session, ox.OpenVinoSession)
+        assert int(maps.session.compiled.get_property("INFERENCE_NUM_THREADS")) == threads
+        np.testing.assert_allclose(maps(x)["s4"], want, rtol=0, atol=MAPS_ATOL)
+    with ThreadPoolExecutor(4) as pool:  # one infer request per thread
+        runs = list(pool.map(lambda i: maps(x[i % 3 : i % 3 + 1])["s4"], range(12)))
+    for i, got in enumerate(runs):
+        np.testing.assert_allclose(got, want[i % 3 : i % 3 + 1], rtol=0, atol=MAPS_ATOL)
+    stored = ox.StoredModel(maps.path, ["s4"], SIZE, runtime="openvino-bf16")
+    with cnn_runtime_as("onnx"):
+        own = stored.maps(["s4"])
+        assert isinstance(own.session, ox.OpenVinoSession)
+        assert not isinstance(
+            ox.StoredModel(maps.path, ["s4"], SIZE).maps(["s4"]).session, ox.OpenVinoSession
+        )
+    got = own(x)["s4"]
+    assert got.shape == want.shape
+    # bfloat16: close to float32, relative to the maps' range
+    assert np.abs(got - want).max() <= 0.05 * np.abs(want).max()
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        ox.StoredModel(maps.path, ["s4"], SIZE, runtime="torch")
+
+
+def test_missing_openvino_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "openvino", None)  # import openvino -> ImportError
+    with pytest.raises(MissingDependencyError, match=r"hmpf\[openvino\]"):
+        ox.require_onnxruntime(export=False, runtime="openvino-bf16")
+    ox.require_onnxruntime(export=False, runtime="onnx")  # the default needs no openvino
