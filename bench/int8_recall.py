@@ -556,6 +556,11 @@ def main() -> int:
             if route == "gp_dr_nr":
                 timing_banks[variant] = mixed(fp32, int8, CNN)
                 partial[f"{variant}, netvlad only"] = mixed(fp32, int8, ("netvlad",))
+        if route == "gp_dr_nr" and {"openvino", "openvino-bf16"} <= set(timing_banks):
+            # NetVLAD in OpenVINO float32, GeM and OLO in bfloat16
+            partial["openvino, gem+olo in bf16"] = mixed(
+                timing_banks["openvino"], timing_banks["openvino-bf16"], ("gem", "olo")
+            )
         runtimes = [v for v in args.variants if v in RUNTIME_VARIANTS]
         if runtimes:
             served = served_figures(config, route, data, runtimes, args.work, cache)
