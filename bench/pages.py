@@ -1260,6 +1260,135 @@ def leaderboard_page(root: Path, folder: str) -> str:
     return leaderboard_markdown(load(root, f"{folder}/calibration.json"))
 
 
+CPU_LEVERS = "docs/experiments/cpu_levers"
+RUNTIME_LABELS = {
+    "onnx": "ONNX Runtime, float32 (the default)",
+    "openvino": "OpenVINO, float32",
+    "openvino-bf16": "OpenVINO, bfloat16",
+}
+
+
+#: ``bench.int8_recall``'s partial runtime variants (some passes in another runtime)
+QUERY_LABELS = {
+    "openvino, netvlad only": "NetVLAD in OpenVINO float32, the rest ONNX Runtime",
+    "openvino-bf16, netvlad only": "NetVLAD in OpenVINO bfloat16, the rest ONNX Runtime",
+    "openvino, gem+olo in bf16": "OpenVINO: NetVLAD float32, GeM and OLO bfloat16",
+}
+
+
+def _vs(fig: dict[str, Any]) -> str:
+    """A variant's recall@1 with its paired sign test against float32 ONNX Runtime."""
+    t = fig["sign_test"]
+    return f"{f3(fig['variant'])} ({t['wins']} / {t['losses']}, p {pvalue(t['p'])})"
+
+
+@generator("cpu_levers.openvino_recall")
+def openvino_recall(root: Path) -> str:
+    """``bench.int8_recall``'s runtime variants: the hierarchy's recall@1 per route."""
+    rel = f"{CPU_LEVERS}/openvino_recall.json"
+    data = load(root, rel)
+    rows = []
+    for route, e in data["routes"].items():
+        v, served = e["variants"], e["served"]
+        rows.append(
+            [
+                f"{route} ({e['references']} / {e['queries']})",
+                f3(v["openvino"]["hierarchy"]["fp32"]),
+                _vs(v["openvino"]["hierarchy"]["all"]),
+                _vs(v["openvino-bf16"]["hierarchy"]["all"]),
+                _vs(v["openvino-bf16"]["hierarchy"]["gem+olo"]),
+                _vs(served["openvino-bf16"]),
+            ]
+        )
+    header = [
+        "route (references / queries)",
+        "ONNX Runtime float32",
+        "OpenVINO float32",
+        "OpenVINO bfloat16, every pass",
+        "bfloat16 GeM + OLO, NetVLAD float32",
+        "served: index float32, queries bfloat16",
+    ]
+    return table(header, rows) + source(rel, data)
+
+
+@generator("cpu_levers.openvino_time")
+def openvino_time(root: Path) -> str:
+    """``bench.int8_recall``'s timing of the runtime variants (one thread, interleaved) and
+    ``bench.capacity`` per runtime (CPU per answer through ``hmpf-serve``)."""
+    rel = f"{CPU_LEVERS}/openvino_time.json"
+    data = load(root, rel)
+    names = {"fp32": "onnx", "openvino": "openvino", "openvino-bf16": "openvino-bf16"}
+    rows = []
+    for k, v in data["pass_ms"].items():
+        base = v["fp32"]["median_ms"]
+        rows.append(
+            [k]
+            + [
+                f"{f1(v[n]['median_ms'])}"
+                + ("" if n == "fp32" else f" ({base / v[n]['median_ms']:.2f}x)")
+                for n in names
+            ]
+        )
+    header = ["forward pass (ms, one thread)", *[RUNTIME_LABELS[n] for n in names.values()]]
+    out = table(header, rows)
+    q = data["query_ms"]
+    base = q["fp32"]["total_ms"]
+    qrows = [
+        [
+            RUNTIME_LABELS.get(names.get(k, ""), QUERY_LABELS.get(k, k)),
+            f1(v["total_ms"]),
+            f1(v["extract_ms"]),
+            f1(v["hierarchy_ms"]),
+            f"{base / v['total_ms']:.2f}x",
+        ]
+        for k, v in q.items()
+    ]
+    qheader = ["whole query, one thread", "ms", "extraction", "hierarchy", "speed-up"]
+    out += "\n" + table(qheader, qrows) + source(rel, data)
+    cap_rows = []
+    for rt in RUNTIME_LABELS:
+        crel = f"docs/experiments/capacity/default-{rt}.json"
+        c = load(root, crel)
+        cap_rows.append([RUNTIME_LABELS[rt], f1(c["cpu_ms_per_query"]), f1(c["wall_p50_ms"])])
+    out += "\n" + table(["runtime", "CPU ms per answer", "wall p50 ms"], cap_rows)
+    out += source(f"docs/experiments/capacity/default-{{{','.join(RUNTIME_LABELS)}}}.json", c)
+    return out
+
+
+@generator("cpu_levers.openvino_load")
+def openvino_load(root: Path) -> str:
+    """``bench.service_load`` with the server's CNN runtime set (``HMPF_CNN_RUNTIME``)."""
+    rows = []
+    data: dict[str, Any] = {}
+    for rt in ("onnx", "openvino-bf16"):
+        data = load(root, f"{SERVICE_LOAD}/default-{rt}.json")
+        for ph in data["phases"]:
+            rows.append(
+                [
+                    RUNTIME_LABELS[rt],
+                    str(ph["clients"]),
+                    f1(ph["answers_per_s"]),
+                    f"{f1(ph['p50_ms'])} ms",
+                    f"{f1(ph['p99_ms'])} ms",
+                    str(ph["503"]),
+                    str(sum(ph["errors"].values())),
+                    f3(ph["within_2_frames"]),
+                ]
+            )
+    header = [
+        "server runtime",
+        "clients",
+        "answers/s",
+        "p50",
+        "p99",
+        "503s",
+        "other errors",
+        "within +-2",
+    ]
+    rel = f"{SERVICE_LOAD}/default-{{onnx,openvino-bf16}}.json"
+    return table(header, rows) + source(rel, data)
+
+
 # pages generated whole (no prose of their own): path -> renderer
 WHOLE_PAGES: dict[str, Callable[[Path], str]] = {
     f"docs/experiments/{name}/leaderboard.md": (
