@@ -269,6 +269,12 @@ def _export(net: Backbone, layers: Sequence[str], size: tuple[int, int], path: P
     log.info("exported %s %s at %s to %s", net.name, list(layers), size, path)
 
 
+def _check_exported(runtime: str) -> str:
+    if runtime not in EXPORTED_MODEL_RUNTIMES:
+        raise ValueError(f"runtime must be one of {EXPORTED_MODEL_RUNTIMES}, got {runtime!r}")
+    return runtime
+
+
 def _runtime() -> str:
     """The process's CNN runtime when it runs exported models (``onnx`` otherwise: a torch
     process exports and checks its models with ONNX Runtime)."""
@@ -342,14 +348,18 @@ def _session(path: Path, threads: int, runtime: str = "onnx") -> Any:
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
-def onnx_maps(net: Backbone, layers: Sequence[str], size: tuple[int, int]) -> OnnxMaps:
-    """The ONNX Runtime session computing ``net``'s ``layers`` at input ``size``.
+def onnx_maps(
+    net: Backbone, layers: Sequence[str], size: tuple[int, int], runtime: str | None = None
+) -> OnnxMaps:
+    """The session computing ``net``'s ``layers`` at input ``size`` in ``runtime`` (None:
+    the process's, :func:`~hmpf.runtime.cnn_runtime`; ``onnx`` in a torch process).
 
     Loads the cached export (exporting it first when it is missing, corrupt or unloadable);
-    one session per model and :func:`~hmpf.runtime.compute_threads` value per process.
+    one session per model, :func:`~hmpf.runtime.compute_threads` value and runtime per
+    process.
     """
     global _FALLBACK_DIR
-    runtime = _runtime()
+    runtime = _check_exported(runtime) if runtime else _runtime()
     require_onnxruntime(runtime=runtime)
     threads = compute_threads()
     size = (int(size[0]), int(size[1]))
@@ -417,9 +427,7 @@ class StoredModel:
         info: dict[str, Any] | None = None,
         runtime: str | None = None,
     ) -> None:
-        if runtime is not None and runtime not in EXPORTED_MODEL_RUNTIMES:
-            raise ValueError(f"runtime must be one of {EXPORTED_MODEL_RUNTIMES}, got {runtime!r}")
-        self.runtime = runtime
+        self.runtime = _check_exported(runtime) if runtime is not None else None
         self.path = Path(path)
         self.layers = list(layers)
         self.size = (int(size[0]), int(size[1]))
@@ -435,11 +443,12 @@ class StoredModel:
     def covers(self, layers: Sequence[str]) -> bool:
         return set(layers) <= set(self.layers)
 
-    def maps(self, layers: Sequence[str]) -> OnnxMaps:
-        """The session computing ``layers`` (a subset of this model's outputs)."""
+    def maps(self, layers: Sequence[str], runtime: str | None = None) -> OnnxMaps:
+        """The session computing ``layers`` (a subset of this model's outputs) in
+        ``runtime`` (None: this model's own, else the process's)."""
         if not self.covers(layers):
             raise ValueError(f"{self.path} computes {self.layers}, not {sorted(layers)}")
-        runtime = self.runtime or _runtime()
+        runtime = _check_exported(runtime) if runtime else self.runtime or _runtime()
         require_onnxruntime(export=False, runtime=runtime)
         key = (compute_threads(), runtime)
         with self._lock:

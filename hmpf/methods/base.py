@@ -119,6 +119,7 @@ _KEY_DEFAULTS: dict[str, Any] = {
     "whiten_shrink": 0.0,
     "scales": (1.0,),
     "crops": 0,
+    "precision": "f32",
 }
 
 

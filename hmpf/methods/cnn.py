@@ -30,7 +30,7 @@ import time
 from abc import abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -63,6 +63,14 @@ class CnnConfig(MethodConfig):
         device: torch device (``cpu``, ``cuda``, ``cuda:1``...); the ``onnx`` runtime runs
             on the CPU only, so another device runs torch.
         batch_size: images per forward pass when extracting many.
+        precision: ``f32`` (the default) or ``bf16``: this method's forward passes computed
+            in bfloat16 by OpenVINO (the ``openvino`` extra) whenever they run an exported
+            model (the ``onnx`` and ``openvino`` runtimes), on a CPU with bfloat16 (elsewhere
+            OpenVINO computes in float32); torch computes float32. It changes descriptors,
+            so it is part of the method's keys (``f32`` left out: older keys stay valid).
+            Measured for the default preset's methods in
+            ``docs/experiments/cpu_levers/openvino.md``: GeM and OLO keep their recall,
+            NetVLAD does not.
     """
 
     backbone: str = "efficientnet_lite0"
@@ -71,6 +79,7 @@ class CnnConfig(MethodConfig):
     input_size: tuple[int, int] | None = None
     device: str = "cpu"
     batch_size: int = Field(16, ge=1)
+    precision: Literal["f32", "bf16"] = "f32"
 
 
 class MultiScaleConfig(CnnConfig):
@@ -170,7 +179,17 @@ class CnnMethod(Method):
         c = self.cnn
         opts = tuple(sorted((k, repr(v)) for k, v in c.backbone_options.items()))
         key: tuple[Any, ...] = (c.backbone, c.weights, opts, c.device, self.input_size())
+        if c.precision != "f32":
+            key = (*key, c.precision)
         return key if self.scales() == (1.0,) else (*key, self.scales())
+
+    def session_runtime(self) -> str:
+        """What runs this method's exported models: :meth:`runtime`, or ``openvino-bf16``
+        for a ``bf16`` method whose passes run an exported model; ``torch`` stays torch."""
+        runtime = self.runtime()
+        if runtime != "torch" and self.cnn.precision == "bf16":
+            return "openvino-bf16"
+        return runtime
 
     def runtime(self) -> str:
         """Where the forward pass runs: the process's runtime
@@ -264,7 +283,7 @@ def forward_group(
     layers = sorted({layer for m in methods for layer in m.layers()})
     batch_size = max(m.cnn.batch_size for m in methods)
     onnx: list[OnnxMaps] | None = None
-    runtime = head.runtime()
+    runtime = head.session_runtime()
     stored = head.stored_for(layers) if runtime != "torch" else None
     if stored is not None:
         # The index version's own exported models, in ONNX Runtime: torch is never imported
@@ -275,14 +294,14 @@ def forward_group(
         if prep is None:  # pragma: no cover - every backbone that exports has one
             raise MissingDependencyError(f"backbone {c.backbone!r} preprocesses in torch")
         preprocess: Preprocess = prep
-        onnx = [m.maps(layers) for m in stored]
+        onnx = [m.maps(layers, runtime) for m in stored]
         net = None
     else:
         _require_torch_for(head, layers)
         net = head.backbone()
         preprocess = net.preprocess
         if runtime != "torch":
-            onnx = [onnx_maps(net, layers, size) for size in sizes]
+            onnx = [onnx_maps(net, layers, size, runtime) for size in sizes]
         else:
             import torch  # imported here: only the torch runtime needs it (an optional extra)
 

@@ -406,3 +406,36 @@ def test_missing_openvino_says_what_to_install(monkeypatch: pytest.MonkeyPatch) 
     with pytest.raises(MissingDependencyError, match=r"hmpf\[openvino\]"):
         ox.require_onnxruntime(export=False, runtime="openvino-bf16")
     ox.require_onnxruntime(export=False, runtime="onnx")  # the default needs no openvino
+
+
+def test_precision_bf16_runs_a_methods_passes_in_openvino_bfloat16(cache_dir: Path) -> None:
+    """``precision: bf16`` on one method: its passes run in OpenVINO at bfloat16 under the
+    exported-model runtimes (the others' stay where they were), torch computes float32, and
+    the method's keys change (``f32`` keeps the keys it had)."""
+    ov = pytest.importorskip("openvino")
+    size = list(SIZE)
+    f32 = create_method("gem", {"input_size": size})
+    bf16 = create_method("gem", {"input_size": size, "precision": "bf16"})
+    assert (
+        f32.cache_key()
+        == create_method("gem", {"input_size": size, "precision": "f32"}).cache_key()
+    )
+    assert bf16.cache_key() != f32.cache_key() and bf16.group_key() != f32.group_key()
+    image = np.random.default_rng(4).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    with cnn_runtime_as("onnx"):
+        assert (f32.session_runtime(), bf16.session_runtime()) == ("onnx", "openvino-bf16")
+        a = extract_many({"g": f32}, [image])["g"][0]
+        b = extract_many({"g": bf16}, [image])["g"][0]
+    sessions = {key[2]: maps.session for key, maps in ox._SESSIONS.items()}
+    assert not isinstance(sessions["onnx"], ox.OpenVinoSession)
+    compiled = sessions["openvino-bf16"].compiled
+    if "BF16" in ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES"):
+        assert "bfloat16" in str(compiled.get_property("INFERENCE_PRECISION_HINT"))
+    assert np.abs(a.astype(np.float32) - b.astype(np.float32)).max() <= BF16_ATOL
+    with cnn_runtime_as("openvino"):
+        assert bf16.session_runtime() == "openvino-bf16"
+        assert f32.session_runtime() == "openvino"
+    with cnn_runtime_as("torch"):
+        assert bf16.session_runtime() == "torch"
+    with pytest.raises(ConfigError):
+        create_method("gem", {"precision": "fp8"})
