@@ -296,10 +296,11 @@ class OpenVinoSession:
     def __init__(self, path: Path, threads: int, precision: str = "f32") -> None:
         import openvino as ov  # the openvino extra: only the openvino runtimes need it
 
-        model = ov.Core().read_model(str(path))
+        core = ov.Core()
+        model = core.read_model(str(path))
         shape = model.input(INPUT).get_partial_shape()
         model.reshape({INPUT: [1, *(int(shape[i].get_length()) for i in (1, 2, 3))]})
-        self.compiled = ov.Core().compile_model(
+        self.compiled = core.compile_model(
             model,
             "CPU",
             {
