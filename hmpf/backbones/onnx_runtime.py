@@ -92,7 +92,7 @@ def require_onnxruntime(export: bool = True, runtime: str = "onnx") -> None:
     (and onnxruntime, which checks an export)."""
     if runtime.startswith("openvino"):
         try:
-            import openvino  # noqa: F401
+            import openvino  # noqa: F401  (the openvino extra: checked only when asked for)
         except ImportError:
             raise MissingDependencyError(
                 f"HMPF_CNN_RUNTIME={runtime} runs the exported models with OpenVINO: pip "

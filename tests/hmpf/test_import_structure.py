@@ -36,6 +36,7 @@ OPTIONAL_HEAVY = frozenset(
         "torchvision",
         "onnx",  # export / model surgery only
         "onnxruntime",  # the CNN runtime; not installed for classical methods
+        "openvino",  # the openvino CNN runtimes (an extra of their own)
         "ray",  # distributed indexing extra
         "faiss",  # ANN extra
         "matplotlib",  # figures only
