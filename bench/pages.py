@@ -1389,6 +1389,21 @@ def openvino_load(root: Path) -> str:
     return table(header, rows) + source(rel, data)
 
 
+@generator("cpu_levers.cnn_batch")
+def cnn_batch(root: Path) -> str:
+    """``bench.cnn_batch``: ms per image of each forward pass by run size."""
+    rel = f"{CPU_LEVERS}/cnn_batch.json"
+    data = load(root, rel)
+    sizes = list(next(iter(data["passes"].values())))
+    rows = []
+    for name, ms in data["passes"].items():
+        one = ms["1"]
+        rows.append([name, *(f"{f1(ms[b])} ({one / ms[b]:.2f}x)" for b in sizes)])
+    header = ["forward pass (ms per image, one thread)", *(f"runs of {b}" for b in sizes)]
+    load_note = "the machine was running a test suite beside it"
+    return table(header, rows) + source(rel, data, extra=load_note)
+
+
 # pages generated whole (no prose of their own): path -> renderer
 WHOLE_PAGES: dict[str, Callable[[Path], str]] = {
     f"docs/experiments/{name}/leaderboard.md": (
