@@ -105,11 +105,13 @@ def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
 
 def _package_versions() -> dict[str, str]:
     """What must be equal on the driver and every worker: the recorded package versions
-    (manifest ``packages``: hmpf, numpy, OpenCV, torch, ...) and ONNX Runtime."""
+    (manifest ``packages``: hmpf, numpy, OpenCV, torch, ...), ONNX Runtime and OpenVINO
+    (the CNN runtimes)."""
     out = layout.package_versions()
-    ort = layout.installed_version("onnxruntime")
-    if ort is not None:
-        out["onnxruntime"] = ort
+    for runtime in ("onnxruntime", "openvino"):
+        version = layout.installed_version(runtime)
+        if version is not None:
+            out[runtime] = version
     return out
 
 
