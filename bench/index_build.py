@@ -5,7 +5,8 @@
 
 Builds into a fresh temporary folder (no feature cache, so every image is extracted), then
 prints images/s, bytes on disk per reference (per method and in total), and the resident
-memory a loaded :class:`IndexReader` adds per reference (global matrices touched).
+memory a loaded :class:`IndexReader` adds per reference (global matrices touched); with
+``--json`` writes them too. The CNN runtime is the process's (``HMPF_CNN_RUNTIME``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import parser
+from bench.harness import add_json, parser, write_record
+from hmpf.runtime import cnn_runtime
 from hmpf.datasets import list_images
 from hmpf.index import IndexReader
 from indexer.build import BuildOptions, build
@@ -34,6 +36,7 @@ def main() -> None:
     p.add_argument("--limit", type=int, default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--precision", default="exact", choices=["exact", "compact"])
+    add_json(p)
     a = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "images"
@@ -70,6 +73,16 @@ def main() -> None:
             "(global matrices memory-mapped and touched; local features stay on disk)"
         )
         reader.close()
+        if a.json:
+            results = {
+                "cnn_runtime": cnn_runtime(),
+                "images": n,
+                "seconds": s.seconds,
+                "images_per_s": s.images_per_s,
+                "bytes_per_reference": s.bytes_total / n,
+                "reader_resident_bytes_per_reference": (after - before) / n,
+            }
+            write_record(a.json, results, a, config=a.config)
 
 
 if __name__ == "__main__":
