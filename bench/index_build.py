@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.harness import add_json, parser, write_record
-from hmpf.runtime import cnn_runtime
 from hmpf.datasets import list_images
 from hmpf.index import IndexReader
+from hmpf.runtime import cnn_runtime
 from indexer.build import BuildOptions, build
 
 
