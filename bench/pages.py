@@ -1389,6 +1389,27 @@ def openvino_load(root: Path) -> str:
     return table(header, rows) + source(rel, data)
 
 
+@generator("cpu_levers.openvino_build")
+def openvino_build(root: Path) -> str:
+    """``bench.index_build --json`` per CNN runtime, the runs alternated."""
+    rows = []
+    data: dict[str, Any] = {}
+    for run in (1, 2):
+        for rt in ("onnx", "openvino"):
+            data = load(root, f"{CPU_LEVERS}/build-{rt}-{run}.json")
+            rows.append(
+                [
+                    RUNTIME_LABELS[data["cnn_runtime"]],
+                    str(run),
+                    f1(data["seconds"]),
+                    f1(data["images_per_s"]),
+                ]
+            )
+    header = ["build runtime", "run", "seconds", "images/s"]
+    rel = f"{CPU_LEVERS}/build-{{onnx,openvino}}-{{1,2}}.json"
+    return table(header, rows) + source(rel, data, preset=data["arguments"]["config"])
+
+
 @generator("cpu_levers.cnn_batch")
 def cnn_batch(root: Path) -> str:
     """``bench.cnn_batch``: ms per image of each forward pass by run size."""
