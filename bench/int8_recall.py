@@ -205,16 +205,6 @@ def int8_models(
     calib_key = hashlib.sha256("".join(file_digest(p) for p in calib).encode()).hexdigest()
     rgb: list[np.ndarray] | None = None
     out: dict[str, dict[tuple[int, int], StoredModel]] = {}
-    if variant in RUNTIME_VARIANTS:  # the float32 export itself, in that runtime
-        for mid, m in methods.items():
-            net, layers = m.backbone(), sorted(m.layers())
-            out[mid] = {}
-            for size in m.input_sizes():
-                fp32 = onnx_maps(net, layers, size).path
-                key = hashlib.sha256(f"{variant}:{sha(fp32)}".encode()).hexdigest()[:24]
-                info = {"variant": variant, "key": key}
-                out[mid][size] = StoredModel(fp32, layers, size, info, runtime=variant)
-        return out
     for mid, m in methods.items():
         net = m.backbone()
         prep = backbone_class(m.cnn.backbone).preprocessor(m.cnn.backbone_options)
@@ -275,6 +265,23 @@ def route_data(name: str, nordland_frames: int) -> EvalData:
     return data
 
 
+def runtime_models(
+    methods: dict[str, CnnMethod], variant: str
+) -> dict[str, dict[tuple[int, int], StoredModel]]:
+    """Method id -> its float32 exports by input size, run in the runtime ``variant`` (no
+    calibration: the model itself, another runtime)."""
+    out: dict[str, dict[tuple[int, int], StoredModel]] = {}
+    for mid, m in methods.items():
+        net, layers = m.backbone(), sorted(m.layers())
+        out[mid] = {}
+        for size in m.input_sizes():
+            fp32 = onnx_maps(net, layers, size).path
+            key = hashlib.sha256(f"{variant}:{sha(fp32)}".encode()).hexdigest()[:24]
+            info = {"variant": variant, "key": key}
+            out[mid][size] = StoredModel(fp32, layers, size, info, runtime=variant)
+    return out
+
+
 def int8_bank(
     config: HierarchyConfig,
     data: EvalData,
@@ -282,9 +289,13 @@ def int8_bank(
     n_calib: int,
     root: Path,
 ) -> tuple[ScoreBank, dict[str, Any]]:
-    """The CNN methods' bank with ``variant`` models calibrated on ``data``'s references."""
+    """The CNN methods' bank with ``variant`` models: int8 ones calibrated on ``data``'s
+    references, or the float32 exports in another runtime (:data:`RUNTIME_VARIANTS`)."""
     methods = {m: x for m, x in build_methods(config).items() if isinstance(x, CnnMethod)}
-    models = int8_models(methods, list(data.reference), variant, n_calib, root / "models")
+    if variant in RUNTIME_VARIANTS:
+        models = runtime_models(methods, variant)
+    else:
+        models = int8_models(methods, list(data.reference), variant, n_calib, root / "models")
     for mid, m in methods.items():
         m.use_stored_models(models[mid], root / "models")
     key = hashlib.sha256(

@@ -53,7 +53,8 @@ def cnn_runtime() -> str:
     not what they are, so it is not part of a config's digest nor of a method's
     :meth:`~hmpf.methods.base.Method.cache_key` (an index built with one runtime serves
     queries with another). ``openvino-bf16`` is not within float32 rounding: its recall
-    against the float32 runtimes is measured in ``bench/cnn_runtime.py``. The descriptor
+    against the float32 runtimes is measured by ``python -m bench.int8_recall``
+    (docs/experiments/cpu_levers/openvino.md). The descriptor
     cache keeps every runtime apart (:meth:`~hmpf.methods.base.Method.descriptor_key`).
     """
     if _cnn_runtime is not None:

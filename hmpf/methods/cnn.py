@@ -286,9 +286,10 @@ def forward_group(
     runtime = head.session_runtime()
     stored = head.stored_for(layers) if runtime != "torch" else None
     if stored is not None:
-        # The index version's own exported models, in ONNX Runtime: torch is never imported
-        # on this path (a server may have none), and the input is prepared by the backbone's
-        # numpy / OpenCV preprocessing, the function its torch model is fed by.
+        # The index version's own exported models, in ONNX Runtime or OpenVINO (``runtime``):
+        # torch is never imported on this path (a server may have none), and the input is
+        # prepared by the backbone's numpy / OpenCV preprocessing, the function its torch
+        # model is fed by.
         c = head.cnn
         prep = backbone_class(c.backbone).preprocessor(c.backbone_options)
         if prep is None:  # pragma: no cover - every backbone that exports has one
