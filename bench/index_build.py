@@ -56,8 +56,9 @@ def main() -> None:
             "extraction, HDF5, FAISS, fsync)"
         )
         print(
-            f"on disk: {s.bytes_total / n / 1024:.1f} KiB per reference in total "
-            f"({s.bytes_total / 1e6:.2f} MB)"
+            f"on disk: {(s.bytes_total - s.bytes_models) / n / 1024:.1f} KiB per reference "
+            f"({s.bytes_total / 1e6:.2f} MB in all, of which CNN models "
+            f"{s.bytes_models / 1e6:.2f} MB, once per version)"
         )
         for mid, b in s.bytes_per_method.items():
             print(f"  {mid:<8} {b / n / 1024:8.2f} KiB per reference")
@@ -80,6 +81,11 @@ def main() -> None:
                 "seconds": s.seconds,
                 "images_per_s": s.images_per_s,
                 "bytes_per_reference": s.bytes_total / n,
+                # the CNN models a version carries are stored once, whatever its size
+                "bytes_models": s.bytes_models,
+                "bytes_per_reference_without_models": (s.bytes_total - s.bytes_models) / n,
+                "bytes_per_reference_by_method": {m: b / n for m, b in s.bytes_per_method.items()},
+                "bytes_per_reference_thumbnails": s.bytes_thumbnails / n,
                 "reader_resident_bytes_per_reference": (after - before) / n,
             }
             write_record(a.json, results, a, config=a.config)

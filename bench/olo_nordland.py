@@ -1,19 +1,20 @@
 """OLO alone on Nordland summer -> winter, on every N-th query (its whole-database curve over
 all 3576 queries is 12.8 M comparisons, about an hour on 2 cores).
 
-    python -m bench.olo_nordland [--every 10] [--tolerance 2]
+    python -m bench.olo_nordland [--every 10] [--tolerance 2] [--json F]
 
 Uses the feature cache (the default OLO features, fitted on the summer references).
 """
 
 from __future__ import annotations
 
+import ast
 import sys
 import time
 
 import numpy as np
 
-from bench.harness import parser
+from bench.harness import add_json, parser, write_record
 from hmpf.datasets import dataset_root, frame_ground_truth, list_images
 from hmpf.evaluation.evaluate import recall_at_n
 from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
@@ -25,9 +26,8 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--tolerance", type=int, default=2)
     ap.add_argument("--params", default="{}", help="OLO parameters as a Python dict literal")
+    add_json(ap)
     args = ap.parse_args()
-    import ast
-
     olo = create_method("olo", ast.literal_eval(args.params))
     root = dataset_root() / "nordland_64x32"
     refs, qrys = list_images(root / "summer"), list_images(root / "winter")
@@ -47,6 +47,17 @@ def main() -> int:
         f"+-{args.tolerance} frames: " + ", ".join(f"R@{k} {v:.3f}" for k, v in rec.items())
     )
     print(f"{per:.3f} ms per comparison")
+    if args.json:
+        results = {
+            "olo": olo.config.model_dump(exclude_defaults=True),
+            "every": args.every,
+            "queries": len(picked),
+            "references": len(refs),
+            "tolerance": args.tolerance,
+            "recall_at": {str(k): float(v) for k, v in rec.items()},
+            "ms_per_comparison": per,
+        }
+        print(f"report: {write_record(args.json, results, args)}")
     return 0
 
 

@@ -3,12 +3,14 @@
     python -m bench.speed_table [--images 20] [--duration 20] [--rows before onnx after]
         [--json F]
 
-Rows (the same machine, images and run; each lever added on top of the row above):
+Rows (the same machine, images and run):
 
 * ``before``: the default hierarchy in torch (GeM 224 x 224, NetVLAD 288 x 512, OLO 416 x 416:
   three EfficientNet-Lite0 passes per query);
 * ``after``: the same in ONNX Runtime, the default runtime;
-* ``fast``: the ``fast`` preset in ONNX Runtime (one shared 224 x 384 pass).
+* ``fast``: the ``fast`` preset in ONNX Runtime (one shared 224 x 384 pass);
+* ``openvino``: the default hierarchy in OpenVINO (``HMPF_CNN_RUNTIME=openvino``, float32:
+  the same answers as ONNX Runtime; needs the ``openvino`` extra).
 
 Columns:
 
@@ -37,7 +39,7 @@ from typing import Any
 
 import yaml
 
-from bench.harness import ROOT, add_cache_dir, add_json, machine, parser, write_json
+from bench.harness import ROOT, add_cache_dir, add_json, machine, parser, write_record
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.evaluate import EvalData, evaluate
@@ -51,6 +53,7 @@ ROWS = {
     "before": ("torch", "default"),
     "after": ("onnx", "default"),
     "fast": ("onnx", "fast"),
+    "openvino": ("openvino", "default"),
 }
 
 
@@ -145,7 +148,7 @@ def main() -> int:
             f"| {eight['answers_per_s']:.1f} ({errors}) | {r['build_images_per_s']:.1f} | {rec} |"
         )
     if args.json:
-        write_json(args.json, table)  # keyed by row: no record around it
+        write_record(args.json, {"rows": table}, args)
     return 0
 
 
