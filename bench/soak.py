@@ -439,7 +439,7 @@ def main() -> int:
         and fd_growth <= args.fd_growth
     )
     report["passed"] = ok
-    out = write_record(args.out, report, args)
+    out = write_record(args.out, report, args, config="default")  # build_index's config
     print(json.dumps(report, indent=1))
     print(f"wrote {out}; {'PASSED' if ok else 'FAILED'}")
     return 0 if ok else 1
