@@ -1,6 +1,6 @@
 """Cost of the sequence filter (hmpf/sequence.py) against the size of the map, one thread.
 
-    python -m bench.sequence_scale [--sizes 10000,100000,1000000] [--frames 200]
+    python -m bench.sequence_scale [--sizes 10000,100000,1000000] [--frames 200] [--json F]
 
 Synthetic map: 100 straight routes on a grid (50 west-east, 50 south-north, references
 5 m apart, roads of a direction >= 100 m apart, crossing those of the other direction), with
@@ -24,7 +24,8 @@ Measured separately, per map size:
 (c) ``RouteMap.from_metadata``: build time (best of 3, junctions included) and the bytes of
     its arrays (and the build's peak Python/numpy allocation, tracemalloc, a separate build).
 
-Goals (the issue): update <= 2 ms at 100k references and <= 20 ms at 1M.
+Goals (the issue): update <= 2 ms at 100k references and <= 20 ms at 1M. ``--json`` writes
+the table's figures too.
 """
 
 from __future__ import annotations
@@ -38,10 +39,11 @@ import math  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
 from types import SimpleNamespace  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench.harness import machine, parser, percentiles  # noqa: E402
+from bench.harness import add_json, machine, parser, percentiles, write_record  # noqa: E402
 from hmpf.runtime import set_compute_threads  # noqa: E402
 from hmpf.sequence import Evidence, FilterParams, RouteMap, SequenceFilter  # noqa: E402
 
@@ -179,17 +181,42 @@ def bench_size(n: int, frames: int, params: FilterParams) -> dict[str, float]:
     }
 
 
+def json_row(r: dict[str, float]) -> dict[str, Any]:
+    """One size's row of the printed table, as the JSON record's entry."""
+    # the table's columns and nothing else: references; (a) update wall median / p95 and
+    # update CPU median / p95 (ms); keys weighed a frame (mean over the frames); (b) evidence
+    # extraction median / p95 (ms); (c) RouteMap build (s); RouteMap arrays (MB, 1e6 bytes);
+    # build peak allocation (MB); junction entries; drive accuracy (fraction within +-2 refs)
+    return {
+        "n": int(r["n"]),
+        "update_wall_p50_ms": float(r["update_med"]),
+        "update_wall_p95_ms": float(r["update_p95"]),
+        "update_cpu_p50_ms": float(r["cpu_med"]),
+        "update_cpu_p95_ms": float(r["cpu_p95"]),
+        "keys_weighed_mean": float(r["keys"]),
+        "evidence_p50_ms": float(r["extract_med"]),
+        "evidence_p95_ms": float(r["extract_p95"]),
+        "route_map_build_s": float(r["build_s"]),
+        "route_map_mb": r["map_bytes"] / 1e6,
+        "build_peak_alloc_mb": r["build_peak"] / 1e6,
+        "junction_entries": int(r["junction_pairs"]),
+        "drive_accuracy": float(r["accuracy"]),
+    }
+
+
 def main() -> None:
     ap = parser(__doc__)
     ap.add_argument("--sizes", default="10000,100000,1000000")
     ap.add_argument("--frames", type=int, default=200)
+    add_json(ap)
     args = ap.parse_args()
     set_compute_threads(1)
     params = FilterParams()
     load0 = os.getloadavg()[0]
     rows = [bench_size(int(s), args.frames, params) for s in args.sizes.split(",")]
     print(f"machine: {machine()}; one thread; numpy {np.__version__}")
-    print(f"load average (1 min) before / after: {load0:.2f} / {os.getloadavg()[0]:.2f}")
+    load1 = os.getloadavg()[0]
+    print(f"load average (1 min) before / after: {load0:.2f} / {load1:.2f}")
     print(
         f"FilterParams defaults (hypotheses={params.hypotheses}, proposals={params.proposals}, "
         f"max_steps={params.max_steps}: {params.speeds} speeds in half references, "
@@ -223,6 +250,14 @@ def main() -> None:
                 end="",
             )
     print()
+    if args.json:
+        results = {
+            "frames": args.frames,
+            "load_before": load0,
+            "load_after": load1,
+            "sizes": [json_row(r) for r in rows],
+        }
+        print(f"report: {write_record(args.json, results, args)}")
 
 
 if __name__ == "__main__":
