@@ -114,15 +114,20 @@ def source(
     digest_note: str = "",
     extra: str = "",
     kind: str = "preset",
+    digest_text: str | None = None,
 ) -> str:
-    """The "Source:" line under a table: what the JSON records, and what it does not."""
+    """The "Source:" line under a table: what the JSON records, and what it does not
+    (``digest_text``: what to say of the digest instead, e.g. where a table names one per
+    row)."""
     data = data or {}
     preset = preset or data.get("preset") or data.get("config")
     digest = digest or data.get("digest") or data.get("config_digest")
     parts = [f"`{rel}`"]
     if preset:
         parts.append(f"{kind} `{preset}`")
-    if digest:
+    if digest_text:
+        parts.append(digest_text)
+    elif digest:
         parts.append(f"config digest `{short(digest)}`{digest_note}")
     else:
         parts.append("config digest not recorded")
@@ -148,16 +153,14 @@ def source(
 
 PRESET_FIGURES = {
     "default": "the default query time and accuracy levers ([levers](levers.md)), shipped "
-    "acceptance models ([confidence](confidence.md), [sequence mode](sequence.md))",
-    "default-lite0": "the default until 2026-11-26: the lever baselines ([levers](levers.md)), "
-    "route-fitted [confidence](confidence.md), older [sequence](sequence.md) and "
-    "[speed](speed.md) measurements",
-    "fast": "[CPU per query](speed.md)",
+    "acceptance models ([confidence](confidence.md), [sequence mode](sequence.md)), [index, "
+    "service, soak and CPU per query](speed.md)",
+    "default-lite0": "the default until 2026-11-26: the lever baselines ([levers](levers.md))",
+    "fast": "[CPU per query](speed.md#cpu-per-query)",
     "handcrafted": "[handcrafted hierarchy](methods.md), [index and service](speed.md)",
     "thumbnails": "[accuracy levers](levers.md)",
     "netvlad-lite1": "[accuracy levers](levers.md)",
-    "calibrated/nordland_handcrafted": "Nordland in [sequence mode](sequence.md) and "
-    "[levers](levers.md)",
+    "calibrated/nordland_handcrafted": "Nordland in [levers](levers.md)",
     "all-methods": "[every method alone](methods.md), Gardens Point",
     "all-global": "[every method alone](methods.md), Nordland",
 }
@@ -831,7 +834,7 @@ def levers_reference_fitting(root: Path) -> str:
     )
 
 
-def accuracy_table(root: Path, rel: str) -> str:
+def accuracy_table(root: Path, rel: str, extra: str = "") -> str:
     """A ``bench/accuracy.py`` report: recall@1 of each method alone and of the hierarchy."""
     data = load(root, rel)
     reports = data["reports"]
@@ -852,7 +855,7 @@ def accuracy_table(root: Path, rel: str) -> str:
         )
     header = ["protocol (reference -> query)", *(METHOD_TITLES.get(m, m) for m in ids)]
     header += ["**Combined**", "final tier", "flat", "tier recalls"]
-    return table(header, rows) + source(rel, data, extra=data.get("note", ""))
+    return table(header, rows) + source(rel, data, extra=extra or data.get("note", ""))
 
 
 @generator("index.default")
@@ -1191,27 +1194,6 @@ def methods_handcrafted(root: Path) -> str:
     return accuracy_table(root, "docs/experiments/accuracy/handcrafted.json")
 
 
-@generator("methods.alone")
-def methods_alone(root: Path) -> str:
-    """Each method alone over the whole database, and flat fusion of all (``all-methods``)."""
-    rel = "docs/experiments/accuracy/all-methods.json"
-    data = load(root, rel)
-    reports = data["reports"]
-    ids = list(next(iter(reports.values()))["methods"])
-    rows = []
-    for m in ids:
-        rows.append(
-            [METHOD_TITLES.get(m, m)]
-            + [f3(rep["methods"][m].get("recall_at", {}).get("1")) for rep in reports.values()]
-        )
-    rows.append(
-        ["flat fusion of all"]
-        + [f3(rep["hierarchy"]["flat_recall_at_1"]) for rep in reports.values()]
-    )
-    header = ["method", *(PROTOCOL_TITLES.get(n, n) for n in reports)]
-    return table(header, rows) + source(rel, data, extra=data.get("note", ""))
-
-
 def presets_line(names: list[str]) -> str:
     """A page's presets with their config digests as shipped now (``presets:a,b`` blocks)."""
     listed = ", ".join(f"`{n}` (config digest `{short(preset_digest(n))}`)" for n in names)
@@ -1448,6 +1430,369 @@ def render_all(root: Path, write: bool) -> list[str]:
             if write:
                 page.write_text(new)
     return differ
+
+
+# ------------------------------------------------ methods alone, index, speed (regenerated)
+
+ACCURACY = "docs/experiments/accuracy"
+SPEED = "docs/experiments/speed"
+ALONE_GP = f"{ACCURACY}/all-methods.json"
+ALONE_NORDLAND = f"{ACCURACY}/all-global-nordland.json"
+OLO_NORDLAND = f"{ACCURACY}/olo-nordland.json"
+KAZE_NORDLAND_SKIPPED = (
+    "KAZE alone on Nordland: its whole-database curve (3576 x 3576 matchings, about 35 min "
+    "on 2 cores) was not run (`--skip-curves kaze`)"
+)
+
+
+def recall1(rep: dict[str, Any], method: str) -> str:
+    """A method's recall@1 in a ``hmpf-eval`` report ("-" where its curve was skipped)."""
+    x = rep["methods"].get(method, {}).get("recall_at", {}).get("1")
+    return f3(x) if x is not None else "-"
+
+
+@generator("methods.alone")
+def methods_alone(root: Path) -> str:
+    """Each method alone over the whole database and flat fusion of all: ``all-methods`` on
+    Gardens Point, ``all-global`` on Nordland, OLO on Nordland's every N-th query."""
+    gp, nl, olo = (load(root, rel) for rel in (ALONE_GP, ALONE_NORDLAND, OLO_NORDLAND))
+    reports = gp["reports"]
+    nordland = nl["reports"]["nordland_s_w"]
+    first = next(iter(reports.values()))
+    rows = []
+    for m in first["methods"]:
+        if m in nordland["methods"]:
+            nl_cell = recall1(nordland, m)
+        elif m == "olo":
+            nl_cell = f"{f3(olo['recall_at']['1'])} (every {olo['every']}th query)"
+        else:
+            nl_cell = "not measured\\*"
+        ext = first["timing_ms"]["extract_per_image"].get(m)
+        rows.append(
+            [METHOD_TITLES.get(m, m), *(recall1(rep, m) for rep in reports.values())]
+            + [nl_cell, f1(ext)]
+        )
+    rows.append(
+        ["flat fusion of all"]
+        + [f3(rep["hierarchy"]["flat_recall_at_1"]) for rep in reports.values()]
+        + [f"{f3(nordland['hierarchy']['flat_recall_at_1'])} (the global methods)", ""]
+    )
+    header = ["method", *(PROTOCOL_TITLES[n] for n in reports)]
+    header += [PROTOCOL_TITLES["nordland_s_w"], "extraction, ms per GP image"]
+    first_name = PROTOCOL_TITLES[next(iter(reports))]
+    return (
+        table(header, rows)
+        + f"\n\\* {KAZE_NORDLAND_SKIPPED}.\n"
+        + source(
+            ALONE_GP,
+            gp,
+            extra=f"Gardens Point; extraction: median per 960x540 image while {first_name} "
+            "was extracted (batched, the default worker processes, a cold feature cache)",
+        )
+        + source(ALONE_NORDLAND, nl, extra="Nordland, the global methods")
+        + source(
+            OLO_NORDLAND,
+            olo,
+            preset="olo",
+            kind="method",
+            extra=f"OLO with its default settings, {olo['queries']} winter queries (every "
+            f"{olo['every']}th) against all {olo['references']} summer references: "
+            + ", ".join(f"recall@{k} {f3(v)}" for k, v in olo["recall_at"].items()),
+        )
+    )
+
+
+@generator("methods.handcrafted_nordland")
+def methods_handcrafted_nordland(root: Path) -> str:
+    return accuracy_table(
+        root, f"{ACCURACY}/handcrafted-nordland.json", extra=KAZE_NORDLAND_SKIPPED
+    )
+
+
+def kib(x: float | None) -> str:
+    return "-" if x is None else f"{x / 1024:.1f} KiB"
+
+
+@generator("speed.index_build")
+def speed_index_build(root: Path) -> str:
+    """``python -m bench.index_build --json``: throughput, bytes on disk, loaded memory."""
+    rows, sources = [], []
+    for name, label in (
+        ("handcrafted-gp", "Gardens Point day_right, 960x540"),
+        ("handcrafted-nordland", "Nordland summer, 64x32"),
+        ("default-gp", "Gardens Point day_right, 960x540"),
+    ):
+        rel = f"{SPEED}/index_build-{name}.json"
+        data = load(root, rel)
+        by = data["bytes_per_reference_by_method"]
+        rows.append(
+            [
+                f"`{data['arguments']['config']}`",
+                f"{label} ({data['images']})",
+                f"{f1(data['images_per_s'])}",
+                kib(data["bytes_per_reference_without_models"]),
+                ", ".join(f"{METHOD_TITLES.get(m, m)} {kib(b)}" for m, b in by.items())
+                + f", thumbnails {kib(data['bytes_per_reference_thumbnails'])}",
+                f"{data['bytes_models'] / 1e6:.2f} MB" if data["bytes_models"] else "-",
+                kib(data["reader_resident_bytes_per_reference"]),
+            ]
+        )
+        sources.append(
+            source(
+                rel,
+                data,
+                extra=f"CNN runtime `{data['cnn_runtime']}`, "
+                f"{data['arguments']['workers']} workers",
+            )
+        )
+    header = [
+        "config",
+        "references",
+        "build, images/s",
+        "on disk per reference",
+        "of which",
+        "CNN models (once per version)",
+        "loaded reader, resident per reference",
+    ]
+    return table(header, rows) + "".join(sources)
+
+
+@generator("speed.tier1_search")
+def speed_tier1_search(root: Path) -> str:
+    """``python -m bench.index_search --json``: exact vs IVF tier-1 search, synthetic routes."""
+    rel = f"{SPEED}/index_search.json"
+    data = load(root, rel)
+    rows = []
+    for r in data["sizes"]:
+        fl, iv = r["flat"], r["ivf"]
+        rows.append(
+            [
+                thousands(r["n"]),
+                f"{fl['p50_ms']:.2f} / {fl['p95_ms']:.2f} ms",
+                f"{iv['factory'].split(',')[0]} ({iv['nprobe']}): "
+                f"{iv['p50_ms']:.2f} / {iv['p95_ms']:.2f} ms",
+                f3(iv["recall"]),
+                f"{iv['build_s']:.1f} s",
+                f"{r['rescore_ms']:.2f} ms",
+                f"{fl['bytes_per_ref']:.0f} B",
+            ]
+        )
+    header = [
+        "references",
+        "Flat p50 / p95",
+        "IVF (nprobe) p50 / p95",
+        f"IVF recall@{data['k']}",
+        "IVF build",
+        "re-scoring",
+        "Flat memory per reference",
+    ]
+    return table(header, rows) + source(
+        rel,
+        data,
+        extra=f"synthetic {data['dim']}-d route descriptors, no config; FAISS {data['faiss']}, "
+        f"{data['threads']} threads, {data['queries']} single queries, k = {data['k']}, "
+        f"nprobe: the smallest reaching recall {data['target']}",
+    )
+
+
+@generator("speed.soak")
+def speed_soak(root: Path) -> str:
+    """``python -m bench.soak``: requests by kind and status, latency, memory, descriptors."""
+    rel = f"{SPEED}/soak.json"
+    data = load(root, rel)
+    rows = [[kind, str(n)] for kind, n in data["requests"].items()]
+    rows.append(["**5xx**", f"**{data['5xx']}**"])
+    lat, rss, fds = data["vehicle_latency_ms"], data["rss_mib"], data["open_fds"]
+    figures = [
+        ["minutes, vehicles", f"{data['minutes']:.1f}, {data['vehicles']}"],
+        ["vehicle answers p50 / p99", f"{f1(lat['p50'])} / {f1(lat['p99'])} ms ({lat['n']})"],
+        [
+            "server RSS start / end / peak",
+            f"{rss['start']:.0f} / {rss['end']:.0f} / {rss['peak']:.0f} MiB",
+        ],
+        ["RSS growth, first to last minute", f"{rss['growth_first_to_last_minute']:.0f} MiB"],
+        ["open descriptors start / end / peak", f"{fds['start']} / {fds['end']} / {fds['peak']}"],
+        ["descriptor growth, first to last minute", str(fds["growth_first_to_last_minute"])],
+        ["server alive at the end", "yes" if data["server_alive_at_end"] else "**no**"],
+        ["passed (no 5xx, bounded growth)", "yes" if data["passed"] else "**no**"],
+    ]
+    return (
+        table(["requests (kind status)", "count"], rows)
+        + "\n"
+        + table(["figure", "measured"], figures)
+        + source(rel, data)
+    )
+
+
+@generator("speed.methods")
+def speed_methods(root: Path) -> str:
+    """``python -m bench.speed --json`` and ``python -m bench.cnn_speed --json``."""
+    sp_rel, cs_rel = f"{SPEED}/speed.json", f"{SPEED}/cnn_speed.json"
+    sp, cs = load(root, sp_rel), load(root, cs_rel)
+    rows = []
+    for k in sp["kaze_match"]:
+        cap = "uncapped" if k["cap"] is None else f"{k['cap']}-keypoint cap"
+        rows.append(
+            [
+                f"KAZE matching, {cap} (query {k['query_keypoints']} x references "
+                f"{k['ref_keypoints_mean']:.0f} keypoints)",
+                f"{k['ms_per_pair']:.3f} ms per pair",
+            ]
+        )
+    ex = sp["extract_ms"]
+    rows.append(
+        [
+            "HOG / Gist / SAD / KAZE extraction, 960x540 image",
+            " / ".join(f1(ex[m]) for m in ("hog", "gist", "sad", "kaze")) + " ms",
+        ]
+    )
+    rows.append(["Gist extraction, 64x32 Nordland thumbnail", f"{f1(sp['gist_thumbnail_ms'])} ms"])
+    pr = sp["protocol"]
+    rows.append(
+        [
+            f"whole GP protocol (200 x 200), `{pr['config']}`, cold cache: extraction + hierarchy",
+            f"{pr['extraction_s']:.1f} s + {pr['hierarchy_s']:.1f} s = {pr['total_s']:.1f} s",
+        ]
+    )
+    for f in cs["forward"]:
+        h, w = f["size"]
+        rows.append(
+            [
+                f"EfficientNet-Lite0 forward (torch), {h}x{w}",
+                f"{f1(f['batched_ms'])} ms per image batched {cs['batch']} (package model "
+                f"unchanged: {f1(f['package_batched_ms'])}), {f1(f['single_ms'])} ms single",
+            ]
+        )
+    rows.append(
+        [
+            "extraction per GP image, batched (torch): "
+            + " / ".join(METHOD_TITLES.get(m, m) for m in cs["extract_ms"]),
+            " / ".join(f1(v["ms"]) for v in cs["extract_ms"].values()) + " ms",
+        ]
+    )
+    rows.append(
+        [
+            f"one OLO comparison ({cs['olo_regions_mean']:.0f} x {cs['olo_regions_mean']:.0f} "
+            "regions)",
+            f"{cs['olo_compare_ms']:.3f} ms",
+        ]
+    )
+    return (
+        table(["figure", "measured"], rows)
+        + source(sp_rel, sp, extra="handcrafted methods, no config (method defaults)")
+        + source(
+            cs_rel,
+            cs,
+            extra=f"CNN methods on EfficientNet-Lite0 with their defaults, torch "
+            f"{cs['torch']}, {cs['threads']} threads, device `{cs['device']}`",
+        )
+    )
+
+
+@generator("sequence.filter_cost")
+def sequence_filter_cost(root: Path) -> str:
+    """``python -m bench.sequence_scale --json``: the filter's cost against the map's size."""
+    rel = f"{SPEED}/sequence_scale.json"
+    data = load(root, rel)
+    rows = [
+        [
+            thousands(r["n"]),
+            f"{r['update_wall_p50_ms']:.2f} / {r['update_wall_p95_ms']:.2f} ms",
+            f"{r['update_cpu_p50_ms']:.2f} / {r['update_cpu_p95_ms']:.2f} ms",
+            f"{r['keys_weighed_mean']:.0f}",
+            f"{r['evidence_p50_ms']:.2f} / {r['evidence_p95_ms']:.2f} ms",
+            f"{r['route_map_build_s']:.2f} s ({r['route_map_mb']:.1f} MB)",
+            f3(r["drive_accuracy"]),
+        ]
+        for r in data["sizes"]
+    ]
+    header = [
+        "references",
+        "filter update p50 / p95 (wall)",
+        "the same, thread CPU",
+        "hypothesis keys weighed (mean)",
+        "evidence from the hierarchy's result p50 / p95",
+        "route map build (memory)",
+        "synthetic drive within +-2 references",
+    ]
+    return table(header, rows) + source(
+        rel,
+        data,
+        extra=f"synthetic routes, no config (the filter's default settings); {data['frames']} "
+        f"frames per size; load average {data['load_before']:.2f} before, "
+        f"{data['load_after']:.2f} after",
+    )
+
+
+@generator("confidence.profile")
+def confidence_profile(root: Path) -> str:
+    """``python -m bench.profile_scale --json``: the references' profile behind ``ref_z``."""
+    rel = f"{SPEED}/profile_scale.json"
+    data = load(root, rel)
+    rows = [
+        [
+            thousands(r["n"]),
+            f"{r['build_s']:.2f} s",
+            f"{r['write_ms']:.1f} ms",
+            f"{r['read_ms']:.1f} ms",
+            f"{r['file_bytes'] / 2**20:.1f} MiB",
+        ]
+        for r in data["sizes"]
+    ]
+    header = ["references", "computed (at write)", "written", "read (at load)", "stored"]
+    return table(header, rows) + source(
+        rel,
+        data,
+        extra=f"synthetic {data['dim']}-d descriptors, no config; {data['threads']} threads, "
+        f"medians of {data['repeat']}",
+    )
+
+
+SPEED_TABLE = f"{SPEED}/speed_table.json"
+
+
+@generator("speed.cpu_per_query")
+def speed_cpu_per_query(root: Path) -> str:
+    """``python -m bench.speed_table --json``: one run of every row."""
+    data = load(root, SPEED_TABLE)
+    names = " / ".join(PROTOCOL_TITLES[p].removeprefix("GP ") for p in GP)
+    rows = []
+    for row, r in data["rows"].items():
+        q = r["query"]
+        phases = {p["clients"]: p for p in r["http"]["phases"]}
+        one, eight = phases[1], phases[8]
+        errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
+        rows.append(
+            [
+                row,
+                f"`{r['config']}` (`{short(preset_digest(r['config']))}`)",
+                r["runtime"],
+                f"{q['total_ms']:.1f} ms ({q['extract_ms']:.1f} + {q['hierarchy_ms']:.1f})",
+                f"{one['p50_ms']:.1f} ms",
+                f"{eight['answers_per_s']:.1f} ({errors})",
+                f1(r["build_images_per_s"]),
+                " / ".join(f3(r["recall"][p]) for p in GP),
+            ]
+        )
+    header = [
+        "row",
+        "preset (digest)",
+        "CNN runtime",
+        "one query, 1 thread (extract + hierarchy)",
+        "HTTP p50, 1 client",
+        "answers/s, 8 clients (errors)",
+        "build, images/s",
+        f"recall@1 GP {names}",
+    ]
+    a = data["arguments"]
+    return table(header, rows) + source(
+        SPEED_TABLE,
+        data,
+        preset="default, fast",
+        digest_text="config digests in the rows",
+        extra=f"one run of every row; queries: median of {a['images']} night_right frames "
+        f"against the 200 day_right references; HTTP: {a['duration']:g} s per phase",
+    )
 
 
 if __name__ == "__main__":
