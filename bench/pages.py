@@ -35,6 +35,8 @@ from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
+#: pages outside those folders that hold generated blocks
+PAGE_FILES = ("docs/scale.md",)
 BLOCK = re.compile(
     r"(?P<open><!-- generated: (?P<name>[\w.:/,-]+) -->\n)"
     r"(?P<body>.*?)(?P<close><!-- /generated -->)",
@@ -1232,6 +1234,9 @@ def pages(root: Path) -> list[Path]:
     out: list[Path] = []
     for d in PAGE_DIRS:
         out += sorted(p for p in (root / d).rglob("*.md") if "<!-- generated:" in p.read_text())
+    out += [
+        p for rel in PAGE_FILES if (p := root / rel).exists() and "<!-- generated:" in p.read_text()
+    ]
     return out
 
 
@@ -1792,6 +1797,853 @@ def speed_cpu_per_query(root: Path) -> str:
         digest_text="config digests in the rows",
         extra=f"one run of every row; queries: median of {a['images']} night_right frames "
         f"against the 200 day_right references; HTTP: {a['duration']:g} s per phase",
+    )
+
+
+# ---- capacity model (docs/scale.md)
+
+CAPACITY = "docs/experiments/capacity"
+SCALE = "docs/experiments/scale"
+#: ``bench.capacity`` on three indexes queried by the same Gardens Point night frames: the
+#: default and ``fast`` on Gardens Point day_right, the default on Nordland summer
+CAP_GP = f"{CAPACITY}/default-gp.json"
+CAP_FAST = f"{CAPACITY}/fast-gp.json"
+CAP_NORDLAND = f"{CAPACITY}/default-nordland.json"
+INDEX_BUILD_GP = f"{SPEED}/index_build-default-gp.json"
+SEQUENCE_SCALE = f"{SPEED}/sequence_scale.json"
+PROFILE_SCALE = f"{SPEED}/profile_scale.json"
+#: ``bench.scale``: the projected-scan tier 1 at a million references, served in one sitting
+#: with the 1k version (whose tier 1 is IVF-PQ, its 1024-row sample covering its whole map)
+SERVE_1K, SERVE_1M = f"{SCALE}/serve-1k-sitting2.json", f"{SCALE}/serve-1M-sitting2.json"
+WRITE_1M = f"{SCALE}/write-1M.json"
+MEASURE_1M, RECALL_1M_K1024 = f"{SCALE}/measure-1M.json", f"{SCALE}/recall-1M-k1024.json"
+#: ``bench.scale``: the IVF-PQ tier 1 at three sizes, one sitting from one commit
+IVFPQ_SIZES = (f"{SCALE}/measure-1k.json", f"{SCALE}/measure-100k.json")
+MEASURE_1M_IVFPQ = f"{SCALE}/measure-1M-ivfpq.json"
+WRITE_1M_IVFPQ = f"{SCALE}/write-1M-ivfpq.json"
+FACTORIES_K1024 = f"{SCALE}/factories-netvlad-100k-k1024.json"
+FACTORIES_WINTER = f"{SCALE}/factories-netvlad-100k-nordland-winter.json"
+#: the goals the million-reference version is read against
+SCALE_GOALS = {
+    "kib_per_reference": 8.0,
+    "first_answer_s": 30.0,
+    "p50_vs_1k": 1.3,
+    "recall_at_100": 0.99,
+}
+#: the capacity model's planning choices (not measurements)
+UTILISATION = 0.6
+CORES_PER_MACHINE = 16
+BUILD_WORKERS = 32
+#: the worked examples: references per index (per shard), shards, vehicles, frames per
+#: second each, preset, tier 1 ("exact" or "projected")
+WORKED_CASES = (
+    ("campus shuttles", 10_000, 1, 20, 2, "default", "exact"),
+    ("city fleet", 200_000, 1, 1000, 1, "default", "projected"),
+    ("city fleet, `fast`", 200_000, 1, 1000, 1, "fast", "projected"),
+    ("national map, one index", 5_000_000, 1, 10_000, 1, "default", "projected"),
+    ("national map, 5 region shards, GPS prior", 1_000_000, 5, 10_000, 1, "default", "projected"),
+)
+MIB = 2**20
+
+
+# the capacity model's formulas, one each (docs/scale.md, "The model")
+
+
+def slope(y0: float, y1: float, x0: float, x1: float) -> float:
+    """The cost per unit of x between two measurements (x0, y0) and (x1, y1)."""
+    return (y1 - y0) / (x1 - x0)
+
+
+def intercept(y0: float, x0: float, per_x: float) -> float:
+    """The part of a measured cost y0 at x0 that does not grow with x."""
+    return y0 - per_x * x0
+
+
+def query_rate(vehicles: int, hz: float) -> float:
+    """Q = V x f: the fleet's frames per second."""
+    return vehicles * hz
+
+
+def cpu_per_query_ms(c_q_ms: float, c_1_ms: float, refs: int) -> float:
+    """c(R) = c_q + c_1 x R: one core's CPU per answered query."""
+    return c_q_ms + c_1_ms * refs
+
+
+def cores_needed(q_per_s: float, c_ms: float, utilisation: float = UTILISATION) -> int:
+    """cores = ceil(Q x c(R) / utilisation)."""
+    return math.ceil(round(q_per_s * c_ms / 1e3 / utilisation, 9))
+
+
+def machines_needed(cores: int, per_machine: int = CORES_PER_MACHINE) -> int:
+    """machines = ceil(cores / cores per machine)."""
+    return math.ceil(cores / per_machine)
+
+
+def memory_per_machine(m_0: float, m_own: float, shared: float, refs: int) -> tuple[float, float]:
+    """(bytes in all, of which shared page cache): one replica per machine, m_0 + m x R of
+    its own plus the memory-mapped codes' ``shared`` x R."""
+    return m_0 + (m_own + shared) * refs, shared * refs
+
+
+def disk_per_version(d: float, refs: int, models: float = 0.0) -> float:
+    """d x R (+ the version's CNN models, once)."""
+    return d * refs + models
+
+
+def build_seconds(refs: int, b_s: float, workers: int = BUILD_WORKERS) -> float:
+    """R x b / K: the extraction part of a build on K workers (the fitting pass not included)."""
+    return refs * b_s / workers
+
+
+# reading the inputs
+
+
+def kib1(x: float) -> str:
+    return f"{x / 1024:.1f} KiB"
+
+
+def kib2(x: float) -> str:
+    return f"{x / 1024:.2f} KiB"
+
+
+def gib(x: float) -> str:
+    return f"{x / 2**30:.1f} GiB"
+
+
+def gb(x: float) -> str:
+    return f"{x / 1e9:.1f} GB"
+
+
+def duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def about(x: float) -> str:
+    """``x`` to two significant digits, with thousands separators."""
+    return thousands(float(f"{x:.2g}"))
+
+
+def derived_source(root: Path, rels: list[str], extra: str = "") -> str:
+    """The Source line of a figure derived from several records: each with its preset and
+    config digest (machine, date and commit: each record's own Source line above)."""
+    parts = []
+    for rel in rels:
+        data = load(root, rel)
+        preset = data.get("preset") or (data.get("arguments") or {}).get("config")
+        if not preset and isinstance(data.get("rows"), dict):  # bench.speed_table: per row
+            preset = ", ".join(sorted({r["config"] for r in data["rows"].values()}))
+        digest = data.get("digest")
+        what = f"preset `{preset}`" if preset else "no preset"
+        what += f", config digest `{short(digest)}`" if digest else ", config digest not recorded"
+        parts.append(f"`{rel}` ({what})")
+    line = "Source: derived from " + "; ".join(parts)
+    return f"\n*{line}{'; ' + extra if extra else ''}.*\n"
+
+
+def _faiss_bytes(write: dict[str, Any]) -> dict[str, float]:
+    """Bytes per reference of each tier-1 method's FAISS file in a ``bench.scale write``."""
+    n = write["references"]
+    return {
+        k.removeprefix("faiss/").removesuffix(".faiss"): b / n
+        for k, b in write["bytes"].items()
+        if k.startswith("faiss/")
+    }
+
+
+def _build_rows(st: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``bench.speed_table``'s ONNX Runtime rows by preset."""
+    return {r["config"]: r for r in st["rows"].values() if r["runtime"] == "onnx"}
+
+
+def capacity_inputs(root: Path) -> dict[str, Any]:
+    """The capacity model's inputs, each computed from its record (times in ms, bytes)."""
+    gp, nl, fast = load(root, CAP_GP), load(root, CAP_NORDLAND), load(root, CAP_FAST)
+    r0, r1 = gp["references"], nl["references"]
+    c_1 = slope(gp["cpu_ms_per_query"], nl["cpu_ms_per_query"], r0, r1)
+    c_1_used = max(c_1, 0.0)  # a negative slope is noise: no growth measured
+    anon = [x["rss_after_mib"]["RssAnon"] * MIB for x in (gp, nl, fast)]
+    m = slope(anon[0], anon[1], r0, r1)
+    ib = load(root, INDEX_BUILD_GP)
+    st = load(root, SPEED_TABLE)
+    cores = st["machine_details"]["cores"]
+    builds = _build_rows(st)
+    s1k, s1m, w1m = (
+        load(root, SERVE_1K)["serve"],
+        load(root, SERVE_1M)["serve"],
+        load(root, WRITE_1M),
+    )
+    n1k, n1m = load(root, SERVE_1K)["references"], load(root, SERVE_1M)["references"]
+    codes = _faiss_bytes(w1m)
+    return {
+        "r0": r0,
+        "r1": r1,
+        "fast_refs": fast["references"],
+        "c": {"gp": gp["cpu_ms_per_query"], "nordland": nl["cpu_ms_per_query"]},
+        "c_fast": fast["cpu_ms_per_query"],
+        "c_1": c_1,
+        "c_1_used": c_1_used,
+        "c_q": {
+            "default": intercept(gp["cpu_ms_per_query"], r0, c_1_used),
+            "fast": intercept(fast["cpu_ms_per_query"], fast["references"], c_1_used),
+        },
+        "anon_mib": [a / MIB for a in anon],
+        "file_mib": [x["rss_after_mib"]["RssFile"] for x in (gp, nl, fast)],
+        "m": m,
+        "m_0": {
+            "default": intercept(anon[0], r0, m),
+            "fast": intercept(anon[2], fast["references"], m),
+        },
+        "d": ib["bytes_per_reference_without_models"],
+        "d_fast_with_models": fast["disk_bytes_per_reference"],
+        "models": ib["bytes_models"],
+        "olo": ib["bytes_per_reference_by_method"].get("olo"),
+        "cores": cores,
+        "images_per_s": {p: builds[p]["build_images_per_s"] for p in ("default", "fast")},
+        "b_s": {p: cores / builds[p]["build_images_per_s"] for p in ("default", "fast")},
+        "proj_refs": (n1k, n1m),
+        "c_1_proj": slope(
+            s1k["server_timing_ms_p50"]["hierarchy"],
+            s1m["server_timing_ms_p50"]["hierarchy"],
+            n1k,
+            n1m,
+        ),
+        "m_proj": slope(
+            s1k["rss_after_queries_mib"]["RssAnon"] * MIB,
+            s1m["rss_after_queries_mib"]["RssAnon"] * MIB,
+            n1k,
+            n1m,
+        ),
+        "codes": sum(codes.values()),
+        "codes_by_method": codes,
+    }
+
+
+CAPACITY_RECORDS = [CAP_GP, CAP_NORDLAND, CAP_FAST, INDEX_BUILD_GP, SPEED_TABLE]
+PROJECTED_RECORDS = [SERVE_1K, SERVE_1M, WRITE_1M]
+
+
+def _at_largest(rel_data: dict[str, Any]) -> dict[str, Any]:
+    return max(rel_data["sizes"], key=lambda r: r["n"])
+
+
+@generator("scale.inputs")
+def scale_inputs(root: Path) -> str:
+    """The capacity model's inputs: ``bench.capacity`` (three indexes), ``bench.index_build``,
+    ``bench.speed_table``, ``bench.sequence_scale``, ``bench.profile_scale``, ``bench.scale``."""
+    x = capacity_inputs(root)
+    gp = load(root, CAP_GP)
+    a = gp["arguments"]
+    r0, r1, rf = x["r0"], x["r1"], x["fast_refs"]
+    seq, prof = load(root, SEQUENCE_SCALE), load(root, PROFILE_SCALE)
+    sq, pr = _at_largest(seq), _at_largest(prof)
+    s1m, w1m = load(root, SERVE_1M), load(root, WRITE_1M)
+    sv = s1m["serve"]
+    n1k, n1m = x["proj_refs"]
+    c_1_note = (
+        "" if x["c_1"] > 0 else " (no growth measured: the difference is within the noise; 0 below)"
+    )
+    cap = "`bench/capacity.py`"
+    rows = [
+        [
+            f"CPU per answered query, {r0} references (decode, CNN passes, Gist, hierarchy, "
+            "sequence filter, HTTP, JSON)",
+            "c(R_0)",
+            f"{f1(x['c']['gp'])} ms",
+            f"{f1(x['c_fast'])} ms" + ("" if rf == r0 else f" ({rf} references)"),
+            cap,
+        ],
+        [
+            f"the same, {r1} references",
+            "c(R_1)",
+            f"{f1(x['c']['nordland'])} ms",
+            "not measured",
+            cap,
+        ],
+        [
+            "extra CPU per query and reference, exact tier 1: (c(R_1) - c(R_0)) / (R_1 - R_0)",
+            "c_1",
+            f"{x['c_1'] * 1e3:.2f} us x R{c_1_note}",
+            "not measured (the `default`'s is used)",
+            cap,
+        ],
+        [
+            "CPU per answered query that does not grow with R: c(R_0) - c_1 x R_0",
+            "c_q",
+            f"**{f1(x['c_q']['default'])} ms**",
+            f"**{f1(x['c_q']['fast'])} ms**",
+            cap,
+        ],
+        [
+            "private (anonymous) memory of the replica process after the queries",
+            "",
+            f"{x['anon_mib'][0]:.0f} MiB ({r0} references), {x['anon_mib'][1]:.0f} MiB ({r1})",
+            f"{x['anon_mib'][2]:.0f} MiB ({rf})",
+            cap,
+        ],
+        [
+            "private memory per reference, exact tier 1 (its matrices in memory): the slope",
+            "m",
+            kib1(x["m"]),
+            "not measured (the `default`'s is used)",
+            cap,
+        ],
+        [
+            "private memory per replica process that does not grow with R (models, runtimes, "
+            "Python): the intercept",
+            "m_0",
+            f"{x['m_0']['default'] / MIB:.0f} MiB",
+            f"{x['m_0']['fast'] / MIB:.0f} MiB",
+            cap,
+        ],
+        [
+            "file-backed resident (libraries, memory-mapped files), shared, after the queries",
+            "",
+            f"{x['file_mib'][0]:.0f} MiB ({r0}), {x['file_mib'][1]:.0f} MiB ({r1})",
+            f"{x['file_mib'][2]:.0f} MiB ({rf})",
+            cap,
+        ],
+        [
+            "on disk per reference, thumbnails included, the version's CNN models not",
+            "d",
+            kib1(x["d"]) + (f" (of which OLO's regions {kib1(x['olo'])})" if x["olo"] else ""),
+            f"not measured (the whole version over its {rf} references, CNN models "
+            f"included: {kib1(x['d_fast_with_models'])})",
+            f"`bench/index_build.py`; `fast`: {cap}",
+        ],
+        [
+            "the version's CNN models, once per version",
+            "",
+            f"{x['models'] / 1e6:.1f} MB",
+            "",
+            "`bench/index_build.py`",
+        ],
+        [
+            f"build of Gardens Point day_right on every core ({x['cores']}), end to end "
+            "(hashing, fitting, extraction, writing)",
+            "",
+            f"{f1(x['images_per_s']['default'])} images/s",
+            f"{f1(x['images_per_s']['fast'])} images/s",
+            "`bench/speed_table.py`",
+        ],
+        [
+            "build time per reference and worker core: cores / images/s (an upper bound: the "
+            "fitting pass, hashing and writing are in it)",
+            "b",
+            f"{x['b_s']['default'] * 1e3:.0f} ms",
+            f"{x['b_s']['fast'] * 1e3:.0f} ms",
+            "`bench/speed_table.py`",
+        ],
+        [
+            f"sequence filter update per frame, {thousands(sq['n'])} references (synthetic "
+            "routes; thread CPU p50 / p95)",
+            "",
+            f"{sq['update_cpu_p50_ms']:.2f} / {sq['update_cpu_p95_ms']:.2f} ms",
+            "the same filter",
+            "`bench/sequence_scale.py`",
+        ],
+        [
+            f"the references' profile behind `ref_z` ({prof['dim']}-d, synthetic), "
+            f"{thousands(pr['n'])} references: read at load (computed when the version is "
+            "written)",
+            "",
+            f"{f1(pr['read_ms'])} ms ({pr['build_s']:.1f} s per method)",
+            "",
+            "`bench/profile_scale.py`",
+        ],
+        [
+            f"approximate tier 1 (the projected scan, `{s1m['preset']}`): hierarchy time "
+            f"per query and reference, the slope of its p50 between {thousands(n1k)} and "
+            f"{thousands(n1m)} references (wall time, one thread)",
+            "c_1 (projected)",
+            f"{x['c_1_proj'] * 1e6:.0f} ns x R",
+            "",
+            "`bench/scale.py`",
+        ],
+        [
+            "the same, private memory per reference (the slope of the anonymous memory after "
+            "the queries)",
+            "m (projected)",
+            kib2(x["m_proj"]),
+            "",
+            "`bench/scale.py`",
+        ],
+        [
+            "the same, its FAISS codes per reference: memory-mapped, shared page cache ("
+            + ", ".join(
+                f"{METHOD_TITLES.get(k, k)} {thousands(v)} B"
+                for k, v in x["codes_by_method"].items()
+            )
+            + ")",
+            "s",
+            kib1(x["codes"]),
+            "",
+            "`bench/scale.py`",
+        ],
+        [
+            f"index verification, {thousands(n1m)} references: with a matching verification "
+            "stamp (a `stat` per file) the service answers first, then checks every byte in "
+            "the background; without one, every byte's sha256 first",
+            "",
+            f"ready {f1(sv['ready_s'])} s, first answer {f1(sv['first_answer_s'])} s after "
+            f"start; background check {sv['verification']['check_seconds']:.0f} s; "
+            f"`hmpf-index verify` of the whole version ({gb(w1m['summary']['bytes_total'])}): "
+            f"{w1m['checks']['verify']['seconds']:.0f} s",
+            "",
+            "`bench/scale.py`",
+        ],
+    ]
+    header = ["input", "symbol", "`default`", "`fast`", "measured with"]
+    align = ["---", "---", "---:", "---:", "---"]
+    intro = (
+        f"Service figures: `python -m bench.capacity` (a real `hmpf-serve`, {a['workers']} "
+        f"worker x {a['threads']} thread, {gp['queries']} Gardens Point night frames one at a "
+        f"time in sequence mode after {a['warmup']} warm-up frames; CPU time of the server "
+        "process, which does not depend on the wall clock) on three indexes queried by the "
+        f"same frames: `default` on Gardens Point day_right (R_0 = {r0} references) and on "
+        f"Nordland summer (R_1 = {r1}), `fast` on day_right. The two `default` indexes differ "
+        "only in their size, so their difference is what the map's size costs.\n\n"
+    )
+    sources = (
+        source(CAP_GP, gp)
+        + source(CAP_NORDLAND, load(root, CAP_NORDLAND))
+        + source(CAP_FAST, load(root, CAP_FAST))
+        + source(
+            INDEX_BUILD_GP,
+            load(root, INDEX_BUILD_GP),
+            preset=load(root, INDEX_BUILD_GP)["arguments"]["config"],
+        )
+        + source(
+            SPEED_TABLE,
+            load(root, SPEED_TABLE),
+            preset="default, fast",
+            digest_text="config digests not recorded per row (the presets' digests now: "
+            + ", ".join(f"`{p}` `{short(preset_digest(p))}`" for p in ("default", "fast"))
+            + ")",
+            extra="its ONNX Runtime rows",
+        )
+        + source(SEQUENCE_SCALE, seq, extra="synthetic routes, no config")
+        + source(PROFILE_SCALE, prof, extra="synthetic descriptors, no config")
+        + source(SERVE_1K, load(root, SERVE_1K))
+        + source(SERVE_1M, s1m)
+        + source(WRITE_1M, w1m)
+    )
+    return intro + table(header, rows, align) + sources
+
+
+@generator("scale.model")
+def scale_model(root: Path) -> str:
+    """The model's constants, from the inputs."""
+    x = capacity_inputs(root)
+    cq, c1, c1p = x["c_q"], x["c_1_used"], x["c_1_proj"]
+    lines = [
+        f"* c_q = {f1(cq['default'])} ms (`default`) or {f1(cq['fast'])} ms (`fast`), one core;",
+        f"* exact tier 1 (`Flat`, the default): c_1 = {c1 * 1e3:.2f} us x R"
+        + (
+            f", which equals the default's c_q at about {about(cq['default'] / c1)} references;"
+            if c1 > 0
+            else " (no growth measured between R_0 and R_1);"
+        ),
+        f"* approximate tier 1 (the projected scan): c_1 = {c1p * 1e6:.0f} ns x R"
+        + (f", {c1 / c1p:.0f}x less than the exact path's;" if c1 > 0 and c1p > 0 else ";"),
+        f"* memory, exact tier 1: m_0 + m x R = {x['m_0']['default'] / MIB:.0f} MiB + "
+        f"{kib1(x['m'])} x R (`fast`: m_0 = {x['m_0']['fast'] / MIB:.0f} MiB);",
+        f"* memory, projected scan: m_0 + {kib2(x['m_proj'])} x R of the replica's own + "
+        f"{kib1(x['codes'])} x R of FAISS codes in the page cache, shared by the replicas of a "
+        "machine"
+        + (
+            f"; OLO's regions take {kib1(x['olo'])} per reference on disk, read for the final "
+            "candidates of each query;"
+            if x["olo"]
+            else ";"
+        ),
+        f"* disk: d x R = {kib1(x['d'])} x R per version (+ {kib1(x['codes'])} x R with the "
+        f"projected scan's codes), plus {x['models'] / 1e6:.1f} MB of CNN models;",
+        f"* build: b = {x['b_s']['default'] * 1e3:.0f} ms (`default`) or "
+        f"{x['b_s']['fast'] * 1e3:.0f} ms (`fast`) per reference and worker core.",
+    ]
+    return "\n".join(lines) + "\n" + derived_source(root, CAPACITY_RECORDS + PROJECTED_RECORDS)
+
+
+@generator("scale.flat_limit")
+def scale_flat_limit(root: Path) -> str:
+    """Where an exact tier 1 stops being affordable: c_1 x R against c_q."""
+    x = capacity_inputs(root)
+    cq, c1 = x["c_q"]["default"], x["c_1_used"]
+    if c1 <= 0:
+        text = (
+            f"* Where `Flat` stops being affordable is not resolved by these inputs: no growth "
+            f"of c(R) was measured between {x['r0']} and {x['r1']} references."
+        )
+    else:
+        adds = ", ".join(
+            f"{thousands(r)} references add {cpu_per_query_ms(0, c1, r):.0f} ms"
+            for r in (10_000, 100_000)
+        )
+        text = (
+            f"* Where `Flat` stops being affordable: at {c1 * 1e3:.2f} us per reference and query "
+            f"(`default`), {adds} to a {cq:.0f} ms query; the exact scan costs as much as the "
+            f"rest of the query at about {about(cq / c1)} references."
+        )
+    return text + "\n" + derived_source(root, [CAP_GP, CAP_NORDLAND])
+
+
+def _setting(rec: dict[str, Any], method: str) -> dict[str, Any]:
+    """The measured tier-1 setting a version stores (``stored_params``) of ``method``."""
+    r = rec["recall"][method]
+    stored = r["stored_params"]
+    for s in r["settings"]:
+        if s.get("params") == stored or f"nprobe={s.get('nprobe')}" == stored:
+            return s
+    raise KeyError(f"{method}: no setting {stored} measured")
+
+
+def _verified(s: dict[str, Any]) -> str:
+    """How a served version was verified before and after its first answer."""
+    if s["verification_at_first_answer"]["state"] == "full":
+        return f"every byte hashed before answering, {f1(s['verification']['seconds'])} s"
+    check = s["verification"].get("check_seconds")
+    return "stamp matched" + (
+        f"; the full check passed {check:.0f} s later, while answering" if check else ""
+    )
+
+
+def _first_answer(s: dict[str, Any]) -> str:
+    return f"{f1(s['first_answer_s'])} s ({_verified(s)})"
+
+
+def _factories(rec: dict[str, Any]) -> str:
+    return " / ".join(rec["recall"][m]["factory"] for m in ("gem", "netvlad"))
+
+
+@generator("scale.million_ivfpq")
+def scale_million_ivfpq(root: Path) -> str:
+    """``bench.scale measure`` of the IVF-PQ versions at 1k, 100k and 1M references."""
+    rels = [*IVFPQ_SIZES, MEASURE_1M_IVFPQ]
+    recs = [load(root, rel) for rel in rels]
+    from hmpf.index.reader import SAMPLE_SIZE
+
+    rows = []
+    for r in recs:
+        s = r["serve"]
+        t = s["server_timing_ms_p50"]
+        rec = [_setting(r, m)["recall_at_100"] for m in ("gem", "netvlad")]
+        note = " (the sample covers the map)" if r["references"] <= SAMPLE_SIZE else ""
+        rows.append(
+            [
+                thousands(r["references"]),
+                f"{_factories(r)}, {r['recall']['gem']['stored_params']}",
+                f"{thousands(s['rss_after_queries_mib']['RssAnon'])} MiB",
+                _first_answer(s),
+                f"{f1(t['hierarchy'])} ms",
+                f"{f1(s['p50_ms'])} / {f1(s['p99_ms'])} ms",
+                f"{rec[0]:.2f} / {rec[1]:.2f}{note}",
+            ]
+        )
+    header = [
+        "references",
+        "tier 1 (GeM / NetVLAD), search setting",
+        f"private memory after {recs[0]['serve']['queries']} queries",
+        "first answer after start",
+        "hierarchy p50 (server)",
+        "query p50 / p99",
+        "tier-1 recall@100 against exact search (GeM / NetVLAD)",
+    ]
+    align = ["---:", "---", "---:", "---:", "---:", "---:", "---"]
+    small, big = recs[0], recs[-1]
+    ss, sb = small["serve"], big["serve"]
+    per_ref = slope(
+        ss["rss_after_queries_mib"]["RssAnon"] * MIB,
+        sb["rss_after_queries_mib"]["RssAnon"] * MIB,
+        small["references"],
+        big["references"],
+    )
+    extract = [r["serve"]["server_timing_ms_p50"]["extract"] for r in recs]
+    hier = [r["serve"]["server_timing_ms_p50"]["hierarchy"] for r in recs]
+    ratio = sb["p50_ms"] / ss["p50_ms"]
+    nv = [s["recall_at_100"] for s in big["recall"]["netvlad"]["settings"]]
+    probes = [s["nprobe"] for s in big["recall"]["netvlad"]["settings"]]
+    goals = SCALE_GOALS
+    k1024, winter = load(root, FACTORIES_K1024), load(root, FACTORIES_WINTER)
+    by_factory: dict[str, list[str]] = {}
+    for s in k1024["settings"]:
+        by_factory.setdefault(s["factory"], []).append(f"{s['recall_at_100']:.2f}")
+    k_probes = sorted({s["nprobe"] for s in k1024["settings"]})
+    wr = [s["recall_at_100"] for s in winter["settings"]]
+    wp = [s["nprobe"] for s in winter["settings"]]
+    bullets = [
+        f"* **Memory**: ({thousands(sb['rss_after_queries_mib']['RssAnon'])} - "
+        f"{thousands(ss['rss_after_queries_mib']['RssAnon'])}) MiB over "
+        f"{thousands(big['references'] - small['references'])} references is "
+        f"**{kib2(per_ref)} per reference** (goal: {goals['kib_per_reference']:g} KiB).",
+        f"* **Load**: the {thousands(big['references'])}-reference version "
+        f"({kib1(big['disk_bytes'] / big['references'])} per reference on disk, "
+        f"{gb(big['disk_bytes'])}) answered its first query {f1(sb['first_answer_s'])} s "
+        f"after the process started (ready {f1(sb['ready_s'])} s: {_verified(sb)}; goal: "
+        f"{goals['first_answer_s']:g} s to the first answer).",
+        f"* **Latency**: the extraction is the same at every size ({min(extract):.0f}-"
+        f"{max(extract):.0f} ms p50, the CNN passes); what grows is the hierarchy, "
+        f"{f1(hier[0])} -> {f1(hier[-1])} ms. The {thousands(big['references'])} p50 is "
+        f"{ratio:.2f}x the {thousands(small['references'])} p50 (goal: {goals['p50_vs_1k']:g}x).",
+        f"* **Recall: IVF {'meets' if min(nv) >= goals['recall_at_100'] else 'fails'} the goal** "
+        f"({goals['recall_at_100']:g}). NetVLAD's recall@100 at "
+        f"{thousands(big['references'])} references: {min(nv):.2f}-{max(nv):.2f} at nprobe "
+        f"{min(probes)}-{max(probes)}. At {thousands(k1024['references'])} references with "
+        f"{k1024['settings'][0]['approx_k']} re-scored, at nprobe "
+        + " / ".join(str(p) for p in k_probes)
+        + ": "
+        + "; ".join(f"`{f}` " + " / ".join(v) for f, v in by_factory.items())
+        + f". With Nordland winter frames as queries (every {winter['queries']['every']}th), "
+        f"`{winter['settings'][0]['factory']}` keeps {min(wr):.2f}-{max(wr):.2f} at nprobe "
+        f"{min(wp)}-{max(wp)}.",
+    ]
+    sources = "".join(source(rel, rec) for rel, rec in zip(rels, recs, strict=True))
+    sources += source(FACTORIES_K1024, k1024, digest_note=" (recorded; no preset named)")
+    sources += source(FACTORIES_WINTER, winter)
+    return table(header, rows, align) + "\n" + "\n".join(bullets) + "\n" + sources
+
+
+@generator("scale.million_projected")
+def scale_million_projected(root: Path) -> str:
+    """``bench.scale`` of the projected-scan version at a million references, served in one
+    sitting with the 1k version; recall from ``measure`` (256 and 1024 re-scored)."""
+    s1k_rec, s1m_rec = load(root, SERVE_1K), load(root, SERVE_1M)
+    m1k, m1m, k1024 = (
+        load(root, IVFPQ_SIZES[0]),
+        load(root, MEASURE_1M),
+        load(root, RECALL_1M_K1024),
+    )
+    w1m = load(root, WRITE_1M)
+    ivf = load(root, MEASURE_1M_IVFPQ)
+    a, b = s1k_rec["serve"], s1m_rec["serve"]
+    na, nb = s1k_rec["references"], s1m_rec["references"]
+    own = slope(
+        a["rss_after_queries_mib"]["RssAnon"] * MIB,
+        b["rss_after_queries_mib"]["RssAnon"] * MIB,
+        na,
+        nb,
+    )
+    ratio = b["p50_ms"] / a["p50_ms"]
+    r10 = [_setting(m1m, m)["recall_at_10"] for m in ("gem", "netvlad")]
+    r100 = [_setting(m1m, m)["recall_at_100"] for m in ("gem", "netvlad")]
+    r10_1k = [_setting(m1k, m)["recall_at_10"] for m in ("gem", "netvlad")]
+    r100_1k = [_setting(m1k, m)["recall_at_100"] for m in ("gem", "netvlad")]
+    rk = [_setting(k1024, m)["recall_at_100"] for m in ("gem", "netvlad")]
+    approx = m1m["recall"]["netvlad"]["approx_k"]
+    reload = [x["reload"] for x in (a, b)]
+
+    def t(s: dict[str, Any]) -> str:
+        ms = s["server_timing_ms_p50"]
+        return f"{f1(ms['extract'])} / {f1(ms['hierarchy'])} ms"
+
+    rows = [
+        [
+            "tier 1 (GeM / NetVLAD)",
+            _factories(m1k) + " (its sample covers the map: exact)",
+            " / ".join(w1m["faiss"]["factories"].values()),
+        ],
+        [
+            f"private (anonymous) memory after {a['queries']} queries",
+            f"{thousands(a['rss_after_queries_mib']['RssAnon'])} MiB",
+            f"{thousands(b['rss_after_queries_mib']['RssAnon'])} MiB: "
+            f"**{kib2(own)} per reference**",
+        ],
+        [
+            "shared, file-backed (FAISS codes, read rows)",
+            f"{thousands(a['rss_after_queries_mib']['RssFile'])} MiB",
+            f"{thousands(b['rss_after_queries_mib']['RssFile'])} MiB",
+        ],
+        ["first answer after start", _first_answer(a), f"**{_first_answer(b)}**"],
+        ["reload under queries (one client, no retries)"]
+        + [
+            f"{f1(r['reload_s'])} s, {r['failed']} failed ({r['answered_during_reload']} answered "
+            "meanwhile)"
+            for r in reload
+        ],
+        ["extraction / hierarchy p50 (server)", t(a), t(b)],
+        [
+            "query p50 / p99",
+            f"{f1(a['p50_ms'])} / {f1(a['p99_ms'])} ms",
+            f"{f1(b['p50_ms'])} / {f1(b['p99_ms'])} ms: **{ratio:.2f}x**",
+        ],
+        [
+            "tier-1 recall@10 against exact search (GeM / NetVLAD)",
+            f"{r10_1k[0]:.3f} / {r10_1k[1]:.3f}",
+            f"**{r10[0]:.3f} / {r10[1]:.3f}**",
+        ],
+        [
+            f"tier-1 recall@100 (GeM / NetVLAD), {approx} re-scored",
+            f"{r100_1k[0]:.3f} / {r100_1k[1]:.3f}",
+            f"{r100[0]:.3f} / **{r100[1]:.3f}**",
+        ],
+        [
+            f"the same, {k1024['recall']['netvlad']['approx_k']} re-scored (`--approx-k`)",
+            "",
+            f"{rk[0]:.3f} / {rk[1]:.3f}",
+        ],
+    ]
+    header = ["", f"{thousands(na)} references", f"{thousands(nb)} references"]
+    align = ["---", "---:", "---:"]
+    goals = SCALE_GOALS
+    codes = _faiss_bytes(w1m)
+    read_in = slope(
+        m1k["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
+        m1m["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
+        m1k["references"],
+        m1m["references"],
+    )
+    tier1 = {m: _setting(m1m, m) for m in ("gem", "netvlad")}
+    faiss = {m: s["faiss_ms_p50"] for m, s in tier1.items()}
+    rescoring = sum(s["tier1_ms_p50"] - s["faiss_ms_p50"] for s in tier1.values())
+    rest = b["server_timing_ms_p50"]["hierarchy"] - sum(s["tier1_ms_p50"] for s in tier1.values())
+    ivf_ratio = ivf["serve"]["p50_ms"] / m1k["serve"]["p50_ms"]
+    ivf_nv = _setting(ivf, "netvlad")["recall_at_100"]
+    fs = [s for s in m1m["recall"]["netvlad"]["settings"]]
+    nv_k = _setting(k1024, "netvlad")
+
+    def met(ok: bool) -> str:
+        return "met" if ok else "not met"
+
+    bullets = [
+        f"* **Memory ({met(own / 1024 <= goals['kib_per_reference'])})**: {kib2(own)} per "
+        f"reference of the replica's own memory, plus {kib1(sum(codes.values()))} per reference "
+        "of FAISS codes in the page cache, which every replica on the machine shares (read into "
+        f"each process before the codes were memory-mapped: {kib2(read_in)} per reference of "
+        f"its own, `{MEASURE_1M}`). A reload holds both versions until the new one's background "
+        f"check passes ({gib(b['rss_after_reload_mib']['RssAnon'] * MIB)} anonymous right after "
+        "the reload).",
+        f"* **Load ({met(b['first_answer_s'] <= goals['first_answer_s'])})**: "
+        f"{f1(b['first_answer_s'])} s to the first answer ({f1(m1m['serve']['first_answer_s'])} s "
+        "with the codes read into memory).",
+        f"* **Latency ({met(ratio <= goals['p50_vs_1k'])})**, {ratio:.2f}x. The extraction is "
+        f"the same; the hierarchy grows from {f1(a['server_timing_ms_p50']['hierarchy'])} "
+        f"to {f1(b['server_timing_ms_p50']['hierarchy'])} ms: FAISS {f1(faiss['gem'])} ms (GeM) "
+        f"+ {f1(faiss['netvlad'])} ms (NetVLAD) for scanning every row, the exact re-scoring "
+        f"of {approx} candidates read from disk and of the fixed sample ({rescoring:.0f} ms, "
+        "both methods), and the rest, whole-map passes (min-max, top-k, the tier-1 score "
+        f"arrays and confidence features over every entry) and the later tiers ({rest:.0f} "
+        f"ms). IVF-PQ's hierarchy at {thousands(ivf['references'])} references: "
+        f"{f1(ivf['serve']['server_timing_ms_p50']['hierarchy'])} ms, {ivf_ratio:.2f}x in its "
+        "sitting.",
+        f"* **Recall@100 ({met(min(r100) >= goals['recall_at_100'])})**: NetVLAD "
+        f"{r100[1]:.3f} ({ivf_nv:.2f} with IVF-PQ); what tier 1 passes on, its top 10, is kept "
+        f"({r10[0]:.3f} / {r10[1]:.3f}), and the right place is in the approximate top 10 as "
+        f"often as in the exact one ({tier1['netvlad']['right_in_approx_top10']:.3f} against "
+        f"{tier1['netvlad']['right_in_exact_top10']:.3f}). The loss is the re-ranking's cut to "
+        f"{approx} rows: a larger `F` does not help ("
+        + " / ".join(f"{s['recall_at_100']:.3f}" for s in fs)
+        + " at "
+        + " / ".join(s["params"].removeprefix("k_factor_rf=") for s in fs)
+        + f"); re-scoring {k1024['recall']['netvlad']['approx_k']} rows exactly "
+        f"instead of {approx} does: **recall@100 {rk[0]:.3f} / {rk[1]:.3f}**, at a price: "
+        f"NetVLAD's tier 1 takes {nv_k['tier1_ms_p50']:.0f} ms instead of "
+        f"{tier1['netvlad']['tier1_ms_p50']:.0f} ms.",
+    ]
+    goal_line = (
+        f"Goals: {goals['kib_per_reference']:g} KiB per reference of the replica's own memory, "
+        f"the first answer within {goals['first_answer_s']:g} s, a reload without a failed "
+        f"request, p50 within {goals['p50_vs_1k']:g}x of the 1k version's, recall@100 >= "
+        f"{goals['recall_at_100']:g}. Reload: "
+        + ("met" if all(r["failed"] == 0 for r in reload) else "not met")
+        + ".\n\n"
+    )
+    intro = (
+        f"Written in {duration(w1m['total_s'])} and verified (`hmpf-index verify`) in "
+        f"{duration(w1m['checks']['verify']['seconds'])} (`{WRITE_1M}`); served in one sitting "
+        f"with the {thousands(na)}-reference version (`{SERVE_1K}`, `{SERVE_1M}`); recall from "
+        f"`{MEASURE_1M}` and `{RECALL_1M_K1024}`:\n\n"
+    )
+    sources = "".join(
+        source(rel, load(root, rel))
+        for rel in (
+            WRITE_1M,
+            SERVE_1K,
+            SERVE_1M,
+            IVFPQ_SIZES[0],
+            MEASURE_1M,
+            RECALL_1M_K1024,
+            MEASURE_1M_IVFPQ,
+        )
+    )
+    body = table(header, rows, align) + "\n" + goal_line + "\n".join(bullets) + "\n"
+    return intro + body + sources
+
+
+def worked_example(x: dict[str, Any], case: tuple[Any, ...]) -> list[str]:
+    """One row of the worked examples, computed from the inputs by the model's formulas."""
+    name, refs, shards, vehicles, hz, preset, tier1 = case
+    q = query_rate(vehicles, hz)
+    projected = tier1 == "projected"
+    c_1 = x["c_1_proj"] if projected else x["c_1_used"]
+    c = cpu_per_query_ms(x["c_q"][preset], c_1, refs)  # a GPS prior: one shard answers
+    cores = cores_needed(q, c)
+    machines = machines_needed(cores)
+    m_own = x["m_proj"] if projected else x["m"]
+    shared = x["codes"] if projected else 0.0
+    mem, mem_shared = memory_per_machine(x["m_0"][preset], m_own, shared, refs)
+    disk = disk_per_version(x["d"] + shared, refs, x["models"]) if preset == "default" else None
+    build = build_seconds(refs * shards, x["b_s"][preset])
+    if shards > 1:
+        r_cell = f"{shards} x {thousands(refs)}"
+        m_cell = f"{machines} (about {math.ceil(machines / shards)} per shard)"
+        disk_cell = f"{gb(disk)} per shard" if disk is not None else ""
+    else:
+        r_cell = thousands(refs)
+        m_cell = f"{machines}" + (" (2 for availability)" if machines < 2 else "")
+        disk_cell = gb(disk) if disk is not None else ""
+    if disk is None:
+        disk_cell = f"not measured (`{preset}`'s d)"
+    mem_cell = gib(mem) + (f" ({gib(mem_shared)} of it shared page cache)" if mem_shared else "")
+    tier = "projected scan" + (" per shard" if shards > 1 else "") if projected else "`Flat`"
+    return [
+        name,
+        r_cell,
+        f"{thousands(vehicles)} x {hz:g} Hz",
+        f"{thousands(q)}/s",
+        tier,
+        f"{c:.0f} ms",
+        thousands(cores),
+        m_cell,
+        mem_cell,
+        disk_cell,
+        f"{duration(build)} + fit",
+    ]
+
+
+@generator("scale.worked_examples")
+def scale_worked_examples(root: Path) -> str:
+    """The worked examples: each row computed from the measured inputs by the model."""
+    x = capacity_inputs(root)
+    rows = [worked_example(x, case) for case in WORKED_CASES]
+    header = [
+        "case",
+        "R",
+        "V x f",
+        "Q",
+        "tier 1",
+        "c(R)",
+        "cores",
+        f"machines ({CORES_PER_MACHINE} cores)",
+        "memory per machine",
+        "disk per version",
+        f"build, {BUILD_WORKERS} workers",
+    ]
+    align = ["---", "---:", "---", "---:", "---", "---:", "---:", "---:", "---:", "---:", "---:"]
+    used = (
+        f"inputs used: c_q {f1(x['c_q']['default'])} ms (`default`) / {f1(x['c_q']['fast'])} "
+        f"ms (`fast`); c_1 {x['c_1_used'] * 1e3:.2f} us x R exact, {x['c_1_proj'] * 1e6:.0f} "
+        f"ns x R projected; m_0 {x['m_0']['default'] / MIB:.0f} / {x['m_0']['fast'] / MIB:.0f} "
+        f"MiB; m {kib1(x['m'])} exact, {kib2(x['m_proj'])} projected + {kib1(x['codes'])} "
+        f"shared codes; d {kib1(x['d'])} + {x['models'] / 1e6:.1f} MB of models; "
+        f"b {x['b_s']['default'] * 1e3:.0f} / "
+        f"{x['b_s']['fast'] * 1e3:.0f} ms; utilisation {UTILISATION:g}; formulas: "
+        "`bench/pages.py`, `worked_example`"
+    )
+    return table(header, rows, align) + derived_source(
+        root, CAPACITY_RECORDS + PROJECTED_RECORDS, extra=used
     )
 
 

@@ -1,6 +1,6 @@
 """Tier-1 FAISS choice on real descriptors: exact Flat against IVF, as far as real data goes.
 
-    .venv/bin/python -m bench.tier1_real [--methods gem netvlad] [--winter-every 4]
+    .venv/bin/python -m bench.tier1_real [--methods gem netvlad] [--winter-every 4] [--json F]
 
 ``bench/index_search.py`` sizes tier 1 on synthetic route-like vectors up to a million
 references. This checks the same choice on the real descriptors we have: one map made of
@@ -22,6 +22,9 @@ and ``IVF{n},PQ{m}`` for n = sqrt(R), 4 sqrt(R), m = D / 20 sub-quantizers of 8 
   own route), the fraction whose approximate list still holds one;
 * single-query FAISS search time p50 (one thread; re-scoring not included).
 
+``--json F`` writes the same figures as a JSON record (provenance, then per method its exact
+search's figures and one row per FAISS type and setting).
+
 Nothing is chosen on these routes' test parts: this only says whether the IVF settings the
 capacity model (docs/scale.md) recommends lose tier-1 candidates on real descriptors.
 """
@@ -35,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.harness import add_config, machine, parser
+from bench.harness import add_config, add_json, machine, parser, write_record
 from hmpf.config import build_methods, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.features import FeatureCache, default_cache_dir, extract_images, fit_methods
@@ -125,9 +128,10 @@ def report_method(
     k: int,
     nprobes: list[int],
     others: list[str] = [],  # noqa: B006 - read only
-) -> None:
+) -> dict[str, Any]:
     """One tier-1 method: exact search's figures, then each IVF index's and each of
-    ``others`` (``FACTORY|SETTING;SETTING``) (printed)."""
+    ``others`` (``FACTORY|SETTING;SETTING``): printed, and returned as the JSON record's
+    entry."""
     faiss = faiss_module()
     n = len(x)
     exact, _ = build_faiss(x, metric, "Flat")
@@ -137,11 +141,24 @@ def report_method(
     rank[np.arange(len(q))[:, None], order] = np.arange(n)[None, :]
     held = right[np.arange(len(q))[:, None], top_exact].any(axis=1)
     r1_exact = right[np.arange(len(q)), top_exact[:, 0]].mean()
+    flat_ms = search_times(exact, q, k)
     print(
         f"\n{mid} ({x.shape[1]}-d, metric {metric.kind}): exact top-{k} holds the right "
         f"place for {held.mean():.3f} of queries, recall@1 {r1_exact:.3f}, "
-        f"Flat p50 {search_times(exact, q, k):.2f} ms"
+        f"Flat p50 {flat_ms:.2f} ms"
     )
+    out: dict[str, Any] = {
+        "dim": int(x.shape[1]),
+        "metric": metric.kind,
+        "references": n,
+        "queries": len(q),
+        "right_in_exact_top_k": float(held.mean()),
+        "recall_at_1_exact": float(r1_exact),
+        "flat_p50_ms": flat_ms,
+        "approx_k": max(256, 4 * k),
+        "sample": min(n, SAMPLE_SIZE),
+        "rows": [],
+    }
     # the reader's approximate path (hmpf.index.reader): FAISS's top max(256, 4k) and an
     # evenly spaced sample of up to 1024 references are scored exactly, the rest get the
     # worst value; tier 1 then keeps the exact top k of those
@@ -159,9 +176,22 @@ def report_method(
         _, cand = index.search(q, approx_k)
         ks = kept(cand, sample, rank, top_exact, right, held, k)
         kn = kept(cand, np.zeros(0, np.int64), rank, top_exact, right, held, k)
+        ms = search_times(index, q, approx_k)
         print(
             f"| {factory} | {ram:.0f} | {setting} | {ks[0]:.4f} ({kn[0]:.4f}) "
-            f"| {ks[1]:.4f} ({kn[1]:.4f}) | {search_times(index, q, approx_k):.2f} |"
+            f"| {ks[1]:.4f} ({kn[1]:.4f}) | {ms:.2f} |"
+        )
+        out["rows"].append(
+            {
+                "factory": factory,
+                "bytes_per_reference": ram,
+                "setting": setting,
+                "exact_top_k_kept": ks[0],
+                "exact_top_k_kept_no_sample": kn[0],
+                "right_kept": ks[1],
+                "right_kept_no_sample": kn[1],
+                "faiss_p50_ms": ms,
+            }
         )
 
     s1, s4 = int(round(np.sqrt(n))), int(round(4 * np.sqrt(n)))
@@ -182,6 +212,7 @@ def report_method(
             if setting:
                 set_search_params(index, setting)
             print_row(factory, ram, setting or "-", index)
+    return out
 
 
 def main() -> None:
@@ -199,6 +230,7 @@ def main() -> None:
         metavar="[METHOD=]FACTORY[|SETTING;...]",
         help="another FAISS type to measure, e.g. 'netvlad=PCA1024:128,SQfp16|k_factor_rf=1'",
     )
+    add_json(p)
     a = p.parse_args()
     faiss_module().omp_set_num_threads(1)
     config = load_config(a.config)
@@ -213,6 +245,13 @@ def main() -> None:
     r_feat = extract_images(refs, methods, cache=cache, workers=a.workers, progress=True)
     q_feat = extract_images(qs, methods, cache=cache, workers=a.workers, progress=True)
     right = right_mask(ref_lab, q_lab)
+    results: dict[str, Any] = {
+        "references": len(refs),
+        "queries": len(qs),
+        "k": k,
+        "winter_every": a.winter_every,
+        "methods": {},
+    }
     for mid, m in methods.items():
         metric = declared_metric(mid, m)
         if metric is None:
@@ -222,8 +261,11 @@ def main() -> None:
         q = np.ascontiguousarray(m.stack(q_feat.features[mid]), np.float32)
         others = [f.partition("=")[2] if f.startswith(f"{mid}=") else f for f in a.factory]
         others = [f for f in others if "=" not in f.partition("|")[0]]  # another method's
-        report_method(mid, x, q, metric, right, k, a.nprobe, others)
+        results["methods"][mid] = report_method(mid, x, q, metric, right, k, a.nprobe, others)
     print(f"\nload {os.getloadavg()[0]:.2f}")
+    if a.json:
+        results["load_1min_after"] = os.getloadavg()[0]
+        print(f"report: {write_record(a.json, results, a, preset=str(a.config))}")
 
 
 if __name__ == "__main__":
