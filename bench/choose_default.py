@@ -11,7 +11,7 @@ For every config (a preset name or a YAML file; the first is the baseline):
 * the query's extraction on one compute thread (median over ``--images`` day_right images);
 * the bytes an index stores per reference (``exact`` precision, from the method's features).
 
-Choice rule (training parts only, as the issue asks): the config with the best mean training
+Choice rule (training parts only): the config with the best mean training
 recall over the protocols (with ``--budget-ms``: among those whose measured query stays
 within it; measure on a quiet machine). Its test recall
 is then compared with the baseline's by an exact paired sign test on the pooled test queries.

@@ -25,7 +25,7 @@ once, in order, in sequence mode:
 * calibration: expected calibration error (10 bins), beside it the ECE a perfectly
   calibrated model would show on that many answers (:func:`ece_floor`), the reliability
   bins, the mean ``p_correct`` and the share right; pooled over the routes (every route,
-  and the Gardens Point ones) for the issue's goal (sequence ECE <= 0.05);
+  and the Gardens Point ones) for the goal (sequence ECE <= 0.05);
 * acceptance: the share accepted by the policy and the precision reached (goal at
   precision >= 99 %: sequence >= 85 % on every Gardens Point protocol, >= 50 % on Nordland;
   single frame >= 30 % on each Gardens Point protocol), lock flips per 100 frames;

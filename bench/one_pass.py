@@ -18,7 +18,7 @@ Choice rule (training parts only): the fastest variant whose mean training recal
 least the three-pass default's minus 0.5 points. Its test recall is then compared with the
 default's by an exact paired sign test on the pooled test queries of the three protocols;
 every variant is also compared with the default on the whole protocols (600 queries pooled),
-the maps the issue's accuracy goal is stated on. Measured 2026-11-26: the training rule picks
+the maps the accuracy goal is stated on. Measured 2026-11-26: the training rule picks
 224 x 384 (tied on the test parts, p = 0.54), but on the whole protocols 224 x 384 and
 288 x 512 lose 3.5 and 4.8 points pooled (p = 0.046 and 0.002): the default keeps its three
 passes and the one-pass hierarchy is the ``fast`` preset.

@@ -24,7 +24,7 @@ Measured separately, per map size:
 (c) ``RouteMap.from_metadata``: build time (best of 3, junctions included) and the bytes of
     its arrays (and the build's peak Python/numpy allocation, tracemalloc, a separate build).
 
-Goals (the issue): update <= 2 ms at 100k references and <= 20 ms at 1M. ``--json`` writes
+Goals: update <= 2 ms at 100k references and <= 20 ms at 1M. ``--json`` writes
 the table's figures too.
 """
 

@@ -476,7 +476,7 @@ def settings_of(policy: Policy, note: str) -> AcceptanceSettings:
 
 
 def goals(report: dict[str, Any]) -> list[str]:
-    """The issue's goals, judged on the held-out folds (Markdown lines)."""
+    """The acceptance goals, judged on the held-out folds (Markdown lines)."""
     lines = [
         "| held-out route | single accepted (prec.) | sequence accepted (prec.) | seq. ECE | "
         "flips/100 | seq. recall@1 | foreign accepted single / seq. | foreign mean p | "

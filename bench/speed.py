@@ -1,4 +1,4 @@
-"""Speed figures behind the issue's targets (medians, on this machine).
+"""Speed figures behind the speed targets (medians, on this machine).
 
     python -m bench.speed [--json F]
 
