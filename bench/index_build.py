@@ -1,12 +1,14 @@
-"""Build throughput, bytes on disk and loaded memory per reference for ``hmpf-index build``.
+"""Build throughput and bytes on disk per reference for ``hmpf-index build``.
 
     .venv/bin/python -m bench.index_build --config configs/handcrafted.yaml \\
         --images ../shared/datasets/gardens_point/day_right [--limit 200] [--workers 2]
 
 Builds into a fresh temporary folder (no feature cache, so every image is extracted), then
-prints images/s, bytes on disk per reference (per method and in total), and the resident
-memory a loaded :class:`IndexReader` adds per reference (global matrices touched); with
-``--json`` writes them too. The CNN runtime is the process's (``HMPF_CNN_RUNTIME``).
+prints images/s and bytes on disk per reference (per method and in total); with ``--json``
+writes them too. The CNN runtime is the process's (``HMPF_CNN_RUNTIME``). A replica's memory
+per reference is measured by ``python -m bench.capacity`` on two indexes of different sizes
+(in the building process the allocator reuses the build's freed pages, so a reader opened
+there shows no growth).
 """
 
 from __future__ import annotations
@@ -15,18 +17,10 @@ import os
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from bench.harness import add_json, parser, write_record
 from hmpf.datasets import list_images
-from hmpf.index import IndexReader
 from hmpf.runtime import cnn_runtime
 from indexer.build import BuildOptions, build
-
-
-def rss_bytes() -> int:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
 def main() -> None:
@@ -63,17 +57,6 @@ def main() -> None:
         for mid, b in s.bytes_per_method.items():
             print(f"  {mid:<8} {b / n / 1024:8.2f} KiB per reference")
         print(f"  {'thumbs':<8} {s.bytes_thumbnails / n / 1024:8.2f} KiB per reference")
-        before = rss_bytes()
-        reader = IndexReader(Path(tmp) / "index")
-        for mid, m in reader.methods.items():
-            if m.kind == "global":
-                float(np.asarray(reader.global_matrix(mid)).sum())
-        after = rss_bytes()
-        print(
-            f"loaded reader: {(after - before) / n / 1024:.1f} KiB resident per reference "
-            "(global matrices memory-mapped and touched; local features stay on disk)"
-        )
-        reader.close()
         if a.json:
             results = {
                 "cnn_runtime": cnn_runtime(),
@@ -86,7 +69,6 @@ def main() -> None:
                 "bytes_per_reference_without_models": (s.bytes_total - s.bytes_models) / n,
                 "bytes_per_reference_by_method": {m: b / n for m, b in s.bytes_per_method.items()},
                 "bytes_per_reference_thumbnails": s.bytes_thumbnails / n,
-                "reader_resident_bytes_per_reference": (after - before) / n,
             }
             write_record(a.json, results, a, config=a.config)
 

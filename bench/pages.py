@@ -1539,7 +1539,6 @@ def speed_index_build(root: Path) -> str:
                 ", ".join(f"{METHOD_TITLES.get(m, m)} {kib(b)}" for m, b in by.items())
                 + f", thumbnails {kib(data['bytes_per_reference_thumbnails'])}",
                 f"{data['bytes_models'] / 1e6:.2f} MB" if data["bytes_models"] else "-",
-                kib(data["reader_resident_bytes_per_reference"]),
             ]
         )
         sources.append(
@@ -1557,7 +1556,6 @@ def speed_index_build(root: Path) -> str:
         "on disk per reference",
         "of which",
         "CNN models (once per version)",
-        "loaded reader, resident per reference",
     ]
     return table(header, rows) + "".join(sources)
 
@@ -2644,6 +2642,378 @@ def scale_worked_examples(root: Path) -> str:
     )
     return table(header, rows, align) + derived_source(
         root, CAPACITY_RECORDS + PROJECTED_RECORDS, extra=used
+    )
+
+
+# records of the capacity model that need a bench of their own (docs/scale.md)
+
+#: ``bench.capacity`` on CAP_GP's index with one worker of two threads instead of one
+CAP_GP_2T = f"{CAPACITY}/default-gp-2threads.json"
+#: ``bench.ray_build``: a build locally and on a local Ray instance, 1 and 2 workers
+RAY_BUILD = f"{SPEED}/ray_build.json"
+#: ``bench.tier1_real``: the tier-1 FAISS types on real descriptors
+TIER1_REAL = f"{SPEED}/tier1_real.json"
+#: the share of the exact top k an IVF setting is raised to keep (docs/scale.md, "How to
+#: choose": a rule, not a measurement)
+KEEP_GOAL = 0.99
+
+
+def _workers_threads(rec: dict[str, Any]) -> str:
+    a = rec["arguments"]
+    return f"{a['workers']} worker x {a['threads']} thread" + ("s" if a["threads"] > 1 else "")
+
+
+def threads_reading(cpu: float, wall: float) -> str:
+    """What two threads per worker against one mean, from the ratios of their CPU per answered
+    query (``cpu``) and wall time per request (``wall``), two threads over one."""
+    text = (
+        f"Two threads per worker took **{cpu:.2f}x** the CPU per answered query of one, for "
+        f"{wall:.2f}x the wall time per request. "
+    )
+    if cpu <= 1:
+        return text + (
+            "The second thread did not cost CPU per query in these runs, so they give no reason "
+            "to prefer one thread per worker for throughput."
+        )
+    text += (
+        "With every core busy, a machine answers its cores divided by the CPU per query each "
+        f"second, so one thread per worker answers {cpu:.2f}x as many queries: **for "
+        "throughput, run one thread per worker** (`HMPF_THREADS_PER_WORKER=1`) and as many "
+        "workers as cores"
+    )
+    if wall < 1:
+        return text + (
+            "; a second thread pays only where one query's latency matters more than the cores "
+            "it takes."
+        )
+    return text + "; the second thread did not shorten the request either."
+
+
+@generator("scale.threads")
+def scale_threads(root: Path) -> str:
+    """``bench.capacity`` on one index, one worker of one thread, then of two."""
+    one, two = load(root, CAP_GP), load(root, CAP_GP_2T)
+    rows = [
+        [
+            _workers_threads(r),
+            f"{f1(r['cpu_ms_per_query'])} ms",
+            f"{f1(r['wall_p50_ms'])} ms",
+            f"{r['load_1min_after']:.2f}",
+        ]
+        for r in (one, two)
+    ]
+    same = (
+        one["arguments"]["index"] == two["arguments"]["index"]
+        and one["queries"] == two["queries"]
+        and one["arguments"]["workers"] == two["arguments"]["workers"]
+    )
+    intro = (
+        "`python -m bench.capacity --threads N` (`HMPF_THREADS_PER_WORKER`) on "
+        + (
+            f"the index of R_0 above ({one['references']} references), the same "
+            f"{one['queries']} frames"
+            if same
+            else "**different indexes or frames (not comparable)**"
+        )
+        + ":\n\n"
+    )
+    header = ["replica", "CPU per answered query", "wall per request p50", "load after"]
+    body = table(header, rows, ["---", "---:", "---:", "---:"])
+    reading = threads_reading(
+        two["cpu_ms_per_query"] / one["cpu_ms_per_query"],
+        two["wall_p50_ms"] / one["wall_p50_ms"],
+    )
+    wall_note = (
+        " Wall time depends on what else runs on the machine (the load average after each "
+        "run is in the table); CPU time barely does."
+    )
+    return (
+        intro
+        + body
+        + "\n"
+        + reading
+        + wall_note
+        + "\n"
+        + source(CAP_GP, one)
+        + source(CAP_GP_2T, two)
+    )
+
+
+def _ray_rates(modes: dict[str, Any], ray: bool, key: str = "images_per_s") -> dict[int, float]:
+    return {m["workers"]: m[key] for m in modes.values() if m["ray"] == ray and m[key]}
+
+
+@generator("scale.build_ray")
+def scale_build_ray(root: Path) -> str:
+    """``bench.ray_build``: ``hmpf-index build`` locally and on a local Ray instance."""
+    rec = load(root, RAY_BUILD)
+    a, modes = rec["arguments"], rec["modes"]
+    rows = [
+        [
+            "Ray (its own local instance)" if m["ray"] else "local",
+            str(m["workers"]),
+            f"{f1(m['seconds'])} s",
+            f"{m['images_per_s']:.2f}",
+            f"{f1(m['ray_start_stop_s'])} s" if m["ray_start_stop_s"] is not None else "",
+            f"{m['images_per_s_without_start_stop']:.2f}"
+            if m["images_per_s_without_start_stop"] is not None
+            else "",
+        ]
+        for m in modes.values()
+    ]
+    header = [
+        "build",
+        "workers",
+        "time, end to end",
+        "images/s",
+        "start + stop of an empty Ray instance",
+        "images/s without it",
+    ]
+    images = Path(a["images"])
+    intro = (
+        f"`python -m bench.ray_build`: `hmpf-index build` of {rec['images']} images of "
+        f"`{images.parent.name}/{images.name}` on {rec['cpus']} cores, each build into a fresh "
+        "index folder, end to end (hashing, fitting on the driver, extraction, writing), "
+        f"median of {a['repeat']} run{'s' if a['repeat'] > 1 else ''} per mode; a Ray build "
+        "starts and stops its own local instance, which is also timed alone:\n\n"
+    )
+    local, ray = _ray_rates(modes, False), _ray_rates(modes, True)
+    ray_bare = _ray_rates(modes, True, "images_per_s_without_start_stop")
+    said = []
+    for name, rates in (("local", local), ("Ray", ray)):
+        if 1 in rates and 2 in rates:
+            said.append(
+                f"{name} {rates[1]:.2f} -> {rates[2]:.2f} images/s ({rates[2] / rates[1]:.2f}x)"
+            )
+    reading = ""
+    if said:
+        reading += (
+            f"From 1 to 2 workers: {', '.join(said)}, on {rec['cpus']} cores, where the "
+            "driver competes with the workers for the same cores. "
+        )
+    both = sorted(set(local) & set(ray))
+    if both:
+        w = both[-1]
+        reading += (
+            f"Ray against local at {w} worker{'s' if w > 1 else ''}: {ray[w] / local[w]:.2f}x "
+            "the images/s"
+            + (
+                f" ({ray_bare[w] / local[w]:.2f}x without starting and stopping Ray)"
+                if w in ray_bare
+                else ""
+            )
+            + ". "
+        )
+    reading += (
+        "How the build scales with more workers than this machine has cores is not measured.\n"
+    )
+    load_before = rec.get("load_before")
+    extra = f"load average before the runs {load_before[0]:.2f}" if load_before else ""
+    return (
+        intro
+        + table(header, rows, ["---", "---:", "---:", "---:", "---:", "---:"])
+        + "\n"
+        + reading
+        + source(RAY_BUILD, rec, extra=extra)
+    )
+
+
+def _nlist(factory: str) -> int | None:
+    m = re.match(r"IVF(\d+),", factory)
+    return int(m[1]) if m else None
+
+
+def _pq_bytes(factory: str) -> int | None:
+    """Code bytes per vector of an ``...PQ{m}`` type (8 bits per sub-quantizer)."""
+    m = re.search(r"PQ(\d+)(?:x8)?(?:np)?$", factory)
+    return int(m[1]) if m else None
+
+
+def first_kept(rows: list[dict[str, Any]], goal: float = KEEP_GOAL) -> dict[str, str | None]:
+    """Per FAISS type, the first setting (in the order measured) whose exact top k kept
+    without the sample reaches ``goal``, or None."""
+    out: dict[str, str | None] = {}
+    for r in rows:
+        out.setdefault(r["factory"], None)
+        if out[r["factory"]] is None and r["exact_top_k_kept_no_sample"] >= goal:
+            out[r["factory"]] = r["setting"]
+    return out
+
+
+def _setting_text(factory: str, setting: str | None, rows: list[dict[str, Any]]) -> str:
+    nl = _nlist(factory)
+    if setting is None:
+        last = [r["setting"] for r in rows if r["factory"] == factory][-1]
+        return f"`{factory}`: not reached" + (
+            f" up to nprobe {last} of {nl} lists" if nl else f" up to `{last}`"
+        )
+    return f"`{factory}`: " + (f"nprobe {setting} of {nl} lists" if nl else f"`{setting}`")
+
+
+def _pq_against_flat(rows: list[dict[str, Any]]) -> str | None:
+    """How the ``IVF{n},PQ{m}`` rows compare with the ``IVF{n},Flat`` rows of the same lists
+    and nprobe: the largest difference in exact top k kept (no sample), and bytes."""
+    flat = {(_nlist(r["factory"]), r["setting"]): r for r in rows if r["factory"].endswith(",Flat")}
+    diffs, ratios = [], []
+    for r in rows:
+        f = flat.get((_nlist(r["factory"]), r["setting"]))
+        if f is None or _pq_bytes(r["factory"]) is None or r["factory"].endswith(",Flat"):
+            continue
+        diffs.append(abs(r["exact_top_k_kept_no_sample"] - f["exact_top_k_kept_no_sample"]))
+        ratios.append(r["bytes_per_reference"] / f["bytes_per_reference"])
+    if not diffs:
+        return None
+    return f"{max(diffs):.3f}, {min(ratios):.2f}-{max(ratios):.2f}x `Flat`'s"
+
+
+@generator("scale.tier1_real")
+def scale_tier1_real(root: Path) -> str:
+    """``bench.tier1_real``: exact ``Flat`` against IVF on the real descriptors, per method."""
+    rec = load(root, TIER1_REAL)
+    k = rec["k"]
+    rows: list[list[str]] = []
+    exact, first, right, pq, per_ref = [], [], [], [], []
+    approx_k = sample = None
+    for mid, m in rec["methods"].items():
+        title = f"{METHOD_TITLES.get(mid, mid)} {m['dim']}-d"
+        approx_k, sample = m["approx_k"], m["sample"]
+        rows.append([title, "`Flat` (exact)", "", "", "", "", f"{m['flat_p50_ms']:.2f}"])
+        last = None
+        for r in m["rows"]:
+            new = r["factory"] != last
+            last = r["factory"]
+            rows.append(
+                [
+                    "",
+                    f"`{r['factory']}`" if new else "",
+                    thousands(r["bytes_per_reference"]) if new else "",
+                    r["setting"],
+                    f"{f3(r['exact_top_k_kept'])} ({f3(r['exact_top_k_kept_no_sample'])})",
+                    f"{f3(r['right_kept'])} ({f3(r['right_kept_no_sample'])})",
+                    f"{r['faiss_p50_ms']:.2f}",
+                ]
+            )
+        exact.append(
+            f"{title} {f3(m['right_in_exact_top_k'])} (recall@1 {f3(m['recall_at_1_exact'])})"
+        )
+        reached = first_kept(m["rows"])
+        first.append(
+            f"{title}: " + "; ".join(_setting_text(f, s, m["rows"]) for f, s in reached.items())
+        )
+        n_right = sum(
+            r["right_kept_no_sample"] >= r["exact_top_k_kept_no_sample"] for r in m["rows"]
+        )
+        right.append(f"{title} {n_right} of {len(m['rows'])}")
+        if (against := _pq_against_flat(m["rows"])) is not None:
+            pq.append(f"{title} {against}")
+        costs: dict[str, int] = {}
+        for f in reached:
+            kind = f.split(",", 1)[-1]
+            code = 4 * m["dim"] if kind == "Flat" else _pq_bytes(f)
+            if code is not None:
+                costs[kind] = code + 8  # and an 8-byte id
+        if costs:
+            per_ref.append(
+                f"{title} "
+                + ", ".join(f"`{kind}` {thousands(b)} bytes" for kind, b in costs.items())
+            )
+    reading = [
+        f"* **First setting that keeps {KEEP_GOAL:g} of the exact top {k} without the "
+        "sample** (in the order measured): " + ". ".join(first) + ".",
+        f"* **The right place against the exact list**: right kept >= exact top-{k} kept "
+        "(both without the sample) in " + ", ".join(right) + " rows. The exact top "
+        f"{k} itself holds a right place for " + ", ".join(exact) + " of the queries.",
+    ]
+    if pq:
+        reading.append(
+            "* **PQ against `Flat`** on the same lists at the same nprobe, exact top-"
+            f"{k} kept without the sample, largest difference; bytes per reference: "
+            + "; ".join(pq)
+            + "."
+        )
+    if per_ref:
+        reading.append(
+            "* **Bytes per reference** above include the coarse centroids (and PQ's codebooks), "
+            f"a fixed part shared by this map's {thousands(rec['references'])} references; "
+            "beyond it each reference costs its vector or code and an 8-byte id: "
+            + "; ".join(per_ref)
+            + "."
+        )
+    header = [
+        "method",
+        "FAISS type",
+        "bytes / reference in RAM",
+        "nprobe",
+        f"exact top-{k} kept (no sample)",
+        "right kept (no sample)",
+        "FAISS p50 ms",
+    ]
+    align = ["---", "---", "---:", "---:", "---:", "---:", "---:"]
+    intro = (
+        f"`python -m bench.tier1_real`: {thousands(rec['references'])} references, "
+        f"{thousands(rec['queries'])} queries (Nordland winter, every {rec['winter_every']}th "
+        f"frame, and Gardens Point night_right), tier-1 k = {k}; the reader re-scores "
+        f"FAISS's top {approx_k} exactly, with its sample of {thousands(sample)} references "
+        "(in brackets: without the sample). FAISS p50: one query on one thread, the search "
+        f"alone (`Flat`: its top {k}; the others: their top {approx_k}).\n\n"
+    )
+    extra = (
+        f"load average after the run {rec['load_1min_after']:.2f}"
+        if rec.get("load_1min_after") is not None
+        else ""
+    )
+    return (
+        intro
+        + table(header, rows, align)
+        + "\n"
+        + "\n".join(reading)
+        + "\n"
+        + source(TIER1_REAL, rec, extra=extra)
+    )
+
+
+#: what each ``bench.capacity`` record in CAPACITY is read by (links from its README)
+CAPACITY_PAGES = {
+    "default.json": "none: the first record, before the runtimes were compared; "
+    "`default-onnx.json` repeats its command",
+    "default-onnx.json": "[OpenVINO runtimes](../cpu_levers/openvino.md#time)",
+    "default-openvino.json": "[OpenVINO runtimes](../cpu_levers/openvino.md#time)",
+    "default-openvino-bf16.json": "[OpenVINO runtimes](../cpu_levers/openvino.md#time)",
+    "default-gp.json": "[capacity model](../../scale.md#inputs-measured): R_0, c_q, m, m_0; "
+    "[one or two threads per worker](../../scale.md#one-or-two-threads-per-worker)",
+    "default-nordland.json": "[capacity model](../../scale.md#inputs-measured): R_1, c_1, m",
+    "fast-gp.json": "[capacity model](../../scale.md#inputs-measured): `fast`",
+    "default-gp-2threads.json": "[one or two threads per worker]"
+    "(../../scale.md#one-or-two-threads-per-worker)",
+}
+
+
+def bench_command(command: str) -> str:
+    """A recorded command line as typed: ``python -m bench.X`` records its module's path."""
+    return re.sub(r"^python \S*?bench/(\w+)\.py\b", r"python -m bench.\1", command)
+
+
+@generator("capacity.records")
+def capacity_records(root: Path) -> str:
+    """Every ``bench.capacity`` record in CAPACITY: its command and the pages that read it."""
+    rows = []
+    for path in sorted((root / CAPACITY).glob("*.json")):
+        rec = json.loads(path.read_text())
+        rows.append(
+            [
+                f"`{path.name}`",
+                f"`{bench_command(rec['command'])}`",
+                f"`{rec.get('preset')}` `{short(rec.get('digest'))}`"
+                if rec.get("digest")
+                else "not recorded",
+                str(rec.get("date") or "not recorded"),
+                CAPACITY_PAGES.get(path.name, "none"),
+            ]
+        )
+    header = ["file", "command", "preset, config digest", "date", "read by"]
+    return table(header, rows) + (
+        f"\n*Source: the `command`, `preset`, `digest` and `date` fields of each JSON in "
+        f"`{CAPACITY}/`.*\n"
     )
 
 
