@@ -36,11 +36,13 @@
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import logging
 import math
 import os
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -339,6 +341,7 @@ class Engine:
         (under ``_lock``)."""
         loaded.retired = True
         loaded.stop_check.set()
+        weakref.finalize(loaded, _trim_soon)
         if loaded.leases == 0:
             loaded.reader.close()
 
@@ -604,3 +607,30 @@ def run_query(
     result.matched_rows = reader.matched_rows(place_fn)
     timing["hierarchy"] = (time.perf_counter() - t) * 1e3
     return result, allowed
+
+
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim`` (None elsewhere: musl, macOS), from the symbols the process
+    has loaded already (no library search)."""
+    try:
+        return getattr(ctypes.CDLL(None), "malloc_trim", None)
+    except OSError:
+        return None
+
+
+_TRIM = _malloc_trim()
+
+
+def _trim() -> None:
+    time.sleep(0.2)  # let the thread that freed the version finish freeing it
+    if _TRIM is not None:
+        _TRIM(0)
+
+
+def _trim_soon() -> None:
+    """Give the heap a retired version freed back to the OS (called when the version is
+    garbage: its CNN sessions, matrices and caches are hundreds of MB allocated by many
+    threads, and glibc keeps freed pages in its arenas; without this a server's resident
+    memory grew by a version's worth at each reload, see tests/service/test_reload_memory.py).
+    On a thread of its own: not on a query's path."""
+    threading.Thread(target=_trim, name="hmpf-trim", daemon=True).start()
