@@ -1613,7 +1613,11 @@ def speed_soak(root: Path) -> str:
             "server RSS start / end / peak",
             f"{rss['start']:.0f} / {rss['end']:.0f} / {rss['peak']:.0f} MiB",
         ],
-        ["RSS growth, first to last minute", f"{rss['growth_first_to_last_minute']:.0f} MiB"],
+        [
+            "RSS growth, first to last minute: medians (peaks)",
+            f"{rss['growth_first_to_last_minute']:.0f} MiB "
+            f"({rss['peak_growth_first_to_last_minute']:.0f} MiB)",
+        ],
         ["open descriptors start / end / peak", f"{fds['start']} / {fds['end']} / {fds['peak']}"],
         ["descriptor growth, first to last minute", str(fds["growth_first_to_last_minute"])],
         ["server alive at the end", "yes" if data["server_alive_at_end"] else "**no**"],
