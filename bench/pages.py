@@ -134,6 +134,9 @@ def source(
     else:
         parts.append("config digest not recorded")
     parts.append(str(data.get("machine") or "machine not recorded"))
+    load_avg = (data.get("machine_details") or {}).get("load_1min")
+    if load_avg is not None:  # other work on the machine shows here (2 cores: 2 is busy)
+        parts.append(f"load average {load_avg:.1f} at the end")
     parts.append(str(data.get("date") or "date not recorded"))
     commit = data.get("commit")
     changed = data.get("code_changed_since_commit")
