@@ -1627,7 +1627,7 @@ def speed_soak(root: Path) -> str:
         table(["requests (kind status)", "count"], rows)
         + "\n"
         + table(["figure", "measured"], figures)
-        + source(rel, data)
+        + source(rel, data, preset="default")
     )
 
 
