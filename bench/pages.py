@@ -1453,7 +1453,7 @@ OLO_NORDLAND_NOT_RUN = (
     "10th winter query (not run in this sitting)"
 )
 KAZE_NORDLAND_SKIPPED = (
-    "KAZE alone on Nordland: its whole-database curve (3576 x 3576 matchings, about 35 min "
+    "KAZE alone on Nordland: its whole-database curve (3576 x 3576 matchings, tens of minutes "
     "on 2 cores) was not run (`--skip-curves kaze`)"
 )
 
