@@ -215,13 +215,13 @@ def _same(a: HierarchyResult, b: HierarchyResult) -> None:
     # the same candidates and answer; the scores come from float32 descriptors the two paths
     # may sum in another order (BLAS threads): equal to float32 rounding (3e-8 relative seen
     # on one machine), not bit for bit
-    np.testing.assert_allclose(a.quality, b.quality, rtol=1e-6, atol=0)
-    np.testing.assert_allclose(a.combined, b.combined, rtol=1e-6, atol=0)
+    np.testing.assert_allclose(a.quality, b.quality, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(a.combined, b.combined, rtol=1e-6, atol=1e-6)
     for ta, tb in zip(a.tiers, b.tiers, strict=True):
         eq(ta.candidates, tb.candidates)
         for m in ta.scores:
-            np.testing.assert_allclose(ta.scores[m], tb.scores[m], rtol=1e-6, atol=0)
-            np.testing.assert_allclose(ta.raw[m], tb.raw[m], rtol=1e-6, atol=0)
+            np.testing.assert_allclose(ta.scores[m], tb.scores[m], rtol=1e-6, atol=1e-6)
+            np.testing.assert_allclose(ta.raw[m], tb.raw[m], rtol=1e-6, atol=1e-6)
 
 
 TIERS = [
