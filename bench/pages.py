@@ -1516,10 +1516,6 @@ def methods_handcrafted_nordland(root: Path) -> str:
     )
 
 
-def kib(x: float | None) -> str:
-    return "-" if x is None else f"{x / 1024:.1f} KiB"
-
-
 @generator("speed.index_build")
 def speed_index_build(root: Path) -> str:
     """``python -m bench.index_build --json``: throughput, bytes on disk, loaded memory."""
@@ -1537,9 +1533,9 @@ def speed_index_build(root: Path) -> str:
                 f"`{data['arguments']['config']}`",
                 f"{label} ({data['images']})",
                 f"{f1(data['images_per_s'])}",
-                kib(data["bytes_per_reference_without_models"]),
-                ", ".join(f"{METHOD_TITLES.get(m, m)} {kib(b)}" for m, b in by.items())
-                + f", thumbnails {kib(data['bytes_per_reference_thumbnails'])}",
+                kib1(data["bytes_per_reference_without_models"]),
+                ", ".join(f"{METHOD_TITLES.get(m, m)} {kib1(b)}" for m, b in by.items())
+                + f", thumbnails {kib1(data['bytes_per_reference_thumbnails'])}",
                 f"{data['bytes_models'] / 1e6:.2f} MB" if data["bytes_models"] else "-",
             ]
         )
