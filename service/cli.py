@@ -5,6 +5,7 @@
     hmpf-serve keys add --file KEYS.yaml --name car-17 [--role vehicle|admin]
     hmpf-serve keys list --file KEYS.yaml
     hmpf-serve shards --shards DIR [--replicas N] ...  (a sharded map on Ray Serve)
+    hmpf-serve replicas {haproxy,run,reload} ...       (replicas behind HAProxy)
     hmpf-serve --version
 
 Every serving flag can also come from the environment (``HMPF_INDEX``, ``HMPF_PORT``, ...) or
@@ -23,7 +24,10 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 from hmpf.cli.common import add_version, run
+from service.replicas import main as replicas_main
 
+# The service (FastAPI, numpy, OpenCV, the index reader) and Ray Serve load inside the commands
+# that need them, so that --help, --version and `keys` start fast and need no extra.
 if TYPE_CHECKING:
     from fastapi import FastAPI
 
@@ -73,15 +77,24 @@ def build_parser() -> argparse.ArgumentParser:
         add_help=False,
         help="serve a sharded map (hmpf-index shard) on Ray Serve; see hmpf-serve shards --help",
     )
+    commands.add_parser(
+        "replicas",
+        add_help=False,
+        help="replicas of one index behind HAProxy: its configuration, a local set, a reload "
+        "of every replica; see hmpf-serve replicas --help",
+    )
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["shards"]:
+        # imported here: Ray Serve is an optional extra, needed by this command only
         from service.ray_shards import main as shards_main
 
         return shards_main(argv[1:])
+    if argv[:1] == ["replicas"]:
+        return replicas_main(argv[1:])
     args = build_parser().parse_args(argv)
     if args.command == "keys":
         return run(f"{PROG} keys", lambda: _keys(args))

@@ -1,12 +1,12 @@
 """Several ``hmpf-serve`` replicas behind HAProxy: its configuration, and a reload that reaches
 every replica (docs/replicas.md).
 
-    python -m service.replicas haproxy --bind 0.0.0.0:8000 \\
+    hmpf-serve replicas haproxy --bind 0.0.0.0:8000 \\
         --replica 127.0.0.1:8001 --replica 127.0.0.1:8002 --out /etc/haproxy/hmpf
     haproxy -f /etc/haproxy/hmpf/haproxy.cfg
-    python -m service.replicas reload --key-file admin.key \\
+    hmpf-serve replicas reload --key-file admin.key \\
         http://127.0.0.1:8001 http://127.0.0.1:8002
-    python -m service.replicas run --index /srv/hmpf/index --replicas 2 \\
+    hmpf-serve replicas run --index /srv/hmpf/index --replicas 2 \\
         --bind 0.0.0.0:8000 --out /tmp/hmpf-haproxy      (all on one machine, foreground)
 
 ``haproxy`` writes ``haproxy.cfg`` and the JSON error answers HAProxy itself gives
@@ -137,7 +137,7 @@ frontend stats
     )
     limits = f"maxconn {options.server_maxconn} pool-max-conn {options.server_pool}"
     return f"""\
-# hmpf-serve replicas behind HAProxy (written by `python -m service.replicas haproxy`;
+# hmpf-serve replicas behind HAProxy (written by `hmpf-serve replicas haproxy`;
 # docs/replicas.md). Every replica serves the same index folder with the same keys file and
 # sequence key, and watches the index's CURRENT (HMPF_WATCH_CURRENT_S).
 global
@@ -262,7 +262,7 @@ def run_replicas(
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
-        prog="python -m service.replicas",
+        prog="hmpf-serve replicas",
         description="hmpf-serve replicas behind HAProxy (docs/replicas.md).",
     )
     sub = ap.add_subparsers(dest="command", required=True)

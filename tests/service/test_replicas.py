@@ -2,7 +2,7 @@
 
 The replicas serve one index folder with one keys file and one sequence key file, and watch
 the index's ``CURRENT`` (``watch_current_s``); HAProxy's configuration is the one
-``python -m service.replicas haproxy`` writes (``deploy/haproxy/`` for two replicas).
+``hmpf-serve replicas haproxy`` writes (``deploy/haproxy/`` for two replicas).
 
 * load through the balancer spreads over both replicas (each one's ``/metrics``);
 * a JSON 4xx reaches one replica once: :class:`hmpf.client.Client` does not retry it;
@@ -47,6 +47,7 @@ from hmpf.index import layout
 from indexer.build import build, remove
 from indexer.maintenance import use
 from service.auth import add_key
+from service.cli import main as serve_main
 from service.replicas import HaproxyOptions, error_files, haproxy_config, write_haproxy
 from service.settings import load_settings
 from tests.conftest import SERVICE_CONFIG, copy_gp
@@ -93,6 +94,25 @@ def test_shipped_config_is_the_generated_one_and_valid(haproxy_bin: str) -> None
     # what HAProxy answers itself: the service's error JSON; a failed replica is retryable
     assert "HTTP/1.1 503" in error_files()["errors/502.http"]
     assert "Retry-After: 1" in error_files()["errors/503.http"]
+
+
+def test_serve_replicas_command_writes_the_shipped_config(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``hmpf-serve replicas haproxy`` with its defaults writes ``deploy/haproxy/``."""
+    with pytest.raises(SystemExit) as done:
+        serve_main(["replicas", "--help"])
+    assert done.value.code == 0
+    assert "usage: hmpf-serve replicas" in capsys.readouterr().out
+    assert serve_main(["replicas", "haproxy", "--out", str(tmp_path)]) == 0
+    shipped = ROOT / "deploy" / "haproxy"
+    written = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    assert written == sorted(p.relative_to(shipped) for p in shipped.rglob("*") if p.is_file())
+    for name in written:
+        assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name
+    with pytest.raises(SystemExit) as refused:
+        serve_main(["replicas", "run", "--index", str(tmp_path), "--replicas", "0", "--out", "x"])
+    assert "at least 1" in str(refused.value.code)
 
 
 def test_watch_setting_is_validated() -> None:
@@ -496,7 +516,7 @@ def _free_ports(n: int) -> int:
 
 
 def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path) -> None:
-    """``python -m service.replicas run``: N replicas and HAProxy, all stopped on SIGTERM."""
+    """``hmpf-serve replicas run``: N replicas and HAProxy, all stopped on SIGTERM."""
     port = _free_ports(3)
     env = {k: v for k, v in os.environ.items() if not k.startswith("HMPF_")}
     env.update({"HMPF_AUTH": "false", "HMPF_WORKERS": "1"})
@@ -505,7 +525,7 @@ def test_the_launcher_runs_replicas_behind_haproxy(haproxy_bin, index, tmp_path)
             env[k] = os.environ[k]
     log = (tmp_path / "run.log").open("wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.replicas", "run", "--index", str(index)]
+        [sys.executable, "-m", "service.cli", "replicas", "run", "--index", str(index)]
         + ["--replicas", "2", "--bind", f"127.0.0.1:{port}", "--haproxy", haproxy_bin]
         + ["--out", str(tmp_path / "lb")],
         cwd=ROOT,
