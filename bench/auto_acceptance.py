@@ -826,7 +826,7 @@ def found_markdown(report: Mapping[str, Any]) -> str:
     )
 
 
-def main() -> int:
+def build_parser() -> Any:
     ap = parser(__doc__)
     add_route_arguments(ap)
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
@@ -855,7 +855,90 @@ def main() -> int:
         help="with --found: this bench's record for the default preset (its shipped flags)",
     )
     add_json(ap, "--out", default=None, help=f"default {DEFAULT_OUT} ({FOUND_OUT} with --found)")
-    args = ap.parse_args()
+    return ap
+
+
+def measure_route(
+    route: Route,
+    args: Any,
+    config: HierarchyConfig,
+    shipped: Policy,
+    params: Any,
+    cache: FeatureCache,
+    t0: float,
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict[str, np.ndarray]]]:
+    """One route: the three variants' figures, the other seeds' single-frame figures and the
+    sign tests. Returns the route's entry, its answers and its per-variant flags."""
+    name = route.name
+    refs = route.train_data.reference
+    meta = {"sequence": stretch_sequence(len(refs), BLOCK)}
+    fitted, fit_record = pseudo_acceptance(config, refs, meta, cache, seed=args.seed)
+    pseudo = Policy.of(fitted.acceptance, lock_mass=params.lock_mass)
+    print(f"[{name}] pseudo fit ({time.perf_counter() - t0:.0f} s)", flush=True)
+    policies = {"shipped": shipped, "pseudo": pseudo, "pseudo+seq": combine(pseudo, shipped)}
+    answers = route_answers(route, config, params)
+    gp = name.startswith("gp_")
+    entry: dict[str, Any] = {
+        "n_train_references": len(refs),
+        "n_test": route.n_test,
+        "n_foreign": route.n_foreign,
+        "pseudo_fit": fit_record,
+    }
+    for v, policy in policies.items():
+        entry[v] = {
+            "preset": args.config,
+            "digest": config.digest(),
+            "policy": policy.describe(),
+            **measure(policy, answers, gp),
+        }
+    entry["pseudo_other_seeds"] = {}
+    for seed in [int(x) for x in args.other_seeds.split(",") if x.strip()]:
+        other, rec = pseudo_acceptance(config, refs, meta, cache, seed=seed)
+        pol = Policy.of(other.acceptance, lock_mass=params.lock_mass)
+        entry["pseudo_other_seeds"][str(seed)] = {
+            "single_threshold": pol.model_threshold,
+            "single": single_figures(measure(pol, answers, gp)["single"]),
+            "pseudo_fit": rec,
+        }
+        print(f"[{name}] pseudo fit, seed {seed} ({time.perf_counter() - t0:.0f} s)")
+    fl = route_flags(policies, answers)
+    entry["sign_tests"] = {k: sign_tests(per) for k, per in fl.items()}
+    entry["flags"] = {
+        "right_single": answers["single"].correct.astype(int).tolist(),
+        "right_sequence": answers["sequence"].correct.astype(int).tolist(),
+        **{f"{k}:{v}": x.astype(int).tolist() for k, per in fl.items() for v, x in per.items()},
+    }
+    return entry, answers, fl
+
+
+def pooled_report(
+    routes: Mapping[str, Mapping[str, Any]],
+    answers: dict[str, dict[str, Any]],
+    all_flags: Mapping[str, Mapping[str, list[np.ndarray]]],
+) -> dict[str, Any]:
+    """The routes pooled: sign tests over every route's flags, ECE and counts per variant
+    (all routes, and Gardens Point's alone)."""
+    out: dict[str, Any] = {
+        "sign_tests": {
+            k: sign_tests({v: np.concatenate(xs) for v, xs in per.items()})
+            for k, per in all_flags.items()
+        }
+    }
+    for v in VARIANTS:
+        runs = {name: entry[v] for name, entry in routes.items()}
+        groups = {"all": list(runs), "gardens_point": [n for n in runs if n.startswith("gp_")]}
+        out[v] = {
+            "ece": pooled(runs, answers),
+            "counts": {
+                g: {m: pooled_counts([runs[n][m] for n in names]) for m in MODES}
+                for g, names in groups.items()
+            },
+        }
+    return out
+
+
+def main() -> int:
+    args = build_parser().parse_args()
     t0 = time.perf_counter()
     if args.found:
         args.out = args.out or str(FOUND_OUT)
@@ -863,11 +946,9 @@ def main() -> int:
     args.out = args.out or str(DEFAULT_OUT)
     shipped_config, config, shipped = out_of_the_box(args.config)
     params = shipped_config.sequence_params()
-    digest = config.digest()
-    prov = provenance(args.config, config, args)
     cache = FeatureCache(default_cache_dir())
     report: dict[str, Any] = {
-        **prov,
+        **provenance(args.config, config, args),
         "note": NOTE,
         "goals": GOALS,
         "variants": {
@@ -886,71 +967,17 @@ def main() -> int:
         "routes": {},
     }
     answers: dict[str, dict[str, Any]] = {}
-    runs: dict[str, dict[str, Any]] = {v: {} for v in VARIANTS}
     all_flags: dict[str, dict[str, list[np.ndarray]]] = {}
     for name in args.routes.split(","):
         route = Route(name, config, cache, args.foreign, limit_of(name, args.nordland_frames))
         print(f"[{name}] banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-        refs = route.train_data.reference
-        meta = {"sequence": stretch_sequence(len(refs), BLOCK)}
-        fitted, fit_record = pseudo_acceptance(config, refs, meta, cache, seed=args.seed)
-        pseudo = Policy.of(fitted.acceptance, lock_mass=params.lock_mass)
-        print(f"[{name}] pseudo fit ({time.perf_counter() - t0:.0f} s)", flush=True)
-        policies = {"shipped": shipped, "pseudo": pseudo, "pseudo+seq": combine(pseudo, shipped)}
-        answers[name] = route_answers(route, config, params)
-        gp = name.startswith("gp_")
-        entry: dict[str, Any] = {
-            "n_train_references": len(refs),
-            "n_test": route.n_test,
-            "n_foreign": route.n_foreign,
-            "pseudo_fit": fit_record,
-        }
-        for v, policy in policies.items():
-            entry[v] = {
-                "preset": args.config,
-                "digest": digest,
-                "policy": policy.describe(),
-                **measure(policy, answers[name], gp),
-            }
-            runs[v][name] = entry[v]
-        entry["pseudo_other_seeds"] = {}
-        for seed in [int(x) for x in args.other_seeds.split(",") if x.strip()]:
-            other, rec = pseudo_acceptance(config, refs, meta, cache, seed=seed)
-            pol = Policy.of(other.acceptance, lock_mass=params.lock_mass)
-            entry["pseudo_other_seeds"][str(seed)] = {
-                "single_threshold": pol.model_threshold,
-                "single": single_figures(measure(pol, answers[name], gp)["single"]),
-                "pseudo_fit": rec,
-            }
-            print(f"[{name}] pseudo fit, seed {seed} ({time.perf_counter() - t0:.0f} s)")
-        fl = route_flags(policies, answers[name])
-        entry["sign_tests"] = {k: sign_tests(per) for k, per in fl.items()}
-        entry["flags"] = {
-            "right_single": answers[name]["single"].correct.astype(int).tolist(),
-            "right_sequence": answers[name]["sequence"].correct.astype(int).tolist(),
-            **{f"{k}:{v}": x.astype(int).tolist() for k, per in fl.items() for v, x in per.items()},
-        }
+        entry, answers[name], fl = measure_route(route, args, config, shipped, params, cache, t0)
         for k, per in fl.items():
             for v, x in per.items():
                 all_flags.setdefault(k, {}).setdefault(v, []).append(x)
         report["routes"][name] = entry
         print(f"[{name}] done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    report["pooled"] = {
-        "sign_tests": {
-            k: sign_tests({v: np.concatenate(xs) for v, xs in per.items()})
-            for k, per in all_flags.items()
-        }
-    }
-    for v in VARIANTS:
-        gp_names = [n for n in runs[v] if n.startswith("gp_")]
-        groups = {"all": list(runs[v]), "gardens_point": gp_names}
-        report["pooled"][v] = {
-            "ece": pooled(runs[v], answers),
-            "counts": {
-                g: {m: pooled_counts([runs[v][n][m] for n in names]) for m in MODES}
-                for g, names in groups.items()
-            },
-        }
+    report["pooled"] = pooled_report(report["routes"], answers, all_flags)
     report["wall_s"] = time.perf_counter() - t0
     out = write_json(args.out, strip(report))
     text = markdown(report)
