@@ -2,7 +2,7 @@
 of every file) and the verification stamp's check (a ``stat`` of every file).
 
     python -m bench.verify_scale [--sizes 10000,100000] [--global-kib 17.8] [--local-kib 37.9]
-                                 [--repeat 3] [--extrapolate 1000000] [--dir /tmp]
+                                 [--repeat 3] [--extrapolate 1000000] [--dir /tmp] [--json F]
 
 Every time a version is opened for reading (``hmpf-serve`` start and reload, ``hmpf-eval
 --index``, ``add`` / ``remove`` opening their parent, ``hmpf-index use``), the reader first
@@ -31,7 +31,8 @@ Per size, the median of ``--repeat`` runs of:
 
 Sizes larger than memory or disk can be extrapolated (``--extrapolate``): the check reads
 and hashes every byte once, so its time is linear in the bytes (the per-GB rate of the
-largest measured size is used, and the output says it is extrapolated).
+largest measured size is used, and the output says it is extrapolated). ``--json F`` writes
+the same figures as a JSON record (provenance, one row per size, the extrapolation).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import machine, parser
+from bench.harness import add_json, machine, parser, write_record
 from hmpf.index import layout
 
 #: Rows written per HDF5 write (bounded memory at any size).
@@ -112,6 +113,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--extrapolate", type=int, default=1_000_000)
     ap.add_argument("--dir", default=None, help="where to write the synthetic versions")
+    add_json(ap)
     args = ap.parse_args()
     per_ref = (args.global_kib + args.local_kib) * 1024
     print(f"machine: {machine()}; {os.cpu_count()} CPUs")
@@ -125,6 +127,7 @@ def main() -> int:
         "load average (other jobs on the cores)"
     )
     last: tuple[int, float, float, float, float] | None = None
+    rows: list[dict[str, float]] = []
     for n in (int(s) for s in args.sizes.split(",")):
         with tempfile.TemporaryDirectory(dir=args.dir, prefix="hmpf-verify-") as tmp:
             folder = Path(tmp) / "v0001"
@@ -157,16 +160,42 @@ def main() -> int:
                 f"{load:.1f} -> {os.getloadavg()[0]:.1f}"
             )
             last = (n, gb, t_warm, t_cold, t_one)
+            rows.append(
+                {
+                    "references": n,
+                    "gb": gb,
+                    "streamed_s": t_base,
+                    "check_warm_s": t_warm,
+                    "check_cold_s": t_cold,
+                    "one_thread_cold_s": t_one,
+                    "stamp_ms": t_stamp * 1e3,
+                    "load_before": load,
+                    "load_after": os.getloadavg()[0],
+                }
+            )
             shutil.rmtree(folder)
+    extrapolated = None
     if last is not None and args.extrapolate > last[0]:
         n, gb, t_warm, t_cold, t_one = last
         big_gb = args.extrapolate * per_ref / 1e9
+        extrapolated = {
+            "references": args.extrapolate,
+            "gb": big_gb,
+            "from_references": n,
+            "check_warm_s": t_warm * big_gb / gb,
+            "check_cold_s": t_cold * big_gb / gb,
+            "one_thread_cold_s": t_one * big_gb / gb,
+        }
         print(
             f"{args.extrapolate:>10} {big_gb:>6.1f} (extrapolated from {n}, linear in bytes): "
             f"check warm {t_warm * big_gb / gb:.1f} s, cold {t_cold * big_gb / gb:.1f} s, "
             f"1 thread cold {t_one * big_gb / gb:.1f} s; stamp: not linear in bytes (one "
             "stat per file), as measured"
         )
+    if args.json:
+        results = {"kib_per_reference": per_ref / 1024, "sizes": rows, "extrapolated": extrapolated}
+        write_record(args.json, results, args)
+        print(f"wrote {args.json}")
     return 0
 
 
