@@ -12,8 +12,10 @@ ready, sends ``--n`` frames from DIR one at a time through :class:`hmpf.client.C
 * wall p50 per request (affected by other jobs; quoted for reference only);
 * resident memory (``VmRSS``) at ready and after the run, and the index's bytes on disk.
 
-Two indexes of different sizes (e.g. Gardens Point, 200 references, and Nordland, 3576) give
-the resident memory per reference as the slope between them.
+Two indexes of different sizes queried by the same frames give the CPU and resident memory per
+reference as the slope between them: keep the frames' places in both (e.g. Gardens Point
+day_right, 200 references, and the same with 800 Nordland references added), since frames
+off the map change what the sequence filter and the later tiers do, not only the map's size.
 """
 
 from __future__ import annotations

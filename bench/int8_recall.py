@@ -465,10 +465,11 @@ def print_route(route: str, variant: str, fig: dict[str, Any]) -> None:
         )
 
 
-def tables(report: dict[str, Any]) -> list[str]:
-    """Markdown tables of a JSON record: recall per route, method and variant; times."""
+def recall_table(report: dict[str, Any]) -> list[str]:
+    """Markdown table of a JSON record's recall: per route, variant and method, and the
+    hierarchy with each subset of its passes in the variant."""
     lines = [
-        "| route | variant | method | float32 | variant | won / lost | sign test p |",
+        "| route | variant | method | float32 | in the variant | won / lost | sign test p |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for route, entry in report["routes"].items():
@@ -481,14 +482,22 @@ def tables(report: dict[str, Any]) -> list[str]:
                 )
             h = fig["hierarchy"]
             for name in SUBSETS:
+                if name not in h:  # a subset this record did not measure
+                    continue
                 t = h[name]["sign_test"]
                 lines.append(
                     f"| {route} | {variant} | hierarchy, variant {name} | {h['fp32']:.3f} "
                     f"| {_got(h[name]):.3f} | {t['wins']} / {t['losses']} | {t['p']:.2g} |"
                 )
+    return lines
+
+
+def time_tables(report: dict[str, Any]) -> list[str]:
+    """Markdown tables of a JSON record's times: each forward pass, and whole queries."""
+    lines: list[str] = []
     if "pass_ms" in report:
         names = list(next(iter(report["pass_ms"].values())))
-        lines += ["", "| forward pass | " + " | ".join(names) + " | speed-up |"]
+        lines += ["| forward pass | " + " | ".join(f"{n} ms" for n in names) + " | speed-up |"]
         lines.append("|---|" + "---:|" * (len(names) + 1))
         for k, v in report["pass_ms"].items():
             ups = ", ".join(
@@ -498,7 +507,9 @@ def tables(report: dict[str, Any]) -> list[str]:
             lines.append(f"| {k} | {cells} | {ups} |")
     if "query_ms" in report:
         q = report["query_ms"]
-        lines += ["", "| whole query | total ms | extraction | hierarchy | rounds | speed-up |"]
+        if lines:
+            lines.append("")
+        lines += ["| whole query | total ms | extraction | hierarchy | rounds | speed-up |"]
         lines.append("|---|---:|---:|---:|---|---:|")
         for k, v in q.items():
             rounds = " / ".join(f"{t:.1f}" for t in v["rounds_total_ms"])
@@ -507,6 +518,12 @@ def tables(report: dict[str, Any]) -> list[str]:
                 f"| {rounds} | {q['fp32']['total_ms'] / v['total_ms']:.2f}x |"
             )
     return lines
+
+
+def tables(report: dict[str, Any]) -> list[str]:
+    """Markdown tables of a JSON record: recall per route, method and variant; times."""
+    times = time_tables(report)
+    return recall_table(report) + ([""] + times if times else [])
 
 
 def main() -> int:

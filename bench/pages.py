@@ -36,7 +36,7 @@ from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 #: pages outside those folders that hold generated blocks
-PAGE_FILES = ("docs/scale.md",)
+PAGE_FILES = ("docs/scale.md", "docs/operators-guide.md")
 BLOCK = re.compile(
     r"(?P<open><!-- generated: (?P<name>[\w.:/,-]+) -->\n)"
     r"(?P<body>.*?)(?P<close><!-- /generated -->)",
@@ -1047,9 +1047,12 @@ def reference_fitting_cost(root: Path) -> str:
     return table(header, rows) + f"\n\\* {FITTING_DBA_NOTE}.\n" + source(FITTING, data)
 
 
-def choose_table(root: Path, rel: str, labels: dict[str, str], note: str = "") -> str:
+def choose_table(
+    root: Path, rel: str, labels: dict[str, str], note: str = "", per_protocol: bool = False
+) -> str:
     """A ``python -m bench.choose_default --out`` report: training and test recall@1 of each config
-    (the first is the baseline), paired sign tests on the pooled test (and whole) queries."""
+    (the first is the baseline), paired sign tests on the pooled test (and whole) queries;
+    ``per_protocol``: the training and whole figures per protocol too, not only their means."""
     data = load(root, rel)
     rows_json = {k: v for k, v in data.items() if isinstance(v, dict) and "test" in v}
     base_key = next(iter(rows_json))
@@ -1057,29 +1060,38 @@ def choose_table(root: Path, rel: str, labels: dict[str, str], note: str = "") -
     whole = "whole_flags" in base
     rows = []
     for key, r in rows_json.items():
-        test = " / ".join(f3(r["test"][p]) for p in GP) + f" ({f3(r['test_mean'])})"
-        cells = [labels.get(key, f"`{key}`"), f3(r["train_mean"]), test]
+
+        def per(part: str, r: dict[str, Any] = r) -> str:
+            return " / ".join(f3(r[part][p]) for p in GP) + f" ({f3(r[f'{part}_mean'])})"
+
+        test = per("test")
+        train = per("train") if per_protocol else f3(r["train_mean"])
+        cells = [labels.get(key, f"`{key}`"), train, test]
         if key == base_key:
             cells.append("")
         else:
             w, lo, pv = sign_test(r["test_flags"], base["test_flags"])
             cells.append(f"{w} / {lo}, p {pvalue(pv)}")
         if whole:
-            cells.append(f3(r["whole_mean"]))
+            cells.append(per("whole") if per_protocol else f3(r["whole_mean"]))
             if key == base_key:
                 cells.append("")
             else:
                 w, lo, pv = sign_test(r["whole_flags"], base["whole_flags"])
                 cells.append(f"{w} / {lo}, p {pvalue(pv)}")
         rows.append(cells)
+    protocols = "dr -> nr / dl -> nr / dl -> dr (mean)"
     header = [
         "config",
-        "training mean",
-        "test dr -> nr / dl -> nr / dl -> dr (mean)",
+        f"training {protocols}" if per_protocol else "training mean",
+        f"test {protocols}",
         "test vs the first row",
     ]
     if whole:
-        header += ["whole mean", "whole vs the first row"]
+        header += [
+            f"whole {protocols}" if per_protocol else "whole mean",
+            "whole vs the first row",
+        ]
     return table(header, rows) + source(rel, data if "machine" in data else None, extra=note)
 
 
@@ -1099,6 +1111,17 @@ def levers_olo_sizes(root: Path) -> str:
         labels,
         "its `default` is `default-lite0`, the default of that run; machine: the printout "
         "alongside (`levers_olo_choose_default.txt`)",
+    )
+
+
+@generator("cpu_levers.shared_work")
+def cpu_levers_shared_work(root: Path) -> str:
+    labels = {"default": "`default`"} | {
+        f"bench/cpu_levers/{n}.yaml": f"`{n}`"
+        for n in ("one_pass_lite1", "gem_on_olo", "lite0_320", "olo_288")
+    }
+    return choose_table(
+        root, f"{CPU_LEVERS}/shared_work.json", labels, "recall@1 +-2 frames", per_protocol=True
     )
 
 
@@ -1379,6 +1402,47 @@ def openvino_load(root: Path) -> str:
     return table(header, rows) + source(rel, data)
 
 
+@generator("cpu_levers.openvino_speed_table")
+def openvino_speed_table(root: Path) -> str:
+    """OpenVINO float32 against ONNX Runtime in ``bench.speed_table``'s latest run (one run,
+    the same machine): whether the gain measured above carries to the machine of that run."""
+    rel = f"{SPEED}/speed_table.json"
+    data = load(root, rel)
+    rows = data["rows"]
+    if "openvino" not in rows:
+        return f"`{rel}` has no OpenVINO row.\n"
+    onnx, ov = rows["after"], rows["openvino"]
+
+    def phase(row: dict[str, Any], clients: int) -> dict[str, Any]:
+        return next(p for p in row["http"]["phases"] if p["clients"] == clients)
+
+    figures = [
+        ("one query, 1 thread", onnx["query"]["total_ms"], ov["query"]["total_ms"], "ms", True),
+        ("HTTP p50, 1 client", phase(onnx, 1)["p50_ms"], phase(ov, 1)["p50_ms"], "ms", True),
+        (
+            "answers/s, 8 clients",
+            phase(onnx, 8)["answers_per_s"],
+            phase(ov, 8)["answers_per_s"],
+            "",
+            False,
+        ),
+        ("build, images/s", onnx["build_images_per_s"], ov["build_images_per_s"], "", False),
+    ]
+    table_rows = [
+        [
+            name,
+            f"{a:.1f}{' ' + unit if unit else ''}",
+            f"{b:.1f}{' ' + unit if unit else ''}",
+            f"{(a / b if lower else b / a):.2f}x",
+        ]
+        for name, a, b, unit, lower in figures
+    ]
+    header = ["figure", "ONNX Runtime", "OpenVINO float32", "OpenVINO's gain"]
+    return table(header, table_rows) + source(
+        rel, data, preset="default", digest=onnx["http"].get("digest")
+    )
+
+
 @generator("cpu_levers.openvino_build")
 def openvino_build(root: Path) -> str:
     """``bench.index_build --json`` per CNN runtime, the runs alternated."""
@@ -1469,6 +1533,7 @@ def methods_alone(root: Path) -> str:
     """Each method alone over the whole database and flat fusion of all: ``all-methods`` on
     Gardens Point, ``all-global`` on Nordland."""
     gp, nl = load(root, ALONE_GP), load(root, ALONE_NORDLAND)
+    olo_nl = load(root, OLO_NORDLAND) if (root / OLO_NORDLAND).exists() else None
     reports = gp["reports"]
     nordland = nl["reports"]["nordland_s_w"]
     first = next(iter(reports.values()))
@@ -1477,7 +1542,8 @@ def methods_alone(root: Path) -> str:
         if m in nordland["methods"]:
             nl_cell = recall1(nordland, m)
         elif m == "olo":
-            nl_cell = "not measured\\*\\*"
+            nl_cell = "not measured" if olo_nl is None else f3(olo_nl["recall_at"]["1"])
+            nl_cell += "\\*\\*"
         else:
             nl_cell = "not measured\\*"
         ext = first["timing_ms"]["extract_per_image"].get(m)
@@ -1493,10 +1559,19 @@ def methods_alone(root: Path) -> str:
     header = ["method", *(PROTOCOL_TITLES[n] for n in reports)]
     header += [PROTOCOL_TITLES["nordland_s_w"], "extraction, ms per GP image"]
     first_name = PROTOCOL_TITLES[next(iter(reports))]
+    olo_note = f"\n\\*\\* {OLO_NORDLAND_NOT_RUN}.\n"
+    if olo_nl is not None:
+        olo_note = (
+            f"\n\\*\\* OLO alone on Nordland: every {olo_nl['every']}th winter query "
+            f"({olo_nl['queries']} queries) against all {olo_nl['references']} summer "
+            f"references, +-{olo_nl['tolerance']} frames (its whole-database curve over every "
+            "query is 12.8 M region-set comparisons).\n"
+            + source(OLO_NORDLAND, olo_nl, digest_text="method `olo` alone, its default settings")
+        )
     return (
         table(header, rows)
         + f"\n\\* {KAZE_NORDLAND_SKIPPED}.\n"
-        + f"\n\\*\\* {OLO_NORDLAND_NOT_RUN}.\n"
+        + olo_note
         + source(
             ALONE_GP,
             gp,
@@ -1611,6 +1686,18 @@ def speed_soak(root: Path) -> str:
             "server RSS start / end / peak",
             f"{rss['start']:.0f} / {rss['end']:.0f} / {rss['peak']:.0f} MiB",
         ],
+        *(
+            [
+                [
+                    f"lowest RSS of the last {rss['floor_minutes']:g} minutes against the first "
+                    "minute's median (the judged figure)",
+                    f"{rss['floor_last_window']:.0f} against {rss['first_minute_median']:.0f} MiB: "
+                    f"{rss['floor_growth']:+.0f} MiB",
+                ]
+            ]
+            if "floor_growth" in rss
+            else []
+        ),
         [
             "RSS growth, first to last minute: medians (peaks)",
             f"{rss['growth_first_to_last_minute']:.0f} MiB "
@@ -1619,7 +1706,10 @@ def speed_soak(root: Path) -> str:
         ["open descriptors start / end / peak", f"{fds['start']} / {fds['end']} / {fds['peak']}"],
         ["descriptor growth, first to last minute", str(fds["growth_first_to_last_minute"])],
         ["server alive at the end", "yes" if data["server_alive_at_end"] else "**no**"],
-        ["passed (no 5xx, bounded growth)", "yes" if data["passed"] else "**no**"],
+        [
+            "passed (no 5xx, server up, bounded growth)",
+            "yes" if data["passed"] else "**no**",
+        ],
     ]
     return (
         table(["requests (kind status)", "count"], rows)
@@ -1808,7 +1898,10 @@ SCALE = "docs/experiments/scale"
 #: default and ``fast`` on Gardens Point day_right, the default on Nordland summer
 CAP_GP = f"{CAPACITY}/default-gp.json"
 CAP_FAST = f"{CAPACITY}/fast-gp.json"
-CAP_NORDLAND = f"{CAPACITY}/default-nordland.json"
+#: R_1: day_right and the first 800 Nordland summer references in one map, so that the night
+#: frames' places are in both maps and the two differ in size only (a Nordland-only map puts
+#: every query off the map, which changes what the filter and the later tiers do)
+CAP_MIXED = f"{CAPACITY}/default-mixed.json"
 INDEX_BUILD_GP = f"{SPEED}/index_build-default-gp.json"
 SEQUENCE_SCALE = f"{SPEED}/sequence_scale.json"
 PROFILE_SCALE = f"{SPEED}/profile_scale.json"
@@ -1961,11 +2054,11 @@ def _build_rows(st: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 def capacity_inputs(root: Path) -> dict[str, Any]:
     """The capacity model's inputs, each computed from its record (times in ms, bytes)."""
-    gp, nl, fast = load(root, CAP_GP), load(root, CAP_NORDLAND), load(root, CAP_FAST)
-    r0, r1 = gp["references"], nl["references"]
-    c_1 = slope(gp["cpu_ms_per_query"], nl["cpu_ms_per_query"], r0, r1)
+    gp, big, fast = load(root, CAP_GP), load(root, CAP_MIXED), load(root, CAP_FAST)
+    r0, r1 = gp["references"], big["references"]
+    c_1 = slope(gp["cpu_ms_per_query"], big["cpu_ms_per_query"], r0, r1)
     c_1_used = max(c_1, 0.0)  # a negative slope is noise: no growth measured
-    anon = [x["rss_after_mib"]["RssAnon"] * MIB for x in (gp, nl, fast)]
+    anon = [x["rss_after_mib"]["RssAnon"] * MIB for x in (gp, big, fast)]
     m = slope(anon[0], anon[1], r0, r1)
     ib = load(root, INDEX_BUILD_GP)
     st = load(root, SPEED_TABLE)
@@ -1982,7 +2075,7 @@ def capacity_inputs(root: Path) -> dict[str, Any]:
         "r0": r0,
         "r1": r1,
         "fast_refs": fast["references"],
-        "c": {"gp": gp["cpu_ms_per_query"], "nordland": nl["cpu_ms_per_query"]},
+        "c": {"gp": gp["cpu_ms_per_query"], "nordland": big["cpu_ms_per_query"]},
         "c_fast": fast["cpu_ms_per_query"],
         "c_1": c_1,
         "c_1_used": c_1_used,
@@ -1991,7 +2084,7 @@ def capacity_inputs(root: Path) -> dict[str, Any]:
             "fast": intercept(fast["cpu_ms_per_query"], fast["references"], c_1_used),
         },
         "anon_mib": [a / MIB for a in anon],
-        "file_mib": [x["rss_after_mib"]["RssFile"] for x in (gp, nl, fast)],
+        "file_mib": [x["rss_after_mib"]["RssFile"] for x in (gp, big, fast)],
         "m": m,
         "m_0": {
             "default": intercept(anon[0], r0, m),
@@ -2022,7 +2115,7 @@ def capacity_inputs(root: Path) -> dict[str, Any]:
     }
 
 
-CAPACITY_RECORDS = [CAP_GP, CAP_NORDLAND, CAP_FAST, INDEX_BUILD_GP, SPEED_TABLE]
+CAPACITY_RECORDS = [CAP_GP, CAP_MIXED, CAP_FAST, INDEX_BUILD_GP, SPEED_TABLE]
 PROJECTED_RECORDS = [SERVE_1K, SERVE_1M, WRITE_1M]
 
 
@@ -2204,12 +2297,13 @@ def scale_inputs(root: Path) -> str:
         f"time in sequence mode after {a['warmup']} warm-up frames; CPU time of the server "
         "process, which does not depend on the wall clock) on three indexes queried by the "
         f"same frames: `default` on Gardens Point day_right (R_0 = {r0} references) and on "
-        f"Nordland summer (R_1 = {r1}), `fast` on day_right. The two `default` indexes differ "
-        "only in their size, so their difference is what the map's size costs.\n\n"
+        f"day_right with the first {r1 - r0} Nordland summer references added (R_1 = {r1}), "
+        "`fast` on day_right. The frames' places are in both `default` maps, which differ only "
+        "in their size, so their difference is what the map's size costs.\n\n"
     )
     sources = (
         source(CAP_GP, gp)
-        + source(CAP_NORDLAND, load(root, CAP_NORDLAND))
+        + source(CAP_MIXED, load(root, CAP_MIXED))
         + source(CAP_FAST, load(root, CAP_FAST))
         + source(
             INDEX_BUILD_GP,
@@ -2288,7 +2382,7 @@ def scale_flat_limit(root: Path) -> str:
             f"(`default`), {adds} to a {cq:.0f} ms query; the exact scan costs as much as the "
             f"rest of the query at about {about(cq / c1)} references."
         )
-    return text + "\n" + derived_source(root, [CAP_GP, CAP_NORDLAND])
+    return text + "\n" + derived_source(root, [CAP_GP, CAP_MIXED])
 
 
 def _setting(rec: dict[str, Any], method: str) -> dict[str, Any]:
@@ -2983,7 +3077,10 @@ CAPACITY_PAGES = {
     "default-openvino-bf16.json": "[OpenVINO runtimes](../cpu_levers/openvino.md#time)",
     "default-gp.json": "[capacity model](../../scale.md#inputs-measured): R_0, c_q, m, m_0; "
     "[one or two threads per worker](../../scale.md#one-or-two-threads-per-worker)",
-    "default-nordland.json": "[capacity model](../../scale.md#inputs-measured): R_1, c_1, m",
+    "default-mixed.json": "[capacity model](../../scale.md#inputs-measured): R_1, c_1, m",
+    "default-nordland.json": "none: R_1 until 2026-11-27, a map of Nordland references only, "
+    "against which every Gardens Point frame is off the map (it changes what the filter and "
+    "the later tiers do, not only the map's size); `default-mixed.json` replaced it",
     "fast-gp.json": "[capacity model](../../scale.md#inputs-measured): `fast`",
     "default-gp-2threads.json": "[one or two threads per worker]"
     "(../../scale.md#one-or-two-threads-per-worker)",
@@ -3021,3 +3118,312 @@ def capacity_records(root: Path) -> str:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+VERIFY_SCALE = f"{SCALE}/verify.json"
+
+
+@generator("operators.verify_cost")
+def operators_verify_cost(root: Path) -> str:
+    """``bench.verify_scale --json``: the cost of checking a version's files against its size."""
+    rec = load(root, VERIFY_SCALE)
+    rows = [
+        [
+            thousands(r["references"]),
+            f"{r['gb']:.2f} GB",
+            f"{r['streamed_s']:.2f} s",
+            f"{r['check_warm_s']:.2f} s",
+            f"{r['check_cold_s']:.2f} s",
+            f"{r['one_thread_cold_s']:.2f} s",
+            f"{r['stamp_ms']:.2f} ms",
+        ]
+        for r in rec["sizes"]
+    ]
+    if (x := rec.get("extrapolated")) is not None:
+        rows.append(
+            [
+                f"{thousands(x['references'])} (extrapolated from "
+                f"{thousands(x['from_references'])})",
+                f"{x['gb']:.0f} GB",
+                "",
+                f"{x['check_warm_s']:.0f} s",
+                f"{x['check_cold_s']:.0f} s",
+                f"{x['one_thread_cold_s']:.0f} s",
+                "",
+            ]
+        )
+    header = [
+        "references",
+        "on disk",
+        "streamed sha256, one file after the other (baseline)",
+        "check, files in the page cache",
+        "check, files read from disk",
+        "the same on one thread (the background check)",
+        "stamp check",
+    ]
+    reading = ""
+    if x is not None:
+        stamp = max(r["stamp_ms"] for r in rec["sizes"])
+        reading = (
+            f"\nSo at {thousands(x['references'])} references a version **without** a "
+            f"matching stamp is served {x['check_warm_s']:.0f} s (files cached) to "
+            f"{x['check_cold_s']:.0f} s (read from disk) later than without the check; one "
+            f"**with** a matching stamp waits {stamp:.2f} ms or less, and its background check "
+            f"takes about {x['one_thread_cold_s']:.0f} s while it answers.\n"
+        )
+    kib = rec["kib_per_reference"]
+    args = rec.get("arguments") or {}
+    intro = (
+        f"Synthetic versions of {kib:.1f} KiB per reference ({args.get('global_kib')} KiB "
+        f"`references.h5`, {args.get('local_kib')} KiB `local.h5`, real HDF5 files), median "
+        f"of {args.get('repeat')} runs (the stamp check of at least 25):\n\n"
+    )
+    return (
+        intro
+        + table(header, rows, ["---:"] * len(header))
+        + source(
+            VERIFY_SCALE,
+            rec,
+            digest_text="synthetic versions of the default config's bytes per reference",
+        )
+        + reading
+    )
+
+
+INT8 = "docs/experiments/int8"
+
+
+def _int8_block(root: Path, name: str, part: str) -> str:
+    """A table of ``bench.int8_recall``'s record ``name`` (its recall or its times)."""
+    # bench.int8_recall loads the index and CNN stacks: only these pages need its formatting
+    from bench.int8_recall import recall_table, time_tables
+
+    rel = f"{INT8}/{name}"
+    rec = load(root, rel)
+    lines = recall_table(rec) if part == "recall" else time_tables(rec)
+    return "\n".join(lines) + "\n" + source(rel, rec)
+
+
+@generator("int8.recall_gp")
+def int8_recall_gp(root: Path) -> str:
+    return _int8_block(root, "int8_recall_gp.json", "recall")
+
+
+@generator("int8.recall_nordland")
+def int8_recall_nordland(root: Path) -> str:
+    return _int8_block(root, "int8_recall_nordland.json", "recall")
+
+
+@generator("int8.recall_pct")
+def int8_recall_pct(root: Path) -> str:
+    return _int8_block(root, "int8_recall_pct.json", "recall")
+
+
+@generator("int8.time")
+def int8_time(root: Path) -> str:
+    return _int8_block(root, "int8_time.json", "time")
+
+
+CALIBRATIONS = "docs/experiments"
+
+
+@generator("experiments.nordland_handcrafted")
+def experiments_nordland_handcrafted(root: Path) -> str:
+    """``hmpf-calibrate``'s report on Nordland with the handcrafted methods: the winner on the
+    test part against the best single method and flat fusion of the pool's methods."""
+    rel = f"{CALIBRATIONS}/nordland_handcrafted/calibration.json"
+    rep = load(root, rel)
+    test, winner = rep["test"], rep["train"]["winner"]
+    single = METHOD_TITLES.get(test["best_single"], test["best_single"])
+    pool = ", ".join(METHOD_TITLES.get(m, m) for m in rep["space"]["methods"])
+
+    def versus(t: dict[str, Any]) -> str:
+        return f"{t['wins']}/{t['losses']} ({pvalue(t['p'])})"
+
+    rows = [
+        [
+            f"calibrated: {winner['hierarchy']}",
+            f"**{f3(test['recall_at_1'])}** ({f1(test['measured_ms']['total_ms'])} ms measured)",
+            "",
+        ],
+        [
+            f"best single method ({single})",
+            f3(test["best_single_recall_at_1"]),
+            versus(test["vs_best_single"]),
+        ],
+        [f"flat fusion of {pool}", f3(test["flat_recall_at_1"]), versus(test["vs_flat"])],
+    ]
+    return table(["", "recall@1 (test)", "won/lost against it (p)"], rows) + source(
+        rel,
+        rep,
+        preset=rep["config"]["name"],
+        kind="config",
+        digest=config_digest(rep["config"]),
+    )
+
+
+@generator("experiments.tier_score")
+def experiments_tier_score(root: Path) -> str:
+    """``python -m bench.tier_score``: the original ``max`` against ``mean`` over random
+    hierarchies."""
+    rel = f"{CALIBRATIONS}/tier_score.json"
+    rec = load(root, rel)
+    rows = [
+        [
+            PROTOCOL_TITLES[r["protocol"]],
+            r["part"],
+            f3(r["max"]),
+            f3(r["mean"]),
+            f"{r['difference']:+.3f}",
+            pct(r["mean_better"]),
+            pct(r["mean_worse"]),
+        ]
+        for r in rec["rows"]
+    ]
+    header = [
+        "protocol",
+        "part",
+        "mean R@1, max",
+        "mean R@1, mean",
+        "difference",
+        "mean better",
+        "mean worse",
+    ]
+    return table(header, rows) + source(rel, rec, digest_text="random hierarchies of the pool")
+
+
+@generator("experiments.acceptance_thresholds")
+def experiments_acceptance_thresholds(root: Path) -> str:
+    """The Combined-z acceptance threshold ``hmpf-calibrate`` chose per Gardens Point protocol,
+    and what it does on the training and test parts."""
+    rows = []
+    rep: dict[str, Any] = {}
+    for name in GP:
+        rep = load(root, f"{CALIBRATIONS}/{name}/calibration.json")
+        tr, te = rep["train"]["acceptance"], rep["test"]["acceptance"]
+        rows.append(
+            [
+                PROTOCOL_TITLES[name],
+                f"{tr['threshold']:.3f}",
+                f"{f3(tr['precision'])} / {tr['recall']:.2f}",
+                f"{f3(te['precision'])} / {te['recall']:.2f} / {pct(te['accepted'])}",
+            ]
+        )
+    header = [
+        "protocol",
+        "threshold (Combined z)",
+        "training precision / recall",
+        "test precision / recall / accepted",
+    ]
+    rel = f"{CALIBRATIONS}/{{{','.join(GP)}}}/calibration.json"
+    return table(header, rows) + source(
+        rel, {"machine": rep.get("machine")}, digest_text="each protocol's calibrated config"
+    )
+
+
+ACCEPTANCE_FOUND = "docs/experiments/auto_config/acceptance_found.json"
+ROUTE_SHORT = {"nordland_s_w": "nordland", "gp_dl_nr": "dl->nr", "gp_dr_nr": "dr->nr"}
+
+
+@generator("auto_config.found_sequence")
+def auto_config_found_sequence(root: Path) -> str:
+    """``bench.auto_acceptance --found``: sequence-mode acceptance of hierarchies without
+    shipped models, per way of giving them one, against the ``default`` preset's."""
+    rec = load(root, ACCEPTANCE_FOUND)
+
+    def cell(seq: dict[str, Any], foreign: float | None) -> str:
+        out = f"{f3(seq['accepted'])} ({f3(seq['precision'])})"
+        if foreign is not None:
+            out += f" / {pct(foreign)}"
+        return out + f", {f1(seq['flips_per_100'])} flips"
+
+    rows = []
+    for e in rec["cases"].values():
+        name = f"{ROUTE_SHORT.get(e['route'], e['route'])} = {e['hierarchy']['name']}"
+        lock, fitted = e["pseudo"]["sequence"], e["pseudo-seq"]["sequence"]
+        carried, base = e["pseudo+default-seq"]["sequence"], e["default shipped"]["sequence"]
+        rows.append(
+            [
+                f"{name} ({e['n_test']})",
+                cell(lock, lock["foreign"]["accepted"]),
+                f3(fitted["accepted"]),
+                cell(carried, carried["foreign"]["accepted"]),
+                cell(base, base["foreign_accepted"]),
+            ]
+        )
+    header = [
+        "route = hierarchy (test frames)",
+        "(b) lock: seq. accepted (prec.) / foreign",
+        "(d)",
+        "(e) default's seq. model",
+        "default shipped",
+    ]
+    return table(header, rows) + source(
+        ACCEPTANCE_FOUND, rec, digest_text="the hierarchies' digests in the record's `digests`"
+    )
+
+
+def _fitting_setting(key: str) -> str:
+    """A grid key's setting in words: ``gist_w4096p0.5s1`` -> ``max, p0.5, s1``,
+    ``gem_w64p0.25s0.1`` -> ``w64 p0.25 s0.1``, ``hog_dba2`` -> ``k 2``."""
+    m = re.fullmatch(r"[a-z0-9]+_(?:w(\d+)p([\d.]+)s([\d.]+))?_?(?:dba(\d+))?", key)
+    if m is None:
+        return key
+    w, p, s, k = m.groups()
+    parts = []
+    if w is not None:
+        parts.append(f"max, p{p}, s{s}" if int(w) >= 4096 else f"w{w} p{p} s{s}")
+    if k is not None:
+        parts.append(f"k {k}")
+    return "; ".join(parts)
+
+
+@generator("reference_fitting.training")
+def reference_fitting_training(root: Path) -> str:
+    """Per method: plain, the best whitening and the best DBA setting on the training parts,
+    and whether the bench chose it (``chosen``)."""
+    data = load(root, FITTING)
+    rows = []
+    for method, m in data["methods"].items():
+        train, chosen = m["train"], m["chosen"]
+        plain = train["plain"]
+        cells = [
+            f"{METHOD_TITLES.get(method, method)} ({', '.join(_fitting_routes(m['routes']))})",
+            f3(plain),
+        ]
+        for lever, mark in (("whiten", "_w"), ("dba", "_dba")):
+            keys = [k for k in train if mark in k and ("_w" in k) == (lever == "whiten")]
+            if not keys:
+                cells.append("not measured")
+                continue
+            best = max(keys, key=lambda k: train[k])
+            tie = ", a tie with plain" if math.isclose(train[best], plain) else ""
+            verdict = "" if chosen.get(lever) else ": not chosen"
+            cells.append(f"{f3(train[best])} ({_fitting_setting(best)}{tie}){verdict}")
+        rows.append(cells)
+    header = ["method (routes)", "plain", "best whitening", "best DBA"]
+    return table(header, rows) + source(FITTING, data, extra="mean training recall@1")
+
+
+def _fitting_routes(routes: list[str]) -> list[str]:
+    gp = any(r.startswith("gp_") for r in routes)
+    return (["GP"] if gp else []) + (["NL"] if "nordland" in routes else [])
+
+
+@generator("acceptance.sequence_modes")
+def acceptance_sequence_modes(root: Path) -> str:
+    """``python -m bench.sequence``'s tables: sequence mode per test part and model set, and
+    the whole Gardens Point traverses."""
+    # bench.sequence loads the evaluation stack (and matplotlib when plotting): only this page
+    # needs its formatting
+    from bench.sequence import table as sequence_table
+    from bench.sequence import whole_table
+
+    rep = load(root, SEQUENCE)
+    return (
+        sequence_table(rep)
+        + "\n\n"
+        + whole_table(rep)
+        + "\n"
+        + source(SEQUENCE, rep, extra="Nordland: its first 800 frames")
+    )
