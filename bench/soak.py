@@ -378,6 +378,30 @@ def soak(
     return log, samples, elapsed, alive
 
 
+def rss_figures(
+    samples: list[tuple[float, float, int]], elapsed: float, floor_minutes: float = 4.0
+) -> dict[str, float]:
+    """Resident memory (MiB) over the run: start, end, peak, and the floor of the last
+    ``floor_minutes`` against the first minute's median (the judged figure: a leak raises the
+    level the server comes back to between reloads), with the medians' and peaks' growth
+    from the first to the last minute."""
+    first = [s[1] for s in samples if s[0] <= 60] or [samples[0][1]]
+    last = [s[1] for s in samples if s[0] >= elapsed - 60] or [samples[-1][1]]
+    window = [s[1] for s in samples if s[0] >= elapsed - 60 * floor_minutes] or [samples[-1][1]]
+    base = statistics.median(first)
+    return {
+        "start": samples[0][1],
+        "end": samples[-1][1],
+        "peak": max(s[1] for s in samples),
+        "first_minute_median": base,
+        "floor_minutes": floor_minutes,
+        "floor_last_window": min(window),
+        "floor_growth": min(window) - base,
+        "growth_first_to_last_minute": statistics.median(last) - base,
+        "peak_growth_first_to_last_minute": max(last) - max(first),
+    }
+
+
 def summary(
     log: Log,
     samples: list[tuple[float, float, int]],
@@ -390,7 +414,6 @@ def summary(
     five = sum(n for (_, st), n in log.codes.items() if st.isdigit() and int(st) >= 500)
     first = [s for s in samples if s[0] <= 60] or samples[:1]
     last = [s for s in samples if s[0] >= elapsed - 60] or samples[-1:]
-    window = [s for s in samples if s[0] >= elapsed - 60 * floor_minutes] or samples[-1:]
     return {
         "minutes": elapsed / 60,
         "vehicles": vehicles,
@@ -401,19 +424,7 @@ def summary(
             "p99": percentile(log.latency, 0.99),
             "mean": statistics.fmean(log.latency) if log.latency else None,
         },
-        "rss_mib": {
-            "start": samples[0][1],
-            "end": samples[-1][1],
-            "peak": max(s[1] for s in samples),
-            "first_minute_median": statistics.median(s[1] for s in first),
-            # the floor: a leak raises the level the server comes back to between reloads
-            "floor_minutes": floor_minutes,
-            "floor_last_window": min(s[1] for s in window),
-            "floor_growth": min(s[1] for s in window) - statistics.median(s[1] for s in first),
-            "growth_first_to_last_minute": statistics.median(s[1] for s in last)
-            - statistics.median(s[1] for s in first),
-            "peak_growth_first_to_last_minute": max(s[1] for s in last) - max(s[1] for s in first),
-        },
+        "rss_mib": rss_figures(samples, elapsed, floor_minutes),
         "open_fds": {
             "start": samples[0][2],
             "end": samples[-1][2],
