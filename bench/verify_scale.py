@@ -126,7 +126,6 @@ def main() -> int:
         f"{'warm GB/s':>9} {'cold GB/s':>9} {'1 thr cold':>10} {'stamp':>9}  "
         "load average (other jobs on the cores)"
     )
-    last: tuple[int, float, float, float, float] | None = None
     rows: list[dict[str, float]] = []
     for n in (int(s) for s in args.sizes.split(",")):
         with tempfile.TemporaryDirectory(dir=args.dir, prefix="hmpf-verify-") as tmp:
@@ -159,7 +158,6 @@ def main() -> int:
                 f"{gb / t_warm:>9.2f} {gb / t_cold:>9.2f} {t_one:>9.2f}s {t_stamp * 1e3:>7.2f}ms  "
                 f"{load:.1f} -> {os.getloadavg()[0]:.1f}"
             )
-            last = (n, gb, t_warm, t_cold, t_one)
             rows.append(
                 {
                     "references": n,
@@ -175,22 +173,24 @@ def main() -> int:
             )
             shutil.rmtree(folder)
     extrapolated = None
-    if last is not None and args.extrapolate > last[0]:
-        n, gb, t_warm, t_cold, t_one = last
+    if rows and args.extrapolate > rows[-1]["references"]:
+        last = rows[-1]
         big_gb = args.extrapolate * per_ref / 1e9
         extrapolated = {
             "references": args.extrapolate,
             "gb": big_gb,
-            "from_references": n,
-            "check_warm_s": t_warm * big_gb / gb,
-            "check_cold_s": t_cold * big_gb / gb,
-            "one_thread_cold_s": t_one * big_gb / gb,
+            "from_references": int(last["references"]),
+            **{
+                k: last[k] * big_gb / last["gb"]
+                for k in ("check_warm_s", "check_cold_s", "one_thread_cold_s")
+            },
         }
         print(
-            f"{args.extrapolate:>10} {big_gb:>6.1f} (extrapolated from {n}, linear in bytes): "
-            f"check warm {t_warm * big_gb / gb:.1f} s, cold {t_cold * big_gb / gb:.1f} s, "
-            f"1 thread cold {t_one * big_gb / gb:.1f} s; stamp: not linear in bytes (one "
-            "stat per file), as measured"
+            f"{args.extrapolate:>10} {big_gb:>6.1f} (extrapolated from "
+            f"{extrapolated['from_references']}, linear in bytes): check warm "
+            f"{extrapolated['check_warm_s']:.1f} s, cold {extrapolated['check_cold_s']:.1f} s, "
+            f"1 thread cold {extrapolated['one_thread_cold_s']:.1f} s; stamp: not linear in "
+            "bytes (one stat per file), as measured"
         )
     if args.json:
         results = {"kib_per_reference": per_ref / 1024, "sizes": rows, "extrapolated": extrapolated}
