@@ -1,7 +1,8 @@
 """Learned binary local descriptors (BEBLID / TEBLID) against KAZE's, Gardens Point.
 
     python -m bench.local_descriptors [--json out.json] [--time-images 10] [--descriptors a,b]
-    python -m bench.local_descriptors --time-only     (extraction and matching per descriptor)
+    python -m bench.local_descriptors --time-only [--json F]    (extraction and matching)
+    python -m bench.local_descriptors --control 20,0.8 [--json F]   (KAZE re-matched)
 
 KAZE keypoints (the method's detection, orientation and 500 strongest) described by KAZE's
 64 floats (the baseline), BEBLID (512 bits), TEBLID (256 and 512 bits) or ORB (256 bits),
@@ -151,9 +152,9 @@ def sparse_inliers(bank: ScoreBank, m: Method, feats: tuple[Any, list[Any]]) -> 
     return mat
 
 
-def time_descriptors(datasets: Path, n_query: int = 10) -> None:
+def time_descriptors(datasets: Path, n_query: int = 10) -> dict[str, dict[str, float]]:
     """Extraction and ``Kaze.scores`` (against 100 day_right references) per descriptor, one
-    thread, medians over ``n_query`` night_right queries."""
+    thread, medians over ``n_query`` night_right queries; printed and returned by descriptor."""
     from hmpf.datasets import list_images
     from hmpf.imageio import load_image
     from hmpf.runtime import set_compute_threads
@@ -162,6 +163,7 @@ def time_descriptors(datasets: Path, n_query: int = 10) -> None:
     gp = datasets / "gardens_point"
     refs = [load_image(p) for p in list_images(gp / "day_right")[::2]]
     queries = [load_image(p) for p in list_images(gp / "night_right")[1 :: 200 // n_query]]
+    out: dict[str, dict[str, float]] = {}
     for name, p in DESCRIPTORS.items():
         m = create_method("kaze", p)
         db = m.stack([m.extract(r) for r in refs])
@@ -173,18 +175,31 @@ def time_descriptors(datasets: Path, n_query: int = 10) -> None:
             m.scores(q, db)
             ext.append((t1 - t0) * 1e3)
             score.append((time.perf_counter() - t1) * 1e3)
+        out[name] = {
+            "extract_ms": float(np.median(ext)),
+            "scores_ms": float(np.median(score)),
+            "references": len(refs),
+            "queries": len(queries),
+            "keypoints_per_reference": float(np.mean(db.counts)),
+        }
         print(
-            f"{name}: extract {np.median(ext):.1f} ms, scores vs {len(refs)} references "
-            f"{np.median(score):.1f} ms, {np.mean(db.counts):.0f} keypoints per reference",
+            f"{name}: extract {out[name]['extract_ms']:.1f} ms, scores vs {len(refs)} references "
+            f"{out[name]['scores_ms']:.1f} ms, {out[name]['keypoints_per_reference']:.0f} "
+            "keypoints per reference",
             flush=True,
         )
+    return out
 
 
-def control(datasets: Path, cache: FeatureCache, matching: dict[str, Any]) -> None:
+def control(
+    datasets: Path, cache: FeatureCache, matching: dict[str, Any]
+) -> dict[str, dict[str, dict[str, Any]]]:
     """KAZE's descriptor with other matching (``matching``): alone and in the handcrafted
-    preset, against KAZE's defaults, per protocol and part (no grid, no timing)."""
+    preset, against KAZE's defaults, per protocol and part (no grid, no timing); printed and
+    returned as ``{protocol: {part: {structure: {"base", "tuned", "wins", "losses", "p"}}}}``."""
     h = load_config("handcrafted")
     tuned = create_method("kaze", matching)
+    out: dict[str, dict[str, dict[str, Any]]] = {}
     for proto in PROTOCOLS:
         for part, split in split_parts(proto, datasets):
             bank = ScoreBank.build(h, split, cache=cache)
@@ -196,13 +211,25 @@ def control(datasets: Path, cache: FeatureCache, matching: dict[str, Any]) -> No
             alone = np.asarray(bank.gt[np.arange(bank.n_query), bank.scores["kaze"].argmin(1)])
             alone_t = np.asarray(bank.gt[np.arange(bank.n_query), bank.scores["tuned"].argmin(1)])
             hc, hc_t = (np.asarray(bank.run(c).correct, bool) for c in (h, tuned_h))
-            a, b = paired_test(alone_t, alone), paired_test(hc_t, hc)
+            cell = {}
+            for name, base, new in (("alone", alone, alone_t), ("handcrafted", hc, hc_t)):
+                t = paired_test(new, base)
+                cell[name] = {
+                    "base": float(base.mean()),
+                    "tuned": float(new.mean()),
+                    "wins": int(t["wins"]),
+                    "losses": int(t["losses"]),
+                    "p": float(t["p"]),
+                }
+            out.setdefault(proto, {})[part] = cell
+            a, b = cell["alone"], cell["handcrafted"]
             print(
-                f"{proto} {part}: alone {alone.mean():.3f} -> {alone_t.mean():.3f} "
-                f"(+{a['wins']}/-{a['losses']}, p {a['p']:.2g}); handcrafted {hc.mean():.3f} -> "
-                f"{hc_t.mean():.3f} (+{b['wins']}/-{b['losses']}, p {b['p']:.2g})",
+                f"{proto} {part}: alone {a['base']:.3f} -> {a['tuned']:.3f} "
+                f"(+{a['wins']}/-{a['losses']}, p {a['p']:.2g}); handcrafted {b['base']:.3f} -> "
+                f"{b['tuned']:.3f} (+{b['wins']}/-{b['losses']}, p {b['p']:.2g})",
                 flush=True,
             )
+    return out
 
 
 Banks = dict[tuple[str, str], ScoreBank]
@@ -401,11 +428,17 @@ def main() -> int:
     cache = FeatureCache(args.cache_dir)
     print(machine(), flush=True)
     if args.time_only:
-        time_descriptors(Path(args.datasets))
+        timing = time_descriptors(Path(args.datasets))
+        if args.json:
+            write_record(args.json, {"time_only": timing}, args)
         return 0
     if args.control:
         t, r = (float(v) for v in args.control.split(","))
-        control(Path(args.datasets), cache, {"match_threshold": t, "max_ratio": r})
+        matching = {"match_threshold": t, "max_ratio": r}
+        runs = control(Path(args.datasets), cache, matching)
+        if args.json:
+            results = {"matching": matching, "control": runs}
+            write_record(args.json, results, args, config="handcrafted")
         return 0
     pool = pool_config(("handcrafted",) if args.no_default else ("default", "handcrafted"))
     banks, near, feats, pair_ms = score(pool, args.datasets, cache)

@@ -37,7 +37,7 @@ from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 #: pages outside those folders that hold generated blocks
-PAGE_FILES = ("docs/scale.md", "docs/operators-guide.md")
+PAGE_FILES = ("docs/scale.md", "docs/operators-guide.md", "README.md")
 BLOCK = re.compile(
     r"(?P<open><!-- generated: (?P<name>[\w.:/,-]+) -->\n)"
     r"(?P<body>.*?)(?P<close><!-- /generated -->)",
@@ -256,6 +256,22 @@ def levers_backbones(root: Path) -> str:
     )
 
 
+@generator("levers.backbones_alone")
+def levers_backbones_alone(root: Path) -> str:
+    """The reading under the backbones table: GeM and NetVLAD alone on Lite0 and Lite1."""
+    data = load(root, BACKBONES)
+
+    def alone(backbone: str, method: str) -> str:
+        r = data[f"efficientnet_{backbone}"]["recall"]
+        return f3(statistics.fmean(r[p][method] for p in GP))
+
+    nv, gem = (f"{alone('lite1', m)} against {alone('lite0', m)}" for m in ("netvlad", "gem"))
+    return (
+        f"Alone (mean of the three protocols), NetVLAD gains on Lite1 ({nv}) while GeM\n"
+        f"loses ({gem}), which is most of the hierarchy's loss.\n"
+    )
+
+
 LEVERS = "docs/experiments/levers.json"
 LEVERS_TIME = (
     "docs/experiments/levers_time_quiet.json",
@@ -296,6 +312,11 @@ def sign_test(a: list[bool], b: list[bool]) -> tuple[int, int, float]:
     n, k = wins + losses, min(wins, losses)
     p = min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
     return wins, losses, p
+
+
+def counts_p(wins: int, losses: int) -> float:
+    """The sign test's p for ``wins`` / ``losses`` counted elsewhere."""
+    return sign_test([True] * wins + [False] * losses, [False] * wins + [True] * losses)[2]
 
 
 def pvalue(p: float) -> str:
@@ -641,7 +662,32 @@ def auto_config_tables(record: dict[str, Any]) -> str:
 
     for r in record["routes"].values():
         c = r["correlation"]
+        if not c:
+            lines.append(f"| {r['route']} | no pseudo-queries (size rule) | |")
+            continue
         lines.append(f"| {r['route']} | {rho(c['candidates'])} | {rho(c['spread'])} |")
+    unruled = [
+        f"{r['route']}: {w['hierarchy']} {r['recall_at_1']['auto_without_rule']:.3f} against "
+        f"auto's {r['recall_at_1']['auto']:.3f} ({w['vs_auto']['wins']}/{w['vs_auto']['losses']}"
+        f", p {pvalue(w['vs_auto']['p'])}); chosen because {w['why']}"
+        for r in record["routes"].values()
+        if (w := r.get("auto_without_rule"))
+    ]
+    if unruled:
+        lines += [
+            "",
+            "Where the size rule chose (thumbnails), the search it skips, run beside it on the "
+            "same references (test recall@1; its correlations are in the table above): "
+            + "; ".join(unruled)
+            + ".",
+        ]
+    skipped = [
+        f"{r['route']}: {', '.join(r['presets_skipped'])}"
+        for r in record["routes"].values()
+        if r.get("presets_skipped")
+    ]
+    if skipped:
+        lines += ["", "Presets left out of the oracle: " + "; ".join(skipped) + "."]
     measured = [
         f"{name}: commit {str(r['measured'].get('commit'))[:7]}, {r['measured'].get('date')}"
         for name, r in record["routes"].items()
@@ -772,7 +818,7 @@ def levers_local_descriptors(root: Path) -> str:
                 continue
             w = sum(s["wins"] for s in r["sign"].values())
             lo = sum(s["losses"] for s in r["sign"].values())
-            _, _, pv = sign_test([True] * w + [False] * lo, [False] * w + [True] * lo)
+            pv = counts_p(w, lo)
             note = " (training choice)" if desc == choice else ""
             cells.append(f"{f3(r['mean_test'])} (+{w}/-{lo}, p {pvalue(pv)}){note}")
         cells.append(
@@ -950,7 +996,7 @@ def local_descriptors_recall(root: Path) -> str:
         if r["sign"]:
             w = sum(s["wins"] for s in r["sign"].values())
             lo = sum(s["losses"] for s in r["sign"].values())
-            _, _, pv = sign_test([True] * w + [False] * lo, [False] * w + [True] * lo)
+            pv = counts_p(w, lo)
             cells.append(f"+{w}/-{lo}, p {pvalue(pv)}")
         else:
             cells.append("(baseline)")
@@ -972,6 +1018,111 @@ def local_descriptors_recall(root: Path) -> str:
     ]
     return table(header, rows) + source(
         LOCAL, data, extra='"default" in the JSON is `default-lite0`, the default of that run'
+    )
+
+
+LOCAL_CONTROL = "docs/experiments/local_descriptors_control.json"
+LOCAL_TIME = "docs/experiments/local_descriptors_time.json"
+LOCAL_CONTROL_STRUCTURES = {"alone": "kaze alone", "handcrafted": "handcrafted, kaze swapped"}
+LOCAL_DESCRIPTOR_BYTES = {"kaze": 128, "beblid": 64, "teblid": 32, "teblid512": 64, "orb": 32}
+
+
+def _train_test(means: dict[str, list[float]]) -> str:
+    return f"{f3(statistics.mean(means['train']))} / {f3(statistics.mean(means['test']))}"
+
+
+@generator("local_descriptors.control")
+def local_descriptors_control(root: Path) -> str:
+    """KAZE's descriptor with its own best matching against its defaults (``--control``),
+    beside the training choice of TEBLID-512 (the main run's rows)."""
+    data, main = load(root, LOCAL_CONTROL), load(root, LOCAL)
+    m = data["matching"]
+    runs = data["control"]
+    rows = []
+    for key, structure in LOCAL_CONTROL_STRUCTURES.items():
+        base: dict[str, list[float]] = {"train": [], "test": []}
+        tuned: dict[str, list[float]] = {"train": [], "test": []}
+        wins = losses = 0
+        for proto in GP:
+            for part in ("train", "test"):
+                cell = runs[proto][part][key]
+                base[part].append(cell["base"])
+                tuned[part].append(cell["tuned"])
+                if part == "test":
+                    wins, losses = wins + cell["wins"], losses + cell["losses"]
+        pv = counts_p(wins, losses)
+        rival = main["rows"][f"{structure} | teblid512"]
+        rows.append(
+            [
+                LOCAL_STRUCTURES[structure],
+                _train_test(base),
+                f"{_train_test(tuned)} (+{wins}/-{losses}, p {pvalue(pv)})",
+                f"{f3(rival['mean_train'])} / {f3(rival['mean_test'])}",
+            ]
+        )
+    k = KAZE_DEFAULT_MATCHING
+    header = [
+        "structure",
+        f"KAZE {k['match_threshold']:g} / {k['max_ratio']:g} train / test",
+        f"KAZE {m['match_threshold']:g} / {m['max_ratio']:g} train / test (pooled test vs "
+        f"{k['max_ratio']:g})",
+        "TEBLID-512 train / test (main run)",
+    ]
+    return table(header, rows) + source(
+        LOCAL_CONTROL,
+        data,
+        extra="mean recall@1 over the three protocols' parts; the TEBLID-512 column is "
+        f"`{LOCAL}`'s training choice",
+    )
+
+
+@generator("local_descriptors.cost")
+def local_descriptors_cost(root: Path) -> str:
+    """Storage, extraction and matching per descriptor: bytes from the main run, times from
+    the quiet ``--time-only`` run, the bench's per-pair loop from the main run."""
+    main, timing = load(root, LOCAL), load(root, LOCAL_TIME)
+    names = list(LOCAL_DESCRIPTOR_BYTES)
+    t = timing["time_only"]
+    n_ref = next(iter(t.values()))["references"]
+    rows = [
+        ["stored bytes per keypoint (keypoint + descriptor)"]
+        + [f"10 + {LOCAL_DESCRIPTOR_BYTES[d]}" for d in names],
+        ["`kaze` bytes per reference (index, `exact`)"]
+        + [thousands(main["rows"][f"kaze alone | {d}"]["bytes_per_reference"]) for d in names],
+        ["keypoints per reference"] + [f"{t[d]['keypoints_per_reference']:.0f}" for d in names],
+        ["extraction, ms per image (A)"] + [f1(t[d]["extract_ms"]) for d in names],
+        [f"`Kaze.scores` against {n_ref} references, ms per query (A)"]
+        + [f1(t[d]["scores_ms"]) for d in names],
+        ["the same, against KAZE's (A)"]
+        + [f"{t[d]['scores_ms'] / t['kaze']['scores_ms']:.2f}x" for d in names],
+        ["nearest-two per pair in the bench, ms (B, loaded)"]
+        + [f"{main['pair_ms'][d]:.2f}" for d in names],
+    ]
+    return (
+        table(["measurement", *names], rows)
+        + source(LOCAL_TIME, timing, extra="(A): one thread, medians")
+        + source(LOCAL, main, extra="bytes and (B)")
+    )
+
+
+@generator("local_descriptors.end_to_end")
+def local_descriptors_end_to_end(root: Path) -> str:
+    """Milliseconds per query, end to end, per structure and descriptor (the main run)."""
+    main = load(root, LOCAL)
+    names = list(LOCAL_DESCRIPTOR_BYTES)
+    rows = []
+    for structure in LOCAL_STRUCTURES:
+        cells = []
+        for d in names:
+            r = main["rows"].get(f"{structure} | {d}")
+            cells.append(f"{r['timing']['total_ms']:.0f}" if r and r.get("timing") else "-")
+        rows.append([structure, *cells])
+    first = next(r["timing"] for r in main["rows"].values() if r.get("timing"))
+    return table(["structure", *names], rows) + source(
+        LOCAL,
+        main,
+        extra=f"ms per query, {first['images']} queries, {first['threads']} thread, loaded "
+        "machine (load average 10 to 14 during that run)",
     )
 
 
@@ -1264,6 +1415,89 @@ def pages(root: Path) -> list[Path]:
     out += [
         p for rel in PAGE_FILES if (p := root / rel).exists() and "<!-- generated:" in p.read_text()
     ]
+    return out
+
+
+# ---------------------------------------------------------------- figures in prose
+
+#: a decimal figure in prose (not part of a name, a path, a version or a longer number)
+PROSE_FIGURE = re.compile(r"(?<![\w.`/#-])(\d+\.\d+)(?![\w.`/])")
+JSON_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+#: decimal figures in prose that are settings, versions or documented constants, not
+#: measurements: {page: {figure: what it is}}
+PROSE_NOT_MEASURED: dict[str, dict[str, str]] = {
+    "docs/client.md": {
+        "30.0": "the client's timeout default",
+        "0.25": "the client's backoff default",
+        "10.0": "the client's max_backoff default",
+        "0.5": "the lower end of the retry jitter",
+    },
+    "docs/deployment-container.md": {
+        "3.11": "Python's version",
+        "23.0": "Docker's version",
+        "4.3": "podman's version",
+    },
+    "docs/experiences.md": {"0.99": "a setting's default"},
+    "docs/inspect.md": {"1.0": "an index format version"},
+    "docs/methods.md": {"0.75": "a fusion weight"},
+    "docs/operators-guide.md": {"2.60": "Ray's version"},
+    "docs/replicas.md": {"2.6": "HAProxy's version in Debian bookworm"},
+    "docs/experiments/backbones.md": {
+        "21.9": "a PyPI wheel's size",
+        "24.7": "a PyPI wheel's size",
+    },
+    "docs/experiments/local_descriptors.md": {
+        "6.25": "OpenCV's documented scale factor for KAZE keypoints",
+        "6.75": "OpenCV's documented scale factor for SIFT keypoints",
+    },
+    "docs/results/levers.md": {"6.25": "OpenCV's documented scale factor for KAZE keypoints"},
+}
+
+
+def prose_pages(root: Path) -> list[Path]:
+    """Every page whose prose the figure check reads: the README and every page of ``docs/``
+    but the specification and the API reference (generated from the code)."""
+    docs = sorted((root / "docs").rglob("*.md"))
+    skip = ("spec", "reference")
+    return [root / "README.md"] + [
+        p for p in docs if not set(p.relative_to(root / "docs").parts[:1]) & set(skip)
+    ]
+
+
+def _page_values(root: Path, page: Path, text: str) -> set[float]:
+    """The numbers a page's prose may quote: its generated blocks' and those of every JSON
+    record in its folder or named on it."""
+    sources = [m.group(0) for m in BLOCK.finditer(text)]
+    for rec in sorted(root.glob("docs/**/*.json")):
+        if rec.parent == page.parent or rec.name in text:
+            sources.append(rec.read_text())
+    values: set[float] = set()
+    for src in sources:
+        values.update(float(x) for x in JSON_NUMBER.findall(src))
+    return values
+
+
+def _quotes(figure: str, values: set[float]) -> bool:
+    """``figure`` is one of ``values`` at the figure's own precision, or one of them as a
+    percentage, in thousands or in KiB."""
+    x, d = float(figure), len(figure.split(".")[1])
+    return any(round(v * scale, d) == x for v in values for scale in (1, 100, 1e-3, 1 / 1024))
+
+
+def unsourced_figures(root: Path) -> list[tuple[str, str, str]]:
+    """(page, figure, line) for each decimal figure in prose (outside generated blocks and
+    code) that none of the page's records holds, less :data:`PROSE_NOT_MEASURED`."""
+    out = []
+    for page in prose_pages(root):
+        rel = str(page.relative_to(root))
+        text = page.read_text()
+        values = _page_values(root, page, text)
+        prose = re.sub(r"```.*?```", "", BLOCK.sub("", text), flags=re.S)
+        allowed = PROSE_NOT_MEASURED.get(rel, {})
+        for line in prose.splitlines():
+            for fig in PROSE_FIGURE.findall(line):
+                if fig not in allowed and not _quotes(fig, values):
+                    out.append((rel, fig, line.strip()))
     return out
 
 
@@ -2500,6 +2734,37 @@ def scale_million_ivfpq(root: Path) -> str:
     sources += source(FACTORIES_K1024, k1024, digest_note=" (recorded; no preset named)")
     sources += source(FACTORIES_WINTER, winter)
     return table(header, rows, align) + "\n" + "\n".join(bullets) + "\n" + sources
+
+
+@generator("readme.large_maps")
+def readme_large_maps(root: Path) -> str:
+    """The README's "Large maps" bullet: the projected-scan tier 1 at a million references
+    (``bench.scale``'s records, as docs/scale.md reads them)."""
+    x = capacity_inputs(root)
+    s1k, s1m = load(root, SERVE_1K), load(root, SERVE_1M)
+    a, b = s1k["serve"], s1m["serve"]
+    r10 = [_setting(load(root, MEASURE_1M), m)["recall_at_10"] for m in ("gem", "netvlad")]
+    top = (
+        "keeps tier 1's exact top 10"
+        if min(r10) >= 1.0
+        else f"keeps {min(r10):.3f} of tier 1's exact top 10"
+    )
+    return (
+        "* **Large maps**: builds on a Ray cluster (`hmpf-index build --ray`): [Operator's\n"
+        "  guide](docs/operators-guide.md#building-on-a-ray-cluster). Beyond 10 000-20 000\n"
+        "  references, the projected-scan tier 1 (`--faiss gem=PCA256:64,SQfp16 --faiss\n"
+        f"  netvlad=PCA1024:128,SQfp16`): at a million references (config `{s1m['preset']}`, "
+        f"digest\n  `{short(s1m['digest'])}`) a replica keeps {kib1(x['m_proj'])} per "
+        f"reference of its own memory (plus {kib1(x['codes'])} of\n  shared page cache), "
+        f"answers {f1(b['first_answer_s'])} s after it starts and {top}; a query\n"
+        f"  takes {b['p50_ms'] / a['p50_ms']:.2f}x what it takes at "
+        f"{thousands(s1k['references']).replace(',', ' ')} references ([its\n  "
+        f"record]({SERVE_1M})). Past one\n  machine, region shards on Ray Serve "
+        "(`hmpf-index shard`, `hmpf-serve shards`) answer bit\n  for bit as the unsharded map:\n  "
+        "[Capacity and "
+        "scale](docs/scale.md#a-million-references-on-one-machine), [Region\n  "
+        "shards](docs/shards.md).\n"
+    )
 
 
 @generator("scale.million_projected")

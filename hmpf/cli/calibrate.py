@@ -465,6 +465,12 @@ def run_auto(args: argparse.Namespace) -> int:
 
 def _auto_header(args: argparse.Namespace, reasons: dict[str, Any]) -> str:
     ch, sample = reasons["chosen"], reasons["sample"]
+    if "rule" in reasons:  # thumbnails: no pseudo-query was made
+        return (
+            f"Written by hmpf-calibrate --auto from the references in {args.references} alone.\n"
+            f"Chosen: {ch['hierarchy']} (digest {reasons['digest'][:16]}): {ch['why']}.\n"
+            f"The record of the choice: {Path(args.out).name}.reasons.json."
+        )
     return (
         f"Written by hmpf-calibrate --auto (seed {args.seed}) from the references in "
         f"{args.references} alone.\n"
@@ -479,6 +485,13 @@ def auto_markdown(reasons: dict[str, Any]) -> str:
     """The record of an automatic choice as Markdown: the sample, the candidates, the
     decision and the time taken."""
     s, ch, t = reasons["sample"], reasons["chosen"], reasons["time_s"]
+    if "rule" in reasons:  # thumbnails: no pseudo-query was made
+        return (
+            f"# Automatic choice from the references ({reasons['machine']})\n\n"
+            f"{s['references']} references ({s['sized']} of them sized).\n\n"
+            f"Chosen: **{ch['hierarchy']}** (config digest {reasons['digest'][:16]}): "
+            f"{ch['why']}.\n\nTime: {t['total_s']:.1f} s.\n"
+        )
     lines = [
         f"# Automatic choice from the references ({reasons['machine']})",
         "",

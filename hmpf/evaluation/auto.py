@@ -82,6 +82,8 @@ __all__ = [
     "INCUMBENT",
     "NOMINAL_COSTS",
     "SHELF",
+    "SMALL_PRESET",
+    "SMALL_SIDE",
     "AutoResult",
     "Candidate",
     "Choice",
@@ -92,6 +94,7 @@ __all__ = [
     "mask_sources",
     "nominal_costs",
     "pseudo_bank",
+    "reference_size",
 ]
 
 #: The methods the automatic choice may use: the default preset's (multi-scale GeM, NetVLAD
@@ -127,6 +130,22 @@ SHELF = ("default", "thumbnails", "single-tier")
 #: The hierarchy kept unless another wins on held-out pseudo-queries: what a user who picks
 #: nothing gets.
 INCUMBENT = "default"
+#: References whose shorter side is below this many pixels (the median over a sample) are
+#: thumbnails: the choice is :data:`SMALL_PRESET`, without a search. Pseudo-queries do not
+#: predict real queries there: on Nordland's 64 x 32 thumbnails the search's best beat the
+#: default on held-out pseudo-queries and lost far to the ``thumbnails`` preset on real
+#: winter queries (``bench.auto_config`` measures the search beside the rule:
+#: ``docs/results/auto_config.md``). A pseudo-query changes a reference's exposure, blur or
+#: crop, not its season, and at that size what the CNN methods match best is the reference
+#: itself. 128 is a round figure below every camera frame the presets were chosen on and far
+#: above the thumbnails; only one route of each kind is here, so it was set by that
+#: reasoning, not tuned.
+SMALL_SIDE = 128
+#: The preset for thumbnails (HOG, whitened HOG, SAD and Gist: methods made for a few
+#: thousand pixels).
+SMALL_PRESET = "thumbnails"
+#: References whose size :func:`reference_size` reads (spread evenly along the list).
+SIZE_SAMPLE = 16
 
 #: Per-query cost figures of :data:`AUTO_POOL`'s methods (ms, one compute thread), used for
 #: the time budget and the search's tie-break so that the choice is the same on any machine
@@ -502,20 +521,22 @@ class AutoResult:
         config: the chosen config with its fitted acceptance.
         reasons: the JSON-able record of the choice.
         bank: the pseudo-query score bank (its pseudo-query files are gone after the call
-            unless ``workdir`` was given).
-        plan: the plan of the references and pseudo-queries.
-        candidates: the candidates, best on the search pseudo-queries first.
+            unless ``workdir`` was given); None for thumbnails (:data:`SMALL_SIDE`: no
+            pseudo-query is made).
+        plan: the plan of the references and pseudo-queries (None for thumbnails).
+        candidates: the candidates, best on the search pseudo-queries first (none for
+            thumbnails).
         ranked: every hierarchy the search tried within the budget, best first.
-        costs: the cost model used.
+        costs: the cost model used (charged for the whole map).
     """
 
     config: HierarchyConfig
     reasons: dict[str, Any]
-    bank: ScoreBank
-    plan: PseudoPlan
+    bank: ScoreBank | None
+    plan: PseudoPlan | None
     candidates: list[Candidate]
     ranked: list[Trial]
-    costs: CostModel
+    costs: CostModel | None
 
 
 def choose_config(
@@ -565,8 +586,14 @@ def auto(
     progress: bool = False,
     search_progress: Callable[[int, int], Any] | None = None,
     workdir: str | Path | None = None,
+    small_side: int | None = SMALL_SIDE,
 ) -> AutoResult:
     """Choose a hierarchy and fit its acceptance from the references alone.
+
+    References smaller than ``small_side`` pixels on their shorter side (the median of
+    :func:`reference_size`'s sample) are thumbnails: the :data:`SMALL_PRESET` preset is
+    taken as it ships, without pseudo-queries or a search (:data:`SMALL_SIDE` says why;
+    ``None``: always search).
 
     Args:
         reference_paths: the map's images, in file order.
@@ -588,6 +615,7 @@ def auto(
         target_precision, model, outside: the acceptance fit, as ``hmpf-calibrate``.
         workdir: where the pseudo-query images are written (default: a temporary folder,
             removed afterwards).
+        small_side: the thumbnail rule's bound in pixels (None: no rule).
 
     Returns:
         The config (a preset chosen as it ships keeps its name and digest; else ``name``)
@@ -598,6 +626,10 @@ def auto(
     pool = pool if pool is not None else auto_pool()
     space = space if space is not None else SearchSpace(tuple(pool.method_ids))
     n = len(reference_paths)
+    if small_side is not None:
+        size = reference_size(reference_paths)
+        if min(size) < small_side:
+            return _thumbnails_choice(size, small_side, n, seed, pool, costs, budget_ms, t_start)
     where: RoutePositions = route_positions(n, metadata)
     plan_ = plan(
         where,
@@ -681,6 +713,58 @@ def auto(
         "config": config.model_dump(mode="json"),
     }
     return AutoResult(config, reasons, bank, plan_, choice.candidates, choice.ranked, costs)
+
+
+def reference_size(reference_paths: Sequence[str | Path]) -> tuple[int, int]:
+    """The references' (width, height): the median of each over :data:`SIZE_SAMPLE`
+    references spread evenly along the list (every reference of a shorter list)."""
+    n = len(reference_paths)
+    if n == 0:
+        raise ConfigError("no references to choose a hierarchy from")
+    picks = np.unique(np.linspace(0, n - 1, min(SIZE_SAMPLE, n)).round().astype(int))
+    shapes = np.array([load_image(reference_paths[int(i)]).shape[:2] for i in picks])
+    height, width = np.median(shapes, axis=0)
+    return int(width), int(height)
+
+
+def _thumbnails_choice(
+    size: tuple[int, int],
+    small_side: int,
+    n: int,
+    seed: int,
+    pool: HierarchyConfig,
+    costs: CostModel | None,
+    budget_ms: float | None,
+    t_start: float,
+) -> AutoResult:
+    """The choice for thumbnails (:data:`SMALL_SIDE`): :data:`SMALL_PRESET` as it ships."""
+    config = load_config(SMALL_PRESET)
+    own = shipped_acceptance().get(config.digest())
+    if own is not None:
+        config = config.model_copy(update={"acceptance": own})
+    costs = nominal_costs(pool, n) if costs is None else costs
+    why = (
+        f"the references are {size[0]} x {size[1]} px, below {small_side} px on the shorter "
+        f"side: thumbnails, for which pseudo-queries do not predict real queries; the "
+        f"{SMALL_PRESET!r} preset is taken as it ships, without a search"
+    )
+    reasons: dict[str, Any] = {
+        "mode": "auto",
+        "machine": machine_description(),
+        "seed": seed,
+        "pool": pool.name,
+        "budget_ms": budget_ms,
+        "rule": {"image_size": list(size), "small_side": small_side, "preset": SMALL_PRESET},
+        "sample": {"references": n, "sized": min(SIZE_SAMPLE, n)},
+        "evaluated": 0,
+        "candidates": [],
+        "chosen": {"hierarchy": SMALL_PRESET, "source": "rule", "why": why},
+        "acceptance_source": "shipped" if own is not None else "the preset's own rules",
+        "digest": config.digest(),
+        "time_s": {"total_s": time.perf_counter() - t_start},
+        "config": config.model_dump(mode="json"),
+    }
+    return AutoResult(config, reasons, None, None, [], [], costs)
 
 
 def _kept_acceptance(

@@ -14,11 +14,14 @@ from hmpf.cli.calibrate import main as calibrate_main
 from hmpf.config import AcceptanceSettings, load_config, parse_config
 from hmpf.datasets import list_images
 from hmpf.evaluation.auto import (
+    SMALL_PRESET,
+    SMALL_SIDE,
     _kept_acceptance,
     auto,
     choose_config,
     mask_sources,
     pseudo_bank,
+    reference_size,
 )
 from hmpf.evaluation.calibrate import SearchSpace
 from hmpf.evaluation.pseudo import (
@@ -284,3 +287,53 @@ def test_a_preset_kept_as_it_ships_keeps_its_shipped_models() -> None:
     local = derive_config(default, [(["olo"], 5), (["gist"], 1)], name="auto")
     config, source = _kept_acceptance(local, local.model_copy(update={"acceptance": pseudo}))
     assert config.acceptance == pseudo and "lock rule" in source
+
+
+# -- thumbnails: the size rule ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def thumbs(nordland: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The first 40 Nordland summer thumbnails (64 x 32), symlinked into their own folder."""
+    out = tmp_path_factory.mktemp("thumbs")
+    for p in list_images(nordland / "summer")[:N_IMAGES]:
+        (out / p.name).symlink_to(p)
+    return out
+
+
+def test_reference_size_is_the_median_width_and_height(refs: Path, thumbs: Path) -> None:
+    gp = load_image(list_images(refs)[0]).shape
+    assert reference_size(list_images(refs)) == (gp[1], gp[0])
+    assert reference_size(list_images(thumbs)) == (64, 32)
+
+
+def test_thumbnails_take_the_thumbnails_preset_without_a_search(thumbs: Path) -> None:
+    config, reasons = choose_config(list_images(thumbs), seed=3)
+    assert config.digest() == load_config(SMALL_PRESET).digest() == reasons["digest"]
+    assert reasons["rule"] == {
+        "image_size": [64, 32],
+        "small_side": SMALL_SIDE,
+        "preset": SMALL_PRESET,
+    }
+    assert reasons["evaluated"] == 0 and reasons["candidates"] == []
+    assert reasons["chosen"]["hierarchy"] == SMALL_PRESET and "64 x 32" in reasons["chosen"]["why"]
+    assert json.loads(json.dumps(reasons)) == reasons
+    assert choose_config(list_images(thumbs), seed=4)[0].digest() == config.digest()
+
+
+def test_the_size_rule_can_be_turned_off(thumbs: Path, cache: FeatureCache) -> None:
+    result = auto(
+        list_images(thumbs), seed=1, cache=cache, pool=parse_config(POOL), small_side=None, **SMALL
+    )
+    assert result.bank is not None and result.reasons["evaluated"] > 0
+    assert "rule" not in result.reasons and result.reasons["candidates"]
+
+
+def test_hmpf_calibrate_auto_says_the_rule(thumbs: Path, tmp_path: Path) -> None:
+    out = tmp_path / "auto.yaml"
+    args = ["--auto", "--references", str(thumbs), "--out", str(out), "--quiet"]
+    assert calibrate_main(args) == 0
+    assert load_config(out).digest() == load_config(SMALL_PRESET).digest()
+    text = out.read_text()
+    assert "Chosen: thumbnails" in text and "below 128 px" in text
+    assert (tmp_path / "auto.yaml.reasons.json").exists()
