@@ -62,10 +62,12 @@ fi
 
 T0=$(date +%s)
 TIMES=()
+STEPS=()  # "name=seconds" for RECORD
 step_start() { STEP=$1; STEP_T=$(date +%s); echo; echo "== $STEP"; }
 step_end() {
     local dt=$(( $(date +%s) - STEP_T ))
     TIMES+=("$(printf '%-32s %5d s' "$STEP" "$dt")")
+    STEPS+=("$STEP=$dt")
     echo "-- $STEP: ${dt} s"
 }
 fail() { echo "container-test FAILED: $*" >&2; exit 1; }
@@ -90,6 +92,8 @@ trap 'exit 130' INT TERM
 [ -n "$BUILD_ONLY" ] || [ -f "$QUERY" ] || fail "no query frame $QUERY"
 
 # ---- images ------------------------------------------------------------------------------
+BASE_KEPT=no  # whether the base image was there before this run (then it is not rebuilt)
+"$PODMAN" image exists "$BASE_IMAGE" 2>/dev/null && BASE_KEPT=yes
 step_start "base image"
 case "$BASE_IMAGE" in
     localhost/hmpf-base:*) "$ROOT/docker/local-base.sh" "$BASE_IMAGE" ;;
@@ -218,3 +222,10 @@ echo
 echo "== container-test passed in $(( $(date +%s) - T0 )) s"
 echo "query $(basename "$QUERY") -> $MATCH"
 report
+if [ -n "${RECORD:-}" ]; then  # the run as a JSON record (docs/deployment-container.md's tables)
+    python3 "$ROOT/docker/record.py" "$RECORD" "$WORK/answer.json" \
+        "total=$(( $(date +%s) - T0 ))" "base_kept=$BASE_KEPT" "torch=$SERVICE_TORCH" \
+        "indexer_mb=$(size_mb "$INDEXER_IMAGE")" "service_mb=$(size_mb "$SERVICE_IMAGE")" \
+        "base_mb=$(size_mb "$BASE_IMAGE")" -- "${STEPS[@]}"
+    echo "record: $RECORD"
+fi
