@@ -88,8 +88,8 @@ haproxy:
 ## apt-get when missing (root). docs/deployment-container.md
 ## container-test: the same build (tag test), then the indexer job over Gardens Point
 ## day_right ($(HMPF_DATASETS), mounted read-only), the service with API keys, and a night frame
-## localized through its port (docker/container-test.sh): 6 min 41 s measured from nothing on 2
-## cores, about 2.5 min with the base image and build cache kept
+## localized through its port (docker/container-test.sh); RECORD=path writes the run as a JSON
+## record (docs/deployment-container.md, "Measured")
 CONTAINER_TOOLS = @PATH="$$PATH:/usr/sbin:/sbin"; \
 	command -v podman >/dev/null && command -v runc >/dev/null && \
 	command -v mmdebstrap >/dev/null && command -v curl >/dev/null || { \

@@ -30,8 +30,9 @@ p < 0.05), within 3 points of the oracle, and >= 0.58 on Nordland. Writes the JS
 (provenance from :mod:`bench.harness`) and a Markdown printout beside it (``.md``).
 
 ``--time N [N ...]`` measures instead how long the choice takes (what it adds to an index
-build): :func:`hmpf.evaluation.auto.choose_config` on the first N Nordland summer references,
-each with an empty feature cache (every pool feature extracted), as one process on this
+build): :func:`hmpf.evaluation.auto.choose_config` (the size rule off: the search) on the
+first N Nordland references (summer, winter, then their mirror images), each with an empty
+feature cache (every pool feature extracted), as one process on this
 machine; the time per step, the sample sizes and the load average, written to ``--out``.
 """
 
@@ -45,6 +46,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy.stats import spearmanr
 
@@ -287,38 +289,63 @@ def markdown(record: dict[str, Any]) -> str:
 def time_choice(sizes: list[int], args: Any) -> dict[str, Any]:
     """``--time``: the choice on the first N Nordland references, cold cache: the summer
     drive, then the winter drive (a map of two drives, each its own ``sequence``, for N
-    above one drive's 3,576). The size rule is off: its search is what a build of a
-    camera's frames waits for (thumbnails take the rule's preset in well under a second)."""
+    above one drive's 3,576; past both, their mirror images as a third, :func:`mirror_images`).
+    The size rule is off: its search is what a build of a camera's frames waits for
+    (thumbnails take the rule's preset in well under a second)."""
+    if max(sizes) > 4 * 3576:
+        raise SystemExit(f"--time {max(sizes)}: at most {4 * 3576} (two drives and their mirrors)")
     drives = [list_images(Path(args.datasets) / folder) for folder in NORDLAND]
-    refs = [p for d in drives for p in d]
+    refs: list[Path] = [p for d in drives for p in d]
     drive = np.array([name for name, d in zip(NORDLAND, drives, strict=True) for _ in d])
     out: dict[str, Any] = {}
-    for n in sizes:
-        if n > len(refs):
-            raise SystemExit(f"--time {n}: Nordland has {len(refs)} distinct images")
-        with tempfile.TemporaryDirectory(prefix="hmpf-auto-time-") as tmp:
-            load = os.getloadavg()
-            t0 = time.perf_counter()
-            _, reasons = choose_config(
-                refs[:n],
-                {"sequence": drive[:n]},
-                seed=args.seed,
-                cache=FeatureCache(tmp),
-                workers=args.workers,
-                small_side=None,  # the search, as a camera's frames run it (thumbnails skip it)
-            )
-            wall = time.perf_counter() - t0
-        out[str(n)] = {
-            "references": n,
-            "wall_s": wall,
-            "steps_s": reasons["time_s"],
-            "sample": reasons["sample"],
-            "chosen": reasons["chosen"]["hierarchy"],
-            "load_start": list(load),
-            "load_end": list(os.getloadavg()),
-        }
-        print(f"{n} references: {wall:.0f} s ({reasons['time_s']})", flush=True)
+    with tempfile.TemporaryDirectory(prefix="hmpf-auto-mirror-") as mirror_dir:
+        more = max(sizes) - len(refs)
+        if more > 0:  # past both drives: their mirror images, a third "drive"
+            mirrored = mirror_images(refs[:more], Path(mirror_dir))
+            refs += mirrored
+            drive = np.concatenate([drive, np.array(["mirrored"] * len(mirrored))])
+        for n in sizes:
+            out[str(n)] = _time_one(refs[:n], drive[:n], args)
     return out
+
+
+def mirror_images(paths: list[Path], folder: Path) -> list[Path]:
+    """Each image flipped left to right, written to ``folder`` (distinct images of the same
+    size and statistics, for a map larger than the data sets)."""
+    out = []
+    for i, p in enumerate(paths):
+        dst = folder / f"mirror{i:05d}_{p.name}"
+        cv2.imwrite(str(dst), cv2.flip(cv2.imread(str(p)), 1))
+        out.append(dst)
+    return out
+
+
+def _time_one(refs: list[Path], drive: np.ndarray, args: Any) -> dict[str, Any]:
+    """One ``--time`` row: the choice on ``refs``, cold cache."""
+    n = len(refs)
+    with tempfile.TemporaryDirectory(prefix="hmpf-auto-time-") as tmp:
+        load = os.getloadavg()
+        t0 = time.perf_counter()
+        _, reasons = choose_config(
+            refs,
+            {"sequence": drive},
+            seed=args.seed,
+            cache=FeatureCache(tmp),
+            workers=args.workers,
+            small_side=None,  # the search, as a camera's frames run it (thumbnails skip it)
+        )
+        wall = time.perf_counter() - t0
+    print(f"{n} references: {wall:.0f} s ({reasons['time_s']})", flush=True)
+    return {
+        "references": n,
+        "mirrored": int(np.sum(drive == "mirrored")),
+        "wall_s": wall,
+        "steps_s": reasons["time_s"],
+        "sample": reasons["sample"],
+        "chosen": reasons["chosen"]["hierarchy"],
+        "load_start": list(load),
+        "load_end": list(os.getloadavg()),
+    }
 
 
 def timing_markdown(record: dict[str, Any]) -> str:
@@ -328,7 +355,8 @@ def timing_markdown(record: dict[str, Any]) -> str:
         "",
         f"{record['machine']}; commit {str(record.get('commit'))[:12]}; {record['date']}; "
         f"{record['note']}. Nordland references (64 x 32: the summer drive, then the winter "
-        "drive) with the size rule off (the search a camera's frames wait for), seed "
+        "drive, then their mirror images) with the size rule off (the search a camera's frames "
+        "wait for), seed "
         f"{record['arguments']['seed']}; seconds.",
         "",
         "| references | looked at | pseudo-queries | total | fit | make | extract | score "
@@ -341,8 +369,10 @@ def timing_markdown(record: dict[str, Any]) -> str:
             f"{t[k]:.0f}"
             for k in ("fit_s", "make_s", "extract_s", "score_s", "search_s", "check_s")
         )
+        mirrored = f" ({r['mirrored']} mirrored)" if r.get("mirrored") else ""
         lines.append(
-            f"| {r['references']} | {s['map']} | {s['pseudo_queries']} | **{r['wall_s']:.0f}** "
+            f"| {r['references']}{mirrored} | {s['map']} | {s['pseudo_queries']} | "
+            f"**{r['wall_s']:.0f}** "
             f"| {steps} | {t['acceptance_s']:.0f} | {r['load_start'][0]:.1f}, "
             f"{r['load_end'][0]:.1f} | {r.get('measured', record)['date'][:10]} |"
         )
@@ -388,7 +418,8 @@ def main() -> int:
         type=int,
         nargs="+",
         metavar="N",
-        help="measure the choice's time on the first N Nordland summer references instead",
+        help="measure the choice's time on the first N Nordland references instead (summer, "
+        "winter, then their mirror images; the size rule off)",
     )
     add_json(ap, "--out", default=str(DEFAULT_OUT), help="the JSON record (and .md beside it)")
     ap.add_argument(

@@ -4,7 +4,8 @@
 
 Runs with the host's ``python3`` and its standard library only (the script's other helper
 runs the same way): the steps' seconds, the image sizes, whether the service image holds
-torch, the answer's match, and the provenance (date, commit, machine, load average).
+torch, the answer's match, the served config (``index.json`` beside the answer: ``GET
+/v1/index``) and the provenance (date, commit, machine, load average).
 """
 
 from __future__ import annotations
@@ -42,13 +43,18 @@ def main(argv: list[str]) -> int:
     fields = dict(a.split("=", 1) for a in rest[:split])
     steps = {name: int(s) for name, s in (a.rsplit("=", 1) for a in rest[split + 1 :])}
     match = json.loads(Path(answer_path).read_text())["match"]
+    index_path = Path(answer_path).with_name("index.json")  # GET /v1/index, when fetched
+    config = json.loads(index_path.read_text())["config"] if index_path.exists() else {}
     root = Path(__file__).resolve().parent.parent
     record = {
+        # the indexer job's HMPF_CONFIG, which the script leaves at "default"
+        "preset": config.get("name", "default"),
+        "config": config or None,  # the resolved config the service loaded
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "commit": _git(root, "rev-parse", "HEAD"),
-        "uncommitted_changes": bool(_git(root, "status", "--porcelain", "--untracked-files=no")),
+        "code_changed_since_commit": (_git(root, "diff", "--name-only", "HEAD") or "").split(),
         "machine": f"{_cpu()}, {os.cpu_count()} cores",
-        "load_1min": os.getloadavg()[0],
+        "machine_details": {"cores": os.cpu_count(), "load_1min": os.getloadavg()[0]},
         "base_image_kept": fields["base_kept"] == "yes",
         "steps_s": steps,
         "total_s": int(fields["total"]),

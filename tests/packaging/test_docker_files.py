@@ -6,9 +6,11 @@ the test suite; these checks catch a broken file before that."""
 from __future__ import annotations
 
 import fnmatch
+import json
 import os
 import re
 import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -206,3 +208,27 @@ def test_container_scripts_parse_and_are_executable() -> None:
     makefile = (ROOT / "Makefile").read_text()
     assert re.search(r"^container-test:", makefile, re.M)
     assert "docker/container-test.sh" in makefile
+
+
+def test_record_writes_the_container_run(tmp_path: Path) -> None:
+    """``docker/record.py`` (``RECORD=path make container-test``; standard library only, as
+    the host's python3 runs it): the steps, sizes, answer and served config land in the record
+    the docs are made from."""
+    answer = {"match": {"name": "Image051.jpg", "reference_id": 51, "score": 2.5, "p_correct": 0.9}}
+    (tmp_path / "answer.json").write_text(json.dumps(answer))
+    (tmp_path / "index.json").write_text(json.dumps({"config": {"name": "default", "tiers": []}}))
+    out = tmp_path / "record.json"
+    fields = ["total=12", "base_kept=yes", "torch=no", "indexer_mb=1800", "service_mb=830"]
+    cmd = [sys.executable, str(ROOT / "docker" / "record.py"), str(out)]
+    cmd += [str(tmp_path / "answer.json"), *fields, "base_mb=209", "--"]
+    cmd += ["base image=0", "build indexer image=7", "localize a night frame=1"]
+    subprocess.run(cmd, check=True)
+    rec = json.loads(out.read_text())
+    steps = {"base image": 0, "build indexer image": 7, "localize a night frame": 1}
+    assert rec["steps_s"] == steps
+    assert rec["total_s"] == 12 and rec["base_image_kept"] is True
+    assert rec["images_mb"] == {"indexer": 1800, "service": 830, "base": 209}
+    assert rec["service_has_torch"] is False and rec["preset"] == "default"
+    assert rec["answer"]["reference_id"] == 51 and rec["answer"]["accepted"] is None
+    assert rec["config"] == {"name": "default", "tiers": []}
+    assert rec["commit"] and rec["machine_details"]["cores"] == os.cpu_count()
