@@ -217,6 +217,8 @@ EOF
 ) || fail "bad answer"
 echo "answer: $MATCH"
 step_end
+# the served config, for RECORD (its digest names what was measured)
+curl -fsS -H "X-API-Key: $KEY" "$URL/v1/index" >"$WORK/index.json" || fail "GET /v1/index failed"
 
 echo
 echo "== container-test passed in $(( $(date +%s) - T0 )) s"
