@@ -11,7 +11,8 @@ whose content this module writes: the table made by the generator ``NAME`` (see
 :data:`GENERATORS`) from its JSON, followed by a "Source:" line naming the JSON file, the
 preset and config digest, the machine, the date and the commit, as the JSON records them
 (what it does not record is said to be not recorded, never filled in by hand). The
-calibration leaderboards (:data:`WHOLE_PAGES`) are generated whole from their reports.
+calibration leaderboards, the ``hmpf-eval experiments`` reports and the automatic choice's
+printouts (:data:`WHOLE_PAGES`) are generated whole from their reports.
 
     python -m bench.pages            # rewrite the pages' generated blocks
     python -m bench.pages --check    # exit 1, listing the pages that differ
@@ -33,11 +34,17 @@ from pathlib import Path
 from typing import Any
 
 from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
+from hmpf.runtime import vector_extensions
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 #: pages outside those folders that hold generated blocks
-PAGE_FILES = ("docs/scale.md", "docs/operators-guide.md", "README.md")
+PAGE_FILES = (
+    "docs/scale.md",
+    "docs/operators-guide.md",
+    "docs/deployment-container.md",
+    "README.md",
+)
 BLOCK = re.compile(
     r"(?P<open><!-- generated: (?P<name>[\w.:/,-]+) -->\n)"
     r"(?P<body>.*?)(?P<close><!-- /generated -->)",
@@ -1508,6 +1515,52 @@ def leaderboard_page(root: Path, folder: str) -> str:
     return leaderboard_markdown(load(root, f"{folder}/calibration.json"))
 
 
+#: ``hmpf-eval experiments`` reports: folder -> the title it was run with
+EXPERIMENT_TITLES = {
+    "gp_dr_nr": "Gardens Point day_right -> night_right",
+    "gp_dl_nr": "Gardens Point day_left -> night_right",
+    "gp_dl_dr": "Gardens Point day_left -> day_right",
+}
+
+
+def _int_keys(x: Any) -> Any:
+    """``x`` with every all-digit dict key an int again (JSON made them strings)."""
+    if isinstance(x, dict):
+        return {_key(k): _int_keys(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_int_keys(v) for v in x]
+    return x
+
+
+def _key(k: Any) -> Any:
+    return int(k) if isinstance(k, str) and k.isdigit() else k
+
+
+def experiments_report_page(root: Path, name: str) -> str:
+    """An ``hmpf-eval experiments`` report, whole, from its ``experiments.json``."""
+    from hmpf.evaluation.experiments import report_markdown  # the evaluation stack: lazily
+
+    folder = root / "docs" / "experiments" / name
+    figures = [Path(p.name) for p in sorted(folder.glob("fig*.png"))]
+    res = _int_keys(load(root, f"docs/experiments/{name}/experiments.json"))
+    return report_markdown(res, EXPERIMENT_TITLES[name], figures)
+
+
+def auto_acceptance_page(root: Path, rel: str, found: bool) -> str:
+    """``bench.auto_acceptance``'s printout, whole, from its record."""
+    from bench import auto_acceptance  # the acceptance bench: only for these pages
+
+    fn = auto_acceptance.found_markdown if found else auto_acceptance.markdown
+    return fn(load(root, rel)) + "\n"
+
+
+def auto_timing_page(root: Path) -> str:
+    """``bench.auto_config --time``'s printout, whole, from its record."""
+    from bench.auto_config import timing_markdown  # the auto bench: only for this page
+
+    return timing_markdown(load(root, "docs/experiments/auto_config/timing.json"))
+
+
 CPU_LEVERS = "docs/experiments/cpu_levers"
 RUNTIME_LABELS = {
     "onnx": "ONNX Runtime, float32 (the default)",
@@ -1715,12 +1768,29 @@ def cnn_batch(root: Path) -> str:
 
 
 # pages generated whole (no prose of their own): path -> renderer
-WHOLE_PAGES: dict[str, Callable[[Path], str]] = {
-    f"docs/experiments/{name}/leaderboard.md": (
-        lambda root, name=name: leaderboard_page(root, f"docs/experiments/{name}")
-    )
-    for name in ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr", "nordland_handcrafted")
-}
+WHOLE_PAGES: dict[str, Callable[[Path], str]] = (
+    {
+        f"docs/experiments/{name}/leaderboard.md": (
+            lambda root, name=name: leaderboard_page(root, f"docs/experiments/{name}")
+        )
+        for name in ("gp_dr_nr", "gp_dl_nr", "gp_dl_dr", "nordland_handcrafted")
+    }
+    | {
+        f"docs/experiments/{name}/report.md": (
+            lambda root, name=name: experiments_report_page(root, name)
+        )
+        for name in EXPERIMENT_TITLES
+    }
+    | {
+        "docs/experiments/auto_config/acceptance.md": lambda root: auto_acceptance_page(
+            root, "docs/experiments/auto_config/acceptance.json", found=False
+        ),
+        "docs/experiments/auto_config/acceptance_found.md": lambda root: auto_acceptance_page(
+            root, "docs/experiments/auto_config/acceptance_found.json", found=True
+        ),
+        "docs/experiments/auto_config/timing.md": auto_timing_page,
+    }
+)
 
 
 def render_all(root: Path, write: bool) -> list[str]:
@@ -2734,6 +2804,53 @@ def scale_million_ivfpq(root: Path) -> str:
     sources += source(FACTORIES_K1024, k1024, digest_note=" (recorded; no preset named)")
     sources += source(FACTORIES_WINTER, winter)
     return table(header, rows, align) + "\n" + "\n".join(bullets) + "\n" + sources
+
+
+CONTAINER = "docs/experiments/container/container-test.json"
+
+
+def _container_machine(data: dict[str, Any]) -> str:
+    """The record's machine, with its vector extensions (:func:`hmpf.runtime.vector_extensions`)
+    as the other records name them."""
+    ext = vector_extensions(set(data.get("cpu_flags", [])))
+    if ext is None:
+        return str(data["machine"])
+    cpu, _, cores = str(data["machine"]).rpartition(", ")
+    return f"{cpu} ({ext}), {cores}"
+
+
+@generator("container.measured")
+def container_measured(root: Path) -> str:
+    """``RECORD=... make container-test``: each step's seconds, the answer, the image sizes."""
+    data = load(root, CONTAINER)
+    base = "kept from an earlier run" if data["base_image_kept"] else "built by this run"
+    rows = [[step, str(sec)] for step, sec in data["steps_s"].items()]
+    rows.append(["**the whole script**", f"**{data['total_s']}**"])
+    a = data["answer"]
+    accepted = "accepted" if a["accepted"] else "not accepted"
+    sizes = data["images_mb"]
+    torch = "yes" if data["service_has_torch"] else "no"
+    return (
+        f"The base image was {base}; the build cache as the machine had it.\n\n"
+        + table(["step", "s"], rows)
+        + f"\nThe answer: `{a['name']}` (reference {a['reference_id']}), score {a['score']:.4f}, "
+        f"`p_correct` {a['p_correct']:.4f}, {accepted}.\n\n"
+        + table(
+            ["image", "size", "torch"],
+            [
+                ["`indexer` (`cnn,index,service`)", f"{thousands(sizes['indexer'])} MB", "yes"],
+                ["`service` (`serve`)", f"{thousands(sizes['service'])} MB", torch],
+                ["the local base (Debian bookworm, Python)", f"{sizes['base']} MB", "no"],
+            ],
+        )
+        + source(
+            CONTAINER,
+            {**data, "config": None, "machine": _container_machine(data)},
+            preset=data["preset"],
+            digest=config_digest(data["config"]) if data.get("config") else None,
+            extra="`podman image inspect --format '{{.Size}}'`, MB of 10^6 bytes",
+        )
+    )
 
 
 @generator("readme.large_maps")

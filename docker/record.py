@@ -27,14 +27,17 @@ def _git(root: Path, *args: str) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def _cpu() -> str:
+def _cpu() -> tuple[str, list[str]]:
+    """The first CPU's model name and its flags (``/proc/cpuinfo``)."""
+    fields: dict[str, str] = {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return platform.processor() or "unknown"
+    model = fields.get("model name") or platform.processor() or "unknown"
+    return model, fields.get("flags", "").split()
 
 
 def main(argv: list[str]) -> int:
@@ -46,6 +49,7 @@ def main(argv: list[str]) -> int:
     index_path = Path(answer_path).with_name("index.json")  # GET /v1/index, when fetched
     config = json.loads(index_path.read_text())["config"] if index_path.exists() else {}
     root = Path(__file__).resolve().parent.parent
+    cpu, flags = _cpu()
     record = {
         # the indexer job's HMPF_CONFIG, which the script leaves at "default"
         "preset": config.get("name", "default"),
@@ -53,7 +57,8 @@ def main(argv: list[str]) -> int:
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "commit": _git(root, "rev-parse", "HEAD"),
         "code_changed_since_commit": (_git(root, "diff", "--name-only", "HEAD") or "").split(),
-        "machine": f"{_cpu()}, {os.cpu_count()} cores",
+        "machine": f"{cpu}, {os.cpu_count()} cores",
+        "cpu_flags": flags,  # bench/pages.py names the vector extensions from them
         "machine_details": {"cores": os.cpu_count(), "load_1min": os.getloadavg()[0]},
         "base_image_kept": fields["base_kept"] == "yes",
         "steps_s": steps,
