@@ -2,6 +2,8 @@
 
 :func:`choose_config` is what ``hmpf-calibrate --auto`` runs and what an index build calls:
 
+0. **Thumbnails** (:data:`SMALL_SIDE`): references under 128 px on their shorter side take
+   the ``thumbnails`` preset as it ships, and none of the steps below runs.
 1. **Plan** (:func:`hmpf.evaluation.pseudo.plan`): at most ``max_references`` references
    (stretches spread along the routes) become the map; along each route, stretches take the
    roles fit / search / fit / check; at most ``max_queries`` pseudo-queries are made from the
@@ -626,11 +628,11 @@ def auto(
     pool = pool if pool is not None else auto_pool()
     space = space if space is not None else SearchSpace(tuple(pool.method_ids))
     n = len(reference_paths)
+    where: RoutePositions = route_positions(n, metadata)  # checks the metadata either way
     if small_side is not None:
         size = reference_size(reference_paths)
         if min(size) < small_side:
             return _thumbnails_choice(size, small_side, n, seed, pool, costs, budget_ms, t_start)
-    where: RoutePositions = route_positions(n, metadata)
     plan_ = plan(
         where,
         seed=seed,
