@@ -1554,6 +1554,13 @@ def auto_acceptance_page(root: Path, rel: str, found: bool) -> str:
     return fn(load(root, rel)) + "\n"
 
 
+def auto_config_page(root: Path, rel: str) -> str:
+    """``bench.auto_config``'s printout of a route run, whole, from its record."""
+    from bench.auto_config import markdown  # the auto bench: only for these pages
+
+    return markdown(load(root, rel))
+
+
 def auto_timing_page(root: Path) -> str:
     """``bench.auto_config --time``'s printout, whole, from its record."""
     from bench.auto_config import timing_markdown  # the auto bench: only for this page
@@ -1789,6 +1796,9 @@ WHOLE_PAGES: dict[str, Callable[[Path], str]] = (
             root, "docs/experiments/auto_config/acceptance_found.json", found=True
         ),
         "docs/experiments/auto_config/timing.md": auto_timing_page,
+        "docs/experiments/auto_config/nordland-400.md": lambda root: auto_config_page(
+            root, "docs/experiments/auto_config/nordland-400.json"
+        ),
     }
 )
 
