@@ -1471,16 +1471,17 @@ def prose_pages(root: Path) -> list[Path]:
     ]
 
 
-def _page_values(root: Path, page: Path, text: str) -> set[float]:
+def _numbers(text: str) -> set[float]:
+    return {float(x) for x in JSON_NUMBER.findall(text)}
+
+
+def _page_values(records: dict[Path, set[float]], page: Path, text: str) -> set[float]:
     """The numbers a page's prose may quote: its generated blocks' and those of every JSON
-    record in its folder or named on it."""
-    sources = [m.group(0) for m in BLOCK.finditer(text)]
-    for rec in sorted(root.glob("docs/**/*.json")):
+    record (``records``: each one's numbers, read once) in its folder or named on it."""
+    values = _numbers("".join(m.group(0) for m in BLOCK.finditer(text)))
+    for rec, numbers in records.items():
         if rec.parent == page.parent or rec.name in text:
-            sources.append(rec.read_text())
-    values: set[float] = set()
-    for src in sources:
-        values.update(float(x) for x in JSON_NUMBER.findall(src))
+            values |= numbers
     return values
 
 
@@ -1495,10 +1496,11 @@ def unsourced_figures(root: Path) -> list[tuple[str, str, str]]:
     """(page, figure, line) for each decimal figure in prose (outside generated blocks and
     code) that none of the page's records holds, less :data:`PROSE_NOT_MEASURED`."""
     out = []
+    records = {rec: _numbers(rec.read_text()) for rec in sorted(root.glob("docs/**/*.json"))}
     for page in prose_pages(root):
         rel = str(page.relative_to(root))
         text = page.read_text()
-        values = _page_values(root, page, text)
+        values = _page_values(records, page, text)
         prose = re.sub(r"```.*?```", "", BLOCK.sub("", text), flags=re.S)
         allowed = PROSE_NOT_MEASURED.get(rel, {})
         for line in prose.splitlines():
