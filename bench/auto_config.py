@@ -353,18 +353,19 @@ def timing_markdown(record: dict[str, Any]) -> str:
     lines = [
         "# How long the automatic choice takes",
         "",
-        f"{record['machine']}; commit {str(record.get('commit'))[:12]}; {record['date']}; "
-        f"{record['note']}. Nordland references (64 x 32: the summer drive, then the winter "
+        f"Latest run: {record['machine']}; commit {str(record.get('commit'))[:12]}; "
+        f"{record['date']}; {record['note']}; each row names the machine and date of the run "
+        "that measured it. Nordland references (64 x 32: the summer drive, then the winter "
         "drive, then their mirror images) with the size rule off (the search a camera's frames "
         "wait for), seed "
         f"{record['arguments']['seed']}; seconds.",
         "",
         "| references | looked at | pseudo-queries | total | fit | make | extract | score "
-        "| search | check | acceptance | load (start, end) | measured |",
+        "| search | check | acceptance | load (start, end) | measured on |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in record["timing"].values():
-        t, s = r["steps_s"], r["sample"]
+        t, s, m = r["steps_s"], r["sample"], r.get("measured", record)
         steps = " | ".join(
             f"{t[k]:.0f}"
             for k in ("fit_s", "make_s", "extract_s", "score_s", "search_s", "check_s")
@@ -374,21 +375,22 @@ def timing_markdown(record: dict[str, Any]) -> str:
             f"| {r['references']}{mirrored} | {s['map']} | {s['pseudo_queries']} | "
             f"**{r['wall_s']:.0f}** "
             f"| {steps} | {t['acceptance_s']:.0f} | {r['load_start'][0]:.1f}, "
-            f"{r['load_end'][0]:.1f} | {r.get('measured', record)['date'][:10]} |"
+            f"{r['load_end'][0]:.1f} | {m['machine']}, {m['date'][:10]} |"
         )
     return "\n".join(lines) + "\n"
 
 
-def resumed_routes(path: Path, protocols: list[str]) -> dict[str, Any]:
-    """The routes of an earlier (interrupted) run at ``path`` that are among ``protocols``,
-    each with the provenance of the run that measured it (``measured``)."""
+def resumed(path: Path, section: str, keep: list[str] | None = None) -> dict[str, Any]:
+    """The rows of ``section`` (``routes``, ``timing``) of an earlier run's record at
+    ``path`` (those named in ``keep``, or all), each with the provenance of the run that
+    measured it (``measured``; a row without one was measured by the record's own run)."""
     old = json.loads(path.read_text())
     keys = ("date", "commit", "code_changed_since_commit", "machine")
     head = {k: old[k] for k in keys if k in old}
     return {
-        name: {**route, "measured": route.get("measured", head)}
-        for name, route in old.get("routes", {}).items()
-        if name in protocols
+        name: {**row, "measured": row.get("measured", head)}
+        for name, row in old.get(section, {}).items()
+        if keep is None or name in keep
     }
 
 
@@ -436,7 +438,7 @@ def main() -> int:
         for row in rows.values():
             row["measured"] = {k: prov.get(k) for k in ("date", "commit", "machine")}
         if args.resume and Path(args.out).exists():  # keep the sizes measured before
-            rows = {**json.loads(Path(args.out).read_text())["timing"], **rows}
+            rows = {**resumed(Path(args.out), "timing"), **rows}
         timing = {
             **prov,
             "note": "one process, empty cache; each row gives the load at its start and end",
@@ -453,7 +455,7 @@ def main() -> int:
     routes: dict[str, Any] = {}
     record: dict[str, Any] = {}
     if args.resume and Path(args.out).exists():
-        routes = resumed_routes(Path(args.out), args.protocols)
+        routes = resumed(Path(args.out), "routes", args.protocols)
     for name in args.protocols:
         if name in routes:
             print(f"[{name}] kept from {args.out}", flush=True)

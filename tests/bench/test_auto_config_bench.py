@@ -1,14 +1,16 @@
 """Pieces of ``bench.auto_config``: the mirror images that take ``--time`` past the two
-Nordland drives, and the size rule's row of the report (the search measured beside it)."""
+Nordland drives, the size rule's row of the report (the search measured beside it), and the
+provenance ``--resume`` keeps for rows an earlier run measured."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from bench.auto_config import mirror_images
+from bench.auto_config import mirror_images, resumed, timing_markdown
 from bench.pages import auto_config_tables
 from hmpf.datasets import list_images
 
@@ -54,3 +56,37 @@ def test_the_report_says_what_the_size_rule_skipped_and_the_presets_left_out() -
     assert "Presets left out of the oracle: nordland_s_w: x." in text
     plain = auto_config_tables({"routes": {"nordland_s_w": _route()}})
     assert "size rule" not in plain and "left out" not in plain
+
+
+def _timing_row(n: int, **extra: object) -> dict[str, object]:
+    steps = ("fit_s", "make_s", "extract_s", "score_s", "search_s", "check_s", "acceptance_s")
+    return {
+        "references": n,
+        "wall_s": 100.0,
+        "steps_s": dict.fromkeys(steps, 1.0),
+        "sample": {"map": min(n, 1000), "pseudo_queries": 400},
+        "load_start": [1.0],
+        "load_end": [1.0],
+        **extra,
+    }
+
+
+def test_resumed_timing_rows_keep_the_machine_and_date_that_measured_them(tmp_path: Path) -> None:
+    head = {"date": "2026-01-01T00:00:00", "commit": "aaa", "machine": "old host"}
+    earlier = tmp_path / "timing.json"
+    earlier.write_text(json.dumps({**head, "timing": {"1000": _timing_row(1000)}}))
+    old = resumed(earlier, "timing")
+    assert old["1000"]["measured"] == head
+    now = {"date": "2026-02-02T00:00:00", "commit": "bbb", "machine": "new host"}
+    record = {
+        **now,
+        "note": "one process",
+        "arguments": {"seed": 0},
+        "timing": {**old, "10000": _timing_row(10000, measured=now)},
+    }
+    rows = [line for line in timing_markdown(record).splitlines() if line.startswith("| 10")]
+    assert rows[0].endswith("| old host, 2026-01-01 |")
+    assert rows[1].endswith("| new host, 2026-02-02 |")
+    # routes: only the protocols asked for are kept
+    earlier.write_text(json.dumps({**head, "routes": {"a": {}, "b": {}}}))
+    assert list(resumed(earlier, "routes", ["b"])) == ["b"]
