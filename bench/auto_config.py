@@ -477,6 +477,9 @@ def main() -> int:
             "load_end": list(os.getloadavg()),
         }
         write_json(args.out, record)  # after every route: a long run keeps what it measured
+    if not record:
+        print(f"every route asked for is kept from {args.out}: nothing measured, nothing written")
+        return 0
     out = Path(args.out)
     text = markdown(record)
     Path(out).with_suffix(".md").write_text(text)
