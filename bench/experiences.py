@@ -27,6 +27,13 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
   time per query with 1, 2 and 4 experiences per place (the extra experiences beyond the
   recorded pass are other traverses' frames merged with the gates open), and the merge's
   throughput (frames per second, extraction included).
+* ``merge_speed``: the merge's throughput with the features the service recorded with each
+  frame (setting ``experience_features``, on by default) against the same log with them
+  stripped (every frame extracted again): map = day_left, the fleet drives day_right
+  (recording at the lowest threshold), both logs merged with the same gates into copies of
+  the map, one after the other, each timed whole (``hmpf-index add``) and through its gates
+  (the report's ``frames_per_s``: reading, extraction or not, localisation and gates;
+  publishing excluded).
 
 What the merge added is audited against the ground truth: an experience is wrong when its
 frame's true place is more than 2 frames from the place it was merged into.
@@ -102,6 +109,8 @@ def main() -> int:
         out["poison"] = poison(map_dl, out["gp"], list_images(gp / "night_right"), min(ts))
     if "cost" in runs:
         out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
+    if "merge_speed" in runs:
+        out["merge_speed"] = merge_speed(map_dl, list_images(gp / "day_right"), min(ts))
     config = load_config(args.config)
     write_record(args.json, summary(out), args, preset=args.config, config=config)
     print(json.dumps(summary(out), indent=1))
@@ -550,6 +559,55 @@ def _reader_rss(index: Path) -> float:
     )
     query_dir = dataset_root() / "gardens_point" / "night_right"
     return float(run([sys.executable, "-c", code, str(index), str(query_dir)]).strip())
+
+
+def merge_speed(base: Path, fleet: list[Path], threshold: float) -> dict[str, Any]:
+    """The merge's throughput with the recorded features and without them (see the module
+    docstring): one drive, two logs, two merges."""
+    log = base.parent / "speed.log"
+    drive(_copy(base, "speed_served"), fleet, log, threshold)
+    stripped = base.parent / "speed_stripped.log"
+    records = list(read_log(log))
+    with ExperienceLog(stripped) as writer:
+        for r in records:
+            writer.append(
+                r.image,
+                content_type=r.content_type,
+                place=r.place,
+                place_name=r.place_name,
+                index_version=r.index_version,
+                p_correct=r.p_correct,
+                vehicle=r.vehicle,
+                timestamp=r.timestamp,
+                mode=r.mode,
+                received=r.received,
+            )
+    out: dict[str, Any] = {
+        "records": len(records),
+        "with_features": sum(r.features is not None for r in records),
+        "feature_bytes_per_record": float(
+            np.median([len(r.features) for r in records if r.features is not None] or [0])
+        ),
+        "image_bytes_per_record": float(np.median([len(r.image) for r in records] or [0])),
+    }
+    for name, source in (("extracted", stripped), ("recorded", log)):
+        index = _copy(base, f"speed_{name}")
+        timed = merge(index, [source], "--min-p-correct", str(threshold))
+        with IndexReader(index) as reader:
+            report = reader.manifest.get("experiences", {})
+        out[name] = {
+            "wall_s": timed["seconds"],
+            "gates_s": report.get("seconds"),
+            "frames_per_s": report.get("frames_per_s"),
+            "frames_extracted": report.get("frames_extracted"),
+            "features_recorded": report.get("features_recorded"),
+            "added": report.get("added"),
+            "gates": report.get("gates"),
+            "load_end": list(os.getloadavg()),
+        }
+        print(f"merge_speed {name}: {out[name]}", flush=True)
+    out["ratio_frames_per_s"] = out["recorded"]["frames_per_s"] / out["extracted"]["frames_per_s"]
+    return out
 
 
 def summary(out: dict[str, Any]) -> dict[str, Any]:

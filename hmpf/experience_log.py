@@ -18,8 +18,11 @@ full disk, a power cut before the fsync) is recognised instead of being read as 
     header length  u32, little-endian
     payload length u32, little-endian
     CRC-32         u32, over the two lengths, the header and the payload
-    header         JSON (UTF-8): a record's fields but the image
-    payload        the image bytes as uploaded
+    header         JSON (UTF-8): a record's fields but the image (and the features)
+    payload        the image bytes as uploaded, then, when the header has
+                   ``features_bytes``, that many bytes of the frame's features as the
+                   service extracted them (:func:`hmpf.features.pack_features`), so that a
+                   merge into the version that answered need not extract them again
 
 A *torn* tail (the frame a writer was appending when it died) is skipped without an error;
 a *damaged* stretch inside a segment (bytes changed on disk) is skipped by looking for the
@@ -116,6 +119,9 @@ class Record:
         received: when the service received the frame (seconds since the epoch): the clock
             retention by age goes by (a request's timestamp may use the vehicle's own epoch).
             NaN for a record written without one.
+        features: the frame's features as the answering version's methods extracted them
+            (:func:`hmpf.features.pack_features`, which names those methods); None when not
+            recorded (records written before they were, or recording without them).
     """
 
     image: bytes
@@ -130,10 +136,12 @@ class Record:
     log: str
     seq: int
     received: float = math.nan
+    features: bytes | None = field(default=None, repr=False)
 
     def header(self) -> dict[str, Any]:
-        """The record's fields but the image, as stored in its frame's header."""
-        return {
+        """The record's fields but the image and features, as stored in its frame's header
+        (with the features' length when there are some)."""
+        head = {
             "seq": self.seq,
             "log": self.log,
             "place": self.place,
@@ -146,6 +154,13 @@ class Record:
             "mode": self.mode,
             "content_type": self.content_type,
         }
+        if self.features is not None:
+            head["features_bytes"] = len(self.features)
+        return head
+
+    def payload(self) -> bytes:
+        """The frame's payload: the image, then the features (when there are some)."""
+        return self.image if self.features is None else self.image + self.features
 
     @property
     def age_time(self) -> float:
@@ -268,8 +283,14 @@ def _record(frame: _Frame) -> Record | None:
     h = frame.header
     try:
         received = h.get("received")
+        n_features = h.get("features_bytes")
+        image, features = frame.payload, None
+        if n_features is not None:
+            if not 0 < _int(n_features) <= len(image):
+                raise ValueError("features_bytes out of range")
+            image, features = image[:-n_features], image[-n_features:]
         rec = Record(
-            image=frame.payload,
+            image=image,
             content_type=_opt_str(h.get("content_type")),
             place=_int(h["place"]),
             place_name=_str(h["place_name"]),
@@ -281,6 +302,7 @@ def _record(frame: _Frame) -> Record | None:
             log=_str(h["log"]),
             seq=_int(h["seq"]),
             received=math.nan if received is None else float(received),
+            features=features,
         )
     except (KeyError, TypeError, ValueError):
         return None
@@ -566,8 +588,10 @@ class ExperienceLog:
         timestamp: float,
         mode: str,
         received: float | None = None,
+        features: bytes | None = None,
     ) -> Record:
-        """Append one frame; its :class:`Record` (with ``log`` and ``seq``) back.
+        """Append one frame (``features``: its packed features, or None); its
+        :class:`Record` (with ``log`` and ``seq``) back.
 
         Raises:
             ValueError: a field out of range (a negative place, p_correct outside [0, 1], a
@@ -591,9 +615,10 @@ class ExperienceLog:
             log=self.id,
             seq=self._next_seq,
             received=time.time() if received is None else float(received),
+            features=None if features is None else bytes(features),
         )
         _check(rec)
-        frame = encode_frame(rec.header(), rec.image)
+        frame = encode_frame(rec.header(), rec.payload())
         if self._fd is None or (self._size > 0 and self._size + len(frame) > self.segment_bytes):
             self._rotate()
         self._write(frame)
@@ -728,6 +753,8 @@ def _check(rec: Record) -> None:
         raise ValueError(f"mode must be one of {', '.join(MODES)} (got {rec.mode!r})")
     if not (math.isfinite(rec.timestamp) and math.isfinite(rec.received)):
         raise ValueError("timestamp and received must be finite")
+    if rec.features is not None and not rec.features:
+        raise ValueError("features, when given, must not be empty")
 
 
 # -- retention ----------------------------------------------------------------------------------

@@ -15,6 +15,8 @@ forward pass); methods whose ``requires_fit()`` is True are fitted first (:func:
 from __future__ import annotations
 
 import hashlib
+import io
+import json
 import multiprocessing
 import os
 import threading
@@ -44,6 +46,8 @@ __all__ = [
     "extract_query",
     "file_digest",
     "fit_methods",
+    "pack_features",
+    "unpack_features",
 ]
 
 
@@ -174,6 +178,50 @@ def _extract_one(
         {mid: t[0] for mid, t in times.items()},
         decode_ms,
     )
+
+
+#: The member of a packed feature set (:func:`pack_features`) that names its methods.
+_PACKED_KEYS = "__methods__"
+
+
+def pack_features(methods: Mapping[str, Method], features: Mapping[str, Any]) -> bytes:
+    """One image's features (``methods``' ids -> feature, as :func:`extract_query` returns
+    them) as ``.npz`` bytes: each method's arrays (:meth:`~hmpf.methods.base.Method.to_arrays`)
+    under ``<id>/<name>``, and the methods' :meth:`~hmpf.methods.base.Method.descriptor_key`
+    (code version, parameters, fitted state, CNN runtime), so that they are only ever read
+    back by the same methods (:func:`unpack_features`)."""
+    arrays: dict[str, np.ndarray] = {}
+    for mid, method in methods.items():
+        for name, value in method.to_arrays(features[mid]).items():
+            arrays[f"{mid}/{name}"] = np.asarray(value)
+    keys = {mid: m.descriptor_key() for mid, m in methods.items()}
+    arrays[_PACKED_KEYS] = np.frombuffer(json.dumps(keys, sort_keys=True).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, allow_pickle=False, **arrays)
+    return buf.getvalue()
+
+
+def unpack_features(methods: Mapping[str, Method], data: bytes) -> dict[str, Any] | None:
+    """The features :func:`pack_features` packed, when they were packed by exactly these
+    ``methods`` (the same ids and descriptor keys); None otherwise, or when ``data`` does not
+    read (the caller extracts them from the image instead)."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        keys = json.loads(arrays.pop(_PACKED_KEYS).tobytes().decode())
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, UnicodeDecodeError):
+        return None
+    if keys != {mid: m.descriptor_key() for mid, m in methods.items()}:
+        return None
+    out: dict[str, Any] = {}
+    for mid, method in methods.items():
+        prefix = f"{mid}/"
+        own = {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+        try:
+            out[mid] = method.from_arrays(own)
+        except (KeyError, ValueError, TypeError):
+            return None
+    return out
 
 
 def extract_query(

@@ -232,7 +232,8 @@ def experience_lines(report: Mapping[str, Any]) -> list[str]:
         + ", ".join(f"{_GATE_LABELS.get(k, k)} {v}" for k, v in gates.items())
         + f"; added {report['added']}"
         + (tail if places else ""),
-        f"frames extracted {report['frames_extracted']} "
+        f"frames extracted {report['frames_extracted']}, features read from the log "
+        f"{report.get('features_recorded', 0)} "
         f"({report['frames_per_s']:.1f} frames/s, extraction, localisation and gates)",
     ]
     lines += [f"  {line}" for line in report.get("rejected_agreement", [])]

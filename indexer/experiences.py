@@ -25,9 +25,13 @@ passes, in order, through these gates; the first it fails is counted (``MergeRep
 
 The knobs come from the hierarchy config's ``experiences:`` section
 (:class:`hmpf.config.ExperienceSettings`), command-line flags over them; a merge records the
-values it used, the logs and the counts in the manifest (``experiences``). Frames' features
-are extracted once each, by the build's own extraction (Ray included): every frame is written
-to the work folder as a file first. Experience rows follow the places (the format's order,
+values it used, the logs and the counts in the manifest (``experiences``). A frame's features
+are read from its record when the service recorded them (setting ``experience_features``)
+with methods equal to the version's (the same :meth:`~hmpf.methods.base.Method.descriptor_key`:
+parameters, fitted state, CNN runtime; :func:`hmpf.features.unpack_features`): those are the
+features the service answered the frame with. The others are extracted once each, by the
+build's own extraction (Ray included). Every frame is written to the work folder as a file
+first. Experience rows follow the places (the format's order,
 :data:`hmpf.index.tables.EXPERIENCE_COLUMNS`), named ``exp-<log>-<record>`` with the image's
 extension, with the frame's sha256, no source folder, a thumbnail and their provenance.
 """
@@ -53,6 +57,7 @@ from pydantic import ValidationError
 from hmpf.config import ExperienceSettings
 from hmpf.errors import DatasetError
 from hmpf.experience_log import read_log
+from hmpf.features import unpack_features
 from hmpf.hierarchy import Hierarchy
 from hmpf.imageio import probe_image
 from hmpf.index.layout import IndexBuildError
@@ -135,6 +140,8 @@ class FrameRecord(Protocol):
     def log(self) -> str: ...
     @property
     def seq(self) -> int: ...
+    @property
+    def features(self) -> bytes | None: ...
 
 
 @dataclass(frozen=True)
@@ -162,7 +169,9 @@ class MergeReport:
         gates: gate -> frames it stopped (:data:`GATES`, in order).
         added: experiences added (per place: ``added_per_place``).
         frames_extracted: frames whose features were extracted (those reaching the gates that
-            need features).
+            need features, but for ``features_recorded``).
+        features_recorded: frames reaching those gates whose features came from the log (the
+            service recorded them with the frame, extracted by the same methods).
         seconds: from the start to the end of the gates (publishing excluded).
         rejected_agreement: the first frames the agreement gate stopped, one line each.
         summary: the published version's :class:`~indexer.build.Summary` (None: nothing
@@ -183,10 +192,12 @@ class MergeReport:
     rejected_agreement: list[str] = field(default_factory=list)
     places: dict[str, int] = field(default_factory=dict)
     summary: Summary | None = None
+    features_recorded: int = 0
 
     @property
     def frames_per_s(self) -> float:
-        return self.frames_extracted / max(self.seconds, 1e-9)
+        """Frames through the gates that need features, per second."""
+        return (self.frames_extracted + self.features_recorded) / max(self.seconds, 1e-9)
 
     def to_json(self) -> dict[str, Any]:
         """The manifest's ``experiences`` entry."""
@@ -198,6 +209,7 @@ class MergeReport:
             "added": self.added,
             "added_per_place": {str(k): v for k, v in sorted(self.added_per_place.items())},
             "frames_extracted": self.frames_extracted,
+            "features_recorded": self.features_recorded,
             "frames_per_s": round(self.frames_per_s, 2),
             "seconds": round(self.seconds, 3),
             "settings": dict(self.settings),
@@ -360,10 +372,15 @@ def _screen(
 
 
 def _write_frames(
-    records: Iterable[FrameRecord], candidates: Sequence[_Candidate], folder: Path
-) -> list[Path]:
+    records: Iterable[FrameRecord],
+    candidates: Sequence[_Candidate],
+    folder: Path,
+    methods: Mapping[str, Method],
+) -> tuple[list[Path], list[dict[str, Any] | None]]:
     """Second pass: each candidate's bytes as a file in ``folder`` (written whole: a temporary
-    file renamed; one left by an interrupted run is kept when its bytes are the same).
+    file renamed; one left by an interrupted run is kept when its bytes are the same), and its
+    recorded features when the log holds some that ``methods`` extracted
+    (:func:`hmpf.features.unpack_features`; None: to be extracted).
 
     Raises:
         IndexBuildError: a record read in the first pass is gone or changed.
@@ -371,6 +388,7 @@ def _write_frames(
     folder.mkdir(parents=True, exist_ok=True)
     want = {(c.log, c.seq): c for c in candidates}
     paths: dict[tuple[str, int], Path] = {}
+    recorded: dict[tuple[str, int], dict[str, Any] | None] = {}
     for rec in records:
         c = want.get((rec.log, int(rec.seq)))
         if c is None or (c.log, c.seq) in paths:
@@ -383,10 +401,40 @@ def _write_frames(
             tmp.write_bytes(rec.image)
             os.replace(tmp, path)
         paths[(c.log, c.seq)] = path
+        packed = rec.features
+        recorded[(c.log, c.seq)] = None if packed is None else unpack_features(methods, packed)
     missing = [c for c in candidates if (c.log, c.seq) not in paths]
     if missing:
         raise IndexBuildError(_changed(missing[0]))
-    return [paths[(c.log, c.seq)] for c in candidates]
+    keys = [(c.log, c.seq) for c in candidates]
+    return [paths[k] for k in keys], [recorded[k] for k in keys]
+
+
+def _features(
+    paths: list[Path],
+    recorded: Sequence[dict[str, Any] | None],
+    methods: Mapping[str, Method],
+    work: WorkDir,
+    opt: BuildOptions,
+) -> tuple[dict[str, list[Any]], int, int]:
+    """Every candidate's features: the recorded ones as they are, the others extracted by
+    the build's extraction (:func:`indexer.build._extract`).
+
+    Returns:
+        features per method id (in candidate order), images whose extraction an interrupted
+        run had finished, and how many came from the log.
+    """
+    todo = [i for i, f in enumerate(recorded) if f is None]
+    extracted: dict[str, list[Any]] = {mid: [] for mid in methods}
+    resumed = 0
+    if todo:
+        extracted, resumed = _extract([paths[i] for i in todo], methods, work, opt)
+    at = {i: j for j, i in enumerate(todo)}
+    out = {
+        mid: [extracted[mid][at[i]] if f is None else f[mid] for i, f in enumerate(recorded)]
+        for mid in methods
+    }
+    return out, resumed, len(recorded) - len(todo)
 
 
 def _changed(c: _Candidate) -> str:
@@ -637,8 +685,8 @@ def _run(
             "options": opt.identity(),
         }
         tx.begin(job, resume)
-    paths = _write_frames(records, candidates, work.path / "frames")
-    features, resumed = _extract(paths, parent.methods, work, opt)
+    paths, recorded = _write_frames(records, candidates, work.path / "frames", parent.methods)
+    features, resumed, n_recorded = _features(paths, recorded, parent.methods, work, opt)
     agreeing, rejected = _agreement(parent, candidates, features, settings.agreement_window)
     counts["disagreeing"] = len(candidates) - len(agreeing)
     kept, counts["duplicate"], counts["over_cap"] = _diversity_gates(
@@ -653,7 +701,8 @@ def _run(
         records=n_records,
         gates=counts,
         added=len(kept),
-        frames_extracted=len(candidates),
+        frames_extracted=len(candidates) - n_recorded,
+        features_recorded=n_recorded,
         seconds=time.perf_counter() - started,
         settings=settings.model_dump(),
         dry_run=publish is None,

@@ -579,8 +579,10 @@ def run_query(
     prior: Prior | None,
     timing: dict[str, Any],
     executor: Executor | None = None,
+    features: dict[str, Any] | None = None,
 ) -> tuple[HierarchyResult | None, np.ndarray | None]:
-    """Extract, restrict to the prior and run the hierarchy for one decoded image.
+    """Extract, restrict to the prior and run the hierarchy for one decoded image
+    (``features``: when given, the image's features are put in it, by method id).
 
     Returns:
         (the result, or None when the prior leaves no place; the allowed place ids, or None
@@ -594,6 +596,8 @@ def run_query(
     feats = reader.extract_query(image, per_method, executor)
     timing["extract"] = (time.perf_counter() - t) * 1e3
     timing["extract_per_method"] = per_method
+    if features is not None:
+        features.update(feats)
     score_fn = place_fn = reader.scorer(feats)
     n = reader.n
     allowed: np.ndarray | None = None

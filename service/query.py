@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,6 +23,7 @@ from hmpf.confidence import absolute_evidence
 from hmpf.errors import HmpfError
 from hmpf.hierarchy import HierarchyResult
 from hmpf.index.layout import HmpfIndexError
+from hmpf.methods import Method
 from hmpf.sequence import Evidence
 from service.answer import localize_response, on_references
 from service.engine import Loaded, Prior, run_query
@@ -49,11 +51,14 @@ class ImageQuery:
         submitted: when the request handed it over (``perf_counter``), for the queue time.
         sequence: keep the frame's evidence for the sequence filter.
         decode_side: the working size the image is decoded at (0: full size).
+        keep_features: keep the image's features (for the experience log).
         evidence, loaded: after the call, in sequence mode: the evidence and the version it
             was computed on.
         result: after the call, in sequence mode: the frame's result on reference ids
             (:func:`~service.answer.on_references`; None when the prior left no reference),
             for the estimate's features (a sequence confidence model) and experience.
+        features, methods: after the call, with ``keep_features``: the image's features by
+            method id and the methods of the version that extracted them.
     """
 
     data: bytes
@@ -65,9 +70,12 @@ class ImageQuery:
     submitted: float = field(default_factory=time.perf_counter)
     sequence: bool = False
     decode_side: int = 0
+    keep_features: bool = False
     evidence: Evidence | None = field(default=None, init=False)
     loaded: Loaded | None = field(default=None, init=False, repr=False)
     result: HierarchyResult | None = field(default=None, init=False, repr=False)
+    features: dict[str, Any] | None = field(default=None, init=False, repr=False)
+    methods: Mapping[str, Method] | None = field(default=None, init=False, repr=False)
 
     def __call__(self, loaded: Loaded) -> LocalizeResponse:
         """Localise the image against ``loaded`` (on a query thread).
@@ -85,8 +93,11 @@ class ImageQuery:
             decode_side=self.decode_side,
         )
         timing["decode"] = _ms_since(t)
+        features: dict[str, Any] | None = {} if self.keep_features else None
         try:
-            result, allowed = run_query(loaded, image, _prior(self.params), timing, self.compute)
+            result, allowed = run_query(
+                loaded, image, _prior(self.params), timing, self.compute, features
+            )
         except HmpfIndexError as exc:  # the index, not the image (a row that cannot be read)
             log.error("index version %s: %s", loaded.version, exc)
             raise ApiError(
@@ -98,6 +109,8 @@ class ImageQuery:
             ) from None
         except HmpfError as exc:
             raise ApiError(422, "invalid_image", f"{self.source}: {exc}") from None
+        if features is not None:
+            self.features, self.methods = features, loaded.reader.methods
         if result is None:
             timing["hierarchy"] = 0.0
         else:

@@ -8,7 +8,10 @@ so the sequence answer is what counts). A frame is recorded when its answer's ma
 ``p_correct`` (a version without a confidence model) never is. The record holds the
 uploaded bytes, the matched place and its name, ``p_correct``, the vehicle's id (``""``
 without one), the frame's timestamp (the request's, else when it was received), the
-index version that answered and the mode (:class:`hmpf.experience_log.Record`).
+index version that answered and the mode (:class:`hmpf.experience_log.Record`), and, with
+``experience_features`` (on by default), the frame's features as that version's methods
+extracted them to answer it (:func:`hmpf.features.pack_features`, packed on the recorder's
+thread), which a merge into the same version reads instead of extracting them again.
 
 The request only puts the frame on a bounded queue: :meth:`Recorder.offer` never waits and
 never raises. One background thread appends to the log (:class:`~hmpf.experience_log.
@@ -28,10 +31,13 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from hmpf.experience_log import ExperienceLog, ExperienceLogError
+from hmpf.features import pack_features
+from hmpf.methods import Method
 from service.metrics import Metrics
 from service.schemas import LocalizeResponse
 from service.settings import Settings
@@ -61,6 +67,8 @@ class Frame:
     timestamp: float
     mode: str
     received: float
+    features: Mapping[str, Any] | None = None
+    methods: Mapping[str, Method] | None = None
 
 
 def recorded_mode(answer: LocalizeResponse, settings: Settings) -> str | None:
@@ -118,8 +126,12 @@ class Recorder:
         vehicle_id: str | None,
         timestamp: float | None,
         received: float,
+        features: Mapping[str, Any] | None = None,
+        methods: Mapping[str, Method] | None = None,
     ) -> bool:
         """Queue the frame when its answer is to be recorded; whether it was queued.
+        ``features``, ``methods``: the frame's features and the methods that extracted
+        them (packed into the record on the recorder's thread; None: recorded without).
 
         Never waits and never raises: a full queue, or anything unexpected, drops the frame
         (counted), so that the request it belongs to is answered as if nothing happened.
@@ -141,6 +153,8 @@ class Recorder:
                 timestamp=received if timestamp is None else timestamp,
                 mode=mode,
                 received=received,
+                features=features if methods is not None else None,
+                methods=methods,
             )
             self._queue.put_nowait(frame)
         except queue.Full:
@@ -197,6 +211,9 @@ class Recorder:
             self.metrics.experience_dropped.labels("error").inc()
             return
         try:
+            packed = None
+            if frame.features is not None and frame.methods is not None:
+                packed = pack_features(frame.methods, frame.features)
             writer.append(
                 frame.image,
                 content_type=frame.content_type,
@@ -208,6 +225,7 @@ class Recorder:
                 timestamp=frame.timestamp,
                 mode=frame.mode,
                 received=frame.received,
+                features=packed,
             )
         except ValueError as exc:  # a field the log refuses (e.g. an image over its bound)
             self.metrics.experience_dropped.labels("error").inc()

@@ -181,6 +181,12 @@ class Settings(BaseSettings):
         description="answers recorded by where they come from: sequence (the filter's "
         "estimate), single (one frame); several as a list or comma-separated",
     )
+    experience_features: bool = Field(
+        True,
+        description="record each frame's features with it (as the answering version's "
+        "methods extracted them: tens of KB per frame), so that `hmpf-index add "
+        "--experiences` into that version need not extract them again",
+    )
     experience_queue: int = Field(
         64, ge=1, description="frames waiting for the disk; one more is dropped (counted)"
     )

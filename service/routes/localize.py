@@ -262,6 +262,9 @@ class Localizer:
         if not self.engine.admit(self.lanes(len(uploads))):
             raise overloaded(self.settings.retry_after_s)
         compute = self.engine.compute
+        # recording on: each image keeps its features for the log (a merge then need not
+        # extract them); packed on the recorder's thread, never on the request's path
+        keep = self.recorder is not None and self.settings.experience_features
         return [
             ImageQuery(
                 u.data,
@@ -272,6 +275,7 @@ class Localizer:
                 compute,
                 sequence=sequence,
                 decode_side=side,
+                keep_features=keep,
             )
             for u in uploads
         ]
@@ -293,13 +297,19 @@ class Localizer:
         if vehicle is not None:
             (value,), _ = self.tracker.follow(vehicle, [value], queries)
         answer: LocalizeResponse = value
-        self.record(params, upload, answer, received)
+        self.record(params, upload, answer, received, queries[0])
         return answer
 
     def record(
-        self, params: LocalizeParams, upload: Upload, answer: LocalizeResponse, received: float
+        self,
+        params: LocalizeParams,
+        upload: Upload,
+        answer: LocalizeResponse,
+        received: float,
+        query: ImageQuery,
     ) -> None:
-        """Offer a final answer and its frame to the recorder (recording on; never waits)."""
+        """Offer a final answer and its frame (with its features, when the query kept them)
+        to the recorder (recording on; never waits)."""
         if self.recorder is not None:
             self.recorder.offer(
                 answer,
@@ -308,6 +318,8 @@ class Localizer:
                 params.vehicle_id,
                 params.timestamp,
                 received,
+                query.features,
+                query.methods,
             )
 
     async def answer_batch(self, params: LocalizeParams, uploads: list[Upload]) -> BatchResponse:
@@ -334,9 +346,9 @@ class Localizer:
                 (ok, new if ok else value)
                 for (ok, value), new in zip(outcomes, followed, strict=True)
             ]
-        for upload, (ok, value) in zip(uploads, outcomes, strict=True):
+        for upload, query, (ok, value) in zip(uploads, queries, outcomes, strict=True):
             if ok:
-                self.record(params, upload, value, received)
+                self.record(params, upload, value, received, query)
         items = [_batch_item(i, ok, value) for i, (ok, value) in enumerate(outcomes)]
         return BatchResponse(results=items, index_version=version, track=track)
 

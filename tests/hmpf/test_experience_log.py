@@ -30,6 +30,7 @@ from hmpf.experience_log import (
     ExperienceLogError,
     LogStats,
     Record,
+    encode_frame,
     log_id,
     prune,
     read_log,
@@ -93,6 +94,31 @@ def test_records_round_trip_and_the_log_keeps_its_id(tmp_path: Path) -> None:
     assert [r.seq for r in read(log)[0]] == list(range(7))
     assert (log.stat().st_mode & 0o777) == 0o700
     assert all((s.stat().st_mode & 0o777) == 0o600 for s in segments(log))
+
+
+def test_features_ride_after_the_image_and_older_records_have_none(tmp_path: Path) -> None:
+    log = tmp_path / "log"
+    packed = image(99, 77)
+    with ExperienceLog(log) as w:
+        plain = w.append(image(0), **fields(0))
+        rich = w.append(image(1), **fields(1), features=packed)
+        with pytest.raises(ValueError, match="features"):
+            w.append(image(2), **fields(2), features=b"")
+    got, stats = read(log)
+    assert got == [plain, rich] and stats.damaged == 0
+    assert got[0].features is None and got[0].image == image(0)
+    assert got[1].features == packed and got[1].image == image(1)
+    # the header says how many of the payload's bytes are features; a length that cannot be
+    # (more than the payload) makes the frame no record (skipped, never an image cut wrong)
+    data = segments(log)[0].read_bytes()
+    head = json.dumps(rich.header(), separators=(",", ":")).encode()
+    assert b'"features_bytes":77' in head and head in data
+    bad = head.replace(b'"features_bytes":77', b'"features_bytes":9999')
+    with ExperienceLog(tmp_path / "bad") as w:
+        w.append(image(0), **fields(0))
+    seg = segments(tmp_path / "bad")[0]
+    seg.write_bytes(seg.read_bytes() + encode_frame(json.loads(bad), rich.payload()))
+    assert [r.seq for r in read(tmp_path / "bad")[0]] == [0]
 
 
 def test_bad_fields_and_folders_are_refused(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ config section leaving every preset's digest as it was."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -25,7 +26,8 @@ import yaml
 from hmpf.config import ExperienceSettings, load_config, parse_config, preset_names
 from hmpf.errors import ConfigError, DatasetError
 from hmpf.experience_log import ExperienceLog, Record
-from hmpf.imageio import load_image
+from hmpf.features import pack_features, unpack_features
+from hmpf.imageio import decode_image, load_image
 from hmpf.index import IndexBuildError, IndexReader
 from indexer.build import BuildOptions, add, build, place_count, remove
 from indexer.cli import main
@@ -94,8 +96,6 @@ def record(
 
 def localised_place(reader: IndexReader, image: bytes) -> int:
     """Where one frame lands on its own: the service's path (decode, query features)."""
-    from hmpf.imageio import decode_image
-
     q = reader.extract_query(decode_image(image))
     return int(reader.hierarchy().run(reader.scorer(q), reader.n).match)
 
@@ -454,6 +454,36 @@ def test_merge_on_ray_equals_local(index: Path, gardens_point: Path, tmp_path: P
     for name in ("references.h5", "local.h5", "thumbnails.h5"):
         if name in want["files"]:
             assert got["files"][name]["sha256"] == want["files"][name]["sha256"], name
+
+
+def test_features_recorded_with_the_frames_are_read_not_extracted(
+    index: Path, gardens_point: Path, tmp_path: Path
+) -> None:
+    """Frames whose records carry the features the service answered them with (packed by the
+    version's own methods) merge without extraction, to the same gates, rows and features as
+    extracting them; features packed by other methods are not trusted: those are extracted."""
+    plain = [record(frame(gardens_point, "day_right", i), i, i) for i in range(12)]
+    with IndexReader(index) as r:
+        query = [r.extract_query(decode_image(rec.image)) for rec in plain]
+        packed = [pack_features(r.methods, q) for q in query]
+        hog_only = pack_features({"hog": r.methods["hog"]}, query[0])
+    assert unpack_features(dict(r.methods), b"not an npz") is None
+    rich = [dataclasses.replace(rec, features=f) for rec, f in zip(plain, packed, strict=True)]
+    rich[0] = dataclasses.replace(rich[0], features=hog_only)
+    other = tmp_path / "other"
+    shutil.copytree(index, other, ignore=shutil.ignore_patterns(".lock"))
+    extracted, read = merge(index, plain, options=OPTS), merge(other, rich, options=OPTS)
+    assert (extracted.frames_extracted, extracted.features_recorded) == (12, 0)
+    assert (read.frames_extracted, read.features_recorded) == (1, 11)
+    assert read.gates == extracted.gates and read.added == extracted.added > 0
+    manifest = json.loads((other / "v0002" / "manifest.json").read_text())
+    assert manifest["experiences"]["features_recorded"] == 11
+    with IndexReader(index) as a, IndexReader(other) as b:
+        assert a.refs.names == b.refs.names
+        for mid in a.methods:  # the service's decode and extraction equal the build's here
+            np.testing.assert_allclose(
+                np.asarray(b.columns(mid)), np.asarray(a.columns(mid)), rtol=0, atol=1e-6
+            )
 
 
 def test_derived_versions_keep_the_parents_faiss_type(index: Path, gardens_point: Path) -> None:

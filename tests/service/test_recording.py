@@ -29,10 +29,14 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
 from hmpf.config import load_config
 from hmpf.experience_log import ExperienceLog, LogStats, Record, read_log
+from hmpf.features import unpack_features
+from hmpf.imageio import decode_image
+from hmpf.index import IndexReader
 from indexer.build import build
 from service.metrics import Metrics
 from service.recording import Recorder, recorded_mode
@@ -252,7 +256,9 @@ def test_the_recorder_counts_what_the_bound_drops_and_closes_on_stop(
     ExperienceLog(log).close()  # released
 
 
-def test_a_sequence_drive_records_its_accepted_answers(recording: Server, frames) -> None:
+def test_a_sequence_drive_records_its_accepted_answers(
+    recording: Server, frames, index: Path
+) -> None:
     url, log = recording.url, recording.experiences  # type: ignore[attr-defined]
     car = Car(url, "car-7", frames)
     car.drive(range(0, 20))
@@ -293,6 +299,19 @@ def test_a_sequence_drive_records_its_accepted_answers(recording: Server, frames
             assert rec.timestamp == ts
         assert before - 120 <= rec.received <= time.time()
     assert [r.seq for r in got] == list(range(len(got)))
+    # Each record carries the features the service answered it with (setting
+    # experience_features, on by default), packed for the answering version's methods.
+    with IndexReader(index) as reader:
+        for rec in got[:3]:
+            assert rec.features is not None
+            feats = unpack_features(reader.methods, rec.features)
+            assert feats is not None
+            again = reader.extract_query(decode_image(rec.image))
+            for mid, m in reader.methods.items():
+                want, have = m.to_arrays(again[mid]), m.to_arrays(feats[mid])
+                assert want.keys() == have.keys()
+                for k in want:
+                    np.testing.assert_allclose(have[k], want[k], rtol=0, atol=1e-5)
     # What the log holds is (nearly always) the right place: frame i shows place i.
     right = sum(abs(rec.place - i) <= 2 for rec, (i, *_) in zip(got, expected, strict=True))
     assert right >= 0.9 * len(got), f"{right}/{len(got)} recorded at the right place"
