@@ -719,6 +719,53 @@ def auto_config_summary(root: Path) -> str:
     return auto_config_tables(data) + note + source(AUTO_CONFIG, data)
 
 
+MERGE_SPEED = "docs/experiments/experiences/merge_speed.json"
+
+
+@generator("experiences.merge_speed")
+def experiences_merge_speed(root: Path) -> str:
+    """``bench.experiences --runs merge_speed``: the merge with the recorded features and
+    with every frame extracted again, on one log."""
+    data = load(root, MERGE_SPEED)
+    m = data["merge_speed"]
+    at = min(float(t) for t in str(data["arguments"]["thresholds"]).split(","))
+    rows = [
+        [
+            label,
+            f"{r['frames_extracted']} / {r['features_recorded']}",
+            f1(r["gates_s"]),
+            f1(r["frames_per_s"]),
+            f1(r["wall_s"]),
+            f"{r['added']}",
+        ]
+        for label, r in (
+            ("features extracted again (the log stripped of them)", m["extracted"]),
+            ("features read from the log", m["recorded"]),
+        )
+    ]
+    return (
+        f"One drive of day_right against the day_left map, {m['records']} frames recorded at "
+        f"p_correct >= {at:g}, merged twice into copies of the map with the same gates, one after "
+        f"the other: {m['ratio_frames_per_s']:.1f}x the frames per second through the gates "
+        "with the recorded features. A record holds "
+        f"{thousands(m['feature_bytes_per_record'])} bytes of features beside its "
+        f"{thousands(m['image_bytes_per_record'])}-byte image (medians).\n\n"
+        + table(
+            [
+                "merge",
+                "extracted / read from the log",
+                "gates (s)",
+                "frames/s through the gates",
+                "whole hmpf-index add (s)",
+                "added",
+            ],
+            rows,
+        )
+        + "\n"
+        + source(MERGE_SPEED, data)
+    )
+
+
 @generator("experiences.summary")
 def experiences_summary(root: Path) -> str:
     """``python -m bench.experiences``: record, merge, test; poisoning; cost."""

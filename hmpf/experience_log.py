@@ -71,7 +71,7 @@ __all__ = [
 
 #: What a record's ``mode`` may be: the answer came from the sequence filter or from one frame.
 MODES = ("sequence", "single")
-DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB: about 10,000 camera frames of 100 KB
+DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB: about 6,000 frames of a 50 KB JPEG + 110 KB of features
 DEFAULT_SEGMENT_BYTES = 64 << 20
 DEFAULT_SYNC_EVERY = 32
 DEFAULT_SYNC_INTERVAL_S = 1.0
