@@ -375,12 +375,14 @@ def _write_frames(
     records: Iterable[FrameRecord],
     candidates: Sequence[_Candidate],
     folder: Path,
-    methods: Mapping[str, Method],
+    parent: IndexReader,
 ) -> tuple[list[Path], list[dict[str, Any] | None]]:
     """Second pass: each candidate's bytes as a file in ``folder`` (written whole: a temporary
     file renamed; one left by an interrupted run is kept when its bytes are the same), and its
-    recorded features when the log holds some that ``methods`` extracted
-    (:func:`hmpf.features.unpack_features`; None: to be extracted).
+    recorded features when the log holds some that the methods of ``parent`` (the
+    :class:`~hmpf.index.reader.IndexReader` merged into) extracted, laid out as its stored
+    rows are (:func:`hmpf.features.unpack_features`, :func:`_same_layout`; None: to be
+    extracted).
 
     Raises:
         IndexBuildError: a record read in the first pass is gone or changed.
@@ -389,6 +391,7 @@ def _write_frames(
     want = {(c.log, c.seq): c for c in candidates}
     paths: dict[tuple[str, int], Path] = {}
     recorded: dict[tuple[str, int], dict[str, Any] | None] = {}
+    stored: dict[str, dict[str, np.ndarray]] | None = None
     for rec in records:
         c = want.get((rec.log, int(rec.seq)))
         if c is None or (c.log, c.seq) in paths:
@@ -401,13 +404,53 @@ def _write_frames(
             tmp.write_bytes(rec.image)
             os.replace(tmp, path)
         paths[(c.log, c.seq)] = path
-        packed = rec.features
-        recorded[(c.log, c.seq)] = None if packed is None else unpack_features(methods, packed)
+        methods = parent.methods
+        feats = None if rec.features is None else unpack_features(methods, rec.features)
+        if feats is not None:
+            stored = stored or _stored_layout(parent)
+            feats = feats if _same_layout(methods, stored, feats) else None
+        recorded[(c.log, c.seq)] = feats
     missing = [c for c in candidates if (c.log, c.seq) not in paths]
     if missing:
         raise IndexBuildError(_changed(missing[0]))
     keys = [(c.log, c.seq) for c in candidates]
     return [paths[k] for k in keys], [recorded[k] for k in keys]
+
+
+def _stored_layout(parent: IndexReader) -> dict[str, dict[str, np.ndarray]]:
+    """Each method's arrays of the version's first row: what a recorded feature must look
+    like (:func:`_same_layout`)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for mid, m in parent.methods.items():
+        if m.kind == "global":
+            first: Any = np.asarray(parent.global_matrix(mid)[0:1])[0]
+        else:
+            (first,) = parent.local_features(mid, np.zeros(1, np.int64))
+        out[mid] = {k: np.asarray(v) for k, v in m.to_arrays(first).items()}
+    return out
+
+
+def _same_layout(
+    methods: Mapping[str, Method],
+    stored: Mapping[str, Mapping[str, np.ndarray]],
+    feats: Mapping[str, Any],
+) -> bool:
+    """Whether every recorded feature has the stored rows' arrays: the same names, dtypes,
+    dimensions and sizes but along the first axis (a count of keypoints or regions). The
+    packed methods' keys already match; this keeps bytes crafted or damaged to fit the keys
+    out of the version (they are extracted instead)."""
+    for mid, m in methods.items():
+        got = {k: np.asarray(v) for k, v in m.to_arrays(feats[mid]).items()}
+        want = stored[mid]
+        if got.keys() != want.keys():
+            return False
+        for k, w in want.items():
+            g = got[k]
+            if g.dtype != w.dtype or g.ndim != w.ndim or g.shape[1:] != w.shape[1:]:
+                return False
+            if m.kind == "global" and g.shape != w.shape:
+                return False
+    return True
 
 
 def _features(
@@ -685,7 +728,7 @@ def _run(
             "options": opt.identity(),
         }
         tx.begin(job, resume)
-    paths, recorded = _write_frames(records, candidates, work.path / "frames", parent.methods)
+    paths, recorded = _write_frames(records, candidates, work.path / "frames", parent)
     features, resumed, n_recorded = _features(paths, recorded, parent.methods, work, opt)
     agreeing, rejected = _agreement(parent, candidates, features, settings.agreement_window)
     counts["disagreeing"] = len(candidates) - len(agreeing)
