@@ -210,10 +210,13 @@ class Recorder:
         if writer is None:
             self.metrics.experience_dropped.labels("error").inc()
             return
-        try:
-            packed = None
-            if frame.features is not None and frame.methods is not None:
+        packed = None
+        if frame.features is not None and frame.methods is not None:
+            try:
                 packed = pack_features(frame.methods, frame.features)
+            except Exception as exc:  # never the thread's end: the frame goes without them
+                self._warn("features", "experience log %s: features not recorded: %s", exc)
+        try:
             writer.append(
                 frame.image,
                 content_type=frame.content_type,

@@ -256,6 +256,31 @@ def test_the_recorder_counts_what_the_bound_drops_and_closes_on_stop(
     ExperienceLog(log).close()  # released
 
 
+def test_features_that_cannot_be_packed_leave_the_frame_recorded_without_them(
+    frames: list[Path], tmp_path: Path, index: Path
+) -> None:
+    """The recorder packs a frame's features on its thread; features it cannot pack (here
+    one method's feature missing) cost the frame its features, never the frame or the
+    thread."""
+    log = tmp_path / "experiences"
+    s = load_settings(auth=False, experience_log=log, experience_min_p_correct=THRESHOLD)
+    rec = Recorder(s, Metrics())
+    rec.start()
+    data = frames[0].read_bytes()
+    with IndexReader(index) as reader:
+        methods = dict(reader.methods)
+        feats = reader.extract_query(decode_image(data))
+    broken = {k: v for k, v in feats.items() if k != next(iter(methods))}
+    answer = _answer(0.95, True, "sequence")
+    assert rec.offer(answer, data, "image/jpeg", "car", None, 1.0, broken, methods)
+    assert rec.offer(answer, data, "image/jpeg", "car", None, 2.0, feats, methods)
+    rec.stop()
+    got, _ = _read(log)
+    assert [r.features is None for r in got] == [True, False]
+    unpacked = unpack_features(methods, got[1].features or b"")
+    assert unpacked is not None and unpacked.keys() == feats.keys()
+
+
 def test_a_sequence_drive_records_its_accepted_answers(
     recording: Server, frames, index: Path
 ) -> None:
