@@ -436,7 +436,8 @@ def _same_layout(
     feats: Mapping[str, Any],
 ) -> bool:
     """Whether every recorded feature has the stored rows' arrays: the same names, dtypes,
-    dimensions and sizes but along the first axis (a count of keypoints or regions). The
+    dimensions and sizes but along the first axis (a count of keypoints or regions), and
+    finite values. The
     packed methods' keys already match; this keeps bytes crafted or damaged to fit the keys
     out of the version (they are extracted instead)."""
     for mid, m in methods.items():
@@ -449,6 +450,8 @@ def _same_layout(
             if g.dtype != w.dtype or g.ndim != w.ndim or g.shape[1:] != w.shape[1:]:
                 return False
             if m.kind == "global" and g.shape != w.shape:
+                return False
+            if g.dtype.kind == "f" and not np.isfinite(g).all():
                 return False
     return True
 

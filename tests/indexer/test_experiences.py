@@ -462,25 +462,29 @@ def test_features_recorded_with_the_frames_are_read_not_extracted(
     """Frames whose records carry the features the service answered them with (packed by the
     version's own methods) merge without extraction, to the same gates, rows and features as
     extracting them; features packed by other methods, or not laid out as the version's rows
-    (bytes crafted to the right keys), are not trusted: those are extracted."""
+    (bytes crafted to the right keys: a wrong size, values that are not finite), are not
+    trusted: those are extracted."""
     plain = [record(frame(gardens_point, "day_right", i), i, i) for i in range(12)]
     with IndexReader(index) as r:
         query = [r.extract_query(decode_image(rec.image)) for rec in plain]
         packed = [pack_features(r.methods, q) for q in query]
         hog_only = pack_features({"hog": r.methods["hog"]}, query[0])
         short = pack_features(r.methods, {**query[1], "gist": query[1]["gist"][:10]})
+        nan = np.full_like(query[2]["hog"], np.nan)
+        not_finite = pack_features(r.methods, {**query[2], "hog": nan})
     assert unpack_features(dict(r.methods), b"not an npz") is None
     rich = [dataclasses.replace(rec, features=f) for rec, f in zip(plain, packed, strict=True)]
     rich[0] = dataclasses.replace(rich[0], features=hog_only)
     rich[1] = dataclasses.replace(rich[1], features=short)
+    rich[2] = dataclasses.replace(rich[2], features=not_finite)
     other = tmp_path / "other"
     shutil.copytree(index, other, ignore=shutil.ignore_patterns(".lock"))
     extracted, read = merge(index, plain, options=OPTS), merge(other, rich, options=OPTS)
     assert (extracted.frames_extracted, extracted.features_recorded) == (12, 0)
-    assert (read.frames_extracted, read.features_recorded) == (2, 10)
+    assert (read.frames_extracted, read.features_recorded) == (3, 9)
     assert read.gates == extracted.gates and read.added == extracted.added > 0
     manifest = json.loads((other / "v0002" / "manifest.json").read_text())
-    assert manifest["experiences"]["features_recorded"] == 10
+    assert manifest["experiences"]["features_recorded"] == 9
     with IndexReader(index) as a, IndexReader(other) as b:
         assert a.refs.names == b.refs.names
         for mid in a.methods:  # the service's decode and extraction equal the build's here
