@@ -460,7 +460,8 @@ def main() -> int:
         if name in routes:
             print(f"[{name}] kept from {args.out}", flush=True)
             continue
-        routes[name] = {**run_route(name, args, cache), "measured": provenance("default")}
+        started = provenance("default")  # the commit and time the route's code ran from
+        routes[name] = {**run_route(name, args, cache), "measured": started}
         record = {
             **prov,
             "note": "2 cores shared with other sessions' jobs: times are indicative only",

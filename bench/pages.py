@@ -1871,6 +1871,9 @@ WHOLE_PAGES: dict[str, Callable[[Path], str]] = (
         "docs/experiments/auto_config/nordland-400.md": lambda root: auto_config_page(
             root, "docs/experiments/auto_config/nordland-400.json"
         ),
+        "docs/experiments/auto_config/auto_config.md": lambda root: auto_config_page(
+            root, AUTO_CONFIG
+        ),
     }
 )
 
