@@ -222,7 +222,8 @@ def _wait_ready(client: Any, proc: subprocess.Popen, out: Path) -> None:
 
 
 def merge(index: Path, logs: list[Path], *extra: str) -> dict[str, Any]:
-    """``hmpf-index add --experiences`` (timed); the new version's counts."""
+    """``hmpf-index add --experiences`` (timed); the new version's counts and the merge's
+    report (the manifest's ``experiences`` entry)."""
     t0 = time.perf_counter()
     text = run(
         [str(BIN / "hmpf-index"), "add", "--index", str(index), "--quiet"]
@@ -232,7 +233,14 @@ def merge(index: Path, logs: list[Path], *extra: str) -> dict[str, Any]:
     with IndexReader(index) as reader:
         version = reader.version
         places = reader.manifest.get("places", {})
-    return {"version": version, "seconds": seconds, "places": places, "output": text[-2000:]}
+        report = reader.manifest.get("experiences", {})
+    return {
+        "version": version,
+        "seconds": seconds,
+        "places": places,
+        "report": report,
+        "output": text[-2000:],
+    }
 
 
 def evaluate(index: Path, queries: list[Path], gt: np.ndarray, version: str | None = None) -> dict:
@@ -475,7 +483,7 @@ def cost(
     with IndexReader(Path(at["index"])) as reader:
         extra = reader.n_rows - reader.n
         merged_bytes = reader.manifest["summary"]["bytes_total"]
-        report = reader.manifest.get("experiences", {})
+    report = at["merge"]["report"]
     out: dict[str, Any] = {
         "bytes_per_experience": (merged_bytes - bare_bytes) / extra if extra else None,
         "merge": {
@@ -609,8 +617,7 @@ def merge_speed(base: Path, fleet: list[Path], threshold: float) -> dict[str, An
     for name, source in (("extracted", stripped), ("recorded", log)):
         index = _copy(base, f"speed_{name}")
         timed = merge(index, [source], "--min-p-correct", str(threshold))
-        with IndexReader(index) as reader:
-            report = reader.manifest.get("experiences", {})
+        report = timed["report"]
         out[name] = {
             "wall_s": timed["seconds"],
             "gates_s": report.get("seconds"),

@@ -392,6 +392,7 @@ def _write_frames(
     paths: dict[tuple[str, int], Path] = {}
     recorded: dict[tuple[str, int], dict[str, Any] | None] = {}
     stored: dict[str, dict[str, np.ndarray]] | None = None
+    methods = parent.methods
     for rec in records:
         c = want.get((rec.log, int(rec.seq)))
         if c is None or (c.log, c.seq) in paths:
@@ -404,7 +405,6 @@ def _write_frames(
             tmp.write_bytes(rec.image)
             os.replace(tmp, path)
         paths[(c.log, c.seq)] = path
-        methods = parent.methods
         feats = None if rec.features is None else unpack_features(methods, rec.features)
         if feats is not None:
             stored = stored or _stored_layout(parent)
