@@ -27,6 +27,12 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
   time per query with 1, 2 and 4 experiences per place (the extra experiences beyond the
   recorded pass are other traverses' frames merged with the gates open), and the merge's
   throughput (frames per second, extraction included).
+* ``scenarios``: the place scoring alone. Frames merged at their true places with the gates
+  open (a perfect recorder), the test frames on the bare and the merged version: day_left
+  map + all of day_right (night_right tested); day_left map + one half of night_right (the
+  other half tested, both ways: a night pass over half the route must not attract the other
+  half's night frames); day_right map + all of day_left (night_right tested: images farther
+  from the queries' view must cost nothing).
 * ``merge_speed``: the merge's throughput with the features the service recorded with each
   frame (setting ``experience_features``, on by default) against the same log with them
   stripped (every frame extracted again): map = day_left, the fleet drives day_right
@@ -79,7 +85,7 @@ def main() -> int:
     ap.add_argument("--config", default="default", help="preset or YAML of the map")
     ap.add_argument("--work", type=Path, default=ROOT / "results" / "experiences")
     ap.add_argument("--nordland-places", type=int, default=600)
-    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,cost")
+    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,cost,scenarios")
     ap.add_argument(
         "--thresholds",
         default="0.99,0.9",
@@ -112,6 +118,8 @@ def main() -> int:
         out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
     if "merge_speed" in runs:
         out["merge_speed"] = merge_speed(map_dl, list_images(gp / "day_right"), min(ts))
+    if "scenarios" in runs:
+        out["scenarios"] = scenarios(map_dl, gp, args.work, args.config, args.keep_maps)
     config = load_config(args.config)
     write_record(args.json, summary(out), args, preset=args.config, config=config)
     print(json.dumps(summary(out), indent=1))
@@ -502,20 +510,8 @@ def cost(
     versions = {1: base}
     index = _copy(base, "cost_many")
     for k, name in zip((2, 3, 4), ("day_right", "night_right", "day_left"), strict=True):
-        log = base.parent / f"cost_{name}.log"
-        with ExperienceLog(log) as writer:
-            for i, p in enumerate(list_images(gp_root / name)[:n_map]):
-                writer.append(
-                    p.read_bytes(),
-                    content_type="image/jpeg",
-                    place=i,
-                    place_name=_name(base, i),
-                    index_version="v0001",
-                    p_correct=1.0,
-                    vehicle=f"cost-{name}",
-                    timestamp=float(i),
-                    mode="sequence",
-                )
+        frames = list_images(gp_root / name)[:n_map]
+        log = truth_log(base, base.parent / f"cost_{name}.log", frames, range(len(frames)))
         merge(index, [log], "--no-gates")
         versions[k] = _copy(index, f"cost_{k}")
     out["query_ms_by_images_per_place"] = query_times(versions, test[:: max(1, len(test) // 40)])
@@ -564,9 +560,70 @@ def _time_versions(
                     samples[k]["hierarchy"].append((t2 - t1) * 1e3)
 
 
-def _name(index: Path, i: int) -> str:
+def truth_log(
+    index: Path, log: Path, frames: list[Path], places: Any, vehicle: str | None = None
+) -> Path:
+    """An experience log of ``frames`` recorded at their true ``places`` (what a perfect
+    recorder would keep), as the service writes it, for ``hmpf-index add --experiences``."""
     with IndexReader(index) as reader:
-        return reader.place_names[i]
+        names = reader.place_names
+    with ExperienceLog(log) as writer:
+        for i, (p, place) in enumerate(zip(frames, places, strict=True)):
+            writer.append(
+                p.read_bytes(),
+                content_type="image/jpeg",
+                place=int(place),
+                place_name=names[int(place)],
+                index_version="v0001",
+                p_correct=1.0,
+                vehicle=vehicle or f"truth-{log.stem}",
+                timestamp=float(i),
+                mode="sequence",
+            )
+    return log
+
+
+def scenarios(base_dl: Path, gp: Path, work: Path, config: str, keep: bool) -> dict[str, Any]:
+    """The place scoring alone: frames merged at their true places with the gates open (a
+    perfect recorder), then the test frames on the bare and the merged version.
+
+    * day_left map + all of day_right, night_right tested: every place gains an image
+      closer to the queries' view;
+    * day_left map + night_right's first half, the second half tested (and the reverse):
+      the half the night pass covered must not attract the other half's night frames;
+    * day_right map + all of day_left, night_right tested: every place gains an image
+      farther from the queries' view, which should cost nothing.
+    """
+    night, day_right = list_images(gp / "night_right"), list_images(gp / "day_right")
+    day_left = list_images(gp / "day_left")
+    map_dr = build_map(work / "gp_dr_map", gp / "day_right", config, keep)
+    n, h = len(night), len(night) // 2
+    cases = [
+        ("dl_plus_dr", base_dl, day_right, range(n), night, slice(None)),
+        ("dl_plus_night_first", base_dl, night[:h], range(h), night[h:], slice(h, None)),
+        ("dl_plus_night_second", base_dl, night[h:], range(h, n), night[:h], slice(0, h)),
+        ("dr_plus_dl", map_dr, day_left, range(n), night, slice(None)),
+    ]
+    out: dict[str, Any] = {}
+    for name, base, frames, places, test, sl in cases:
+        gt = frame_ground_truth(n, _places(base), TOLERANCE)[sl]
+        bare = evaluate(base, test, gt)
+        index = _copy(base, f"scenario_{name}")
+        log = truth_log(base, base.parent / f"scenario_{name}.log", frames, places)
+        merged = merge(index, [log], "--no-gates")
+        after = evaluate(index, test, gt)
+        out[name] = {
+            "map": base.name,
+            "experiences": len(frames),
+            "tested": len(test),
+            "bare": _recall(bare),
+            "merged": _recall(after),
+            "merge": merged,
+            "single_test": paired_test(after["correct"], bare["correct"]),
+            "sequence_test": paired_test(after["seq_correct"], bare["seq_correct"]),
+        }
+        print(f"scenario {name}: {out[name]['bare']} -> {out[name]['merged']}", flush=True)
+    return out
 
 
 def _reader_rss(index: Path) -> float:

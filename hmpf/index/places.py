@@ -15,8 +15,11 @@ between its experiences and never changes what a right answer is.
   normalises them; it remembers which row won, so an answer can say which experience matched.
   Each *experience set* (one log, vehicle and day: one drive's conditions,
   :func:`experience_sets`) is first shifted to the original references' score level for the
-  query (:func:`align_sets`), so that images taken in the query's own conditions do not
-  attract it whatever place they show.
+  query, by its experiences' differences from their own places' originals
+  (:func:`align_pairs`), so that images taken in the query's own conditions do not attract
+  it whatever place they show; and a place's best is lessened by what its extra images are
+  expected to add by chance, so that places with experiences do not outrank the others by
+  their number.
 * :class:`Experience`: one row described for an answer (name, original or fleet, provenance).
 * :func:`route_map_of`, :func:`places_profile`: the places' routes and reference profile, as
   the reader computes them at load and the indexer when it writes a version.
@@ -46,7 +49,9 @@ __all__ = [
     "Experience",
     "PlaceScorer",
     "Places",
-    "align_sets",
+    "SetAlignment",
+    "align_pairs",
+    "pair_sample",
     "augment_rows",
     "experience_of_row",
     "experience_sets",
@@ -264,51 +269,84 @@ class PlaceScorer:
         places: Places,
         methods: Mapping[str, Method],
         sets: np.ndarray | None = None,
+        pairs: np.ndarray | None = None,
     ) -> None:
         self.row_fn = row_fn
         self.places = places
         self.better = {mid: bool(m.higher_is_better) for mid, m in methods.items()}
         self.winners: dict[str, np.ndarray] = {}
         self.sets = sets
-        self._samples = None if sets is None else set_samples(sets)
-        self._align: dict[str, np.ndarray] = {}
+        self.n_sets = 0 if sets is None else int(sets.max()) + 1
+        #: the experience rows a whole-database call aligns its sets on (:func:`pair_sample`)
+        self.pairs = pairs if pairs is not None or sets is None else pair_sample(sets)
+        #: per method scored over every row: each set's alignment from its sampled pairs
+        self._whole: dict[str, dict[int, SetAlignment]] = {}
 
     def __call__(self, mid: str, subset: np.ndarray | None) -> np.ndarray:
         pl = self.places
-        full: np.ndarray | None = None
         if subset is None:
             full = np.asarray(self.row_fn(mid, None))
             rows, seg = pl.order, pl.starts[:-1]
             raw = full[rows]
             idx: np.ndarray | slice = slice(None)
         else:
+            full = None
             idx = np.asarray(subset, dtype=np.int64)
             if len(idx) == 0:
                 return np.asarray(self.row_fn(mid, idx))
             rows, seg = pl.expand(idx)
             raw = np.asarray(self.row_fn(mid, rows))
-        if self.sets is not None and (full is not None or mid in self._align):
-            # Only methods that scored every row (tier 1): their sample is a gather. A
-            # later tier's method would score the sample too, several times its candidates
-            # (OLO: seconds per query), for what tier 1 has already kept out.
-            raw = self._aligned(mid, raw, rows, full)
-        best, won = reduce_rows(raw, rows, seg, self.better[mid])
+        if self.sets is None:
+            best, won = reduce_rows(raw, rows, seg, self.better[mid])
+        else:
+            best, won = self._aligned_best(mid, raw, rows, seg, full)
         if mid not in self.winners:
             self.winners[mid] = np.full(pl.n, -1, dtype=np.int64)
         self.winners[mid][idx] = won
         return best
 
-    def _aligned(
-        self, mid: str, raw: np.ndarray, rows: np.ndarray, full: np.ndarray | None
-    ) -> np.ndarray:
-        """``raw`` (of ``rows``) with each experience set's scores shifted to the original
-        references' level (:func:`align_sets`), from one sample of rows per set and method."""
-        assert self.sets is not None and self._samples is not None
-        if mid not in self._align:
-            sample = self._samples
-            vals = full[sample] if full is not None else np.asarray(self.row_fn(mid, sample))
-            self._align[mid] = align_sets(vals, self.sets[sample], int(self.sets.max()) + 1)
-        return np.asarray(raw, dtype=np.float64) - self._align[mid][self.sets[rows]]
+    def _aligned_best(
+        self,
+        mid: str,
+        raw: np.ndarray,
+        rows: np.ndarray,
+        seg: np.ndarray,
+        full: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per place (segment): the best of its rows once each experience set is aligned to
+        the originals (:func:`align_pairs`), less the gain its extra images are expected to
+        give it by chance; and the winning row.
+
+        A call that scores every row (``full`` given) aligns each set on its sampled pairs
+        (:attr:`pairs`) and keeps the figures. A later tier's call aligns each set on the
+        candidates' own pairs (the places it compares: measured on Gardens Point, better than
+        tier 1's figures for the same method); a set with fewer than :data:`MIN_PAIRS` pairs
+        among them takes the method's whole-database figures where tier 1 scored it, else is
+        scored as it is (measured on Gardens Point: the same recall as leaving it out, and a
+        frame that is one of a few experiences is still answered with that experience)."""
+        assert self.sets is not None and self.pairs is not None
+        sign = 1.0 if self.better[mid] else -1.0
+        v = sign * np.asarray(raw, dtype=np.float64)  # higher is better from here
+        sets = self.sets[rows]
+        if full is not None:
+            f = sign * np.asarray(full, dtype=np.float64)
+            pr = self.pairs
+            stats = align_pairs(f[pr] - f[self.places.place_of[pr]], self.sets[pr])
+            self._whole[mid] = stats
+        else:
+            counts = np.diff(np.append(seg, len(rows)))
+            # each row against its place's original (the first row of its segment)
+            found = align_pairs(v - np.repeat(v[seg], counts), sets)
+            stats = {**self._whole.get(mid, {}), **found}
+        # a set not placed (too few pairs) is scored as it is: it covers at most two of the
+        # places compared
+        shift, gain = np.zeros(self.n_sets), np.zeros(self.n_sets)
+        for s, al in stats.items():
+            shift[s], gain[s] = al.shift, al.gain
+        v = v - shift[sets]
+        g = np.where(np.isfinite(v), gain[sets], 0.0)  # a NaN row adds nothing
+        best, won = reduce_rows(v, rows, seg, True)
+        return sign * (best - np.add.reduceat(g, seg)), won
 
     def matched_rows(self, priority: Sequence[str]) -> np.ndarray:
         """(P,) per place the row that matched it for this query, -1 where no method scored
@@ -321,9 +359,49 @@ class PlaceScorer:
         return out
 
 
-#: Rows per experience set (and of the original references) scored to estimate the set's score
-#: level for one query (:func:`align_sets`).
-SET_SAMPLE = 24
+#: Experience rows per set whose pairs place the set for a whole-database call
+#: (:func:`pair_sample`): the median and the mean gain of a few hundred pairs are as good as
+#: those of all, and the work stays a fixed size however many experiences a map holds.
+PAIR_SAMPLE = 256
+
+
+def pair_sample(sets: np.ndarray) -> np.ndarray:
+    """Up to :data:`PAIR_SAMPLE` experience rows of each set (every row of a smaller set),
+    evenly spaced over the set's rows: the same for every query and method."""
+    out = [np.zeros(0, dtype=np.int64)]
+    order = np.argsort(sets, kind="stable")
+    bounds = np.searchsorted(sets[order], np.arange(int(sets.max()) + 2))
+    for s in range(1, len(bounds) - 1):
+        rows = order[bounds[s] : bounds[s + 1]]
+        k = min(len(rows), PAIR_SAMPLE)
+        if k:
+            out.append(rows[np.unique(np.linspace(0, len(rows) - 1, k).round().astype(np.int64))])
+    return np.concatenate(out)
+
+
+@dataclass(frozen=True)
+class SetAlignment:
+    """How one experience set's raw scores stand against the original references' for one
+    query and method (:func:`align_pairs`), in higher-is-better units.
+
+    Attributes:
+        shift: the median of its pairs' differences: what the set's conditions add to every
+            score (subtracted from its rows).
+        gain: the mean of ``max(0, difference - shift)``: what one extra image of this set
+            adds to a place's best score by chance (subtracted from each place per image).
+    """
+
+    shift: float
+    gain: float
+
+
+#: The fewest pairs (an experience and its place's original, both scored) that place an
+#: experience set for one query and method (:func:`align_pairs`).
+MIN_PAIRS = 3
+
+#: The expected positive part of a centred normal difference per unit of its median absolute
+#: deviation: E[max(0, X)] = sigma / sqrt(2 pi) and MAD = 0.6745 sigma (:func:`align_pairs`).
+GAIN_PER_MAD = 1.0 / (math.sqrt(2.0 * math.pi) * 0.6744897501960817)
 
 
 def experience_sets(refs: RefTable, places: Places) -> np.ndarray | None:
@@ -349,52 +427,49 @@ def experience_sets(refs: RefTable, places: Places) -> np.ndarray | None:
     return out
 
 
-def set_samples(sets: np.ndarray) -> np.ndarray:
-    """Up to :data:`SET_SAMPLE` rows of each set (twice that of the originals, set 0),
-    evenly spaced over the set's rows: the rows :func:`align_sets` reads, the same for every
-    query and method."""
-    out = []
-    for s in range(int(sets.max()) + 1):
-        rows = np.flatnonzero(sets == s)
-        k = min(len(rows), SET_SAMPLE * (2 if s == 0 else 1))
-        out.append(rows[np.unique(np.linspace(0, len(rows) - 1, k).round().astype(np.int64))])
-    return np.concatenate(out)
-
-
-def align_sets(values: np.ndarray, sets: np.ndarray, n_sets: int) -> np.ndarray:
-    """Per set, the shift that puts its scores at the original references' level for one
-    query: an experience's raw score ``x`` of set ``s`` counts as ``x - shift[s]``.
+def align_pairs(diff: np.ndarray, sets: np.ndarray) -> dict[int, SetAlignment]:
+    """Per experience set, its :class:`SetAlignment` for one query and method, from pairs.
 
     Why: a query scores every image taken in its own conditions higher (a night frame is
-    closer to any night frame than to a day image of its own place). Without this, a few
-    places holding a night experience attract every night query, right place or not
-    (measured on Gardens Point, default preset: ten night experiences of one half of the
-    route took the other half's single-frame recall@1 from 0.67 to 0.44, sequence from 0.89
-    to 0.24; with the shift 0.66 and 0.89). Most rows of a set are other places than the
-    query's, so the median of a set's scores describes its conditions, not the place:
-    subtracting the difference of medians keeps what stands out *within* a set (its right
-    place) and removes what lifts the whole set. Only the level is matched: matching the
-    spread too (tried, scaled by the interquartile ranges) amplified the noise of small sets
-    and lost more on the same runs.
+    closer to any night frame than to a day image of its own place). Each experience is
+    compared with its own place's original reference, scored for the same query: the
+    difference is what the set's conditions add plus noise, and only for the query's own
+    place what the experience *shows* (a view the original lacks). The median difference
+    over the set (the query's place is one of many) is the conditions' part: subtracted, the
+    set stands at the originals' level and keeps what stands out within it.
+
+    A place's best over its images is still lifted by chance: the best of two noisy draws
+    beats one. ``gain`` is what one extra image adds on average to a place it does not show,
+    the expected positive part of the centred differences, estimated from their median
+    absolute deviation (:data:`GAIN_PER_MAD`, exact for normal noise): robust to the few
+    differences that are real, such as the query's own place, which a mean of the positive
+    parts would let dominate a small set. The scorer subtracts it per extra image, so a
+    place with experiences does not outrank one without by their number.
+
+    Why both, measured on Gardens Point (default preset; map day_left, night_right queries;
+    a night pass over one half of the route merged at the frames' true places, the other
+    half queried, :mod:`bench.experiences`' ``scenarios``): the per-set median shift over a
+    sample of rows that this replaced pulled the queried half's night frames to the places
+    the night pass covered (docs/results/experiences.md).
 
     Args:
-        values: raw scores of sampled rows (:func:`set_samples`).
-        sets: their set ids.
-        n_sets: number of sets (set 0: the originals).
+        diff: (R,) per scored row, its raw score minus its place's original's, higher is
+            better (0 on the originals themselves; NaN where either is NaN).
+        sets: (R,) their experience sets (0: original).
 
     Returns:
-        (n_sets,) each set's median minus the originals' (0 for set 0, and for a set without
-        a finite score).
+        set id -> :class:`SetAlignment`, for every set with at least :data:`MIN_PAIRS`
+        finite differences among the rows.
     """
-    med = np.full(n_sets, np.nan)
-    for s in range(n_sets):
-        v = np.asarray(values[sets == s], dtype=np.float64)
-        v = v[np.isfinite(v)]
-        if len(v):
-            med[s] = np.median(v)
-    shift = med - med[0]
-    shift[0] = 0.0
-    return np.where(np.isfinite(shift), shift, 0.0)
+    out: dict[int, SetAlignment] = {}
+    for s in np.unique(sets[sets > 0]):
+        d = np.asarray(diff[sets == s], dtype=np.float64)
+        d = d[np.isfinite(d)]
+        if len(d) >= MIN_PAIRS:
+            shift = float(np.median(d))
+            gain = GAIN_PER_MAD * float(np.median(np.abs(d - shift)))
+            out[int(s)] = SetAlignment(shift, gain)
+    return out
 
 
 def place_scorer(
@@ -402,6 +477,7 @@ def place_scorer(
     places: Places,
     methods: Mapping[str, Method],
     sets: np.ndarray | None = None,
+    pairs: np.ndarray | None = None,
 ) -> PlaceScorer:
     """Score places instead of rows: a place scores by its best experience, per method.
 
@@ -411,8 +487,12 @@ def place_scorer(
         places: the grouping.
         methods: method id -> instance (``higher_is_better`` picks max or min).
         sets: (N,) each row's experience set (:func:`experience_sets`); when given, each
-            set's raw scores are first shifted to the originals' level for the query
-            (:func:`align_sets`), so the conditions an experience was taken in do not lift it.
+            set's raw scores are first shifted to the originals' level for the query and a
+            place's best lessened by its extra images' expected chance gain
+            (:func:`align_pairs`), so neither the conditions an experience was taken in nor
+            the number of a place's images lifts it.
+        pairs: the rows a whole-database call aligns the sets on (default
+            :func:`pair_sample` of ``sets``; a reader computes it once).
 
     Returns:
         a score function over places: tier 1 (``subset`` None) scores every row once and
@@ -421,7 +501,7 @@ def place_scorer(
         *raw* scores, so the hierarchy's normalisation sees one value per place, and a place
         with one experience scores exactly as that row.
     """
-    return PlaceScorer(row_fn, places, methods, sets)
+    return PlaceScorer(row_fn, places, methods, sets, pairs)
 
 
 @dataclass(frozen=True)

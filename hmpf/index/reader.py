@@ -79,6 +79,7 @@ from hmpf.index.places import (
     augments,
     experience_of_row,
     experience_sets,
+    pair_sample,
     place_scorer,
     places_profile,
     route_map_of,
@@ -271,6 +272,8 @@ class IndexReader:
         self.n = self.places.n
         #: each row's experience set (one log, vehicle and day), None without experiences
         self._sets = experience_sets(self.refs, self.places)
+        #: the experience rows each query aligns the sets on (a fixed sample per set)
+        self._pairs = None if self._sets is None else pair_sample(self._sets)
         self._globals = {
             mid: x if isinstance(x, DiskRows) else augment_rows(self.methods[mid], x, self.places)
             for mid, x in self._stored.items()
@@ -661,7 +664,7 @@ class IndexReader:
         rows = self.row_scorer(query)
         if not self.has_experiences:
             return rows
-        return place_scorer(rows, self.places, self.methods, self._sets)
+        return place_scorer(rows, self.places, self.methods, self._sets, self._pairs)
 
     def row_scorer(self, query: Mapping[str, Any]) -> ScoreFn:
         """A :data:`~hmpf.hierarchy.ScoreFn` of one query's features against every row.

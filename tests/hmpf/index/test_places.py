@@ -24,13 +24,16 @@ from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
 from hmpf.index import IndexCorruptError, IndexReader, layout
 from hmpf.index.places import (
+    MIN_PAIRS,
+    PAIR_SAMPLE,
     Places,
     PlaceScorer,
-    align_sets,
+    SetAlignment,
+    align_pairs,
     augment_rows,
     experience_sets,
+    pair_sample,
     place_scorer,
-    set_samples,
 )
 from hmpf.index.tables import Ragged, RefTable, columns_from_features, concat_columns
 from hmpf.index.thumbnails import make_thumbnails
@@ -133,10 +136,45 @@ def test_place_scorer_equals_brute_force(seed: int) -> None:
         np.testing.assert_array_equal(fresh.winners.get(mid, np.full(P, -1)), expect)
 
 
+def _explicit(
+    x: np.ndarray,
+    P: int,
+    place_of: np.ndarray,
+    sets: np.ndarray,
+    rows: np.ndarray,
+    fallback: dict[int, tuple[float, float]] | None = None,
+) -> tuple[np.ndarray, dict[int, tuple[float, float]]]:
+    """Per place of ``0 .. P-1``, explicitly (higher is better): each set's shift (median of
+    its experiences' differences from their places' originals, over ``rows``) and gain
+    (sigma / sqrt(2 pi) of the differences, sigma from their MAD); a place's score is the
+    best of its original and its shifted experiences, less one gain per experience counted.
+    ``fallback``: figures for the sets with too few pairs among ``rows``; a set with neither
+    is scored as it is."""
+    stats = dict(fallback or {})
+    for s in sorted(set(sets[rows].tolist()) - {0}):
+        d = np.array([x[r] - x[place_of[r]] for r in rows if sets[r] == s])
+        d = d[np.isfinite(d)]
+        if len(d) >= MIN_PAIRS:
+            shift = float(np.median(d))
+            sigma = float(np.median(np.abs(d - shift))) / 0.6744897501960817
+            stats[s] = (shift, sigma / np.sqrt(2 * np.pi))
+    out = np.empty(P)
+    for p in range(P):
+        vals, lost = [x[p]], 0.0
+        for r in np.flatnonzero(place_of == p):
+            if r >= P:
+                shift, gain = stats.get(sets[r], (0.0, 0.0))
+                vals.append(x[r] - shift)
+                lost += gain
+        out[p] = max(vals) - lost
+    return out, stats
+
+
 def test_set_shift_removes_what_lifts_a_whole_set() -> None:
     """A set of experiences all lifted by the conditions they were taken in (every score +5)
     does not take the places it covers to the top; the one experience that stands out within
-    its set (+3 over the set) still wins its place. Against an explicit computation."""
+    its set (+3 over the set) still wins its place. Against an explicit computation, for a
+    similarity and a distance."""
     rng = np.random.default_rng(3)
     P, extra = 40, 12
     place = np.concatenate([np.full(P, np.nan), np.arange(extra, dtype=np.float64)])
@@ -146,42 +184,101 @@ def test_set_shift_removes_what_lifts_a_whole_set() -> None:
     raw = {"s": x, "d": -x, "e": -x}
     places = Places.from_column(place, P + extra)
     sets = np.r_[np.zeros(P, np.int64), np.ones(extra, np.int64)]
-    sample = set_samples(sets)
-    assert sorted(sample[sets[sample] == 0]) == sorted(
-        np.unique(np.linspace(0, P - 1, min(P, 48)).round().astype(int))
-    )
-    for mid in ("s", "d"):
+    expect, stats = _explicit(x, P, places.place_of, sets, np.arange(P + extra))
+    assert 4.0 < stats[1][0] < 6.0 and stats[1][1] > 0
+    for mid, sign in (("s", 1.0), ("d", -1.0)):
         fn = place_scorer(_row_fn(raw), places, METHODS, sets)
         got = fn(mid, None)
-        r = raw[mid]
-        shift = np.median(r[sample[sets[sample] == 1]]) - np.median(r[sample[sets[sample] == 0]])
-        adj = r.copy()
-        adj[P:] -= shift
-        pick = np.maximum if mid == "s" else np.minimum
-        expect = adj[:P].copy()
-        expect[:extra] = pick(expect[:extra], adj[P:])
-        np.testing.assert_allclose(got, expect)
+        np.testing.assert_allclose(got, sign * expect)
         best = np.argmax(got) if mid == "s" else np.argmin(got)
         assert best == 7 and fn.winners[mid][7] == P + 7
         # Without the sets, the lifted set takes every place it covers to the top.
         plain = place_scorer(_row_fn(raw), places, METHODS)(mid, None)
         top = np.argsort(-plain if mid == "s" else plain)[:extra]
         assert set(top.tolist()) == set(range(extra))
-    # A later tier's call for a tier-1 method (scored whole before) reads the same shift; a
-    # method only ever scored on candidates is not shifted (its sample would cost more than
-    # the candidates themselves).
+
+
+def test_the_gain_of_extra_images_is_taken_back() -> None:
+    """Experiences that show nothing (noise like the originals') lift the places they cover
+    by the best-of-two chance alone (about 0.56 sd for normal scores) unless that expected
+    gain is taken back: with the sets, covered and uncovered places score alike (averaged
+    over 20 maps of 400 places, half of them with one such experience: every pair used)."""
+    P, extra = 400, 200
+    place = np.concatenate([np.full(P, np.nan), np.arange(extra, dtype=np.float64)])
+    places = Places.from_column(place, P + extra)
+    sets = np.r_[np.zeros(P, np.int64), np.ones(extra, np.int64)]
+    lift = {"plain": [], "fair": []}
+    for seed in range(20):
+        x = np.random.default_rng(seed).normal(size=P + extra)
+        for name, s in (("plain", None), ("fair", sets)):
+            got = place_scorer(_row_fn({"s": x}), places, METHODS, s)("s", None)
+            lift[name].append(got[:extra].mean() - got[extra:].mean())
+    assert np.mean(lift["plain"]) > 0.45
+    assert abs(np.mean(lift["fair"])) < 0.05
+
+
+def test_a_later_tier_aligns_on_the_candidates_or_reads_tier_one() -> None:
+    """A later tier's call aligns each set on the candidates' own pairs; a set with fewer
+    than MIN_PAIRS pairs among them takes the whole-database figures of a method tier 1
+    scored, and is scored as it is for a method only ever scored on candidates (or for one
+    whose whole call could not place it either)."""
+    rng = np.random.default_rng(5)
+    P = 30
+    # set 1 covers places 0..9, set 2 places 10..11 (two experiences)
+    covered = np.r_[np.arange(10), [10, 11]]
+    place = np.concatenate([np.full(P, np.nan), covered.astype(np.float64)])
+    n = P + len(covered)
+    sets = np.r_[np.zeros(P, np.int64), np.ones(10, np.int64), [2, 2]]
+    x = rng.normal(size=n)
+    x[P : P + 10] += 2.0
+    raw = {"s": x, "d": -x, "e": -x}
+    places = Places.from_column(place, n)
     fn = place_scorer(_row_fn(raw), places, METHODS, sets)
     full = fn("s", None)
-    np.testing.assert_allclose(fn("s", np.array([7, 30, 2])), full[[7, 30, 2]])
-    plain = place_scorer(_row_fn(raw), places, METHODS)("s", None)
-    later = place_scorer(_row_fn(raw), places, METHODS, sets)
-    np.testing.assert_allclose(later("s", np.array([7, 30, 2])), plain[[7, 30, 2]])
+    _, whole = _explicit(x, P, places.place_of, sets, np.arange(n))
+    assert set(whole) == {1}  # set 2: two pairs in all, never placed: scored as it is
+    np.testing.assert_allclose(full[10:12], np.maximum(x[10:12], x[P + 10 : P + 12]))
+    sub = np.array([3, 10, 25, 7, 0, 11, 12])
+    rows, _ = places.expand(sub)
+    # the candidates' pairs of set 1 are places 3, 7 and 0; set 2's (10, 11) are too few
+    expect, stats = _explicit(x, P, places.place_of, sets, rows, fallback=whole)
+    assert stats[1] != whole[1]
+    np.testing.assert_allclose(fn("s", sub), expect[sub])
+    # "e" is only scored on candidates: set 1 from its candidates' pairs, set 2 as it is
+    sub = np.array([3, 10, 7, 0, 11])
+    rows, _ = places.expand(sub)
+    expect, stats = _explicit(-raw["e"], P, places.place_of, sets, rows)
+    assert set(stats) == {1}
+    np.testing.assert_allclose(fn("e", sub), -expect[sub])
+    winners = [P + 10 if x[P + 10] > x[10] else 10, P + 11 if x[P + 11] > x[11] else 11]
+    assert fn.winners["e"][[10, 11]].tolist() == winners
+    # with only two of set 1's places among the candidates, "e" takes set 1 as it is too
+    got = fn("e", np.array([3, 7, 20]))
+    np.testing.assert_allclose(got, -np.maximum(x[[3, 7, 20]], np.r_[x[[P + 3, P + 7]], -np.inf]))
 
 
-def test_align_sets_is_the_difference_of_medians() -> None:
-    values = np.array([1.0, 2.0, 3.0, 10.0, 11.0, 12.0, np.nan, 7.0])
-    sets = np.array([0, 0, 0, 1, 1, 1, 2, 2])
-    np.testing.assert_allclose(align_sets(values, sets, 4), [0.0, 9.0, 5.0, 0.0])
+def test_align_pairs_is_the_median_and_mean_gain() -> None:
+    diff = np.array([0.0, 0.0, 1.0, 2.0, 6.0, np.nan, 4.0, 5.0, 3.0, 3.0])
+    sets = np.array([0, 0, 1, 1, 1, 1, 2, 2, 3, 3])
+    got = align_pairs(diff, sets)
+    assert set(got) == {1}  # set 2 and 3: two pairs each, too few
+    # median 2, MAD 1 (|d - 2| = 1, 0, 4): gain sigma / sqrt(2 pi), sigma = MAD / 0.6745
+    assert got[1].shift == 2.0
+    np.testing.assert_allclose(got[1].gain, 1.0 / 0.6744897501960817 / np.sqrt(2 * np.pi))
+    assert SetAlignment(2.0, got[1].gain) == got[1]
+    assert MIN_PAIRS == 3
+
+
+def test_pair_sample_spreads_over_each_set() -> None:
+    sets = np.r_[np.zeros(50, np.int64), np.full(PAIR_SAMPLE + 100, 1), np.full(7, 2), [1, 3]]
+    got = pair_sample(sets)
+    assert (sets[got] > 0).all() and len(set(got.tolist())) == len(got)
+    ones = got[sets[got] == 1]
+    assert len(ones) == PAIR_SAMPLE and ones.min() == 50 and ones.max() == len(sets) - 2
+    assert sorted(got[sets[got] == 2].tolist()) == list(
+        range(50 + PAIR_SAMPLE + 100, 57 + PAIR_SAMPLE + 100)
+    )
+    assert got[sets[got] == 3].tolist() == [len(sets) - 1]
 
 
 def test_experience_sets_are_one_log_vehicle_and_day() -> None:
@@ -396,20 +493,27 @@ def _reader_features(reader: IndexReader) -> dict[str, Any]:
 def _brute_place_fn(
     methods: Mapping[str, Method], rows_fn: ScoreFn, place_of: np.ndarray, n: int
 ) -> ScoreFn:
-    """Per place, explicitly, the best of its rows' raw scores; for a tier-1 method (scored
-    whole first) the experiences (one set here: one log, vehicle and day, every row of it
-    sampled) first shifted by the difference of their median and the originals' median."""
-    groups = [np.flatnonzero(place_of == p) for p in range(n)]
+    """Per place, explicitly (:func:`_explicit`): the best of its original and its shifted
+    experiences, less their expected gain; the experiences (one set here: one log, vehicle
+    and day) aligned on every pair in a whole-database call, on the candidates' pairs in a
+    later one (the whole call's figures where they are too few, for a method scored whole
+    first)."""
+    sets = (np.arange(len(place_of)) >= n).astype(np.int64)
     whole: set[str] = set()
 
     def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
-        raw = np.asarray(rows_fn(mid, None), dtype=np.float64).copy()
+        sign = 1.0 if methods[mid].higher_is_better else -1.0
+        x = sign * np.asarray(rows_fn(mid, None), dtype=np.float64)
         if subset is None:
             whole.add(mid)
-        if mid in whole:
-            raw[n:] -= np.median(raw[n:]) - np.median(raw[:n])
-        pick = max if methods[mid].higher_is_better else min
-        best = np.array([pick(raw[g]) for g in groups])
+        everything = np.arange(len(place_of))
+        tier1 = _explicit(x, n, place_of, sets, everything)[1] if mid in whole else None
+        if subset is None:
+            best, _ = _explicit(x, n, place_of, sets, everything)
+        else:
+            rows = np.flatnonzero(np.isin(place_of, np.asarray(subset, np.int64)))
+            best, _ = _explicit(x, n, place_of, sets, rows, fallback=tier1)
+        best = sign * best
         return best if subset is None else best[np.asarray(subset, np.int64)]
 
     return fn
