@@ -600,7 +600,12 @@ def speed_service_load(root: Path) -> str:
 
 
 EXPERIENCES = "docs/experiments/experiences/default.json"
-GP_COST = "docs/experiments/experiences/gp_cost.json"
+SCENARIOS = {
+    "dl_plus_dr": "day_left + all of day_right; night_right tested",
+    "dl_plus_night_first": "day_left + night_right's first half; second half tested",
+    "dl_plus_night_second": "day_left + night_right's second half; first half tested",
+    "dr_plus_dl": "day_right + all of day_left; night_right tested",
+}
 
 
 def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
@@ -809,26 +814,40 @@ def experiences_summary(root: Path) -> str:
             "a place 50 frames away; recall on night_right against the clean merge:\n\n"
             + table(["merge", "merged", "single-frame recall@1", "sequence recall@1"], rows)
         )
-    out.append(source(EXPERIENCES, data))
-    # the cost and a rerun of the Gardens Point pass (the merge reading the recorded
-    # features) are their own, later run, with BLAS on one thread (OPENBLAS_NUM_THREADS=1;
-    # the bench now sets it itself), so the hierarchy's times are not the stalls of an
-    # oversubscribed BLAS pool
-    data = load(root, GP_COST)
-    cost = data["cost"]
-    rerun = data["gp"]["merges"]
-    out.append(
-        "\nThe Gardens Point pass again, recorded with the frames' features (the service's "
-        "`experience_features`) and merged reading them: "
-        + "; ".join(
-            f"at p_correct >= {t}: {m['added']['experiences']} merged "
-            f"({m['added']['wrong']} wrong), single-frame {f3(data['gp']['bare']['single'])} -> "
-            f"{f3(m['merged']['single'])}, sequence {f3(data['gp']['bare']['sequence'])} -> "
-            f"{f3(m['merged']['sequence'])}"
-            for t, m in rerun.items()
+    scenarios = data.get("scenarios")
+    if scenarios:
+        rows = []
+        for name, sc in scenarios.items():
+            st, qt = sc["single_test"], sc["sequence_test"]
+            rows.append(
+                [
+                    SCENARIOS.get(name, name),
+                    f"{sc['experiences']}",
+                    f"{sc['tested']}",
+                    f"{f3(sc['bare']['single'])} -> {f3(sc['merged']['single'])}",
+                    f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
+                    f"{f3(sc['bare']['sequence'])} -> {f3(sc['merged']['sequence'])}",
+                    f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
+                ]
+            )
+        out.append(
+            "\nThe place scoring alone: frames merged at their true places with the gates open "
+            "(what a perfect recorder would add), the test frames on the bare and the merged "
+            "version:\n\n"
+            + table(
+                [
+                    "map + experiences",
+                    "experiences",
+                    "test frames",
+                    "single-frame recall@1",
+                    "wins/losses",
+                    "sequence recall@1",
+                    "wins/losses",
+                ],
+                rows,
+            )
         )
-        + "."
-    )
+    cost = data.get("cost")
     if cost:
         q = cost["query_ms_by_images_per_place"]
         rows = [
@@ -845,8 +864,8 @@ def experiences_summary(root: Path) -> str:
         bpe = cost["bytes_per_experience"]
         out.append(
             f"\nCost (median of {q['queries']} night_right queries, BLAS on one thread: "
-            "without that cap, at the same load, the run of default.json timed the hierarchy "
-            "at several hundred ms; the versions "
+            "without that cap, a loaded machine times the stalls of a BLAS pool rather than "
+            "the experiences; the versions "
             "take turns on each image, so the ratio is the figure; the absolute times are from a "
             f"machine at load average {data['machine_details']['load_1min']:.1f} on its "
             f"{data['machine_details']['cores']} cores, several times a quiet one's):\n\n"
@@ -865,7 +884,7 @@ def experiences_summary(root: Path) -> str:
             f"{f1(merge['frames_per_s'])} frames/s, {merge.get('features_recorded', 0)} of them "
             f"with the features read from the log ({merge['note']}).\n"
         )
-    out.append(source(GP_COST, data))
+    out.append(source(EXPERIENCES, data))
     return "\n".join(out)
 
 

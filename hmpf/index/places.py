@@ -319,8 +319,9 @@ class PlaceScorer:
 
         A call that scores every row (``full`` given) aligns each set on its sampled pairs
         (:attr:`pairs`) and keeps the figures. A later tier's call aligns each set on the
-        candidates' own pairs (the places it compares: measured on Gardens Point, better than
-        tier 1's figures for the same method); a set with fewer than :data:`MIN_PAIRS` pairs
+        candidates' own pairs (the places it compares: better than tier 1's figures for the
+        same methods on the one Gardens Point scenario tried, a night pass over half the
+        route); a set with fewer than :data:`MIN_PAIRS` pairs
         among them takes the method's whole-database figures where tier 1 scored it, else is
         scored as it is (measured on Gardens Point: the same recall as leaving it out, and a
         frame that is one of a few experiences is still answered with that experience)."""
@@ -360,8 +361,8 @@ class PlaceScorer:
 
 
 #: Experience rows per set whose pairs place the set for a whole-database call
-#: (:func:`pair_sample`): the median and the mean gain of a few hundred pairs are as good as
-#: those of all, and the work stays a fixed size however many experiences a map holds.
+#: (:func:`pair_sample`): the median and the MAD of a few hundred pairs are as good as those
+#: of all, and the work stays a fixed size however many experiences a map holds.
 PAIR_SAMPLE = 256
 
 
