@@ -19,7 +19,8 @@ between its experiences and never changes what a right answer is.
   (:func:`align_pairs`), so that images taken in the query's own conditions do not attract
   it whatever place they show; and a place's best is lessened by what its extra images are
   expected to add by chance, so that places with experiences do not outrank the others by
-  their number.
+  their number. The tiers after the first score each place by one image, the one tier 1
+  found best (:meth:`PlaceScorer.representatives`).
 * :class:`Experience`: one row described for an answer (name, original or fleet, provenance).
 * :func:`route_map_of`, :func:`places_profile`: the places' routes and reference profile, as
   the reader computes them at load and the indexer when it writes a version.
@@ -281,6 +282,10 @@ class PlaceScorer:
         self.pairs = pairs if pairs is not None or sets is None else pair_sample(sets)
         #: per method scored over every row: each set's alignment from its sampled pairs
         self._whole: dict[str, dict[int, SetAlignment]] = {}
+        #: per method scored over every row: each row's aligned score, robustly standardised
+        self._z: dict[str, np.ndarray] = {}
+        #: (P,) each place's representative row for the later tiers (:meth:`representatives`)
+        self._rep: np.ndarray | None = None
 
     def __call__(self, mid: str, subset: np.ndarray | None) -> np.ndarray:
         pl = self.places
@@ -315,7 +320,8 @@ class PlaceScorer:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per place (segment): the best of its rows once each experience set is aligned to
         the originals (:func:`align_pairs`), less the gain its extra images are expected to
-        give it by chance; and the winning row.
+        give it by chance; and the winning row. After a whole-database call, a later tier
+        scores each place by its representative row alone (:meth:`representatives`).
 
         A call that scores every row (``full`` given) aligns each set on its sampled pairs
         (:attr:`pairs`) and keeps the figures. A later tier's call aligns each set on the
@@ -345,9 +351,38 @@ class PlaceScorer:
         for s, al in stats.items():
             shift[s], gain[s] = al.shift, al.gain
         v = v - shift[sets]
+        if full is not None:
+            self._z[mid] = _standardised(f - shift[self.sets])
+            self._rep = None
+        else:
+            rep = self.representatives()
+            if rep is not None:
+                # one image per place: the one tier 1 found best; no chance gain to take back
+                v = np.where(rows == rep[self.places.place_of[rows]], v, -np.inf)
+                best, won = reduce_rows(v, rows, seg, True)
+                return sign * best, won
         g = np.where(np.isfinite(v), gain[sets], 0.0)  # a NaN row adds nothing
         best, won = reduce_rows(v, rows, seg, True)
         return sign * (best - np.add.reduceat(g, seg)), won
+
+    def representatives(self) -> np.ndarray | None:
+        """(P,) per place, the row that stands for it in the tiers after the first: the one
+        whose aligned scores of the methods that scored the whole database, each robustly
+        standardised (:func:`_standardised`), sum highest. None before such a call (a
+        hierarchy run under a GPS prior scores subsets only: every tier then takes a place's
+        best image, less the chance gain).
+
+        Why one image: the expensive later methods then compare the query with the image of
+        each candidate place most like it, rather than each method taking its own best image
+        of the place, which mixes evidence across images and lets a place's other images win
+        by chance. On Gardens Point (default preset, night_right queries) this raised
+        single-frame recall@1 with day_right experiences of every place in the day_left map;
+        the *scenarios* of docs/results/experiences.md measure it."""
+        if self._rep is None and self._z:
+            z = np.sum(list(self._z.values()), axis=0)
+            pl = self.places
+            _, self._rep = reduce_rows(z[pl.order], pl.order, pl.starts[:-1], True)
+        return self._rep
 
     def matched_rows(self, priority: Sequence[str]) -> np.ndarray:
         """(P,) per place the row that matched it for this query, -1 where no method scored
@@ -358,6 +393,24 @@ class PlaceScorer:
             if w is not None:
                 out = np.where(w >= 0, w, out)
         return out
+
+
+#: Rows whose aligned scores give a method's median and MAD in :func:`_standardised`.
+Z_SAMPLE = 4096
+
+
+def _standardised(x: np.ndarray) -> np.ndarray:
+    """``(x - median) / MAD``, the median and MAD of up to :data:`Z_SAMPLE` evenly spaced
+    entries (a fixed cost at any map size); NaN (and a zero MAD's infinities) as a very low
+    value, so that such a row never stands for its place while it has another."""
+    n = len(x)
+    sample = x[np.unique(np.linspace(0, n - 1, min(n, Z_SAMPLE)).round().astype(np.int64))]
+    sample = sample[np.isfinite(sample)]
+    if not len(sample):
+        return np.full(n, -1e9)
+    med = float(np.median(sample))
+    mad = float(np.median(np.abs(sample - med))) or 1.0
+    return np.nan_to_num((x - med) / mad, nan=-1e9, posinf=1e9, neginf=-1e9)
 
 
 #: Experience rows per set whose pairs place the set for a whole-database call

@@ -217,44 +217,111 @@ def test_the_gain_of_extra_images_is_taken_back() -> None:
     assert abs(np.mean(lift["fair"])) < 0.05
 
 
-def test_a_later_tier_aligns_on_the_candidates_or_reads_tier_one() -> None:
-    """A later tier's call aligns each set on the candidates' own pairs; a set with fewer
-    than MIN_PAIRS pairs among them takes the whole-database figures of a method tier 1
-    scored, and is scored as it is for a method only ever scored on candidates (or for one
-    whose whole call could not place it either)."""
-    rng = np.random.default_rng(5)
+def _two_sets(seed: int) -> tuple[int, Places, np.ndarray, np.ndarray]:
+    """30 places; set 1 covers places 0..9 (lifted by +2), set 2 places 10 and 11."""
     P = 30
-    # set 1 covers places 0..9, set 2 places 10..11 (two experiences)
     covered = np.r_[np.arange(10), [10, 11]]
     place = np.concatenate([np.full(P, np.nan), covered.astype(np.float64)])
     n = P + len(covered)
     sets = np.r_[np.zeros(P, np.int64), np.ones(10, np.int64), [2, 2]]
-    x = rng.normal(size=n)
+    x = np.random.default_rng(seed).normal(size=n)
     x[P : P + 10] += 2.0
+    return P, Places.from_column(place, n), sets, x
+
+
+def _representatives(
+    scores: list[np.ndarray], P: int, place_of: np.ndarray, sets: np.ndarray
+) -> np.ndarray:
+    """Explicitly: per place, the row whose whole-database aligned scores (higher is better),
+    each standardised by the median and MAD over every row, sum highest (the first such)."""
+    total = np.zeros(len(place_of))
+    for x in scores:
+        _, whole = _explicit(x, P, place_of, sets, np.arange(len(place_of)))
+        a = x - np.array([whole.get(s, (0.0, 0.0))[0] if s else 0.0 for s in sets])
+        med = np.median(a)
+        total += (a - med) / np.median(np.abs(a - med))
+    rows = [np.flatnonzero(place_of == p) for p in range(P)]
+    return np.array([r[np.argmax(total[r])] for r in rows])
+
+
+def _by_representative(
+    x: np.ndarray,
+    place_of: np.ndarray,
+    sets: np.ndarray,
+    rows: np.ndarray,
+    rep: np.ndarray,
+    fallback: dict[int, tuple[float, float]],
+) -> np.ndarray:
+    """Explicitly: per place, its representative's score less its set's shift (from the
+    candidates' ``rows``' pairs, else ``fallback``, else none); no chance gain."""
+    _, stats = _explicit(x, len(rep), place_of, sets, rows, fallback=fallback)
+    return np.array([x[r] - stats.get(sets[r], (0.0, 0.0))[0] if sets[r] else x[r] for r in rep])
+
+
+def test_a_later_tier_aligns_on_the_candidates_or_reads_tier_one() -> None:
+    """Without a whole-database call (no representatives yet), a call on candidates aligns
+    each set on the candidates' own pairs and scores a set with fewer than MIN_PAIRS pairs
+    among them as it is. After one, a later tier scores each place by its representative,
+    aligned on the candidates' pairs, else on the whole-database figures."""
+    P, places, sets, x = _two_sets(5)
     raw = {"s": x, "d": -x, "e": -x}
-    places = Places.from_column(place, n)
+    cand = place_scorer(_row_fn(raw), places, METHODS, sets)
+    assert cand.representatives() is None
+    sub = np.array([3, 10, 7, 0, 11])
+    rows, _ = places.expand(sub)
+    expect, stats = _explicit(x, P, places.place_of, sets, rows)
+    assert set(stats) == {1}  # set 2: two pairs, scored as it is
+    np.testing.assert_allclose(cand("e", sub), -expect[sub])
+    winners = [P + 10 if x[P + 10] > x[10] else 10, P + 11 if x[P + 11] > x[11] else 11]
+    assert cand.winners["e"][[10, 11]].tolist() == winners
+    # with only two of set 1's places among the candidates, set 1 is taken as it is too
+    got = cand("e", np.array([3, 7, 20]))
+    np.testing.assert_allclose(got, -np.maximum(x[[3, 7, 20]], np.r_[x[[P + 3, P + 7]], -np.inf]))
+
     fn = place_scorer(_row_fn(raw), places, METHODS, sets)
     full = fn("s", None)
-    _, whole = _explicit(x, P, places.place_of, sets, np.arange(n))
+    _, whole = _explicit(x, P, places.place_of, sets, np.arange(len(x)))
     assert set(whole) == {1}  # set 2: two pairs in all, never placed: scored as it is
     np.testing.assert_allclose(full[10:12], np.maximum(x[10:12], x[P + 10 : P + 12]))
+    rep = _representatives([x], P, places.place_of, sets)
+    np.testing.assert_array_equal(fn.representatives(), rep)
     sub = np.array([3, 10, 25, 7, 0, 11, 12])
     rows, _ = places.expand(sub)
     # the candidates' pairs of set 1 are places 3, 7 and 0; set 2's (10, 11) are too few
-    expect, stats = _explicit(x, P, places.place_of, sets, rows, fallback=whole)
+    _, stats = _explicit(x, P, places.place_of, sets, rows, fallback=whole)
     assert stats[1] != whole[1]
+    expect = _by_representative(x, places.place_of, sets, rows, rep, whole)
     np.testing.assert_allclose(fn("s", sub), expect[sub])
-    # "e" is only scored on candidates: set 1 from its candidates' pairs, set 2 as it is
-    sub = np.array([3, 10, 7, 0, 11])
+    np.testing.assert_array_equal(fn.winners["s"][sub], rep[sub])
+
+
+def test_later_tiers_score_each_place_by_its_representative() -> None:
+    """The representative is the row whose standardised aligned tier-1 scores sum highest
+    (two methods, one a distance); a later method scores that row alone, without the chance
+    gain, whatever its other rows score."""
+    P, places, sets, x = _two_sets(8)
+    y = np.random.default_rng(9).normal(size=len(x))
+    e = np.random.default_rng(10).normal(size=len(x))
+    e[P:] += 5.0  # every experience far better for "e": it must not matter
+    raw = {"s": x, "d": -y, "e": -e}
+    fn = place_scorer(_row_fn(raw), places, METHODS, sets)
+    fn("s", None)
+    fn("d", None)
+    rep = _representatives([x, y], P, places.place_of, sets)
+    assert (rep[:12] >= P).any() and (rep[:12] < P).any()  # both kinds represent a place
+    np.testing.assert_array_equal(fn.representatives(), rep)
+    sub = np.arange(P)
+    got = fn("e", sub)
     rows, _ = places.expand(sub)
-    expect, stats = _explicit(-raw["e"], P, places.place_of, sets, rows)
-    assert set(stats) == {1}
-    np.testing.assert_allclose(fn("e", sub), -expect[sub])
-    winners = [P + 10 if x[P + 10] > x[10] else 10, P + 11 if x[P + 11] > x[11] else 11]
-    assert fn.winners["e"][[10, 11]].tolist() == winners
-    # with only two of set 1's places among the candidates, "e" takes set 1 as it is too
-    got = fn("e", np.array([3, 7, 20]))
-    np.testing.assert_allclose(got, -np.maximum(x[[3, 7, 20]], np.r_[x[[P + 3, P + 7]], -np.inf]))
+    np.testing.assert_allclose(got, -_by_representative(e, places.place_of, sets, rows, rep, {}))
+    np.testing.assert_array_equal(fn.winners["e"], rep)
+    np.testing.assert_array_equal(fn.matched_rows(["e", "s"]), rep)
+    # with "s" alone scored whole, on other scores, the representatives follow it alone
+    fn2 = place_scorer(_row_fn({"s": y, "d": -y, "e": -e}), places, METHODS, sets)
+    fn2("s", None)
+    np.testing.assert_array_equal(
+        fn2.representatives(), _representatives([y], P, places.place_of, sets)
+    )
 
 
 def test_align_pairs_is_the_median_and_mean_gain() -> None:
@@ -493,28 +560,27 @@ def _reader_features(reader: IndexReader) -> dict[str, Any]:
 def _brute_place_fn(
     methods: Mapping[str, Method], rows_fn: ScoreFn, place_of: np.ndarray, n: int
 ) -> ScoreFn:
-    """Per place, explicitly (:func:`_explicit`): the best of its original and its shifted
-    experiences, less their expected gain; the experiences (one set here: one log, vehicle
-    and day) aligned on every pair in a whole-database call, on the candidates' pairs in a
-    later one (the whole call's figures where they are too few, for a method scored whole
-    first)."""
+    """Per place, explicitly: in a whole-database call the best of its original and its
+    shifted experiences, less their expected gain (:func:`_explicit`, aligned on every pair);
+    in a later call its representative's score (:func:`_representatives` of the methods
+    scored whole), shifted on the candidates' pairs, else on the whole call's figures. One
+    experience set here (one log, vehicle and day)."""
     sets = (np.arange(len(place_of)) >= n).astype(np.int64)
-    whole: set[str] = set()
+    whole: dict[str, np.ndarray] = {}
+    everything = np.arange(len(place_of))
 
     def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
         sign = 1.0 if methods[mid].higher_is_better else -1.0
         x = sign * np.asarray(rows_fn(mid, None), dtype=np.float64)
         if subset is None:
-            whole.add(mid)
-        everything = np.arange(len(place_of))
-        tier1 = _explicit(x, n, place_of, sets, everything)[1] if mid in whole else None
-        if subset is None:
+            whole[mid] = x
             best, _ = _explicit(x, n, place_of, sets, everything)
-        else:
-            rows = np.flatnonzero(np.isin(place_of, np.asarray(subset, np.int64)))
-            best, _ = _explicit(x, n, place_of, sets, rows, fallback=tier1)
-        best = sign * best
-        return best if subset is None else best[np.asarray(subset, np.int64)]
+            return sign * best
+        sub = np.asarray(subset, np.int64)
+        rows = np.flatnonzero(np.isin(place_of, sub))
+        fallback = _explicit(x, n, place_of, sets, everything)[1] if mid in whole else {}
+        rep = _representatives(list(whole.values()), n, place_of, sets)
+        return sign * _by_representative(x, place_of, sets, rows, rep, fallback)[sub]
 
     return fn
 
