@@ -887,7 +887,8 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
         "(what a perfect recorder would add), the test frames on the bare and the merged "
         "version; *before*: the merged version under the place scoring this replaced (each "
         "set shifted by the difference of its sampled median and the originals', tier 1 only, "
-        "no chance gain), the same run on that code:\n\n"
+        "no chance gain, each method taking its own best image of a place in every tier), the "
+        "same run on that code:\n\n"
         + table(
             [
                 "map + experiences",
