@@ -358,7 +358,9 @@ class PlaceScorer:
             rep = self.representatives()
             if rep is not None:
                 # one image per place: the one tier 1 found best; no chance gain to take back
-                v = np.where(rows == rep[self.places.place_of[rows]], v, -np.inf)
+                # (the others as NaN: a representative without a score leaves its place
+                # unscored, as a one-image place's NaN does)
+                v = np.where(rows == rep[self.places.place_of[rows]], v, np.nan)
                 best, won = reduce_rows(v, rows, seg, True)
                 return sign * best, won
         g = np.where(np.isfinite(v), gain[sets], 0.0)  # a NaN row adds nothing

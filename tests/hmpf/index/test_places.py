@@ -316,6 +316,10 @@ def test_later_tiers_score_each_place_by_its_representative() -> None:
     np.testing.assert_allclose(got, -_by_representative(e, places.place_of, sets, rows, rep, {}))
     np.testing.assert_array_equal(fn.winners["e"], rep)
     np.testing.assert_array_equal(fn.matched_rows(["e", "s"]), rep)
+    # a representative without a score leaves its place unscored, whatever its other rows
+    place = int(np.flatnonzero(rep >= P)[0])
+    raw["e"][rep[place]] = np.nan
+    assert np.isnan(fn("e", np.array([place, 20]))[0])
     # with "s" alone scored whole, on other scores, the representatives follow it alone
     fn2 = place_scorer(_row_fn({"s": y, "d": -y, "e": -e}), places, METHODS, sets)
     fn2("s", None)
