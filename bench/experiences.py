@@ -560,11 +560,10 @@ def _time_versions(
                     samples[k]["hierarchy"].append((t2 - t1) * 1e3)
 
 
-def truth_log(
-    index: Path, log: Path, frames: list[Path], places: Any, vehicle: str | None = None
-) -> Path:
+def truth_log(index: Path, log: Path, frames: list[Path], places: Any) -> Path:
     """An experience log of ``frames`` recorded at their true ``places`` (what a perfect
-    recorder would keep), as the service writes it, for ``hmpf-index add --experiences``."""
+    recorder would keep) by vehicle ``truth-<log's stem>``, as the service writes it, for
+    ``hmpf-index add --experiences``."""
     with IndexReader(index) as reader:
         names = reader.place_names
     with ExperienceLog(log) as writer:
@@ -576,7 +575,7 @@ def truth_log(
                 place_name=names[int(place)],
                 index_version="v0001",
                 p_correct=1.0,
-                vehicle=vehicle or f"truth-{log.stem}",
+                vehicle=f"truth-{log.stem}",
                 timestamp=float(i),
                 mode="sequence",
             )

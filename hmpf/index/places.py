@@ -406,7 +406,7 @@ def _standardised(x: np.ndarray) -> np.ndarray:
     entries (a fixed cost at any map size); NaN (and a zero MAD's infinities) as a very low
     value, so that such a row never stands for its place while it has another."""
     n = len(x)
-    sample = x[np.unique(np.linspace(0, n - 1, min(n, Z_SAMPLE)).round().astype(np.int64))]
+    sample = x[_evenly_spaced(n, Z_SAMPLE)]
     sample = sample[np.isfinite(sample)]
     if not len(sample):
         return np.full(n, -1e9)
@@ -429,10 +429,15 @@ def pair_sample(sets: np.ndarray) -> np.ndarray:
     bounds = np.searchsorted(sets[order], np.arange(int(sets.max()) + 2))
     for s in range(1, len(bounds) - 1):
         rows = order[bounds[s] : bounds[s + 1]]
-        k = min(len(rows), PAIR_SAMPLE)
-        if k:
-            out.append(rows[np.unique(np.linspace(0, len(rows) - 1, k).round().astype(np.int64))])
+        if len(rows):
+            out.append(rows[_evenly_spaced(len(rows), PAIR_SAMPLE)])
     return np.concatenate(out)
+
+
+def _evenly_spaced(n: int, k: int) -> np.ndarray:
+    """Up to ``k`` of the positions ``0 .. n-1``, evenly spaced, first and last included
+    (every position when ``n <= k``)."""
+    return np.unique(np.linspace(0, n - 1, min(n, k)).round().astype(np.int64))
 
 
 @dataclass(frozen=True)
