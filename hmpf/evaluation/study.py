@@ -4,9 +4,11 @@ Train/test splits, score banks and a cost model.
 
 A :class:`ScoreBank` holds, for one split of a route, every pool method's raw score of every
 query against every reference (features come through the descriptor cache, so a second run
-extracts nothing). Any hierarchy over those methods then runs per query by gathering from the
-matrices (:meth:`ScoreBank.run`), through the same :class:`~hmpf.hierarchy.Hierarchy` code as
-evaluation and the service: thousands of hierarchies cost seconds, not re-extraction.
+extracts nothing). Any hierarchy over those methods then runs on the matrices: per query
+through the same :class:`~hmpf.hierarchy.Hierarchy` code as evaluation and the service
+(:meth:`ScoreBank.results`), or for every query at once with the same floats
+(:meth:`ScoreBank.run`, :mod:`hmpf.evaluation.batch`): thousands of hierarchies cost seconds,
+not re-extraction.
 
 :class:`CostModel` turns measured component times (single-image extraction: the pass shared by
 a group of methods and each method's own work; per-method matching as a function of the number
@@ -29,6 +31,7 @@ from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, TierConfig, build_methods
 from hmpf.errors import ConfigError, DatasetError
 from hmpf.evaluation import SPLITS
+from hmpf.evaluation.batch import batch_outcome
 from hmpf.evaluation.data import EvalData, prepare
 from hmpf.evaluation.metrics import HierarchyOutcome, outcome_of, recall_at_n, run_queries
 from hmpf.evaluation.sequence import sequence_report, tune_sequence
@@ -235,8 +238,11 @@ class ScoreBank:
         return results
 
     def run(self, config: HierarchyConfig) -> HierarchyOutcome:
-        """Run ``config`` for every query of the bank."""
-        return outcome_of(self.results(config), self.gt, self.n_db)
+        """Run ``config`` for every query of the bank: the figures of :meth:`results`,
+        computed on the whole matrices at once (:func:`~hmpf.evaluation.batch.batch_outcome`,
+        the same floats, not timed) unless the mode is faithful."""
+        fast = batch_outcome(config, self.methods, self.scores, self.gt)
+        return fast if fast is not None else outcome_of(self.results(config), self.gt, self.n_db)
 
     def sequence(
         self, config: HierarchyConfig, params: FilterParams, *, seed: int = 0
