@@ -25,11 +25,12 @@ them: it runs per query); nothing is timed (``tier_ms`` and ``fusion_ms`` are Na
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
 from hmpf.config import HierarchyConfig
-from hmpf.evaluation.metrics import HierarchyOutcome
+from hmpf.evaluation.metrics import HierarchyOutcome, outcome_of
 from hmpf.methods import Method
 
 __all__ = ["batch_outcome"]
@@ -62,9 +63,13 @@ def _union_rows(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """:func:`hmpf.fusion.union` (default mode) of every row's lists: (Q, L) indices in
     order, first occurrences only, -1 padded; and each row's length."""
     cat = np.concatenate(lists, axis=1)
-    n = cat.shape[1]
-    earlier = np.triu(np.ones((n, n), dtype=bool), k=1)  # [i, j]: i before j
-    repeat = ((cat[:, :, None] == cat[:, None, :]) & earlier).any(axis=1)
+    rows = np.arange(cat.shape[0])[:, None]
+    # A repeat is equal to the entry before it once each row is sorted by value (stable: of
+    # equal values, the earliest comes first), so no (Q, L, L) comparison is made.
+    by_value = np.argsort(cat, axis=1, kind="stable")
+    ordered = cat[rows, by_value]
+    repeat = np.zeros(cat.shape, dtype=bool)
+    repeat[rows, by_value[:, 1:]] = ordered[:, 1:] == ordered[:, :-1]
     keep = (cat >= 0) & ~repeat
     order = np.argsort(~keep, axis=1, kind="stable")
     out = np.take_along_axis(cat, order, axis=1)
@@ -99,11 +104,18 @@ def _zscore_rows(v: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Score entries (queries x references) of one chunk of queries: the batch holds a few arrays
+#: of this size per method and tier, whatever the bank's size.
+CHUNK_ENTRIES = 1 << 21
+
+
 def batch_outcome(
     config: HierarchyConfig,
     methods: Mapping[str, Method],
     scores: Mapping[str, np.ndarray],
     gt: np.ndarray,
+    *,
+    chunk_entries: int = CHUNK_ENTRIES,
 ) -> HierarchyOutcome | None:
     """``config`` over every query of a bank: ``outcome_of`` of the per-query results.
 
@@ -112,16 +124,71 @@ def batch_outcome(
         methods: method id -> instance (only ``higher_is_better`` is read).
         scores: method id -> (Q, N) raw scores of every query against every reference.
         gt: (Q, N) ground truth.
+        chunk_entries: queries are run in chunks of about this many score entries.
     """
     if config.faithful:
         return None
     gt = np.asarray(gt, dtype=bool)
     nq, n_db = gt.shape
+    if nq == 0:
+        return outcome_of([], gt, n_db)
+    step = max(1, chunk_entries // max(n_db, 1))
+    parts = [
+        _run_rows(
+            config,
+            methods,
+            {m: scores[m][a : a + step] for m in config.method_ids},
+            gt[a : a + step],
+        )
+        for a in range(0, nq, step)
+    ]
+    match = np.concatenate([p.match for p in parts])
+    quality = np.concatenate([p.quality for p in parts])
+    n_tiers = len(config.tiers)
+
+    def mean(field: str, t: int) -> float:
+        return float(np.mean(np.concatenate([getattr(p, field)[t] for p in parts])))
+
+    correct = np.zeros(nq, dtype=bool)
+    ok = match >= 0
+    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
+    return HierarchyOutcome(
+        match,
+        quality,
+        correct,
+        [mean("top1", t) for t in range(n_tiers)],
+        [mean("recall", t) for t in range(n_tiers)],
+        [float(n_db)] + [mean("inputs", t) for t in range(1, n_tiers)],
+        [mean("cands", t) for t in range(n_tiers)],
+        [float("nan")] * n_tiers,
+        float("nan"),
+    )
+
+
+@dataclass
+class _Rows:
+    """Per query of a chunk: the answer, and per tier the figures ``outcome_of`` averages."""
+
+    match: np.ndarray
+    quality: np.ndarray
+    top1: list[np.ndarray]  # the tier's mean score's best reference is right
+    recall: list[np.ndarray]  # a right reference is among the tier's candidates
+    inputs: list[np.ndarray]  # references the tier scored (tier 1: unused)
+    cands: list[np.ndarray]  # candidates the tier passed on
+
+
+def _run_rows(
+    config: HierarchyConfig,
+    methods: Mapping[str, Method],
+    scores: Mapping[str, np.ndarray],
+    gt: np.ndarray,
+) -> _Rows:
+    nq, n_db = gt.shape
     rows = np.arange(nq)[:, None]
     n_tiers = len(config.tiers)
     normed: list[dict[str, np.ndarray]] = []
     cands: list[np.ndarray] = []
-    top1, recall, inputs_n, cands_n = [], [], [], []
+    out_rows = _Rows(np.full(nq, -1, dtype=np.int64), np.full(nq, np.nan), [], [], [], [])
     inside: np.ndarray | None = None  # (Q, N): the references a later tier scores
     for t, tier in enumerate(config.tiers):
         norm: dict[str, np.ndarray] = {}
@@ -137,18 +204,16 @@ def batch_outcome(
             out = _top_k_rows(mean, tier.k)
             length = (out >= 0).sum(axis=1)
         cands.append(out)
-        top1.append(float(np.mean(gt[np.arange(nq), _nan_argmax_rows(mean)])))
-        recall.append(float(np.mean((gt[rows, np.maximum(out, 0)] & (out >= 0)).any(axis=1))))
-        inputs_n.append(float(n_db) if inside is None else float(np.mean(inside.sum(axis=1))))
-        cands_n.append(float(np.mean(length)))
+        out_rows.top1.append(gt[np.arange(nq), _nan_argmax_rows(mean)])
+        out_rows.recall.append((gt[rows, np.maximum(out, 0)] & (out >= 0)).any(axis=1))
+        out_rows.inputs.append(np.full(nq, n_db) if inside is None else inside.sum(axis=1))
+        out_rows.cands.append(length)
         inside = np.zeros((nq, n_db), dtype=bool)
         r, c = np.nonzero(out >= 0)
         inside[r, out[r, c]] = True
     # The Combined score over the candidates entering the final tier (all of them: one tier).
     final_in = np.broadcast_to(np.arange(n_db), (nq, n_db)) if n_tiers == 1 else cands[n_tiers - 2]
     sizes = (final_in >= 0).sum(axis=1)
-    match = np.full(nq, -1, dtype=np.int64)
-    quality = np.full(nq, np.nan)
     mean_all = config.tier_score == "mean"
     for size in np.unique(sizes):
         if size == 0:
@@ -164,12 +229,6 @@ def batch_outcome(
         assert total is not None
         z = _zscore_rows(np.ascontiguousarray(total))
         j = _nan_argmax_rows(z)
-        match[group] = f[np.arange(len(group)), j]
-        quality[group] = z[np.arange(len(group)), j]
-    correct = np.zeros(nq, dtype=bool)
-    ok = match >= 0
-    correct[ok] = gt[np.flatnonzero(ok), match[ok]]
-    nan_ms = [float("nan")] * n_tiers
-    return HierarchyOutcome(
-        match, quality, correct, top1, recall, inputs_n, cands_n, nan_ms, float("nan")
-    )
+        out_rows.match[group] = f[np.arange(len(group)), j]
+        out_rows.quality[group] = z[np.arange(len(group)), j]
+    return out_rows

@@ -102,3 +102,26 @@ def test_bank_run_takes_the_batch_and_faithful_mode_runs_per_query() -> None:
     out = bank.run(faithful)
     assert not np.isnan(out.fusion_ms)  # per query, timed
     _same(out, _per_query(bank, faithful))
+
+
+def test_chunks_and_whole_map_unions_give_the_same_floats() -> None:
+    """Queries run in chunks (here of 3-4 queries) and a first tier passing on every
+    reference of a larger map (the union of three whole lists, the paper's "flat" setting):
+    the per-query figures still, with no (queries x list x list) comparison made."""
+    rng = np.random.default_rng(11)
+    bank = _bank(rng, nq=10, n_db=600, kind="ties")
+    tiers = [{"methods": ["hog", "olo", "gist"], "k": 600}, {"methods": ["sad"], "k": 1}]
+    config = HierarchyConfig.model_validate({"tiers": tiers})
+    slow = _per_query(bank, config)
+    for entries in (2000, 1 << 21):  # 3 queries per chunk, then one chunk
+        fast = batch_outcome(config, bank.methods, bank.scores, bank.gt, chunk_entries=entries)
+        assert fast is not None
+        _same(fast, slow)
+    assert fast.mean_inputs == [600.0, 600.0]
+
+
+def test_an_empty_bank_is_an_empty_outcome() -> None:
+    scores = {m: np.zeros((0, 5)) for m in METHODS}
+    config = HierarchyConfig.model_validate({"tiers": [{"methods": ["hog"], "k": 1}]})
+    fast = batch_outcome(config, METHODS, scores, np.zeros((0, 5), bool))
+    assert fast is not None and len(fast.matches) == 0 and fast.recall_at_1 == 0.0
