@@ -19,7 +19,9 @@ It gives **the same floats** as the per-query path (matches, quality, the per-ti
 :class:`~hmpf.evaluation.metrics.HierarchyOutcome`), which ``tests/hmpf/evaluation/
 test_batch.py`` checks against :func:`~hmpf.evaluation.metrics.outcome_of` bit for bit. Only
 the default mode is covered (faithful mode keeps duplicates in its unions and normalises over
-them: it runs per query); nothing is timed (``tier_ms`` and ``fusion_ms`` are NaN).
+them: it runs per query); nothing is timed (``tier_ms`` and ``fusion_ms`` are NaN). Queries
+run in chunks of about :data:`CHUNK_ENTRIES` score entries, so the memory it adds is a few
+such arrays per method and tier, whatever the bank's size.
 """
 
 from __future__ import annotations
