@@ -80,13 +80,6 @@ def _union_rows(lists: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return out, keep.sum(axis=1)
 
 
-def _gather(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``x[q, idx[q]]`` per row, NaN where ``idx`` is -1."""
-    out = np.take_along_axis(x, np.maximum(idx, 0), axis=1)
-    out[idx < 0] = np.nan
-    return out
-
-
 def _nan_argmax_rows(x: np.ndarray) -> np.ndarray:
     """:func:`hmpf.fusion.nan_argmax` of every row (first maximum, NaN skipped; all NaN: 0)."""
     return np.argmax(np.where(np.isnan(x), -np.inf, x), axis=1)
@@ -94,8 +87,7 @@ def _nan_argmax_rows(x: np.ndarray) -> np.ndarray:
 
 def _zscore_rows(v: np.ndarray) -> np.ndarray:
     """:func:`hmpf.fusion.zscore` of every row of a C-contiguous (Q, L) array."""
-    q, n = v.shape
-    if n == 1:
+    if v.shape[1] == 1:
         return np.where(np.isnan(v), np.nan, 0.0)
     mean = v.mean(axis=1, keepdims=True)
     sd = v.std(axis=1, ddof=1, keepdims=True)
@@ -160,7 +152,7 @@ def batch_outcome(
         correct,
         [mean("top1", t) for t in range(n_tiers)],
         [mean("recall", t) for t in range(n_tiers)],
-        [float(n_db)] + [mean("inputs", t) for t in range(1, n_tiers)],
+        [float(n_db)] + [mean("inputs", t) for t in range(n_tiers - 1)],
         [mean("cands", t) for t in range(n_tiers)],
         [float("nan")] * n_tiers,
         float("nan"),
@@ -175,7 +167,7 @@ class _Rows:
     quality: np.ndarray
     top1: list[np.ndarray]  # the tier's mean score's best reference is right
     recall: list[np.ndarray]  # a right reference is among the tier's candidates
-    inputs: list[np.ndarray]  # references the tier scored (tier 1: unused)
+    inputs: list[np.ndarray]  # references a tier after the first scored
     cands: list[np.ndarray]  # candidates the tier passed on
 
 
@@ -208,11 +200,12 @@ def _run_rows(
         cands.append(out)
         out_rows.top1.append(gt[np.arange(nq), _nan_argmax_rows(mean)])
         out_rows.recall.append((gt[rows, np.maximum(out, 0)] & (out >= 0)).any(axis=1))
-        out_rows.inputs.append(np.full(nq, n_db) if inside is None else inside.sum(axis=1))
         out_rows.cands.append(length)
-        inside = np.zeros((nq, n_db), dtype=bool)
-        r, c = np.nonzero(out >= 0)
-        inside[r, out[r, c]] = True
+        if t < n_tiers - 1:
+            inside = np.zeros((nq, n_db), dtype=bool)
+            r, c = np.nonzero(out >= 0)
+            inside[r, out[r, c]] = True
+            out_rows.inputs.append(length)  # the union has no repeats: all are scored next
     # The Combined score over the candidates entering the final tier (all of them: one tier).
     final_in = np.broadcast_to(np.arange(n_db), (nq, n_db)) if n_tiers == 1 else cands[n_tiers - 2]
     sizes = (final_in >= 0).sum(axis=1)
@@ -224,7 +217,7 @@ def _run_rows(
         f = np.ascontiguousarray(final_in[group, :size])  # unions are packed at the front
         total: np.ndarray | None = None
         for t, (tier, w) in enumerate(zip(config.tiers, config.tier_weights, strict=True)):
-            at = [_gather(normed[t][m][group], f) for m in tier.methods]
+            at = [np.take_along_axis(normed[t][m][group], f, axis=1) for m in tier.methods]
             value = np.mean(at, axis=0) if mean_all or t == n_tiers - 1 else np.fmax.reduce(at)
             part = _minmax_rows(np.ascontiguousarray(value), True) * float(w)
             total = part if total is None else total + part
