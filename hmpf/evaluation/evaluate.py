@@ -248,10 +248,16 @@ def evaluate(
     if sequence:
         report["sequence"] = _sequence(results, gt, routes, config, profile())
     if sequence and foreign:
-        away = EvalData(data.reference, list(foreign), np.zeros((len(foreign), n_db), bool), "")
-        p2 = prepare(build_methods(config), away, cache=cache, workers=workers, progress=progress)
-        scorers = (feature_scorer(p2.methods, p2.query(qi), p2.db) for qi in range(len(foreign)))
-        away_results, _ = run_queries(Hierarchy(config, p2.methods), scorers, n_db)
+        # The foreign frames through the methods fitted above, against the same database: only
+        # their own features are extracted (the references are not fitted or read again).
+        away = extract_images(
+            list(foreign), methods, cache=cache, workers=workers, progress=progress, desc="foreign"
+        ).features
+        scorers = (
+            feature_scorer(methods, {m: away[m][qi] for m in methods}, prep.db)
+            for qi in range(len(foreign))
+        )
+        away_results, _ = run_queries(Hierarchy(config, methods), scorers, n_db)
         report["off_map"] = off_map_report(
             results, away_results, gt, routes, config.sequence_params(), profile()
         )

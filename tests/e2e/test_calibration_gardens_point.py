@@ -27,7 +27,9 @@ PUBLISHED = Path(__file__).resolve().parents[2] / "docs/experiments/gp_dr_nr/cal
 pytestmark = pytest.mark.slow  # minutes on 2 cores: a whole calibration search
 
 
-def test_calibrated_beats_best_single_and_matches_flat_on_test(gardens_point: Path, tmp_path: Path):
+def test_calibrated_beats_best_single_and_matches_flat_on_test(
+    gardens_point: Path, gp_feature_cache: Path, tmp_path: Path
+):
     out = tmp_path / "cal"
     proc = subprocess.run(
         [
@@ -46,7 +48,7 @@ def test_calibrated_beats_best_single_and_matches_flat_on_test(gardens_point: Pa
             "--out",
             str(out),
             "--cache-dir",
-            str(tmp_path / "cache"),
+            str(gp_feature_cache),
         ],  # fmt: skip
         capture_output=True,
         text=True,

@@ -28,9 +28,11 @@ def _eval(args: list[str], cache: Path) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.dataset
 @pytest.mark.slow  # minutes on 2 cores (whole Gardens Point protocols)
-def test_handcrafted_day_right_to_night_right(gardens_point: Path, tmp_path: Path):
+def test_handcrafted_day_right_to_night_right(
+    gardens_point: Path, gp_feature_cache: Path, tmp_path: Path
+):
     out = tmp_path / "report.json"
-    cache = tmp_path / "cache"
+    cache = gp_feature_cache  # shared: what an earlier test extracted is read, not redone
     args = [
         "--config",
         "configs/handcrafted.yaml",
@@ -66,9 +68,9 @@ def test_handcrafted_day_right_to_night_right(gardens_point: Path, tmp_path: Pat
     assert h["combined_recall_at_1"] > max(m[n]["recall_at"]["1"] for n in m)
     assert 0.0 < h["pr"]["auc"] <= 1.0
     assert len(rep["timing_ms"]["tiers_per_query"]) == 3
-    assert rep["cache"]["reference_cached"] == {k: 0 for k in m}
 
-    # Second run: every descriptor comes from the cache, results are identical.
+    # Second run: every descriptor comes from the cache (whatever the first run found
+    # there, it stored the rest), results are identical.
     out2 = tmp_path / "report2.json"
     proc = _eval([*args[:-1], str(out2), "--skip-curves", "kaze", "--sequence"], cache)
     assert proc.returncode == 0, proc.stderr
@@ -111,10 +113,12 @@ def test_cli_reports_empty_folder(tmp_path: Path):
 
 @pytest.mark.dataset
 @pytest.mark.slow  # minutes on 2 cores (whole Gardens Point protocols)
-def test_default_hierarchy_beats_best_single_and_flat(gardens_point: Path, tmp_path: Path):
+def test_default_hierarchy_beats_best_single_and_flat(
+    gardens_point: Path, gp_feature_cache: Path, tmp_path: Path
+):
     """configs/default.yaml on the two night protocols (issue: must beat its best single
     method and flat fusion of the same methods on both)."""
-    cache = tmp_path / "cache"
+    cache = gp_feature_cache
     for ref in ("day_right", "day_left"):
         out = tmp_path / f"{ref}.json"
         proc = _eval(

@@ -246,8 +246,8 @@ def test_measure_costs_uses_declared_groups_of_any_method(tmp_path: Path):
 
 
 @pytest.fixture(scope="module")
-def banks(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory):
-    cache = FeatureCache(tmp_path_factory.mktemp("cache"))
+def banks(gardens_point: Path, gp_feature_cache: Path):
+    cache = FeatureCache(gp_feature_cache)
     refs = list_images(gardens_point / "day_right")[:N_IMAGES]
     qrys = list_images(gardens_point / "night_right")[:N_IMAGES]
     data = EvalData(refs, qrys, frame_ground_truth(N_IMAGES, N_IMAGES, 2), "frames +-2")
@@ -359,7 +359,9 @@ def test_trial_config_carries_pool_parameters(banks):
         derive_config(pool, [(("olo",), 1)])
 
 
-def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Path, banks):
+def test_calibrate_cli_writes_loadable_config(
+    gardens_point: Path, gp_feature_cache: Path, tmp_path: Path, banks
+):
     pool_file = tmp_path / "pool.yaml"
     pool_file.write_text(json.dumps(POOL))
     sub = link_route(gardens_point, tmp_path, N_IMAGES)
@@ -368,7 +370,7 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
         sys.executable, "-m", "hmpf.cli.calibrate", "--quiet",
         "--reference", str(sub["day_right"]), "--query", str(sub["night_right"]),
         "--block", "10", "--pool", str(pool_file), "--out", str(out),
-        "--cache-dir", str(tmp_path / "c"), "--k1", "3", "6", "--k2", "2",
+        "--cache-dir", str(gp_feature_cache), "--k1", "3", "6", "--k2", "2",
         "--samples", "20", "--refine", "2", "--seed", "3",
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
@@ -397,7 +399,9 @@ def test_calibrate_cli_writes_loadable_config(gardens_point: Path, tmp_path: Pat
     assert bad.returncode == 2 and "not in the pool" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_extended_pool_lets_a_route_pick_the_new_levers(gardens_point: Path, tmp_path: Path):
+def test_extended_pool_lets_a_route_pick_the_new_levers(
+    gardens_point: Path, gp_feature_cache: Path, tmp_path: Path
+):
     """``--pool calibration-pool-extended``: whitened HOG / Gist (fitted on the references),
     multi-scale GeM and BEBLID inlier verification are searchable, and a config using them
     carries their parameters and loads."""
@@ -408,7 +412,7 @@ def test_extended_pool_lets_a_route_pick_the_new_levers(gardens_point: Path, tmp
         sys.executable, "-m", "hmpf.cli.calibrate", "--quiet",
         "--reference", str(sub["day_right"]), "--query", str(sub["night_right"]),
         "--block", "10", "--pool", "calibration-pool-extended", "--out", str(out),
-        "--cache-dir", str(tmp_path / "c"), "--k1", "3", "6", "--k2", "2",
+        "--cache-dir", str(gp_feature_cache), "--k1", "3", "6", "--k2", "2",
         "--samples", "20", "--refine", "2", "--seed", "3",
         "--methods", "hog", *levers,
         # a budget no candidate reaches: on a loaded machine the measured costs grow, and a

@@ -45,12 +45,12 @@ COSTS = CostModel(  # fixed: the search path measures nothing
 
 
 @pytest.fixture(scope="module")
-def route(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory):
+def route(gardens_point: Path, gp_feature_cache: Path, tmp_path_factory: pytest.TempPathFactory):
     """The first 60 frames of day_right -> night_right (symlinked, for the command), the
     split's parts, its feature cache and the pool's training bank."""
     root = tmp_path_factory.mktemp("route")
     sub = link_route(gardens_point, root, N_IMAGES)
-    cache_dir = root / "cache"
+    cache_dir = gp_feature_cache
     cache = FeatureCache(cache_dir)
     refs, qrys = list_images(sub["day_right"]), list_images(sub["night_right"])
     data = EvalData(refs, qrys, frame_ground_truth(N_IMAGES, N_IMAGES, 2), "frames +-2")

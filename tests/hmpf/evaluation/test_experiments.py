@@ -26,9 +26,14 @@ def short_route(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -
 
 
 def _experiments(
-    route: dict[str, Path], tmp_path: Path, *extra: str, launch: tuple[str, ...] = ()
+    route: dict[str, Path],
+    tmp_path: Path,
+    *extra: str,
+    launch: tuple[str, ...] = (),
+    cache: Path | None = None,
 ) -> subprocess.CompletedProcess[str]:
-    """``hmpf-eval experiments`` on ``route`` (``launch``: another ``python`` entry point)."""
+    """``hmpf-eval experiments`` on ``route`` (``launch``: another ``python`` entry point;
+    ``cache``: the feature cache, by default ``tmp_path / "cache"``)."""
     return subprocess.run(
         [
             sys.executable,
@@ -42,7 +47,7 @@ def _experiments(
             "--block",
             "10",
             "--cache-dir",
-            str(tmp_path / "cache"),
+            str(cache or tmp_path / "cache"),
             *extra,
         ],  # fmt: skip
         capture_output=True,
@@ -51,12 +56,15 @@ def _experiments(
     )
 
 
-def test_experiments_write_figures_report_and_tables(short_route, tmp_path: Path):
+def test_experiments_write_figures_report_and_tables(
+    short_route, gp_feature_cache: Path, tmp_path: Path
+):
     out = tmp_path / "exp"
     proc = _experiments(
         short_route,
         tmp_path,
         *("--k1", "6", "--k2", "3", "--out", str(out), "--title", "short GP", "--sequence"),
+        cache=gp_feature_cache,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((out / "experiments.json").read_text())
