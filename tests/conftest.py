@@ -69,10 +69,9 @@ def gp_feature_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One feature cache (``--cache-dir``) for the tests that extract Gardens Point images, as
     a user's runs share one: an entry is keyed by the method (code version, parameters,
     fitted state, runtime) and the image's bytes, so a test reads only what the same methods
-    made of the same images and extracts the rest (the cache's own tests:
-    tests/hmpf/evaluation/test_evaluate.py; a cached run equals a fresh one: the handcrafted
-    protocol in tests/e2e/test_e2e_gardens_point.py). Under pytest-xdist every worker has
-    its own."""
+    made of the same images and extracts the rest. The cache's own tests (reuse,
+    invalidation, a cached feature equal to a fresh one) are in
+    tests/hmpf/evaluation/test_evaluate.py; a test that needs a cold cache keeps its own."""
     return tmp_path_factory.mktemp("gp-feature-cache")
 
 
