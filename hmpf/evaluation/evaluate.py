@@ -192,7 +192,8 @@ def evaluate(
     methods, n_db, n_q = prep.methods, len(data.reference), len(data.query)
     # The hierarchy, per query, scoring on demand (timed independently of the curves).
     scorers = (feature_scorer(methods, prep.query(qi), prep.db) for qi in range(n_q))
-    results, hierarchy_s = run_queries(Hierarchy(config, methods), scorers, n_db)
+    hierarchy = Hierarchy(config, methods)
+    results, hierarchy_s = run_queries(hierarchy, scorers, n_db)
     outcome = outcome_of(results, gt, n_db)
     method_report, full, curves_s = _method_curves(prep, gt, skip_curves)
     flat_ids = [m for m in config.method_ids if m in full]
@@ -257,7 +258,7 @@ def evaluate(
             feature_scorer(methods, {m: away[m][qi] for m in methods}, prep.db)
             for qi in range(len(foreign))
         )
-        away_results, _ = run_queries(Hierarchy(config, methods), scorers, n_db)
+        away_results, _ = run_queries(hierarchy, scorers, n_db)
         report["off_map"] = off_map_report(
             results, away_results, gt, routes, config.sequence_params(), profile()
         )
