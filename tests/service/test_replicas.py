@@ -478,7 +478,9 @@ def test_an_unusable_version_is_reported_and_not_served(balancer, replicas, inde
         assert after - before == 1
         # the admin command that posts the reload to every replica directly says so too
         refused = _reload_all(replicas, keys)
-        assert refused.returncode == 1 and refused.stdout.count("409") == 2, refused.stdout
+        # one line per replica, "URL: STATUS BODY" (a port may itself contain "409")
+        statuses = [line.split(": ", 1)[1].split(" ", 1)[0] for line in refused.stdout.splitlines()]
+        assert refused.returncode == 1 and statuses == ["409", "409"], refused.stdout
     finally:
         use(index, "v0002")
     for s in replicas:
