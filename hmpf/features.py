@@ -269,25 +269,32 @@ def _extract_group_once(
 
 def _extract_batched(
     paths: Sequence[str | os.PathLike[str]],
-    todo: Sequence[int],
+    todo: Mapping[int, Sequence[str]],
     methods: Mapping[str, Method],
     store: Callable[[int, str, Any, float], None],
     progress: bool,
 ) -> None:
     """Batched methods in this process, ``batch_size`` images at a time (torch uses every
-    core for one batch)."""
-    chunk = max(m.batch_size for m in methods.values())
+    core for one batch). ``todo``: image index -> the batched methods it lacks; an image
+    runs only those (a feature already cached is not computed again), images lacking the
+    same methods batched together."""
+    alike: dict[tuple[str, ...], list[int]] = {}
+    for i in sorted(todo):
+        alike.setdefault(tuple(m for m in methods if m in todo[i]), []).append(i)
     bar = tqdm(total=len(todo), desc="cnn", unit="img", disable=None if progress else True)
     try:
-        for start in range(0, len(todo), chunk):
-            idx = list(todo[start : start + chunk])
-            images = [load_image(paths[i]) for i in idx]
-            times: dict[str, list[float]] = {}
-            feats = extract_many(methods, images, times)
-            for mid, fs in feats.items():
-                for j, i in enumerate(idx):
-                    store(i, mid, fs[j], times[mid][j])
-            bar.update(len(idx))
+        for mids, todo_i in alike.items():
+            run = {m: methods[m] for m in mids}
+            chunk = max(m.batch_size for m in run.values())
+            for start in range(0, len(todo_i), chunk):
+                idx = todo_i[start : start + chunk]
+                images = [load_image(paths[i]) for i in idx]
+                times: dict[str, list[float]] = {}
+                feats = extract_many(run, images, times)
+                for mid, fs in feats.items():
+                    for j, i in enumerate(idx):
+                        store(i, mid, fs[j], times[mid][j])
+                bar.update(len(idx))
     finally:
         bar.close()
 
@@ -302,7 +309,10 @@ def fit_methods(
     """Fit (in place) the methods whose ``requires_fit()`` is True on reference images.
 
     Uses up to ``max_images`` references, evenly spaced along the list (deterministic). With a
-    cache, parameters fitted before on the same images (by content) are loaded instead.
+    cache, parameters fitted before on the same images (by content) are loaded instead, and
+    the features a fit computes on the way (:func:`~hmpf.methods.base.fit_many`) are stored
+    in it, so that extracting those references afterwards reads them instead of running the
+    same forward passes again.
 
     Returns:
         The ids of the methods that needed fitting.
@@ -313,9 +323,10 @@ def fit_methods(
     n = len(paths)
     pick = np.unique(np.linspace(0, n - 1, min(n, max_images)).round().astype(np.int64))
     fit_key = ""
+    digests: list[str] = []
     if cache is not None:
-        joined = "".join(file_digest(paths[i]) for i in pick)
-        fit_key = hashlib.sha256(joined.encode()).hexdigest()[:32]
+        digests = [file_digest(paths[i]) for i in pick]
+        fit_key = hashlib.sha256("".join(digests).encode()).hexdigest()[:32]
     pending: dict[str, Method] = {}
     for mid, m in todo.items():
         state = cache.get_state(m.descriptor_key(), fit_key) if cache is not None else None
@@ -326,10 +337,13 @@ def fit_methods(
     if pending:
         keys = {mid: m.descriptor_key() for mid, m in pending.items()}  # before fitting
         images = [load_image(paths[i]) for i in pick]
-        fit_many(pending, images)
+        seen = fit_many(pending, images)
         if cache is not None:
             for mid, m in pending.items():
                 cache.put_state(keys[mid], fit_key, m.state_arrays())
+            for mid, (feats, ms) in seen.items():
+                for digest, f, t_ms in zip(digests, feats, ms, strict=True):
+                    cache.put(pending[mid], digest, f, t_ms)
     return list(todo)
 
 
@@ -405,7 +419,8 @@ def _extract(
     """
     decode: list[float] = []
     batched_ids = [m for m in methods if methods[m].batched]
-    batched_todo = sorted(i for i, mids in todo.items() if set(mids) & set(batched_ids))
+    batched_todo = {i: [m for m in mids if m in batched_ids] for i, mids in todo.items()}
+    batched_todo = {i: mids for i, mids in batched_todo.items() if mids}
     cpu_todo = {i: [m for m in mids if m not in batched_ids] for i, mids in todo.items()}
     cpu_todo = {i: mids for i, mids in cpu_todo.items() if mids}
     if batched_todo:

@@ -387,7 +387,8 @@ def _fit(methods: Mapping[str, Method], paths: list[Path], work: WorkDir) -> Non
             m.load_state(states[mid])
         return
     with _images_stay_readable():
-        hfeatures.fit_methods(todo, paths)
+        # with the work cache: the features the fit computes on the way are not extracted again
+        hfeatures.fit_methods(todo, paths, cache=work.cache)
     write_state(work.state, todo)
 
 

@@ -288,9 +288,17 @@ class Method(ABC):
         return GroupOutput(features, own, [0.0] * len(images))
 
     @classmethod
-    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
+    def fit_group(
+        cls, methods: Sequence[Method], images: Sequence[np.ndarray]
+    ) -> GroupOutput | None:
         """Fit (in place) ``methods`` (sharing one :meth:`group_key`, each ``requires_fit()``)
-        on reference ``images``; methods that fit parameters override it."""
+        on reference ``images``; methods that fit parameters override it.
+
+        Returns:
+            The fitted methods' features of ``images`` where the fit computes them on the way
+            (keyed by the methods' positions, ``"0"``, ``"1"``...), exactly what
+            :meth:`extract_group` would give after the fit; or None.
+        """
         names = ", ".join(repr(m.name) for m in methods)
         raise NotImplementedError(f"method {names} requires fitting but implements no fit_group")
 
@@ -444,13 +452,29 @@ def extract_many(
     return out
 
 
-def fit_many(methods: Mapping[str, Method], images: Sequence[np.ndarray]) -> None:
+def fit_many(
+    methods: Mapping[str, Method], images: Sequence[np.ndarray]
+) -> dict[str, tuple[list[Any], list[float]]]:
     """Fit (in place) every method whose ``requires_fit()`` is True on ``images``, one pass
-    per image for each group."""
+    per image for each group.
+
+    Returns:
+        method id -> (its features of ``images``, ms per image), for the fitted methods whose
+        fit computes them on the way (:meth:`Method.fit_group`): a reference set fitted on
+        is not extracted a second time. A group's shared time counts in its first method.
+    """
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
+    out: dict[str, tuple[list[Any], list[float]]] = {}
     for group in method_groups(todo):
         members = list(group.values())
-        type(members[0]).fit_group(members, images)
+        res = type(members[0]).fit_group(members, images)
+        if res is None:
+            continue
+        for j, mid in enumerate(group):
+            own = res.own_ms[str(j)]
+            ms = [o + s for o, s in zip(own, res.shared_ms, strict=True)] if j == 0 else own
+            out[mid] = (res.features[str(j)], ms)
+    return out
 
 
 class GlobalMethod(Method):
@@ -534,11 +558,22 @@ class GlobalMethod(Method):
         return self.finish(self.raw_descriptor(image))
 
     @classmethod
-    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
-        """Fit each method's whitening on its own descriptors of ``images``."""
-        for m in methods:
+    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> GroupOutput:
+        """Fit each method's whitening on its own descriptors of ``images``; their finished
+        descriptors of ``images`` come back (the whitening applied, as :meth:`extract`)."""
+        features: dict[str, list[Any]] = {}
+        own: dict[str, list[float]] = {}
+        for j, m in enumerate(methods):
             g: GlobalMethod = m  # type: ignore[assignment]
-            g.fit_references(np.stack([g.raw_descriptor(to_rgb(im)) for im in images]))
+            raw, ms = [], []
+            for im in images:
+                t0 = time.perf_counter()
+                raw.append(g.raw_descriptor(to_rgb(im)))
+                ms.append((time.perf_counter() - t0) * 1e3)
+            g.fit_references(np.stack(raw))
+            features[str(j)] = [g.finish(r) for r in raw]
+            own[str(j)] = ms
+        return GroupOutput(features, own, [0.0] * len(images))
 
     def stack_references(self, features: Sequence[np.ndarray]) -> np.ndarray:
         return self.augment_references(self.stack(features))

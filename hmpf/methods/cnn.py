@@ -254,13 +254,24 @@ class CnnMethod(Method):
         return GroupOutput(features, own, forward_ms)
 
     @classmethod
-    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> None:
-        """Fit the group on ``images``' maps (one forward pass per image for all of them)."""
+    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> GroupOutput:
+        """Fit the group on ``images``' maps (one forward pass per image for all of them), then
+        compute each method's features of ``images`` from the same maps (no second pass)."""
         group: list[CnnMethod] = list(methods)  # type: ignore[arg-type]
         # Keep only the layers the fitting methods need (maps are small: <= 1 MB per image).
-        samples = list(forward_group(group, images))
+        forward_ms: list[float] = []
+        samples = list(forward_group(group, images, forward_ms))
         for m in group:
             m.fit_from_maps(samples)
+        features: dict[str, list[Any]] = {}
+        own: dict[str, list[float]] = {}
+        for j, m in enumerate(group):
+            features[str(j)], own[str(j)] = [], []
+            for maps in samples:
+                t0 = time.perf_counter()
+                features[str(j)].append(m.from_maps(maps))
+                own[str(j)].append((time.perf_counter() - t0) * 1e3)
+        return GroupOutput(features, own, forward_ms)
 
 
 def _batches(n: int, size: int) -> Iterator[slice]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hmpf.config import parse_config
-from hmpf.features import FeatureCache, fit_methods
+from hmpf.features import FeatureCache, extract_images, file_digest, fit_methods
 from hmpf.methods import create_method
 from hmpf.methods.base import extract_many, fit_many
 from hmpf.methods.cnn import cluster_sums, kmeans, l2_rows, nearest
@@ -339,6 +339,82 @@ def test_fit_methods_uses_cache(tmp_path: Path) -> None:
         third["netvlad"].state_arrays()["centroids"],
         state["centroids"],
     )
+
+
+def test_fit_stores_the_references_features_extraction_would_compute(tmp_path: Path) -> None:
+    """A fit computes the fitted methods' features of its images on the way (one forward pass
+    per image, not two); with a cache they are stored, equal bit for bit to what extraction
+    without a cache gives, so extracting those references reads them all."""
+    import cv2
+
+    from hmpf.config import build_methods
+
+    paths = []
+    for i, img in enumerate(_images(5, seed=4)):
+        p = tmp_path / f"{i:03d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        paths.append(p)
+    cfg = parse_config(
+        {
+            "methods": {
+                "netvlad": SMALL["netvlad"],
+                "olo": SMALL["olo"],
+                "gem": SMALL["gem"],
+                "gist_w": {"type": "gist", "whiten": 16},  # a fitted non-CNN global method
+            },
+            "tiers": [{"methods": ["netvlad", "gem", "gist_w"], "k": 2}, {"methods": ["olo"], "k": 1}],
+        }
+    )
+    cache = FeatureCache(tmp_path / "cache")
+    methods = build_methods(cfg)
+    assert sorted(fit_methods(methods, paths, cache=cache)) == ["gist_w", "netvlad", "olo"]
+    read = extract_images(paths, methods, cache=cache, workers=1)
+    assert read.cached == {"netvlad": 5, "olo": 5, "gist_w": 5, "gem": 0}  # gem fits nothing
+    assert all(np.isfinite(read.ms[m]).all() for m in methods)
+    fresh = extract_images(paths, methods, cache=None, workers=1)
+    for i in range(len(paths)):
+        for m in ("netvlad", "gist_w"):
+            np.testing.assert_array_equal(read.features[m][i], fresh.features[m][i])
+        np.testing.assert_array_equal(read.features["olo"][i].regions, fresh.features["olo"][i].regions)
+        np.testing.assert_array_equal(read.features["olo"][i].words, fresh.features["olo"][i].words)
+    # a fit on a subset (max_images) stores the features of the images it saw, no others
+    cache2 = FeatureCache(tmp_path / "cache2")
+    again = build_methods(cfg)
+    fit_methods(again, paths, cache=cache2, max_images=3)
+    assert extract_images(paths, again, cache=cache2, workers=1).cached["netvlad"] == 3
+
+
+def test_a_cached_cnn_feature_is_not_computed_again_beside_a_missing_one(tmp_path: Path) -> None:
+    """Of two batched methods, an image with one cached runs only the other: the cached
+    feature is what comes back (a planted value proves it was read, not recomputed), and the
+    other equals a fresh extraction."""
+    import cv2
+
+    from hmpf.config import build_methods
+
+    paths = []
+    for i, img in enumerate(_images(3, seed=5)):
+        p = tmp_path / f"{i:03d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        paths.append(p)
+    cfg = parse_config(
+        {
+            "methods": {"gem": SMALL["gem"], "hybridnet": SMALL["hybridnet"]},
+            "tiers": [{"methods": ["gem", "hybridnet"], "k": 1}],
+        }
+    )
+    methods = build_methods(cfg)
+    fresh = extract_images(paths, methods, cache=None, workers=1)
+    cache = FeatureCache(tmp_path / "cache")
+    planted = np.full_like(fresh.features["gem"][1], 0.5)
+    cache.put(methods["gem"], file_digest(paths[1]), planted, 1.0)
+    read = extract_images(paths, methods, cache=cache, workers=1)
+    assert read.cached == {"gem": 1, "hybridnet": 0}
+    np.testing.assert_array_equal(read.features["gem"][1], planted)
+    for i in (0, 2):
+        np.testing.assert_array_equal(read.features["gem"][i], fresh.features["gem"][i])
+    for i in range(3):
+        np.testing.assert_array_equal(read.features["hybridnet"][i], fresh.features["hybridnet"][i])
 
 
 def test_extract_query_parallel_tasks_equal_serial(fitted: dict[str, object]) -> None:
