@@ -362,7 +362,10 @@ def test_fit_stores_the_references_features_extraction_would_compute(tmp_path: P
                 "gem": SMALL["gem"],
                 "gist_w": {"type": "gist", "whiten": 16},  # a fitted non-CNN global method
             },
-            "tiers": [{"methods": ["netvlad", "gem", "gist_w"], "k": 2}, {"methods": ["olo"], "k": 1}],
+            "tiers": [
+                {"methods": ["netvlad", "gem", "gist_w"], "k": 2},
+                {"methods": ["olo"], "k": 1},
+            ],
         }
     )
     cache = FeatureCache(tmp_path / "cache")
@@ -375,8 +378,9 @@ def test_fit_stores_the_references_features_extraction_would_compute(tmp_path: P
     for i in range(len(paths)):
         for m in ("netvlad", "gist_w"):
             np.testing.assert_array_equal(read.features[m][i], fresh.features[m][i])
-        np.testing.assert_array_equal(read.features["olo"][i].regions, fresh.features["olo"][i].regions)
-        np.testing.assert_array_equal(read.features["olo"][i].words, fresh.features["olo"][i].words)
+        got, want = read.features["olo"][i], fresh.features["olo"][i]
+        np.testing.assert_array_equal(got.regions, want.regions)
+        np.testing.assert_array_equal(got.words, want.words)
     # a fit on a subset (max_images) stores the features of the images it saw, no others
     cache2 = FeatureCache(tmp_path / "cache2")
     again = build_methods(cfg)
