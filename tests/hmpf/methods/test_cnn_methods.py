@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpf.config import parse_config
+from hmpf.config import build_methods, parse_config
 from hmpf.features import FeatureCache, extract_images, file_digest, fit_methods
 from hmpf.methods import create_method
 from hmpf.methods.base import extract_many, fit_many
@@ -216,6 +216,18 @@ def _images(n: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
+def _image_files(folder: Path, n: int, seed: int) -> list[Path]:
+    """``n`` of :func:`_images` written as PNG files in ``folder``."""
+    import cv2
+
+    paths = []
+    for i, img in enumerate(_images(n, seed=seed)):
+        p = folder / f"{i:03d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        paths.append(p)
+    return paths
+
+
 SMALL = {
     "gem": {"input_size": [96, 160]},
     "hybridnet": {"layer": "s5", "input_size": [208, 208]},
@@ -306,19 +318,11 @@ def test_shared_forward_pass_per_group(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_fit_methods_uses_cache(tmp_path: Path) -> None:
-    import cv2
-
-    paths = []
-    for i, img in enumerate(_images(4, seed=2)):
-        p = tmp_path / f"{i:03d}.png"
-        cv2.imwrite(str(p), img[:, :, ::-1])
-        paths.append(p)
+    paths = _image_files(tmp_path, 4, seed=2)
     cache = FeatureCache(tmp_path / "cache")
     cfg = parse_config(
         {"methods": {"netvlad": SMALL["netvlad"]}, "tiers": [{"methods": ["netvlad"], "k": 1}]}
     )
-    from hmpf.config import build_methods
-
     first = build_methods(cfg)
     unfitted_key = first["netvlad"].descriptor_key()  # cache_key + the CNN runtime
     assert fit_methods(first, paths, cache=cache) == ["netvlad"]
@@ -345,15 +349,7 @@ def test_fit_stores_the_references_features_extraction_would_compute(tmp_path: P
     """A fit computes the fitted methods' features of its images on the way (one forward pass
     per image, not two); with a cache they are stored, equal bit for bit to what extraction
     without a cache gives, so extracting those references reads them all."""
-    import cv2
-
-    from hmpf.config import build_methods
-
-    paths = []
-    for i, img in enumerate(_images(5, seed=4)):
-        p = tmp_path / f"{i:03d}.png"
-        cv2.imwrite(str(p), img[:, :, ::-1])
-        paths.append(p)
+    paths = _image_files(tmp_path, 5, seed=4)
     cfg = parse_config(
         {
             "methods": {
@@ -392,15 +388,7 @@ def test_a_cached_cnn_feature_is_not_computed_again_beside_a_missing_one(tmp_pat
     """Of two batched methods, an image with one cached runs only the other: the cached
     feature is what comes back (a planted value proves it was read, not recomputed), and the
     other equals a fresh extraction."""
-    import cv2
-
-    from hmpf.config import build_methods
-
-    paths = []
-    for i, img in enumerate(_images(3, seed=5)):
-        p = tmp_path / f"{i:03d}.png"
-        cv2.imwrite(str(p), img[:, :, ::-1])
-        paths.append(p)
+    paths = _image_files(tmp_path, 3, seed=5)
     cfg = parse_config(
         {
             "methods": {"gem": SMALL["gem"], "hybridnet": SMALL["hybridnet"]},
