@@ -357,22 +357,25 @@ def test_fit_stores_the_references_features_extraction_would_compute(tmp_path: P
                 "olo": SMALL["olo"],
                 "gem": SMALL["gem"],
                 "gist_w": {"type": "gist", "whiten": 16},  # a fitted non-CNN global method
+                # fitted, sharing its forward pass with the unfitted gem
+                "gem_w": {"type": "gem", **SMALL["gem"], "whiten": 16},
             },
             "tiers": [
-                {"methods": ["netvlad", "gem", "gist_w"], "k": 2},
+                {"methods": ["netvlad", "gem", "gem_w", "gist_w"], "k": 2},
                 {"methods": ["olo"], "k": 1},
             ],
         }
     )
     cache = FeatureCache(tmp_path / "cache")
     methods = build_methods(cfg)
-    assert sorted(fit_methods(methods, paths, cache=cache)) == ["gist_w", "netvlad", "olo"]
+    fitted = ["gem_w", "gist_w", "netvlad", "olo"]
+    assert sorted(fit_methods(methods, paths, cache=cache)) == fitted
     read = extract_images(paths, methods, cache=cache, workers=1)
-    assert read.cached == {"netvlad": 5, "olo": 5, "gist_w": 5, "gem": 0}  # gem fits nothing
+    assert read.cached == {**dict.fromkeys(fitted, 5), "gem": 0}  # gem fits nothing
     assert all(np.isfinite(read.ms[m]).all() for m in methods)
     fresh = extract_images(paths, methods, cache=None, workers=1)
     for i in range(len(paths)):
-        for m in ("netvlad", "gist_w"):
+        for m in ("netvlad", "gist_w", "gem_w", "gem"):
             np.testing.assert_array_equal(read.features[m][i], fresh.features[m][i])
         got, want = read.features["olo"][i], fresh.features["olo"][i]
         np.testing.assert_array_equal(got.regions, want.regions)
