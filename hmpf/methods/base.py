@@ -225,6 +225,10 @@ class GroupOutput(NamedTuple):
     own_ms: dict[str, list[float]]
     shared_ms: list[float]
 
+    def ms(self, mid: str) -> list[float]:
+        """Method ``mid``'s time per image: the group's shared time plus its own (ms)."""
+        return [s + o for s, o in zip(self.shared_ms, self.own_ms[mid], strict=True)]
+
 
 class Method(ABC):
     """One image-matching technique.
@@ -289,17 +293,16 @@ class Method(ABC):
 
     @classmethod
     def fit_group(
-        cls, methods: Sequence[Method], images: Sequence[np.ndarray]
+        cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
     ) -> GroupOutput | None:
-        """Fit (in place) ``methods`` (sharing one :meth:`group_key`, each ``requires_fit()``)
-        on reference ``images``; methods that fit parameters override it.
+        """Fit (in place) ``methods`` (id -> method, sharing one :meth:`group_key`, each
+        ``requires_fit()``) on reference ``images``; methods that fit parameters override it.
 
         Returns:
-            The fitted methods' features of ``images`` where the fit computes them on the way
-            (keyed by the methods' positions, ``"0"``, ``"1"``...), exactly what
-            :meth:`extract_group` would give after the fit; or None.
+            The fitted methods' features of ``images`` where the fit computes them on the way,
+            exactly what :meth:`extract_group` would give after the fit; or None.
         """
-        names = ", ".join(repr(m.name) for m in methods)
+        names = ", ".join(repr(m.name) for m in methods.values())
         raise NotImplementedError(f"method {names} requires fitting but implements no fit_group")
 
     # -- comparison -------------------------------------------------------------------------
@@ -445,10 +448,8 @@ def extract_many(
         res = type(next(iter(group.values()))).extract_group(group, images)
         out.update(res.features)
         if ms is not None:
-            for mid, own in res.own_ms.items():
-                ms.setdefault(mid, []).extend(
-                    s + o for s, o in zip(res.shared_ms, own, strict=True)
-                )
+            for mid in res.own_ms:
+                ms.setdefault(mid, []).extend(res.ms(mid))
     return out
 
 
@@ -461,19 +462,14 @@ def fit_many(
     Returns:
         method id -> (its features of ``images``, ms per image), for the fitted methods whose
         fit computes them on the way (:meth:`Method.fit_group`): a reference set fitted on
-        is not extracted a second time. A group's shared time counts in its first method.
+        is not extracted a second time. Times as :func:`extract_many`'s.
     """
     todo = {mid: m for mid, m in methods.items() if m.requires_fit()}
     out: dict[str, tuple[list[Any], list[float]]] = {}
     for group in method_groups(todo):
-        members = list(group.values())
-        res = type(members[0]).fit_group(members, images)
-        if res is None:
-            continue
-        for j, mid in enumerate(group):
-            own = res.own_ms[str(j)]
-            ms = [o + s for o, s in zip(own, res.shared_ms, strict=True)] if j == 0 else own
-            out[mid] = (res.features[str(j)], ms)
+        res = type(next(iter(group.values()))).fit_group(group, images)
+        if res is not None:
+            out.update({mid: (res.features[mid], res.ms(mid)) for mid in group})
     return out
 
 
@@ -558,21 +554,20 @@ class GlobalMethod(Method):
         return self.finish(self.raw_descriptor(image))
 
     @classmethod
-    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> GroupOutput:
+    def fit_group(cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]) -> GroupOutput:
         """Fit each method's whitening on its own descriptors of ``images``; their finished
         descriptors of ``images`` come back (the whitening applied, as :meth:`extract`)."""
         features: dict[str, list[Any]] = {}
         own: dict[str, list[float]] = {}
-        for j, m in enumerate(methods):
+        for mid, m in methods.items():
             g: GlobalMethod = m  # type: ignore[assignment]
-            raw, ms = [], []
+            raw, own[mid] = [], []
             for im in images:
                 t0 = time.perf_counter()
                 raw.append(g.raw_descriptor(to_rgb(im)))
-                ms.append((time.perf_counter() - t0) * 1e3)
+                own[mid].append((time.perf_counter() - t0) * 1e3)
             g.fit_references(np.stack(raw))
-            features[str(j)] = [g.finish(r) for r in raw]
-            own[str(j)] = ms
+            features[mid] = [g.finish(r) for r in raw]
         return GroupOutput(features, own, [0.0] * len(images))
 
     def stack_references(self, features: Sequence[np.ndarray]) -> np.ndarray:

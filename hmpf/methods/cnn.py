@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from abc import abstractmethod
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -242,36 +242,35 @@ class CnnMethod(Method):
         cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]
     ) -> GroupOutput:
         """One batched forward pass per image feeds every method of the group (same key)."""
-        group: list[CnnMethod] = list(methods.values())  # type: ignore[arg-type]
-        features: dict[str, list[Any]] = {mid: [] for mid in methods}
-        own: dict[str, list[float]] = {mid: [] for mid in methods}
         forward_ms: list[float] = []
-        for maps in forward_group(group, images, forward_ms):
-            for mid, m in zip(methods, group, strict=True):
-                t0 = time.perf_counter()
-                features[mid].append(m.from_maps(maps))
-                own[mid].append((time.perf_counter() - t0) * 1e3)
-        return GroupOutput(features, own, forward_ms)
+        maps = forward_group(list(methods.values()), images, forward_ms)  # type: ignore[arg-type]
+        return GroupOutput(*_from_each(methods, maps), forward_ms)
 
     @classmethod
-    def fit_group(cls, methods: Sequence[Method], images: Sequence[np.ndarray]) -> GroupOutput:
+    def fit_group(cls, methods: Mapping[str, Method], images: Sequence[np.ndarray]) -> GroupOutput:
         """Fit the group on ``images``' maps (one forward pass per image for all of them), then
         compute each method's features of ``images`` from the same maps (no second pass)."""
-        group: list[CnnMethod] = list(methods)  # type: ignore[arg-type]
+        group: list[CnnMethod] = list(methods.values())  # type: ignore[arg-type]
         # Keep only the layers the fitting methods need (maps are small: <= 1 MB per image).
         forward_ms: list[float] = []
         samples = list(forward_group(group, images, forward_ms))
         for m in group:
             m.fit_from_maps(samples)
-        features: dict[str, list[Any]] = {}
-        own: dict[str, list[float]] = {}
-        for j, m in enumerate(group):
-            features[str(j)], own[str(j)] = [], []
-            for maps in samples:
-                t0 = time.perf_counter()
-                features[str(j)].append(m.from_maps(maps))
-                own[str(j)].append((time.perf_counter() - t0) * 1e3)
-        return GroupOutput(features, own, forward_ms)
+        return GroupOutput(*_from_each(methods, samples), forward_ms)
+
+
+def _from_each(
+    methods: Mapping[str, Method], maps: Iterable[Mapping[str, np.ndarray]]
+) -> tuple[dict[str, list[Any]], dict[str, list[float]]]:
+    """Each method's feature of each image's maps, and its own time per image (ms)."""
+    features: dict[str, list[Any]] = {mid: [] for mid in methods}
+    own: dict[str, list[float]] = {mid: [] for mid in methods}
+    for image_maps in maps:
+        for mid, m in methods.items():
+            t0 = time.perf_counter()
+            features[mid].append(m.from_maps(image_maps))  # type: ignore[attr-defined]
+            own[mid].append((time.perf_counter() - t0) * 1e3)
+    return features, own
 
 
 def _batches(n: int, size: int) -> Iterator[slice]:
