@@ -60,9 +60,11 @@ eval: install
 	$(VENV)/bin/hmpf-eval --config $(CONFIG) --reference $(REFERENCE) --query $(QUERY) \
 		--tolerance $(TOLERANCE) --json results/eval.json
 
-## test: the whole test suite (fails when no test is collected)
+## test: the whole test suite (fails when no test is collected), on TEST_WORKERS processes
+## (pytest-xdist; TEST_WORKERS=0: one process)
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 ## browser: the system chromium the inspection page's browser test drives (tests/service/test_inspect.py;
 ## Playwright's own browser download is not used). Installed with apt-get when missing (root).
@@ -108,7 +110,7 @@ container-test:
 
 ## test-offline: the tests that need no dataset (pytest -m "not dataset")
 test-offline: install
-	$(PY) -m pytest -q -m "not dataset"
+	$(PY) -m pytest -q -m "not dataset" -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 bench: install
 	$(PY) -m bench.accuracy --out results/accuracy.json

@@ -25,13 +25,31 @@ from hmpf.datasets import dataset_root
 DATASET_FIXTURES = frozenset({"gardens_point", "nordland", "gp_subset"})
 
 
+#: The files that take longest (30 s to 2 min each on two cores), longest first: they run
+#: first, so that under pytest-xdist (``make test``: two processes, a file's tests in one) no
+#: long file starts last and runs on alone at the end.
+LONG_FILES = (
+    "tests/e2e/test_e2e_gardens_point.py",
+    "tests/e2e/test_calibration_gardens_point.py",
+    "tests/indexer/test_ray_build.py",
+    "tests/hmpf/evaluation/test_calibrate.py",
+    "tests/service/test_ray_shards.py",
+    "tests/hmpf/evaluation/test_sequence_eval.py",
+    "tests/hmpf/methods/test_cnn_runtime.py",
+    "tests/hmpf/evaluation/test_experiments.py",
+)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark every test that uses a dataset fixture ``dataset``, so ``pytest -m "not dataset"``
     is an offline suite (tests that read the data without a fixture carry the mark themselves:
-    tests/hmpf/methods/test_methods.py, tests/e2e/test_e2e_gardens_point.py)."""
+    tests/hmpf/methods/test_methods.py, tests/e2e/test_e2e_gardens_point.py). Then move the
+    tests of :data:`LONG_FILES` to the front, in that order (the rest keep theirs)."""
     for item in items:
         if DATASET_FIXTURES.intersection(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.dataset)
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
@@ -71,7 +89,14 @@ def gp_feature_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     fitted state, runtime) and the image's bytes, so a test reads only what the same methods
     made of the same images and extracts the rest. The cache's own tests (reuse,
     invalidation, a cached feature equal to a fresh one) are in
-    tests/hmpf/evaluation/test_evaluate.py; a test that needs a cold cache keeps its own."""
+    tests/hmpf/evaluation/test_evaluate.py; a test that needs a cold cache keeps its own.
+
+    Under pytest-xdist (``make test`` runs two processes) the workers share it: it sits beside
+    their own temporary folders, and an entry is written to a temporary name and renamed."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "gp-feature-cache"
+        shared.mkdir(exist_ok=True)
+        return shared
     return tmp_path_factory.mktemp("gp-feature-cache")
 
 
