@@ -52,6 +52,27 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
 
 
+#: Set to 1 in each pytest-xdist worker (unless set already): the workers share the cores, and
+#: thread pools on more threads than the worker's share spin and wait (measured on 2 cores:
+#: 658 s and 987 s of CPU without, 548 s and 778 s with; the session note of 2026-11-28).
+WORKER_THREADS = ("HMPF_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """In a pytest-xdist worker: one compute thread per process (:data:`WORKER_THREADS`, read
+    by hmpf, by torch when imported and by the commands the tests start; BLAS already
+    loaded is limited through threadpoolctl)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    for name in WORKER_THREADS:
+        os.environ.setdefault(name, "1")
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # the service extra's; without it BLAS keeps its threads
+        return
+    threadpool_limits(1)
+
+
 def pytest_sessionstart(session: pytest.Session) -> None:
     if os.environ.get("HMPF_REQUIRE_DATASETS") == "1":
         gp = dataset_root() / "gardens_point"
