@@ -3008,6 +3008,26 @@ def readme_large_maps(root: Path) -> str:
     )
 
 
+SCAN_COST = "docs/experiments/scale/scan_cost.json"
+
+
+@generator("scale.scan_cost")
+def scale_scan_cost(root: Path) -> str:
+    """``bench.scan_cost``: one scan of every row per code type, one thread."""
+    rec = load(root, SCAN_COST)
+    base = rec["types"]["SQfp16 d=128"]["ms_p50"]
+    rows = [
+        [f"`{name}`", str(t["bytes_per_row"]), f1(t["ms_p50"]), f"{base / t['ms_p50']:.2f}x"]
+        for name, t in rec["types"].items()
+    ]
+    head = ["codes", "bytes per row", "ms p50", "vs `SQfp16 d=128`"]
+    return (
+        f"{thousands(rec['rows'])} rows, the {rec['k']} nearest kept, one thread:\n\n"
+        + table(head, rows, ["---", "---:", "---:", "---:"])
+        + source(SCAN_COST, rec, digest_text="no config (random rows, FAISS alone)")
+    )
+
+
 @generator("scale.million_projected")
 def scale_million_projected(root: Path) -> str:
     """``bench.scale`` of the projected-scan version at a million references, served in one
