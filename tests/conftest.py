@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -50,11 +51,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.dataset)
     rank = {name: i for i, name in enumerate(LONG_FILES)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
+    # pytest-xdist sends tests to its workers by id: of tests sharing one, it runs one
+    counts = Counter(item.nodeid for item in items)
+    same = sorted(nodeid for nodeid, n in counts.items() if n > 1)
+    if same:
+        raise pytest.UsageError(f"tests with the same id (give each its own): {same[:5]}")
 
 
 #: Set to 1 in each pytest-xdist worker (unless set already): the workers share the cores, and
-#: thread pools on more threads than the worker's share spin and wait (measured on 2 cores:
-#: 658 s and 987 s of CPU without, 548 s and 778 s with; the session note of 2026-11-28).
+#: thread pools on more threads than the worker's share spin and wait (the whole suite on 2
+#: cores: 658 s, 987 s of CPU without; 548 s, 778 s of CPU with; the session note of
+#: 2026-11-28).
 WORKER_THREADS = ("HMPF_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
