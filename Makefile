@@ -63,8 +63,9 @@ eval: install
 ## test: the whole test suite (fails when no test is collected), on TEST_WORKERS processes
 ## (pytest-xdist; TEST_WORKERS=0: one process)
 TEST_WORKERS ?= 2
+PYTEST_WORKERS = -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 test: install
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q $(PYTEST_WORKERS)
 
 ## browser: the system chromium the inspection page's browser test drives (tests/service/test_inspect.py;
 ## Playwright's own browser download is not used). Installed with apt-get when missing (root).
@@ -110,7 +111,7 @@ container-test:
 
 ## test-offline: the tests that need no dataset (pytest -m "not dataset")
 test-offline: install
-	$(PY) -m pytest -q -m "not dataset" -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q -m "not dataset" $(PYTEST_WORKERS)
 
 bench: install
 	$(PY) -m bench.accuracy --out results/accuracy.json

@@ -39,6 +39,11 @@ TYPES = (
 )
 
 
+def bytes_per_row(kind: str, size: int) -> int:
+    """Bytes a row's code takes: ``size`` bits, or ``size`` dimensions of 2 (float16) or 1."""
+    return size // 8 if kind == "binary" else size * (2 if kind == "QT_fp16" else 1)
+
+
 def build(kind: str, size: int, rows: int, rng: np.random.Generator) -> tuple[Any, np.ndarray]:
     """A filled flat index of ``rows`` random rows, and 64 queries near stored rows (as a
     real query is near its place)."""
@@ -83,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     out = {}
     for name, kind, size in TYPES:
         p50 = statistics.median(times[name])
-        nbytes = size // 8 if kind == "binary" else size * (2 if kind == "QT_fp16" else 1)
+        nbytes = bytes_per_row(kind, size)
         out[name] = {"bytes_per_row": nbytes, "ms_p50": p50, "ms": times[name]}
         print(f"{name:18s} {nbytes:9d} {p50:8.2f} {base / p50:15.2f}x")
     if a.json:

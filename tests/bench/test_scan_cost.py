@@ -23,7 +23,7 @@ def test_each_type_returns_k_rows_of_its_index() -> None:
 def test_the_record_has_every_type(tmp_path: Path) -> None:
     out = tmp_path / "scan.json"
     scan_cost.main(
-        ["--rows", "600", "--k", "16", "--queries", "2", "--rounds", "2"] + ["--json", str(out)]
+        ["--rows", "600", "--k", "16", "--queries", "2", "--rounds", "2", "--json", str(out)]
     )
     rec = json.loads(out.read_text())
     assert rec["rows"] == 600 and rec["k"] == 16 and rec["machine"]
