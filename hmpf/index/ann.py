@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -81,21 +81,42 @@ def _faiss_metric(kind: MetricKind) -> int:
     }[kind]
 
 
-#: ``PCA<D>:<d>,<codes>[,k<F>]``: hmpf's own tier-1 type (see :func:`projected_scan`)
-_PROJECTED = re.compile(r"^PCA(\d+):(\d+),(SQfp16|SQ8)(?:,k(\d+))?$")
+#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>]][,k<F>]``: hmpf's own tier-1 type (see
+#: :func:`projected_scan`)
+_PROJECTED = re.compile(r"^PCA(\d+):(\d+),(SQfp16|SQ8)(?:,B([1-9]\d*)(?:x(\d+))?)?(?:,k(\d+))?$")
 
 
-def projected_spec(factory: str) -> tuple[int, int, str, int] | None:
-    """``(D, d, codes, k_factor)`` of a projected-scan factory string, else None."""
+class ProjectedSpec(NamedTuple):
+    """A projected-scan factory string's parts (see :func:`projected_scan`)."""
+
+    big: int  #: D, the dimensions kept and re-ranked on
+    small: int  #: d, the dimensions of the short scan
+    codes: str  #: ``SQfp16`` or ``SQ8``
+    k_factor: int  #: F: the short scan keeps F x k rows for the re-ranking on D
+    bits: int = 0  #: b: 0, or the sign bits of a binary scan in front of the short scan
+    bit_factor: int = 0  #: G: the binary scan keeps G x F x k rows for the short scan
+
+
+def projected_spec(factory: str) -> ProjectedSpec | None:
+    """The parts of a projected-scan factory string, else None."""
     m = _PROJECTED.match(factory.replace(" ", ""))
     if m is None:
         return None
-    big, small, codes, k_factor = int(m[1]), int(m[2]), m[3], int(m[4] or PROJECTED_K_FACTOR)
-    return big, small, codes, k_factor
+    bits = int(m[4] or 0)
+    return ProjectedSpec(
+        int(m[1]),
+        int(m[2]),
+        m[3],
+        int(m[6] or PROJECTED_K_FACTOR),
+        bits,
+        int(m[5] or PROJECTED_BIT_FACTOR) if bits else 0,
+    )
 
 
 #: candidates of the short scan per row a projected-scan index returns (its default)
 PROJECTED_K_FACTOR = 8
+#: candidates of the binary scan per candidate of the short scan (its default)
+PROJECTED_BIT_FACTOR = 8
 
 
 def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,23 +140,35 @@ def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
 def projected_scan(x: np.ndarray, factory: str) -> Any:
     """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
 
-    ``PCA<D>:<d>,<codes>[,k<F>]``: rows projected on their top ``D`` principal directions
-    and stored as ``codes`` (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans
-    every row on the first ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and
-    re-ranks them on all ``D`` (FAISS: a PCA ``LinearTransform`` in front of an
-    ``IndexRefine`` whose base sees the first ``d`` dimensions). No partition: every row
-    is looked at, which keeps the neighbours that IVF's lists lose where distances are
-    concentrated (NetVLAD), at ``(D + d) x codes`` bytes per row. ``F`` is also the
-    search parameter ``k_factor_rf``.
+    ``PCA<D>:<d>,<codes>[,B<b>[x<G>]][,k<F>]``: rows projected on their top ``D``
+    principal directions (centred on their mean) and stored as ``codes`` (``SQfp16``: 2
+    bytes a dimension; ``SQ8``: 1); a search scans every row on the first ``d`` of those
+    dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all ``D`` (FAISS: a PCA
+    ``LinearTransform`` in front of an ``IndexRefine`` whose base sees the first ``d``
+    dimensions). No partition: every row is looked at, which keeps the neighbours that
+    IVF's lists lose where distances are concentrated (NetVLAD), at ``(D + d) x codes``
+    bytes per row. ``F`` is also the search parameter ``k_factor_rf``.
+
+    With ``B<b>``, the scan of every row reads ``b`` bits instead: the signs of the first
+    ``b`` centred dimensions (``b <= D``) after an ITQ rotation (:func:`_sign_codes`),
+    compared by Hamming distance; the ``G`` x ``F`` x ``k`` nearest by it (``G`` 8 by
+    default, fixed at build) go on to the short scan on ``d`` dimensions, which then
+    compares only those. ``b / 8`` bytes more per row; the scan reads ``b / 8`` bytes of
+    each row instead of ``d x codes``.
     """
     faiss = faiss_module()
     spec = projected_spec(factory)
     assert spec is not None
-    big, small, codes, k_factor = spec
+    big, small, codes, k_factor, bits, bit_factor = spec
     d = x.shape[1]
     if not small < big < d:
         raise IndexBuildError(
             f"FAISS factory string {factory!r}: needs {small} < {big} < {d} (the rows' size)"
+        )
+    if bits and not (0 < bits <= big and bit_factor > 0):
+        raise IndexBuildError(
+            f"FAISS factory string {factory!r}: needs 0 < {bits} <= {big} sign bits and "
+            "a factor above 0"
         )
     mean, comps = pca_rows(x, big)
     pca = faiss.LinearTransform(d, big, True)
@@ -148,15 +181,43 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     qtype = getattr(faiss.ScalarQuantizer, "QT_fp16" if codes == "SQfp16" else "QT_8bit")
     short = faiss.IndexPreTransform(first, faiss.IndexScalarQuantizer(small, qtype))
     full = faiss.IndexScalarQuantizer(big, qtype)
-    refine = faiss.IndexRefine(short, full)
-    refine.k_factor = float(k_factor)
-    index = faiss.IndexPreTransform(pca, refine)
     y = pca.apply(np.ascontiguousarray(x, dtype=np.float32))
     full.train(y)
     short.train(y)
+    scan = short
+    if bits:
+        scan = faiss.IndexRefine(_sign_codes(y, bits), short)
+        scan.k_factor = float(bit_factor)
+        scan.is_trained = True
+    refine = faiss.IndexRefine(scan, full)
+    refine.k_factor = float(k_factor)
+    index = faiss.IndexPreTransform(pca, refine)
     refine.is_trained = True
     index.is_trained = True
     return index
+
+
+def _sign_codes(y: np.ndarray, bits: int) -> Any:
+    """An empty index of ``bits`` sign bits for rows ``y`` (centred principal coordinates,
+    largest variance first), compared by Hamming distance: the first ``bits`` coordinates
+    turned by an ITQ rotation fitted on ``y`` (Gong & Lazebnik, CVPR 2011: it spreads the
+    variance over the bits, where the plain signs of decreasing-variance coordinates waste
+    the last ones), then their signs (FAISS's ``IndexLSH`` without its own rotation)."""
+    faiss = faiss_module()
+    train = np.ascontiguousarray(y[:ITQ_TRAIN_ROWS, :bits], dtype=np.float32)
+    itq = faiss.ITQMatrix(bits)
+    itq.train(train)
+    turn = faiss.LinearTransform(y.shape[1], bits, False)
+    rot = faiss.vector_to_array(itq.A).reshape(bits, bits)
+    a = np.zeros((bits, y.shape[1]), dtype=np.float32)
+    a[:, :bits] = rot
+    faiss.copy_array_to_vector(a.ravel(), turn.A)
+    turn.is_trained = True
+    return faiss.IndexPreTransform(turn, faiss.IndexLSH(bits, bits, False, False))
+
+
+#: rows an ITQ rotation is fitted on (the first of the build's training rows)
+ITQ_TRAIN_ROWS = 65_536
 
 
 def _make(factory: str, x: np.ndarray, kind: MetricKind) -> Any:
