@@ -3028,6 +3028,45 @@ def scale_scan_cost(root: Path) -> str:
     )
 
 
+BINARY_200K = "docs/experiments/scale/factories-netvlad-200k-binary.json"
+
+
+@generator("scale.binary_short_list")
+def scale_binary_short_list(root: Path) -> str:
+    """``bench.scale factories``: the projected scan with and without a binary scan in
+    front, NetVLAD at 200k references."""
+    rec = load(root, BINARY_200K)
+    rows = [
+        [
+            f"`{s['factory']}`",
+            f"{s['recall_at_100']:.3f}",
+            f"{s['recall_at_10']:.3f}",
+            f"{s['right_in_approx_top10']:.3f} ({s['right_in_exact_top10']:.3f})",
+            f"{s['bytes_per_reference']:,.0f}",
+            f"{s['faiss_ms_p50']:.1f}",
+        ]
+        for s in rec["settings"]
+    ]
+    head = [
+        "NetVLAD tier 1",
+        "recall@100",
+        "recall@10",
+        "right place in the top 10 (exact)",
+        "bytes per reference",
+        "FAISS ms p50",
+    ]
+    k = rec["settings"][0]["approx_k"]
+    intro = (
+        f"{thousands(rec['references'])} references, {rec['queries']['count']} night_right "
+        f"queries, FAISS's top {k} re-scored exactly with the reader's sample, one thread:\n\n"
+    )
+    return (
+        intro
+        + table(head, rows, ["---", "---:", "---:", "---:", "---:", "---:"])
+        + source(BINARY_200K, rec)
+    )
+
+
 @generator("scale.million_projected")
 def scale_million_projected(root: Path) -> str:
     """``bench.scale`` of the projected-scan version at a million references, served in one
