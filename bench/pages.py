@@ -3977,6 +3977,79 @@ def _fitting_routes(routes: list[str]) -> list[str]:
     return (["GP"] if gp else []) + (["NL"] if "nordland" in routes else [])
 
 
+MAP_PRIOR = "docs/experiments/acceptance/map_prior.json"
+_MAP_PRIOR_VARIANTS = {
+    "without": "as shipped",
+    "map_prior": "`map_prior` offset",
+    "map_prior_stay": "offset + stay chosen as decided",
+}
+
+
+@generator("acceptance.map_prior")
+def acceptance_map_prior(root: Path) -> str:
+    """``python -m bench.map_prior``: the acceptance models with and without the map's
+    pseudo-query prior, fitted on all routes and leave one route out."""
+    rep = load(root, MAP_PRIOR)
+
+    def share(x: float, prec: float | None) -> str:
+        return f"{x:.3f}" + ("" if prec is None else f" ({prec:.3f})")
+
+    priors = ", ".join(
+        f"{folder} {v['recall_at_1']:.3f} ({v['pseudo_queries']} pseudo-queries, "
+        f"`map_prior` {v['map_prior']:+.2f})"
+        for folder, v in rep["pseudo_recall"].items()
+    )
+    rows = []
+    for vname, label in _MAP_PRIOR_VARIANTS.items():
+        v = rep["variants"][vname]
+        for route, row in v["routes"].items():
+            for fit_label, fit_name in (("pooled", "all routes"), ("held_out", "held out")):
+                r = row[fit_label]
+                s, q, f = r["single"], r["sequence"], r["foreign"]
+                stay = r["thresholds"]["sequence_model"]["stay_threshold"]
+                rows.append(
+                    [
+                        label,
+                        route,
+                        fit_name,
+                        share(s["accepted"], s["precision"]),
+                        share(q["accepted"], q["precision"]),
+                        f"{q['recall_at_1']:.3f}",
+                        f3(q["ece"]),
+                        f1(q["flips_per_100"]),
+                        f"{stay:.2f}",
+                        f"{f['single_accepted']:.3f} / {f['sequence_accepted']:.3f}",
+                        f3(f["sequence_mean_p"]),
+                    ]
+                )
+    head = [
+        "models",
+        "route (test part)",
+        "fitted on",
+        "single: accepted (precision)",
+        "sequence: accepted (precision)",
+        "sequence recall@1",
+        "sequence ECE",
+        "flips / 100",
+        "stay",
+        "foreign accepted: single / sequence",
+        "foreign mean p (sequence)",
+    ]
+    ece = [
+        f"{_MAP_PRIOR_VARIANTS[k]}: {v['pooled_sequence_ece']['pooled']['all']:.3f} "
+        f"(held out {v['pooled_sequence_ece']['held_out']['all']:.3f})"
+        for k, v in rep["variants"].items()
+    ]
+    return (
+        f"Pseudo-query recall@1 of the maps: {priors}.\n\n"
+        + table(head, rows)
+        + "\nPooled sequence ECE over the test parts, fitted on all routes (held out): "
+        + "; ".join(ece)
+        + ".\n"
+        + source(MAP_PRIOR, rep, extra=f"Nordland: its first {rep['nordland_frames']} frames")
+    )
+
+
 @generator("acceptance.sequence_modes")
 def acceptance_sequence_modes(root: Path) -> str:
     """``python -m bench.sequence``'s tables: sequence mode per test part and model set, and

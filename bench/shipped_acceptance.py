@@ -70,6 +70,8 @@ from hmpf.evaluation.acceptance import (
     sequence_answers,
     single_answers,
 )
+from hmpf.evaluation.acceptance import sequence_answers as _sequence_answers
+from hmpf.evaluation.acceptance import single_answers as _single_answers
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import Drive, training_drives
 from hmpf.evaluation.study import ScoreBank, split_data
@@ -163,9 +165,20 @@ def limit_of(name: str, nordland_frames: int) -> int | None:
     return nordland_frames or None if name.startswith("nordland") else None
 
 
-def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RoutePart]:
+def with_constants(answers: Answers, extra: dict[str, float] | None) -> Answers:
+    """``answers`` with the features ``extra`` (the same values for every answer: a
+    property of the map, such as ``map_prior``) added in place."""
+    for f in answers.features if extra else ():
+        f.update(extra or {})
+    return answers
+
+
+def training_part(
+    route: Route, params: FilterParams, extra: dict[str, float] | None = None
+) -> tuple[RoutePart, RoutePart]:
     """The route's single-frame and sequence training answers, each with its out-of-map
-    ones (:func:`outside_answers` and frames of another data set)."""
+    ones (:func:`outside_answers` and frames of another data set); ``extra``: features the
+    same for every answer of the map (:func:`with_constants`)."""
     full, config = route.train, route.config
     nq = route.n_train
     bank = full.rows(np.arange(nq))
@@ -182,6 +195,8 @@ def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RouteP
     f_single = single_answers([all_results[i] for i in away], None, routes, profile)
     f_single.query = away
     f_seq = sequence_answers(all_results, full.gt, routes, params, [Drive.along(away)], profile)
+    for a in (single, drives, out_single, f_single, out_seq, f_seq):
+        with_constants(a, extra)
     return (
         RoutePart(route.name, single, concat_answers([out_single, f_single])),
         RoutePart(route.name, drives, concat_answers([out_seq, f_seq])),
@@ -197,13 +212,22 @@ def flips(accepted: np.ndarray) -> int:
     return int(np.sum(a[first[0] + 1 :] != a[first[0] : -1]))
 
 
-def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, Any]:
+def evaluate(
+    route: Route, policy: Policy, params: FilterParams, extra: dict[str, float] | None = None
+) -> dict[str, Any]:
     """The policy on the route's test part (in the map, off it, and leaving and coming
-    back)."""
+    back); ``extra``: features the same for every answer of the map."""
     bank, config = route.test, route.config
     routes = RouteMap.from_metadata(bank.n_db)
     results = bank.results(config)
     profile = bank.profile(config)
+
+    def single_answers(*a: Any) -> Answers:
+        return with_constants(_single_answers(*a), extra)
+
+    def sequence_answers(*a: Any) -> Answers:
+        return with_constants(_sequence_answers(*a), extra)
+
     nq, nf = route.n_test, route.n_foreign
     inside = np.arange(nq)
     away = np.arange(nq, nq + nf)
@@ -289,10 +313,16 @@ def _figures(rep: dict[str, Any], answers: Answers) -> dict[str, Any]:
     }
 
 
-def fit(singles: list[RoutePart], seqs: list[RoutePart]) -> tuple[Policy, dict[str, Any]]:
-    """The pooled models of ``singles`` / ``seqs`` and their thresholds, as a policy."""
-    model, thr, s_train = fit_pooled(singles, SINGLE_FEATURES, TARGET, outside_share=OFF_SHARE)
-    smodel, sthr, q_train = fit_pooled(seqs, SEQUENCE_FEATURES, TARGET, outside_share=OFF_SHARE)
+def fit(
+    singles: list[RoutePart],
+    seqs: list[RoutePart],
+    features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
+) -> tuple[Policy, dict[str, Any]]:
+    """The pooled models of ``singles`` / ``seqs`` (on ``features``: single frame,
+    sequence) and their thresholds, as a policy."""
+    single_features, sequence_features = features
+    model, thr, s_train = fit_pooled(singles, single_features, TARGET, outside_share=OFF_SHARE)
+    smodel, sthr, q_train = fit_pooled(seqs, sequence_features, TARGET, outside_share=OFF_SHARE)
     policy = Policy(
         model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
     )
@@ -328,8 +358,9 @@ def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
     alone (no stay). Per route: the in-map answers accepted and their precision, and the
     out-of-map ones accepted. The threshold is chosen frame by frame, without the stay;
     this says what it gives once the stay carries an accepted estimate on."""
+    assert policy.sequence_model is not None
     pred, _, g, inside = route_out_of_fold(
-        seqs, SEQUENCE_FEATURES, outside_share=OFF_SHARE, by="folds"
+        seqs, policy.sequence_model.features, outside_share=OFF_SHARE, by="folds"
     )
     rules = {
         "with_stay": replace(policy, sequence_model=_IDENTITY),
@@ -356,13 +387,16 @@ def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
     return out
 
 
-def held_out(parts: list[tuple[RoutePart, RoutePart]]) -> list[tuple[Policy, dict[str, Any]]]:
+def held_out(
+    parts: list[tuple[RoutePart, RoutePart]],
+    features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
+) -> list[tuple[Policy, dict[str, Any]]]:
     """Leave one route out: per route of ``parts`` (:func:`training_part`), the policy
     fitted (:func:`fit`) on the other routes' training parts only."""
     out = []
     for i in range(len(parts)):
         rest = [p for j, p in enumerate(parts) if j != i]
-        out.append(fit([p[0] for p in rest], [p[1] for p in rest]))
+        out.append(fit([p[0] for p in rest], [p[1] for p in rest], features))
     return out
 
 

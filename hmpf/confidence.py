@@ -493,6 +493,7 @@ class ConfidenceModel:
         *,
         l2: float = 1.0,
         sample_weight: np.ndarray | None = None,
+        offsets: Sequence[str] = (),
         max_iter: int = 100,
         tol: float = 1e-10,
     ) -> ConfidenceModel:
@@ -502,6 +503,9 @@ class ConfidenceModel:
             sample_weight: (n,) weight of each answer's log-loss (e.g. so that routes of
                 different lengths pooled count alike); the means and scales are weighted
                 too. None: all 1.
+            offsets: names of features added to the log-odds as they are, not fitted (a
+                known prior log-odds, e.g. one per map): stored with mean 0, scale 1 and
+                coefficient 1, so the model predicts as any other.
 
         Raises:
             ModelError: shapes disagree, non-finite features or weights, fewer than 2
@@ -532,15 +536,22 @@ class ConfidenceModel:
                 raise ModelError("sample_weight must be (n,) finite numbers >= 0")
             if not sw.sum() > 0:
                 raise ModelError("sample_weight must not be all zero")
+        unknown = sorted(set(offsets) - set(names))
+        if unknown:
+            raise ModelError(f"offsets {unknown} are not features")
+        fixed = np.array([n in set(offsets) for n in names], dtype=bool)
+        free = ~fixed
+        offset = X[:, fixed].sum(axis=1)
         mean = np.average(X, axis=0, weights=sw)
         scale = np.sqrt(np.average((X - mean) ** 2, axis=0, weights=sw))
         scale = np.where(scale > 1e-12 * (1 + np.abs(mean)), scale, 1.0)
-        Z = np.hstack([np.ones((len(y), 1)), (X - mean) / scale])
+        mean[fixed], scale[fixed] = 0.0, 1.0
+        Z = np.hstack([np.ones((len(y), 1)), ((X - mean) / scale)[:, free]])
         penalty = np.full(Z.shape[1], float(l2))
         penalty[0] = 0.0
         w = np.zeros(Z.shape[1])
         for _ in range(max_iter):
-            p = _sigmoid(Z @ w)
+            p = _sigmoid(Z @ w + offset)
             grad = Z.T @ (sw * (p - y)) + penalty * w
             hess = (Z * (sw * p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
             # A tiny ridge keeps the step defined when l2 = 0 and a column is constant.
@@ -548,11 +559,13 @@ class ConfidenceModel:
             w = w - step
             if np.max(np.abs(step)) < tol:
                 break
+        coef = np.ones(len(names))
+        coef[free] = w[1:]
         return cls(
             names,
             tuple(float(v) for v in mean),
             tuple(float(v) for v in scale),
-            tuple(float(v) for v in w[1:]),
+            tuple(float(v) for v in coef),
             float(w[0]),
             float(l2),
         )

@@ -80,6 +80,16 @@ FOLDS = 5
 L2 = 1.0
 #: Weight of the out-of-map training answers, as a share of all (:func:`fit_acceptance`).
 OUTSIDE_SHARE = 0.1
+#: Features that enter a model as fixed log-odds offsets, not fitted
+#: (:meth:`~hmpf.confidence.ConfidenceModel.fit`'s ``offsets``): ``map_prior``, the log-odds
+#: of the map's pseudo-query recall (a per-map prior; ``bench/map_prior.py``).
+OFFSET_FEATURES = frozenset({"map_prior"})
+
+
+def _fit(X: np.ndarray, y: np.ndarray, names: Sequence[str], w: np.ndarray) -> ConfidenceModel:
+    """The models' one fit: L2 :data:`L2`, weights ``w``, :data:`OFFSET_FEATURES` as offsets."""
+    offsets = [n for n in names if n in OFFSET_FEATURES]
+    return ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w, offsets=offsets)
 
 
 class Answers:
@@ -287,7 +297,7 @@ def fit_acceptance(
         query = np.concatenate([query, outside.query])
     else:
         n_out = 0
-    model = ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w)
+    model = _fit(X, y, names, w)
     groups = _folds(query)
     oof = np.empty(len(y))
     for g in np.unique(groups):
@@ -295,7 +305,7 @@ def fit_acceptance(
         if y[~hold].min() == y[~hold].max():  # a fold's complement with one class
             oof[hold] = model.predict(X[hold])
             continue
-        fold = ConfidenceModel.fit(X[~hold], y[~hold], names, l2=L2, sample_weight=w[~hold])
+        fold = _fit(X[~hold], y[~hold], names, w[~hold])
         oof[hold] = fold.predict(X[hold])
     floor = outside_floor(oof[n_in:], 1.0 - target) if n_out else 0.0
     threshold = threshold_for_precision(oof[:n_in], answers.correct, target, floor=floor)
@@ -485,7 +495,7 @@ def route_out_of_fold(
         hold = groups == r
         if y[~hold].min() == y[~hold].max():
             raise ModelError("a fold's other routes hold only right or only wrong answers")
-        model = ConfidenceModel.fit(X[~hold], y[~hold], names, l2=L2, sample_weight=w[~hold])
+        model = _fit(X[~hold], y[~hold], names, w[~hold])
         oof[hold] = model.predict(X[hold])
     return oof, y, g, inside
 
@@ -509,7 +519,7 @@ def fit_pooled(
     X, y, w, _, inside = _pooled(parts, names, outside_share)
     if y.min() == y.max():
         raise ModelError("the training answers are all right or all wrong")
-    model = ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w)
+    model = _fit(X, y, names, w)
     pred, _, _, _ = route_out_of_fold(parts, names, outside_share=outside_share, by=oof)
     bound = (~inside).any() and outside_floor_rate is not None
     floor = outside_floor(pred[~inside], float(outside_floor_rate or 0.0)) if bound else 0.0

@@ -195,6 +195,38 @@ def test_fit_is_the_maximum_of_the_regularised_likelihood(l2: float, weighted: b
     np.testing.assert_allclose([m.intercept, *m.coef], best.x, atol=1e-6)
 
 
+def test_offsets_enter_the_log_odds_unfitted() -> None:
+    """An offset feature (a known prior log-odds) is added as it is: the other coefficients
+    are the maximum of the likelihood with it in the linear predictor (scipy's optimiser on
+    the same objective), and the stored model predicts with it at coefficient 1."""
+    X, y, _, _ = synthetic(400, seed=3)
+    prior = np.where(np.arange(len(y)) % 2 == 0, 1.5, -2.0)  # two "maps"
+    Xo = np.column_stack([X, prior])
+    names = ["x1", "x2", "x3", "map_prior"]
+    m = ConfidenceModel.fit(Xo, y, names, l2=1.0, offsets=["map_prior"])
+    assert (m.mean[3], m.scale[3], m.coef[3]) == (0.0, 1.0, 1.0)
+    mean = X.mean(0)
+    Z = np.hstack([np.ones((len(y), 1)), (X - mean) / X.std(0)])
+    t = y.astype(float)
+
+    def objective(w: np.ndarray) -> tuple[float, np.ndarray]:
+        s = Z @ w + prior
+        loss = np.sum(np.logaddexp(0, s) - t * s) + 0.5 * np.sum(w[1:] ** 2)
+        grad = Z.T @ (1 / (1 + np.exp(-s)) - t) + np.r_[0.0, w[1:]]
+        return float(loss), grad
+
+    best = minimize(objective, np.zeros(4), jac=True, method="BFGS", options={"gtol": 1e-10})
+    np.testing.assert_allclose([m.intercept, *m.coef[:3]], best.x, atol=1e-6)
+    want = 1 / (1 + np.exp(-(Z @ best.x + prior)))
+    np.testing.assert_allclose(m.predict(Xo), want, atol=1e-6)
+    # the prior moves the probability by exactly its log-odds
+    lifted = Xo.copy()
+    lifted[:, 3] += 1.0
+    np.testing.assert_allclose(m.logit(lifted), m.logit(Xo) + 1.0, atol=1e-12)
+    with pytest.raises(HmpfError, match="not features"):
+        ConfidenceModel.fit(X, y, names[:3], offsets=["map_prior"])
+
+
 def test_separable_data_gives_finite_coefficients() -> None:
     X = np.array([[0.0], [1.0], [2.0], [3.0]])
     m = ConfidenceModel.fit(X, np.array([0, 0, 1, 1]), ["quality"], l2=1.0)
