@@ -3982,6 +3982,7 @@ _MAP_PRIOR_VARIANTS = {
     "without": "as shipped",
     "map_prior": "`map_prior` offset",
     "map_prior_stay": "offset + stay chosen as decided",
+    "map_prior_every_route": "offset + 99 % on every route + stay as decided",
 }
 
 

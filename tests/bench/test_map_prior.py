@@ -66,3 +66,25 @@ def test_the_chosen_stay_keeps_the_target_on_the_training_drives():
     last = [r["with_stay"]["precision"] for r in choice["tried"][tried[-1]].values()]
     if stay != entry:
         assert min(p for p in last if p is not None) >= sa.TARGET
+
+
+def test_every_route_threshold_is_the_lowest_that_holds_on_each_route():
+    parts = _parts(np.random.default_rng(2))
+    seqs = [p[1] for p in parts]
+    with_prior = (sa.SINGLE_FEATURES + ("map_prior",), sa.SEQUENCE_FEATURES + ("map_prior",))
+    policy, _ = mp.fit_variant(parts, with_prior, stay=False)
+    t = mp.every_route_threshold(seqs, policy)
+    assert policy.sequence_model is not None
+    pred, y, g, inside = sa.route_out_of_fold(
+        seqs, policy.sequence_model.features, outside_share=sa.OFF_SHARE, by="folds"
+    )
+    p, y, g = pred[inside], y[inside].astype(bool), g[inside]
+
+    def holds(x: float) -> bool:
+        acc = p >= x
+        return all(y[acc & (g == k)].mean() >= sa.TARGET for k in np.unique(g[acc]))
+
+    assert holds(t)
+    below = p[p < t]
+    if len(below):
+        assert not holds(float(below.max()))
