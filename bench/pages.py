@@ -1393,6 +1393,20 @@ def cpu_levers_shared_work(root: Path) -> str:
     )
 
 
+@generator("cpu_levers.netvlad_smaller")
+def cpu_levers_netvlad_smaller(root: Path) -> str:
+    labels = {"default": "`default`"} | {
+        f"bench/cpu_levers/{n}.yaml": f"`{n}`" for n in ("netvlad_256", "netvlad_288")
+    }
+    return choose_table(
+        root,
+        f"{CPU_LEVERS}/netvlad_smaller.json",
+        labels,
+        "recall@1 +-2 frames; ms: the query's extraction on one thread, other jobs running",
+        per_protocol=True,
+    )
+
+
 @generator("levers.results_printout")
 def levers_results_printout(root: Path) -> str:
     rel = "docs/experiments/levers.txt"
