@@ -305,7 +305,9 @@ def forward_group(
         if prep is None:  # pragma: no cover - every backbone that exports has one
             raise MissingDependencyError(f"backbone {c.backbone!r} preprocesses in torch")
         preprocess: Preprocess = prep
-        onnx = [m.maps(layers, runtime) for m in stored]
+        # a stored model given a runtime of its own runs in it (StoredModel(runtime=)),
+        # whatever the process's
+        onnx = [m.maps(layers, m.runtime or runtime) for m in stored]
         net = None
     else:
         _require_torch_for(head, layers)

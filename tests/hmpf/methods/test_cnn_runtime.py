@@ -380,6 +380,33 @@ def test_openvino_sessions(cache_dir: Path, monkeypatch: pytest.MonkeyPatch) -> 
         ox.StoredModel(maps.path, ["s4"], SIZE, runtime="torch")
 
 
+def test_a_stored_model_with_its_own_runtime_runs_in_it_when_a_method_extracts(
+    cache_dir: Path,
+) -> None:
+    """A method extracting through stored models made with ``runtime=`` (as
+    ``bench.int8_recall`` runs the float32 exports in OpenVINO) runs them in that runtime,
+    not in the process's: under ``onnx`` the descriptors equal those a process in
+    ``openvino-bf16`` computes from the same file, and differ from ONNX Runtime's."""
+    pytest.importorskip("openvino")
+    size = tuple(SIZE)
+    image = np.random.default_rng(5).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+
+    def gem(runtime_of_model: str | None) -> Any:
+        m = create_method("gem", {"input_size": list(size)})
+        path = ox.onnx_maps(m.backbone(), sorted(m.layers()), size).path
+        models = {size: ox.StoredModel(path, sorted(m.layers()), size, runtime=runtime_of_model)}
+        m.use_stored_models(models, cache_dir)
+        return m
+
+    with cnn_runtime_as("onnx"):
+        own = extract_many({"g": gem("openvino-bf16")}, [image])["g"][0]
+        plain = extract_many({"g": gem(None)}, [image])["g"][0]
+    with cnn_runtime_as("openvino-bf16"):
+        process = extract_many({"g": gem(None)}, [image])["g"][0]
+    np.testing.assert_array_equal(own, process)
+    assert not np.array_equal(own, plain)
+
+
 def test_missing_openvino_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "openvino", None)  # import openvino -> ImportError
     with pytest.raises(MissingDependencyError, match=r"hmpf\[openvino\]"):
