@@ -276,7 +276,9 @@ def runtime_models(
         out[mid] = {}
         for size in m.input_sizes():
             fp32 = onnx_maps(net, layers, size).path
-            key = hashlib.sha256(f"{variant}:{sha(fp32)}".encode()).hexdigest()[:24]
+            # ":run-own": features cached before a stored model's own runtime was honoured
+            # (commit 81cd913) were ONNX Runtime's under this variant's name: not reused
+            key = hashlib.sha256(f"{variant}:{sha(fp32)}:run-own".encode()).hexdigest()[:24]
             info = {"variant": variant, "key": key}
             out[mid][size] = StoredModel(fp32, layers, size, info, runtime=variant)
     return out

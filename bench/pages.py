@@ -1719,7 +1719,10 @@ def _vs(fig: dict[str, Any]) -> str:
 def openvino_recall(root: Path) -> str:
     """``bench.int8_recall``'s runtime variants: the hierarchy's recall@1 per route."""
     rel = f"{CPU_LEVERS}/openvino_recall.json"
-    data = load(root, rel)
+    return _openvino_recall_table(rel, load(root, rel))
+
+
+def _openvino_recall_table(rel: str, data: dict[str, Any]) -> str:
     rows = []
     for route, e in data["routes"].items():
         v, served = e["variants"], e["served"]
@@ -1750,6 +1753,27 @@ def openvino_time(root: Path) -> str:
     ``bench.capacity`` per runtime (CPU per answer through ``hmpf-serve``)."""
     rel = f"{CPU_LEVERS}/openvino_time.json"
     data = load(root, rel)
+    out = _openvino_time_tables(rel, data)
+    cap_rows = []
+    for rt in RUNTIME_LABELS:
+        crel = f"docs/experiments/capacity/default-{rt}.json"
+        c = load(root, crel)
+        cap_rows.append([RUNTIME_LABELS[rt], f1(c["cpu_ms_per_query"]), f1(c["wall_p50_ms"])])
+    out += "\n" + table(["runtime", "CPU ms per answer", "wall p50 ms"], cap_rows)
+    out += source(f"docs/experiments/capacity/default-{{{','.join(RUNTIME_LABELS)}}}.json", c)
+    return out
+
+
+@generator("cpu_levers.openvino_amx")
+def openvino_amx(root: Path) -> str:
+    """``bench.int8_recall``'s runtime variants on a host with AMX: recall and time."""
+    rel = f"{CPU_LEVERS}/openvino_amx.json"
+    data = load(root, rel)
+    return _openvino_recall_table(rel, data) + "\n" + _openvino_time_tables(rel, data)
+
+
+def _openvino_time_tables(rel: str, data: dict[str, Any]) -> str:
+    """The forward passes' and the whole query's times of one runtime-variant record."""
     names = {"fp32": "onnx", "openvino": "openvino", "openvino-bf16": "openvino-bf16"}
     rows = []
     for k, v in data["pass_ms"].items():
@@ -1777,15 +1801,7 @@ def openvino_time(root: Path) -> str:
         for k, v in q.items()
     ]
     qheader = ["whole query, one thread", "ms", "extraction", "hierarchy", "speed-up"]
-    out += "\n" + table(qheader, qrows) + source(rel, data)
-    cap_rows = []
-    for rt in RUNTIME_LABELS:
-        crel = f"docs/experiments/capacity/default-{rt}.json"
-        c = load(root, crel)
-        cap_rows.append([RUNTIME_LABELS[rt], f1(c["cpu_ms_per_query"]), f1(c["wall_p50_ms"])])
-    out += "\n" + table(["runtime", "CPU ms per answer", "wall p50 ms"], cap_rows)
-    out += source(f"docs/experiments/capacity/default-{{{','.join(RUNTIME_LABELS)}}}.json", c)
-    return out
+    return out + "\n" + table(qheader, qrows) + source(rel, data)
 
 
 @generator("cpu_levers.openvino_load")
