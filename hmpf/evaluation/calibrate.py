@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.confidence import ModelError
-from hmpf.config import AcceptanceSettings, HierarchyConfig
+from hmpf.config import AcceptanceSettings, HierarchyConfig, build_methods
 from hmpf.errors import ConfigError
 from hmpf.evaluation.acceptance import (
     SEQUENCE_MODEL_FEATURES,
@@ -444,6 +444,12 @@ def fit_config_acceptance(
     missing = [m for m in config.method_ids if m not in train.methods]
     if missing:
         raise ConfigError(f"the training bank does not hold {', '.join(missing)}")
+    other = _other_settings(config, train)
+    if other:
+        raise ConfigError(
+            f"the training bank's {', '.join(other)} scored with other settings than "
+            f"{config.name!r}'s; build the banks from this config (or a pool with its settings)"
+        )
     if outcome is None:
         outcome = train.run(config)
     acceptance, acc = _z_acceptance(outcome, target_precision)
@@ -459,6 +465,26 @@ def fit_config_acceptance(
             fit.config, train, target_precision, fit.sequence_params, outside=outside
         )
     return fit
+
+
+#: Method settings that do not change a method's scores (where and how many at once).
+_RUNNING = {"device", "batch_size"}
+
+
+def _other_settings(config: HierarchyConfig, bank: ScoreBank) -> list[str]:
+    """The methods of ``config`` that ``bank`` holds with other settings (its instances were
+    built from another spec under the same id: their scores are not this config's)."""
+    fresh = build_methods(config)  # settings only: nothing is loaded or fitted
+
+    def settings(m: Any) -> Any:
+        return m.config.model_copy(update={k: None for k in _RUNNING if hasattr(m.config, k)})
+
+    return [
+        mid
+        for mid in config.method_ids
+        if type(bank.methods[mid]) is not type(fresh[mid])
+        or settings(bank.methods[mid]) != settings(fresh[mid])
+    ]
 
 
 def _train_figures(fit: AcceptanceFit) -> dict[str, Any]:

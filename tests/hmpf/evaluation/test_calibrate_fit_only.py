@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from hmpf.config import AcceptanceSettings, load_config, parse_config
+from hmpf.errors import ConfigError
 from hmpf.datasets import frame_ground_truth, list_images
 from hmpf.evaluation.calibrate import (
     SearchSpace,
@@ -181,3 +182,22 @@ def test_fit_only_unreadable_config_is_one_line(tmp_path, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("hmpf-calibrate: error: cannot read config") and "Traceback" not in err
+
+
+def test_a_bank_scored_with_other_settings_is_refused(route):
+    """The bank holds ``hog`` and ``gist`` under the config's ids, but the config sets hog
+    otherwise: its scores are not this config's, so the fit refuses (it fitted on them
+    before), naming the method; the same settings under another name still fit."""
+    _, train = route
+    other = parse_config(
+        {
+            "name": "other-hog",
+            "methods": {"hog": {"cell_size": 20}},
+            "tiers": [{"methods": ["hog", "gist"], "k": 1}],
+        }
+    )
+    with pytest.raises(ConfigError, match=r"bank's hog scored with other settings"):
+        fit_config_acceptance(other, train, target_precision=0.9, model=False)
+    same = parse_config({"name": "same", "tiers": [{"methods": ["hog", "gist"], "k": 1}]})
+    fit = fit_config_acceptance(same, train, target_precision=0.9, model=False)
+    assert fit.config.acceptance is not None
