@@ -63,6 +63,9 @@ OUT = ROOT / "docs" / "experiments" / "acceptance" / "map_prior.json"
 #: Stay thresholds tried by ``map_prior_stay``, lowest first (the entry threshold caps them).
 STAYS = (STAY_P, 0.6, 0.7, 0.8, 0.9)
 Features = tuple[tuple[str, ...], tuple[str, ...]]
+#: The experience log's default threshold (``experience_min_p_correct``): the share of
+#: sequence answers at or above it is what a recording service would keep.
+RECORD_P = 0.99
 
 
 def pseudo_recall(
@@ -144,6 +147,15 @@ def figures(ev: dict[str, Any]) -> dict[str, Any]:
     keep = ("accepted", "precision", "ece", "right", "recall_at_1", "flips_per_100")
     seq = {k: ev["sequence"][k] for k in keep}
     seq["entry_only"] = ev["sequence"]["entry_only"]
+    # what a recording service keeps at its default threshold (issue 35: p_correct >= 0.99)
+    p = np.array([np.nan if x is None else x for x in ev["sequence"]["p_correct"]], float)
+    right = np.array(ev["sequence"]["correct"], bool)
+    sure = p >= RECORD_P
+    seq["recordable"] = {
+        "p_at_least": RECORD_P,
+        "share": float(sure.mean()),
+        "precision": float(right[sure].mean()) if sure.any() else None,
+    }
     return {
         "single": ev["single"],
         "sequence": seq,

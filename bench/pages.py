@@ -4049,6 +4049,7 @@ def acceptance_map_prior(root: Path) -> str:
                         f3(q["ece"]),
                         f1(q["flips_per_100"]),
                         f"{stay:.2f}",
+                        share(q["recordable"]["share"], q["recordable"]["precision"]),
                         f"{f['single_accepted']:.3f} / {f['sequence_accepted']:.3f}",
                         f3(f["sequence_mean_p"]),
                     ]
@@ -4063,6 +4064,7 @@ def acceptance_map_prior(root: Path) -> str:
         "sequence ECE",
         "flips / 100",
         "stay",
+        "sequence p >= 0.99 (precision)",
         "foreign accepted: single / sequence",
         "foreign mean p (sequence)",
     ]
