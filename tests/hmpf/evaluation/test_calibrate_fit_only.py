@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from hmpf.config import AcceptanceSettings, load_config, parse_config
-from hmpf.errors import ConfigError
 from hmpf.datasets import frame_ground_truth, list_images
+from hmpf.errors import ConfigError
 from hmpf.evaluation.calibrate import (
     SearchSpace,
     calibrate,
