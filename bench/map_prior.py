@@ -3,7 +3,7 @@
     python -m bench.map_prior [--config default] [--foreign 200] [--nordland-frames 800]
         [--out docs/experiments/acceptance/map_prior.json]
 
-Why (issue 30, ``docs/experiments/acceptance/README.md``): the shipped models pool Gardens
+Why (``docs/experiments/acceptance/README.md``): the shipped models pool Gardens
 Point, where the preset's evidence tells right answers from wrong ones, with Nordland, where
 it does not (AUC 0.51-0.54), and nothing in an answer's features says which kind of map it
 comes from. So the pooled model is too cautious on Gardens Point's night protocols and, left
@@ -147,7 +147,7 @@ def figures(ev: dict[str, Any]) -> dict[str, Any]:
     keep = ("accepted", "precision", "ece", "right", "recall_at_1", "flips_per_100")
     seq = {k: ev["sequence"][k] for k in keep}
     seq["entry_only"] = ev["sequence"]["entry_only"]
-    # what a recording service keeps at its default threshold (issue 35: p_correct >= 0.99)
+    # what a recording service keeps at its default threshold (p_correct >= 0.99)
     p = np.array([np.nan if x is None else x for x in ev["sequence"]["p_correct"]], float)
     right = np.array(ev["sequence"]["correct"], bool)
     sure = p >= RECORD_P

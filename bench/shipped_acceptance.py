@@ -70,8 +70,6 @@ from hmpf.evaluation.acceptance import (
     sequence_answers,
     single_answers,
 )
-from hmpf.evaluation.acceptance import sequence_answers as _sequence_answers
-from hmpf.evaluation.acceptance import single_answers as _single_answers
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import Drive, training_drives
 from hmpf.evaluation.study import ScoreBank, split_data
@@ -168,8 +166,9 @@ def limit_of(name: str, nordland_frames: int) -> int | None:
 def with_constants(answers: Answers, extra: dict[str, float] | None) -> Answers:
     """``answers`` with the features ``extra`` (the same values for every answer: a
     property of the map, such as ``map_prior``) added in place."""
-    for f in answers.features if extra else ():
-        f.update(extra or {})
+    if extra:
+        for f in answers.features:
+            f.update(extra)
     return answers
 
 
@@ -222,20 +221,19 @@ def evaluate(
     results = bank.results(config)
     profile = bank.profile(config)
 
-    def single_answers(*a: Any) -> Answers:
-        return with_constants(_single_answers(*a), extra)
-
-    def sequence_answers(*a: Any) -> Answers:
-        return with_constants(_sequence_answers(*a), extra)
+    def with_map(answers: Answers) -> Answers:
+        return with_constants(answers, extra)
 
     nq, nf = route.n_test, route.n_foreign
     inside = np.arange(nq)
     away = np.arange(nq, nq + nf)
     out: dict[str, Any] = {"gp": route.name.startswith("gp_")}
-    single = single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile)
+    single = with_map(single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile))
     s = apply_acceptance(policy, single)
     out["single"] = _figures(s, single)
-    seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
+    seq = with_map(
+        sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
+    )
     q = apply_acceptance(policy, seq, sequence=True)
     acc = np.array(q["accepted_answers"], bool)
     entry = apply_acceptance(replace(policy, sequence_stay_threshold=None), seq, sequence=True)
@@ -248,9 +246,11 @@ def evaluate(
         "p_correct": q["p_correct"],
         "correct": seq.correct.tolist(),
     }
-    f_single = single_answers([results[i] for i in away], None, routes, profile)
+    f_single = with_map(single_answers([results[i] for i in away], None, routes, profile))
     fs = apply_acceptance(policy, f_single)
-    f_seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(away)], profile)
+    f_seq = with_map(
+        sequence_answers(results, bank.gt, routes, params, [Drive.along(away)], profile)
+    )
     fq = apply_acceptance(policy, f_seq, sequence=True)
     out["foreign"] = {
         "n": nf,
@@ -262,7 +262,9 @@ def evaluate(
     }
     a, b = AWAY
     frames = np.concatenate([inside[:a], away[:b], inside[a:]])
-    trip = sequence_answers(results, bank.gt, routes, params, [Drive.along(frames)], profile)
+    trip = with_map(
+        sequence_answers(results, bank.gt, routes, params, [Drive.along(frames)], profile)
+    )
     dec = decide(policy, trip, sequence=True)
     accepted = np.array([d.accepted for d in dec], bool)
     off = np.array([d.off_map for d in dec], bool)
@@ -387,16 +389,13 @@ def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
     return out
 
 
-def held_out(
-    parts: list[tuple[RoutePart, RoutePart]],
-    features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
-) -> list[tuple[Policy, dict[str, Any]]]:
+def held_out(parts: list[tuple[RoutePart, RoutePart]]) -> list[tuple[Policy, dict[str, Any]]]:
     """Leave one route out: per route of ``parts`` (:func:`training_part`), the policy
     fitted (:func:`fit`) on the other routes' training parts only."""
     out = []
     for i in range(len(parts)):
         rest = [p for j, p in enumerate(parts) if j != i]
-        out.append(fit([p[0] for p in rest], [p[1] for p in rest], features))
+        out.append(fit([p[0] for p in rest], [p[1] for p in rest]))
     return out
 
 
