@@ -117,14 +117,23 @@ def _best_of(scores: Mapping[str, np.ndarray], mid: str) -> int:
 
 
 def _best_outside_all(
-    values: np.ndarray, answer: int, routes: RouteMap, window: int, look: int = 64
+    values: np.ndarray,
+    answer: int,
+    routes: RouteMap,
+    window: int,
+    look: int = 64,
+    *,
+    finite: bool | None = None,
 ) -> float | None:
     """:func:`_best_outside` over every reference, looking first at the ``look`` highest
     values (finite, no NaN): the first of them far from ``answer`` is the best far one
     (every other value is at most as high). Only when none of them is far (more than
-    ``look`` high values within ``window`` steps) is every reference looked at."""
+    ``look`` high values within ``window`` steps) is every reference looked at.
+    ``finite``: whether every value is finite, when the caller knows."""
     n = len(values)
-    if n > 4 * look and np.isfinite(values).all():
+    if finite is None and n > 4 * look:
+        finite = bool(np.isfinite(values).all())
+    if n > 4 * look and finite:
         top = top_k(values, look)
         far = routes.separation(top, answer) > window
         if far.any():
@@ -226,15 +235,20 @@ def answer_features(
     if tiers and answered:
         mean = np.asarray(tiers[0].mean_score(), dtype=np.float64)
         at = float(mean[match])
+        # Tier 1 covers the whole map: one pass over it per step below, and none where
+        # every score is finite (the usual case) and a step only replaces what is not.
+        finite = np.isfinite(mean)
+        every = bool(finite.all())
         if math.isfinite(at):
-            rank = int(np.sum(np.where(np.isfinite(mean), mean, -np.inf) > at))
+            above = mean > at if every else np.where(finite, mean, -np.inf) > at
+            rank = int(np.count_nonzero(above))
         else:
             rank = n_db
         out["tier1_rank"] = math.log1p(rank)
-        score0 = np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
-        rival1 = _best_outside_all(score0, match, routes, window)
+        score0 = mean if every else np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
+        rival1 = _best_outside_all(score0, match, routes, window, finite=True)  # NaN, inf: 0
         out["tier1_margin"] = float(score0[match]) - (0.0 if rival1 is None else rival1)
-        fin = mean[np.isfinite(mean)]
+        fin = mean if every else mean[finite]
         sd = float(fin.std()) if fin.size > 1 else 0.0
         out["tier1_z"] = (at - float(fin.mean())) / sd if sd > 0 and math.isfinite(at) else 0.0
     else:

@@ -40,7 +40,7 @@ from hmpf.fusion import (
 )
 from hmpf.methods import Method
 
-__all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult", "feature_scorer"]
+__all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult", "entries_at", "feature_scorer"]
 
 #: ``score_fn(method_id, subset)`` -> raw scores for ``subset`` (reference indices, in order),
 #: or for the whole database when ``subset`` is None.
@@ -73,7 +73,9 @@ def feature_scorer(
     return score_fn
 
 
-def _entries(x: Mapping[str, np.ndarray], mid: str, at: np.ndarray | None) -> np.ndarray:
+def entries_at(x: Mapping[str, np.ndarray], mid: str, at: np.ndarray | None) -> np.ndarray:
+    """``x[mid][at]`` (``at`` None: ``x[mid]``) of a tier's scores, read from the entries of
+    a :class:`~hmpf.fusion.Spread` without making its whole array."""
     if at is None:
         return x[mid]
     return x.at(mid, at) if isinstance(x, Spread) else x[mid][at]
@@ -106,13 +108,24 @@ class TierResult:
 
     def mean_score(self, at: np.ndarray | None = None) -> np.ndarray:
         """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input);
-        with ``at``, just those entries (the same values)."""
-        return np.mean([_entries(self.scores, m, at) for m in self.methods], axis=0)
+        with ``at``, just those entries (the same values).
+
+        ``np.mean`` over the methods' stacked arrays, to the last bit (the sum in the
+        methods' order, then divided by their count), without the stack: on a whole map
+        of a million references the copy cost as much as the sum."""
+        parts = [np.asarray(entries_at(self.scores, m, at), dtype=np.float64) for m in self.methods]
+        if not parts:
+            return np.full(0 if at is None else len(at), np.nan)
+        total = parts[0].copy()
+        for x in parts[1:]:
+            total += x
+        total /= len(parts)
+        return total
 
     def max_score(self, at: np.ndarray | None = None) -> np.ndarray:
         """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``); with ``at``,
         just those entries (the same values)."""
-        stack = np.stack([_entries(self.scores, m, at) for m in self.methods])
+        stack = np.stack([entries_at(self.scores, m, at) for m in self.methods])
         out = np.full(stack.shape[1], np.nan)
         has = ~np.isnan(stack).all(axis=0)
         out[has] = np.nanmax(stack[:, has], axis=0)

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.acceptance import Decision
-from hmpf.hierarchy import HierarchyResult, TierResult
+from hmpf.hierarchy import HierarchyResult, TierResult, entries_at
 from hmpf.sequence import Estimate
 from service.engine import Loaded, confidence
 from service.schemas import (
@@ -309,13 +309,16 @@ def _tiers(loaded: Loaded, result: HierarchyResult, refs: _References) -> list[T
     reports = []
     for t, tier in enumerate(result.tiers):
         unique = list(dict.fromkeys(int(i) for i in tier.candidates))
+        # the candidates' entries only (a later tier's whole arrays are the map's size)
+        at = np.asarray(unique, dtype=np.int64)
+        scores = {m: entries_at(tier.scores, m, at).tolist() for m in tier.methods}
         candidates = [
             Candidate(
                 reference_id=refs.id_of(i),
                 name=refs.name_of(i),
-                scores={m: _finite(float(tier.scores[m][i])) for m in tier.methods},
+                scores={m: _finite(scores[m][j]) for m in tier.methods},
             )
-            for i in unique
+            for j, i in enumerate(unique)
         ]
         inputs = refs.searched if tier.inputs is None else int(len(np.unique(tier.inputs)))
         reports.append(

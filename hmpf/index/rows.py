@@ -103,10 +103,15 @@ class DiskRows:
 
     def _read(self, start: int, count: int) -> np.ndarray:
         """Rows ``start .. start + count - 1`` in the stored dtype."""
+        buf = np.empty((count, *self.shape[1:]), dtype=self.stored)
+        if buf.size:
+            self._read_into(memoryview(buf).cast("B"), start, count)  # type: ignore[arg-type]
+        return buf
+
+    def _read_into(self, view: memoryview, start: int, count: int) -> None:
+        """Rows ``start .. start + count - 1``, stored bytes, into ``view`` (their size)."""
         if self._fd is None:
             raise ValueError(f"{self.path}: read after close")
-        buf = np.empty((count, *self.shape[1:]), dtype=self.stored)
-        view = memoryview(buf).cast("B")  # type: ignore[arg-type]
         want, pos, done = count * self.row_bytes, self.offset + start * self.row_bytes, 0
         while done < want:
             try:
@@ -121,7 +126,6 @@ class DiskRows:
                 )
             done += got
         self.stats.add(count, want)
-        return buf
 
     def rows(self, idx: np.ndarray) -> np.ndarray:
         """Rows ``idx`` (any order, repeats allowed) as ``dtype``."""
@@ -131,12 +135,19 @@ class DiskRows:
             raise IndexError(f"row index out of range 0 .. {n - 1}")
         idx = np.where(idx < 0, idx + n, idx)
         uniq, inverse = np.unique(idx, return_inverse=True)
-        out = np.empty((len(uniq), *self.shape[1:]), dtype=self.dtype)
-        # Runs of consecutive rows are one read each.
-        breaks = np.flatnonzero(np.diff(uniq) != 1) + 1
-        for run in np.split(np.arange(len(uniq)), breaks):
-            if run.size:
-                out[run[0] : run[-1] + 1] = self._read(int(uniq[run[0]]), run.size)
+        # Every run of consecutive rows is one read, straight into one buffer of the stored
+        # dtype, widened once at the end.
+        buf = np.empty((len(uniq), *self.shape[1:]), dtype=self.stored)
+        if not buf.size:
+            return buf.astype(self.dtype)[inverse]
+        view = memoryview(buf).cast("B")  # type: ignore[arg-type]
+        starts = np.flatnonzero(np.diff(uniq, prepend=-2) != 1)
+        counts = np.diff(starts, append=len(uniq))
+        rb = self.row_bytes
+        runs = zip(starts.tolist(), uniq[starts].tolist(), counts.tolist(), strict=True)
+        for at, first, count in runs:
+            self._read_into(view[at * rb : (at + count) * rb], first, count)
+        out = buf.astype(self.dtype, copy=False)
         return out[inverse] if len(uniq) != len(idx) or (np.diff(idx) < 0).any() else out
 
     def __getitem__(self, key: Any) -> np.ndarray:

@@ -611,6 +611,37 @@ class LocalMethod(Method):
 
 _REF_CACHE: dict[int, tuple[Any, np.ndarray, np.ndarray]] = {}
 _REF_CACHE_SIZE = 8
+#: large arrays scored once so far (a second call with the same array caches its float64
+#: copy): by id, with a weak reference that tells a reused id from the same array
+_SEEN: dict[int, Any] = {}
+_SEEN_SIZE = 64
+#: float64 elements converted at a time when a matrix is scored without a float64 copy
+_BLOCK = 1 << 17
+
+
+def _remembered(table: dict[int, Any], references: np.ndarray) -> Any:
+    """``table``'s entry for ``references`` (None: not there, or its id now names another
+    array)."""
+    hit = table.get(id(references))
+    return hit if hit is not None and hit[0]() is references else None
+
+
+def _remember(table: dict[int, Any], size: int, references: np.ndarray, *value: Any) -> bool:
+    """Put ``(weakref(references), *value)`` in ``table`` (at most ``size`` entries, the
+    oldest out first, entries of arrays that are gone before any); False when the array
+    cannot be weakly referenced (e.g. a list)."""
+    try:
+        ref = weakref.ref(references)
+    except TypeError:
+        return False
+    # Entries of arrays that are gone first (e.g. the rows a previous query gathered), so
+    # that they do not push out the matrices every query scores against.
+    for k in [k for k, v in table.items() if v[0]() is None]:
+        del table[k]
+    if len(table) >= size:
+        table.pop(next(iter(table)))
+    table[id(references)] = (ref, *value)
+    return True
 
 
 def _as_f64_with_norms(references: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -620,24 +651,26 @@ def _as_f64_with_norms(references: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     it to float64 and summing its squares again for every query dominated the per-query
     cost on large maps. The entry lives as long as the array does (weak reference).
     """
-    key = id(references)
-    hit = _REF_CACHE.get(key)
-    if hit is not None and hit[0]() is references:
+    hit = _remembered(_REF_CACHE, references)
+    if hit is not None:
         return hit[1], hit[2]
     r = np.asarray(references, dtype=np.float64)
-    norms = (r * r).sum(1)
-    try:
-        ref = weakref.ref(references)
-    except TypeError:  # not weak-referenceable (e.g. a list): do not remember it
-        return r, norms
-    # Entries of arrays that are gone first (e.g. the rows a previous query gathered), so
-    # that they do not push out the matrices every query scores against.
-    for k in [k for k, v in _REF_CACHE.items() if v[0]() is None]:
-        del _REF_CACHE[k]
-    if len(_REF_CACHE) >= _REF_CACHE_SIZE:
-        _REF_CACHE.pop(next(iter(_REF_CACHE)))
-    _REF_CACHE[key] = (ref, r, norms)
+    norms = np.vecdot(r, r)
+    _remember(_REF_CACHE, _REF_CACHE_SIZE, references, r, norms)
     return r, norms
+
+
+def _scored_before(references: np.ndarray) -> bool:
+    """Whether ``references`` (a large array) is worth a remembered float64 copy: it is
+    remembered already, or this is the second call with it. The rows a query gathers for
+    itself (an approximate tier 1's candidates, a later tier's) are scored once and are
+    gone: a float64 copy of them would only cost its allocation and its page faults."""
+    if _remembered(_REF_CACHE, references) is not None:
+        return True
+    if _remembered(_SEEN, references) is not None:
+        del _SEEN[id(references)]
+        return True
+    return not _remember(_SEEN, _SEEN_SIZE, references)
 
 
 def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
@@ -645,19 +678,26 @@ def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
 
     Uses the ``|q|^2 + |r|^2 - 2 q.r`` expansion in float64 (clipped at 0): fast for the
     full-database matrices and accurate enough for descriptors of moderate norm. The
-    float64 copy of a large reference matrix and its norms are computed once per matrix.
+    float64 copy of a large reference matrix and its norms are computed once per matrix
+    (from its second call on: a matrix scored once is converted a block of rows at a time).
 
     One query (a hierarchy's every call) takes one dot product per reference, each on its
     own (:func:`_row_dots`): a reference's distance is then the same number whichever other
-    references are scored with it (the whole map, a GPS prior's subset, a region shard).
+    references are scored with it (the whole map, a GPS prior's subset, a region shard), and
+    whether or not its matrix has a float64 copy.
     """
     q = np.asarray(queries, dtype=np.float64)
-    if isinstance(references, np.ndarray) and references.size >= 1 << 16:
-        r, rn = _as_f64_with_norms(references)
+    large = isinstance(references, np.ndarray) and references.size >= 1 << 16
+    if q.shape[0] == 1 and large and not _scored_before(references):
+        dots, rn = _dots_and_norms(q[0], references)
+        dots = dots[None, :]
     else:
-        r = np.asarray(references, dtype=np.float64)
-        rn = (r * r).sum(1)
-    dots = _row_dots(q[0], r)[None, :] if q.shape[0] == 1 else q @ r.T
+        if large:
+            r, rn = _as_f64_with_norms(references)
+        else:
+            r = np.asarray(references, dtype=np.float64)
+            rn = np.vecdot(r, r)
+        dots = _row_dots(q[0], r)[None, :] if q.shape[0] == 1 else q @ r.T
     d2 = (q * q).sum(1)[:, None] + rn[None, :] - 2.0 * dots
     return np.sqrt(np.maximum(d2, 0.0))
 
@@ -666,6 +706,21 @@ def euclidean(queries: np.ndarray, references: np.ndarray) -> np.ndarray:
 _PARALLEL_DOTS = 1 << 22
 _dot_pool: ThreadPoolExecutor | None = None
 _dot_pool_lock = threading.Lock()
+
+
+def _row_parts(n: int, d: int) -> np.ndarray:
+    """Bounds of the row ranges a scoring of ``n x d`` is split into over the compute
+    threads (one range below :data:`_PARALLEL_DOTS` elements)."""
+    parts = max(1, min(compute_threads(), (n * d) // _PARALLEL_DOTS)) if n else 1
+    return np.linspace(0, n, parts + 1).round().astype(np.int64)
+
+
+def _in_parts(bounds: np.ndarray, part: Any) -> None:
+    """``part(lo, hi)`` for every range of ``bounds``, on the dot pool when there are several."""
+    if len(bounds) <= 2:
+        part(int(bounds[0]), int(bounds[-1]))
+        return
+    list(_pool().map(part, bounds[:-1].tolist(), bounds[1:].tolist()))
 
 
 def _row_dots(q: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -678,17 +733,32 @@ def _row_dots(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     :func:`~hmpf.runtime.compute_threads` threads at once (the same numbers: each row is
     still its own product)."""
     n = len(r)
-    parts = min(compute_threads(), (n * r.shape[1]) // _PARALLEL_DOTS) if n else 0
-    if parts <= 1:
-        return np.matmul(r[:, None, :], q[:, None])[:, 0, 0]
     out = np.empty(n, dtype=np.result_type(r, q))
-    bounds = np.linspace(0, n, parts + 1).round().astype(np.int64)
 
     def part(lo: int, hi: int) -> None:
         out[lo:hi] = np.matmul(r[lo:hi, None, :], q[:, None])[:, 0, 0]
 
-    list(_pool().map(part, bounds[:-1].tolist(), bounds[1:].tolist()))
+    _in_parts(_row_parts(n, r.shape[1] if r.ndim == 2 else 0), part)
     return out
+
+
+def _dots_and_norms(q: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) ``r[i] . q`` and ``r[i] . r[i]`` in float64 for a float64 ``q``, converting a
+    block of ``r``'s rows to float64 at a time: the numbers of :func:`_row_dots` and
+    :func:`_as_f64_with_norms` (each row is still its own product and its own sum) without
+    a float64 copy of ``r``."""
+    n, d = len(r), r.shape[1]
+    dots, norms = np.empty(n), np.empty(n)
+    step = max(1, _BLOCK // max(d, 1))
+
+    def part(lo: int, hi: int) -> None:
+        for a in range(lo, hi, step):
+            b = np.asarray(r[a : min(a + step, hi)], dtype=np.float64)
+            norms[a : a + len(b)] = np.vecdot(b, b)
+            dots[a : a + len(b)] = np.matmul(b[:, None, :], q[:, None])[:, 0, 0]
+
+    _in_parts(_row_parts(n, d), part)
+    return dots, norms
 
 
 def _pool() -> ThreadPoolExecutor:

@@ -5,6 +5,8 @@ computation gives."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -116,3 +118,54 @@ def test_best_rival_from_the_highest_scores_equals_every_reference():
             assert _best_outside_all(v, answer, routes, window) == _best_outside(
                 v, np.arange(n), answer, routes, window
             )
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 4])
+def test_a_tiers_mean_score_is_numpys_mean_of_the_stack(count):
+    rng = np.random.default_rng(count)
+    n = 10_007
+    scores = {f"m{i}": rng.random(n) for i in range(count)}
+    for i, x in enumerate(scores.values()):
+        x[rng.random(n) < 0.1 * i] = np.nan
+    tier = TierResult(list(scores), None, scores, np.zeros(0, np.int64), 0.0)
+    stack = np.stack(list(scores.values()))
+    mean = tier.mean_score()
+    assert np.array_equal(mean, np.mean(stack, axis=0), equal_nan=True)
+    at = rng.integers(0, n, 300)
+    assert np.array_equal(tier.mean_score(at), np.mean(stack[:, at], axis=0), equal_nan=True)
+    mean[:] = -1.0  # a result of its own: the tier's arrays are not written
+    assert np.array_equal(np.stack(list(scores.values())), stack, equal_nan=True)
+
+
+def _tier1_definition(result: HierarchyResult, routes: RouteMap, window: int) -> dict:
+    """Tier 1's features as whole-array passes, NaN and inf replaced at every step."""
+    mean = np.mean([result.tiers[0].scores[m] for m in result.tiers[0].methods], axis=0)
+    at = float(mean[result.match])
+    rank = int(np.sum(np.where(np.isfinite(mean), mean, -np.inf) > at))
+    score0 = np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
+    rival = _best_outside(score0, np.arange(len(mean)), result.match, routes, window)
+    fin = mean[np.isfinite(mean)]
+    return {
+        "tier1_rank": math.log1p(rank),
+        "tier1_margin": float(score0[result.match]) - (0.0 if rival is None else rival),
+        "tier1_z": (at - float(fin.mean())) / float(fin.std()),
+    }
+
+
+@pytest.mark.parametrize("kind", ["finite", "nan", "inf"])
+def test_tier1_features_equal_their_whole_array_definition(kind):
+    rng = np.random.default_rng(4)
+    n = 30_000
+    routes = RouteMap.from_metadata(n, sequence=np.repeat(np.arange(30), 1000))
+    for trial in range(5):
+        scores = {"a": rng.random(n), "b": rng.random(n)}
+        if kind != "finite":
+            bad = rng.choice(n, 500, replace=False)
+            scores["b"][bad] = np.nan if kind == "nan" else np.inf * rng.choice([-1, 1], 500)
+        match = int(rng.integers(n))
+        scores["a"][match] = scores["b"][match] = 0.99
+        tier = TierResult(["a", "b"], None, scores, np.array([match]), 0.0)
+        result = HierarchyResult(match, 1.0, np.array([match]), np.array([1.0]), [tier])
+        got = answer_features(result, routes)
+        for name, value in _tier1_definition(result, routes, 2).items():
+            assert got[name] == value, (kind, trial, name)

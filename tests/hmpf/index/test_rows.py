@@ -76,6 +76,10 @@ def test_disk_rows_equal_the_stored_matrix(exact_index):
                 assert np.array_equal(rows[::3], want[::3])
                 assert np.array_equal(np.asarray(rows), want)
                 assert np.array_equal(rows[np.array([], np.int64)], want[:0])
+                runs = np.array([7, 5, 6, 11, 10, 0, 1, 6])  # three runs, out of order, a repeat
+                calls = rows.stats.calls
+                assert np.array_equal(rows[runs], want[runs])
+                assert rows.stats.calls - calls == 3  # one read per run of consecutive rows
                 with pytest.raises(IndexError):
                     rows[np.array([len(want)])]
                 rows.close()

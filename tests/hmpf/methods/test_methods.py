@@ -592,6 +592,33 @@ def test_cache_key_tracks_config(name: str, change: dict[str, object]) -> None:
     assert create_method(name, change).cache_key() != base
 
 
+def test_euclidean_copies_a_matrix_to_float64_only_when_it_is_scored_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Rows a query gathers for itself are scored once: no float64 copy of them is made or
+    kept (it cost more than the scoring); a matrix scored a second time keeps one. Both ways
+    give the same numbers to the last bit, in blocks, on one thread or several."""
+    from hmpf import runtime
+    from hmpf.methods import base
+
+    rng = np.random.default_rng(1)
+    matrix = rng.standard_normal((700, 300)).astype(np.float16).astype(np.float32)
+    q = rng.standard_normal((1, 300))
+    first = base.euclidean(q, matrix)
+    assert base._remembered(base._REF_CACHE, matrix) is None
+    second = base.euclidean(q, matrix)
+    assert base._remembered(base._REF_CACHE, matrix) is not None
+    assert np.array_equal(first, second)
+    monkeypatch.setattr(base, "_BLOCK", 300 * 7)  # blocks of 7 rows, the last one short
+    monkeypatch.setattr(base, "_PARALLEL_DOTS", 300 * 50)  # split over the threads
+    for threads in (1, 3):
+        monkeypatch.setattr(runtime, "_threads", threads)
+        assert np.array_equal(base.euclidean(q, matrix.copy()), first), threads
+        assert np.array_equal(base.euclidean(q, matrix), first), threads  # the copy, split
+    want = np.sqrt(((q - matrix.astype(np.float64)) ** 2).sum(1))
+    np.testing.assert_allclose(first[0], want, rtol=1e-9)
+
+
 def test_euclidean_cache_keeps_the_matrix_across_temporary_row_sets() -> None:
     """A large matrix scored every query keeps its float64 copy while the rows gathered
     per query (temporaries, each large enough to be remembered) come and go."""
