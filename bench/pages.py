@@ -3263,6 +3263,105 @@ def scale_million_projected(root: Path) -> str:
     return intro + body + sources
 
 
+#: ``bench.scale`` in a third sitting: the 1k and 1M versions served by the code before and
+#: after the cheaper exact re-scoring; recall at 1M with more rows re-scored
+SITTING3 = {
+    ("1k", "before"): f"{SCALE}/serve-1k-sitting3-before.json",
+    ("1k", "after"): f"{SCALE}/serve-1k-sitting3.json",
+    ("1M", "before"): f"{SCALE}/serve-1M-sitting3-before.json",
+    ("1M", "after"): f"{SCALE}/serve-1M-sitting3.json",
+}
+RECALL_1M_SITTING3 = (f"{SCALE}/recall-1M-k256-sitting3.json", f"{SCALE}/recall-1M-k1024-sitting3.json")
+WRITE_1M_SITTING3 = f"{SCALE}/write-1M-sitting3.json"
+
+
+@generator("scale.rescoring")
+def scale_rescoring(root: Path) -> str:
+    """The 1k and 1M projected-scan versions served in one sitting by the code before and
+    after the cheaper exact re-scoring, and tier 1's recall and time at 1M with 256 or 1024
+    rows re-scored."""
+    recs = {key: load(root, rel) for key, rel in SITTING3.items()}
+    rows = []
+    for code in ("before", "after"):
+        a, b = recs["1k", code]["serve"], recs["1M", code]["serve"]
+        ta, tb = a["server_timing_ms_p50"], b["server_timing_ms_p50"]
+        commit = recs["1M", code]["commit"][:7]
+        rows.append(
+            [
+                f"{code} (`{commit}`)",
+                f"{f1(ta['extract'])} / {f1(tb['extract'])}",
+                f"{f1(ta['hierarchy'])} / **{f1(tb['hierarchy'])}**",
+                f"{f1(a['p50_ms'])} / {f1(b['p50_ms'])}",
+                f"{f1(a['p99_ms'])} / {f1(b['p99_ms'])}",
+                f"**{b['p50_ms'] / a['p50_ms']:.2f}x**",
+                f"{f1(a['cpu_ms_per_query'])} / **{f1(b['cpu_ms_per_query'])}**",
+                f"{thousands(b['rss_after_queries_mib']['RssFile'])} MiB",
+                f"{a['recall_at_1']:.3f} / {b['recall_at_1']:.3f}",
+            ]
+        )
+    header = [
+        "code",
+        "extraction p50, ms (1k / 1M)",
+        "hierarchy p50, ms",
+        "query p50, ms",
+        "query p99, ms",
+        "1M p50 / 1k p50",
+        "server CPU per query, ms",
+        "1M: file pages resident after the queries",
+        "recall@1",
+    ]
+    serve = table(header, rows, ["---"] + ["---:"] * 8)
+    recall_rows = []
+    for rel in RECALL_1M_SITTING3:
+        rec = load(root, rel)
+        for i, nv in enumerate(rec["recall"]["netvlad"]["settings"]):
+            gem = rec["recall"]["gem"]["settings"][i]
+            recall_rows.append(
+                [
+                    str(rec["recall"]["netvlad"]["approx_k"]),
+                    f"`{nv['params']}`",
+                    f"{gem['recall_at_100']:.3f} / {nv['recall_at_100']:.3f}",
+                    f"{gem['recall_at_10']:.3f} / {nv['recall_at_10']:.3f}",
+                    f"{gem['faiss_ms_p50']:.1f} / {nv['faiss_ms_p50']:.1f}",
+                    f"{gem['tier1_ms_p50']:.1f} / {nv['tier1_ms_p50']:.1f}",
+                ]
+            )
+    recall = table(
+        [
+            "rows re-scored",
+            "FAISS search",
+            "recall@100 (GeM / NetVLAD)",
+            "recall@10",
+            "FAISS ms p50",
+            "tier 1 ms p50 (FAISS + re-scoring)",
+        ],
+        recall_rows,
+        ["---:", "---", "---:", "---:", "---:", "---:"],
+    )
+    n = [thousands(recs[size, "after"]["references"]) for size in ("1k", "1M")]
+    w = load(root, WRITE_1M_SITTING3)
+    intro = (
+        f"The {n[1]}-reference version written again on this host in "
+        f"{duration(w['total_s'])} and verified in {duration(w['checks']['verify']['seconds'])} "
+        f"(`{WRITE_1M_SITTING3}`); {n[0]} and {n[1]} references, "
+        f"{recs['1M', 'after']['serve']['queries']} night_right frames one at a time through a "
+        "real `hmpf-serve` (one worker, one thread); each version served by both codes in one "
+        "sitting:\n\n"
+    )
+    recall_intro = (
+        f"\nTier 1 at {n[1]} references (the code after), the same queries against exact "
+        "search:\n\n"
+    )
+    rels = [WRITE_1M_SITTING3, *SITTING3.values(), *RECALL_1M_SITTING3]
+    return (
+        intro
+        + serve
+        + recall_intro
+        + recall
+        + "".join(source(rel, load(root, rel)) for rel in rels)
+    )
+
+
 def worked_example(x: dict[str, Any], case: tuple[Any, ...]) -> list[str]:
     """One row of the worked examples, computed from the inputs by the model's formulas."""
     name, refs, shards, vehicles, hz, preset, tier1 = case
