@@ -3271,7 +3271,10 @@ SITTING3 = {
     ("1M", "before"): f"{SCALE}/serve-1M-sitting3-before.json",
     ("1M", "after"): f"{SCALE}/serve-1M-sitting3.json",
 }
-RECALL_1M_SITTING3 = (f"{SCALE}/recall-1M-k256-sitting3.json", f"{SCALE}/recall-1M-k1024-sitting3.json")
+RECALL_1M_SITTING3 = (
+    f"{SCALE}/recall-1M-k256-sitting3.json",
+    f"{SCALE}/recall-1M-k1024-sitting3.json",
+)
 WRITE_1M_SITTING3 = f"{SCALE}/write-1M-sitting3.json"
 
 
