@@ -635,3 +635,21 @@ def test_euclidean_cache_keeps_the_matrix_across_temporary_row_sets() -> None:
     np.testing.assert_array_equal(base.euclidean(q, matrix), first)
     want = np.sqrt(((q.astype(np.float64) - matrix.astype(np.float64)) ** 2).sum(1))
     np.testing.assert_allclose(first[0], want, rtol=1e-9)
+
+
+def test_imagenet_input_is_its_formula_to_the_last_bit() -> None:
+    """The CNN input (channels first, each step in place over a channel plane) holds the
+    numbers of the formula over interleaved channels, at every input size the presets use."""
+    import cv2
+
+    from hmpf.backbones.efficientnet import _MEAN, _STD, imagenet_input
+
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (541, 963, 3), dtype=np.uint8)
+    for size in ((416, 416), (320, 544), (224, 224), (128, 128), (7, 5)):
+        got = imagenet_input(image, size)
+        img = cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+        want = ((img.astype(np.float32) / 255.0 - _MEAN) / _STD).transpose(2, 0, 1)
+        assert got.dtype == np.float32 and got.flags.c_contiguous
+        assert got.shape == (3, *size)
+        assert np.array_equal(got, want), size
