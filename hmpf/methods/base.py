@@ -617,6 +617,8 @@ _SEEN: dict[int, Any] = {}
 _SEEN_SIZE = 64
 #: float64 elements converted at a time when a matrix is scored without a float64 copy
 _BLOCK = 1 << 17
+#: held while either table is changed (a service's query threads score at the same time)
+_TABLES_LOCK = threading.Lock()
 
 
 def _remembered(table: dict[int, Any], references: np.ndarray) -> Any:
@@ -634,13 +636,14 @@ def _remember(table: dict[int, Any], size: int, references: np.ndarray, *value: 
         ref = weakref.ref(references)
     except TypeError:
         return False
-    # Entries of arrays that are gone first (e.g. the rows a previous query gathered), so
-    # that they do not push out the matrices every query scores against.
-    for k in [k for k, v in table.items() if v[0]() is None]:
-        del table[k]
-    if len(table) >= size:
-        table.pop(next(iter(table)))
-    table[id(references)] = (ref, *value)
+    with _TABLES_LOCK:
+        # Entries of arrays that are gone first (e.g. the rows a previous query gathered),
+        # so that they do not push out the matrices every query scores against.
+        for k in [k for k, v in table.items() if v[0]() is None]:
+            del table[k]
+        if len(table) >= size:
+            table.pop(next(iter(table)))
+        table[id(references)] = (ref, *value)
     return True
 
 
@@ -667,9 +670,10 @@ def _scored_before(references: np.ndarray) -> bool:
     gone: a float64 copy of them would only cost its allocation and its page faults."""
     if _remembered(_REF_CACHE, references) is not None:
         return True
-    if _remembered(_SEEN, references) is not None:
-        del _SEEN[id(references)]
-        return True
+    with _TABLES_LOCK:
+        if _remembered(_SEEN, references) is not None:
+            del _SEEN[id(references)]
+            return True
     return not _remember(_SEEN, _SEEN_SIZE, references)
 
 
