@@ -25,6 +25,7 @@ __all__ = [
     "combined_score",
     "default_weights",
     "flat_fusion",
+    "mean_of",
     "minmax_normalise",
     "nan_argmax",
     "top_k",
@@ -66,6 +67,17 @@ def minmax_normalise(
     if hi == lo:
         return np.full(x.shape, np.nan) if faithful else np.where(np.isnan(x), np.nan, 1.0)
     return (x - lo) / (hi - lo) if higher_is_better else (hi - x) / (hi - lo)
+
+
+def mean_of(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """``np.mean(arrays, axis=0)`` in float64 to the last bit (the sum in the given order,
+    then divided by the count) without stacking them: over a whole map of a million
+    references the stacked copy cost as much as the sum. At least one array."""
+    total = np.array(arrays[0], dtype=np.float64)
+    for x in arrays[1:]:
+        total += x
+    total /= len(arrays)
+    return total
 
 
 def _kth_largest_bound(s: np.ndarray, k: int, blocks: int = 1024) -> float:

@@ -32,6 +32,7 @@ from hmpf.config import HierarchyConfig
 from hmpf.fusion import (
     Spread,
     combined_score,
+    mean_of,
     minmax_normalise,
     nan_argmax,
     top_k,
@@ -110,17 +111,9 @@ class TierResult:
         """(N,) mean over the tier's methods (the original's ``recall_top1_by_level`` input);
         with ``at``, just those entries (the same values).
 
-        ``np.mean`` over the methods' stacked arrays, to the last bit (the sum in the
-        methods' order, then divided by their count), without the stack: on a whole map
-        of a million references the copy cost as much as the sum."""
-        parts = [np.asarray(entries_at(self.scores, m, at), dtype=np.float64) for m in self.methods]
-        if not parts:
-            return np.full(0 if at is None else len(at), np.nan)
-        total = parts[0].copy()
-        for x in parts[1:]:
-            total += x
-        total /= len(parts)
-        return total
+        ``np.mean`` over the methods' stacked arrays, to the last bit, without the stack
+        (:func:`~hmpf.fusion.mean_of`)."""
+        return mean_of([entries_at(self.scores, m, at) for m in self.methods])
 
     def max_score(self, at: np.ndarray | None = None) -> np.ndarray:
         """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``); with ``at``,

@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.errors import HmpfError
-from hmpf.fusion import top_k
+from hmpf.fusion import mean_of, top_k
 
 __all__ = [
     "OFF_LLR_CLIP",
@@ -472,7 +472,9 @@ class Evidence:
         """
         tier = result.tiers[0]
         arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
-        mean = np.nan_to_num(np.mean(arrays, axis=0), nan=0.0)
+        mean = mean_of(arrays)
+        if not np.isfinite(mean).all():
+            mean = np.nan_to_num(mean, nan=0.0)
         k = min(proposals, len(mean))
         # The k best (ties to the lower index): block maxima, not a partition of the map.
         top = top_k(mean, k) if k < len(mean) else np.arange(len(mean))

@@ -1043,6 +1043,15 @@ def test_evidence_from_a_hierarchy_result() -> None:
     refs = np.array([0, 5, 99])
     np.testing.assert_allclose(ev.tier1_at(refs), mean[refs])
     assert len(Evidence.from_result(res, 100, proposals=500).proposals) == 100
+    # every score finite, a map large enough for the block-maxima selection: the proposals
+    # are exactly the top of numpy's mean of the stacked arrays
+    big = {m: rng.uniform(0, 1, 40_000) for m in ("gem", "vlad")}
+    big["vlad"][[3, 17]] = big["gem"][[3, 17]] = 2.0  # a tie: the lower index first
+    whole = TierResult(["gem", "vlad"], None, big, np.arange(3), 1.0)
+    ev = Evidence.from_result(HierarchyResult(3, 1.0, final, np.zeros(3), [whole]), 40_000)
+    want = np.lexsort((np.arange(40_000), -np.mean(np.stack(list(big.values())), axis=0)))
+    np.testing.assert_array_equal(ev.proposals, want[: len(ev.proposals)])
+    assert ev.proposals[:2].tolist() == [3, 17]
     # with a GPS prior: the hierarchy ran over `allowed`; its indices are positions in it
     allowed = np.array([40, 41, 42, 60, 61])
     sub = TierResult(["gem"], None, {"gem": np.array([0.2, 1.0, 0.5, 0.1, 0.9])}, final, 1.0)
