@@ -3097,6 +3097,52 @@ def scale_binary_short_list(root: Path) -> str:
     )
 
 
+FAST_SCAN_200K = {
+    "NetVLAD": "docs/experiments/scale/factories-netvlad-200k-fastscan.json",
+    "GeM": "docs/experiments/scale/factories-gem-200k-fastscan.json",
+}
+
+
+@generator("scale.fast_scan_short_list")
+def scale_fast_scan_short_list(root: Path) -> str:
+    """``bench.scale factories``: the projected scan's short scan on scalar codes against
+    4-bit fast-scan product codes, both tier-1 methods at 200k references."""
+    recs = {name: load(root, path) for name, path in FAST_SCAN_200K.items()}
+    rows = [
+        [
+            name,
+            f"`{s['factory']}`",
+            f"{s['recall_at_100']:.3f}",
+            f"{s['recall_at_10']:.3f}",
+            f"{s['right_in_approx_top10']:.3f} ({s['right_in_exact_top10']:.3f})",
+            f"{s['bytes_per_reference']:,.0f}",
+            f"{s['faiss_ms_p50']:.1f}",
+        ]
+        for name, rec in recs.items()
+        for s in rec["settings"]
+    ]
+    head = [
+        "method",
+        "tier 1",
+        "recall@100",
+        "recall@10",
+        "right place in the top 10 (exact)",
+        "bytes per reference",
+        "FAISS ms p50",
+    ]
+    first = recs["NetVLAD"]
+    k = first["settings"][0]["approx_k"]
+    intro = (
+        f"{thousands(first['references'])} references, {first['queries']['count']} night_right "
+        f"queries, FAISS's top {k} re-scored exactly with the reader's sample, one thread:\n\n"
+    )
+    return (
+        intro
+        + table(head, rows, ["---", "---", "---:", "---:", "---:", "---:", "---:"])
+        + "".join(source(path, recs[name]) for name, path in FAST_SCAN_200K.items())
+    )
+
+
 @generator("scale.million_projected")
 def scale_million_projected(root: Path) -> str:
     """``bench.scale`` of the projected-scan version at a million references, served in one

@@ -35,10 +35,12 @@ def _brute(x: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
 
 
 def test_spec_parsing():
-    assert projected_spec("PCA1024:128,SQfp16") == (1024, 128, "SQfp16", 8, 0, 0)
-    assert projected_spec("PCA 256:32, SQ8, k16") == (256, 32, "SQ8", 16, 0, 0)
-    assert projected_spec("PCA1024:128,SQfp16,B256") == (1024, 128, "SQfp16", 8, 256, 8)
-    assert projected_spec("PCA1024:128,SQ8,B64x16,k4") == (1024, 128, "SQ8", 4, 64, 16)
+    assert projected_spec("PCA1024:128,SQfp16") == (1024, 128, "SQfp16", 8, 0, 0, 0)
+    assert projected_spec("PCA 256:32, SQ8, k16") == (256, 32, "SQ8", 16, 0, 0, 0)
+    assert projected_spec("PCA1024:128,SQfp16,B256") == (1024, 128, "SQfp16", 8, 256, 8, 0)
+    assert projected_spec("PCA1024:128,SQ8,B64x16,k4") == (1024, 128, "SQ8", 4, 64, 16, 0)
+    assert projected_spec("PCA1024:128,SQfp16,PQ64x4fs") == (1024, 128, "SQfp16", 8, 0, 0, 64)
+    assert projected_spec("PCA256:64,SQfp16,PQ32x4fs,k2") == (256, 64, "SQfp16", 2, 0, 0, 32)
     for other in (
         "Flat",
         "IVF64,PQ8",
@@ -49,6 +51,11 @@ def test_spec_parsing():
         "PCA256:32,SQfp16,k8,B64",
         "PCA256:32,SQfp16,B64x",
         "PCA256:32,SQfp16,B0",
+        "PCA256:32,SQfp16,PQ0x4fs",
+        "PCA256:32,SQfp16,PQ16",
+        "PCA256:32,SQfp16,PQ16x8fs",
+        "PCA256:32,SQfp16,B64,PQ16x4fs",
+        "PCA256:32,SQfp16,k8,PQ16x4fs",
     ):
         assert projected_spec(other) is None
 
@@ -136,6 +143,7 @@ def test_l1_methods_get_an_l2_proxy():
         ("PCA8:16,SQ8", "16 < 8"),
         ("PCA32:8,SQfp16,B33", "33 <= 32"),
         ("PCA32:8,SQfp16,B16x0", "factor above 0"),
+        ("PCA32:8,SQfp16,PQ3x4fs", "3 sub-quantizers do not divide 8"),
     ],
 )
 def test_bad_sizes_are_build_errors(factory, match):
@@ -227,3 +235,54 @@ def test_binary_scan_keeps_the_exact_neighbours_of_rows_of_lower_rank(tmp_path):
     assert hits(index) >= 0.97
     assert hits(read_faiss(path, mmap=True)) == hits(index)
     assert hits(read_faiss(path, "k_factor_rf=1")) < hits(read_faiss(path, "k_factor_rf=16"))
+
+
+def test_fast_scan_short_list_is_the_nearest_product_codes_then_the_projected_ranking():
+    """``PQ<M>x4fs``: brute force of each stage. The short list is the F x k rows nearest
+    to the query by their product codes on the first d principal coordinates (FAISS's
+    fast scan rounds its look-up tables to 8 bits, so the list is compared by overlap with
+    brute force over the decoded codes); the rows that come back are ranked by the squared
+    distances of their fp16 codes on all D dimensions."""
+    faiss = faiss_module()
+    x = _rows(n=4000, noise=0.3)
+    q = _rows(n=15, noise=0.3, seed=5)
+    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,PQ8x4fs,k4")
+    k = 10
+    dist, ids = index.search(q, k)
+    mean, comps = pca_rows(x, 32)
+    y = ((x - mean) @ comps.T).astype(np.float32)
+    qy = ((q - mean) @ comps.T).astype(np.float32)
+    refine = faiss.downcast_index(faiss.downcast_index(index).index)
+    short = faiss.downcast_index(refine.base_index)
+    pq = faiss.downcast_index(short.index)
+    assert isinstance(pq, faiss.IndexPQFastScan) and (pq.d, pq.M, pq.nbits) == (16, 8, 4)
+    decoded = np.stack([pq.reconstruct(i) for i in range(pq.ntotal)])
+    want = _brute(decoded, qy[:, :16], 4 * k)
+    _, got = short.search(qy, 4 * k)
+    overlap = np.mean([len(np.intersect1d(a, b)) / (4 * k) for a, b in zip(got, want, strict=True)])
+    assert overlap >= 0.9
+    for row, short_list in zip(ids, got, strict=True):
+        assert set(row) <= set(short_list)
+    y16 = y.astype(np.float16).astype(np.float32)
+    np.testing.assert_allclose(
+        dist, ((y16[ids] - qy[:, None, :]) ** 2).sum(-1), rtol=2e-3, atol=1e-3
+    )
+    assert (np.diff(dist, axis=1) >= 0).all()
+
+
+def test_fast_scan_changes_nothing_when_its_short_list_covers_the_map(tmp_path):
+    """With F x k >= N every row reaches the re-ranking: the same answers as the scalar
+    short scan; and the index survives a write and a memory-mapped read."""
+    faiss = faiss_module()
+    x = _rows(n=400, noise=0.3)
+    q = _rows(n=12, noise=0.3, seed=6)
+    plain, _ = build_faiss(x, L2, "PCA32:8,SQfp16,k64")
+    fast, _ = build_faiss(x, L2, "PCA32:8,SQfp16,PQ4x4fs,k64")
+    d0, i0 = plain.search(q, 6)
+    d1, i1 = fast.search(q, 6)
+    assert np.array_equal(i0, i1)
+    np.testing.assert_allclose(d0, d1, rtol=1e-5)
+    path = tmp_path / "t.faiss"
+    faiss.write_index(fast, str(path))
+    for a, b in zip(fast.search(q, 6), read_faiss(path, mmap=True).search(q, 6), strict=True):
+        assert np.array_equal(a, b)
