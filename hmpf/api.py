@@ -12,8 +12,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-#: The longest sequence token accepted: the header, 64 hypotheses and the MAC in base64,
-#: with room (see :mod:`service.track`).
+#: The longest sequence token accepted: the header, 64 hypotheses, the motion sketch (a
+#: filter that weighs motion) and the MAC in base64, with room (see :mod:`service.track`).
 MAX_TOKEN_CHARS = 1024
 
 #: Characters of a ``vehicle_id``, spelled out: JSON Schema's regex dialect (ECMA-262) reads

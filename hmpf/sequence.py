@@ -33,6 +33,15 @@ a window):
   ``exp(off_slope * (absolute - off_center))``; a frame without it (NaN) moves the off mass
   by the motion alone. With ``leave = 0`` the off mass stays 0: the filter of the paper.
 
+* **the frame moved** (opt-in, ``stop_factor`` < 1): the filter cannot tell a vehicle that
+  stopped from one that moves through places whose frames all resemble one reference: the
+  evidence holds it at that reference either way. Consecutive *query* frames can: a
+  :class:`MotionSketch` of each frame's tier-1 descriptor (a few dimensions of a fixed
+  random projection, in units of the map's own step between consecutive references) rides
+  in the state, and when the frame differs from the previous one by ``moved`` steps or more
+  the stopped hypotheses' likelihood is ``stop_factor`` (the vehicle moved). With
+  ``stop_factor = 1`` (the default) nothing is sketched or weighed: the filter of the paper.
+
 The belief is sparse: at most ``hypotheses`` explicit references with their probabilities,
 and a *background* mass spread evenly over the rest. New hypotheses come from the frame's
 best tier-1 references (``proposals``) and the final candidates; the background's
@@ -57,7 +66,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -72,9 +81,12 @@ __all__ = [
     "Evidence",
     "FilterParams",
     "FilterState",
+    "MotionSketch",
     "RouteMap",
+    "SKETCH_DIM",
     "SequenceFilter",
     "StateError",
+    "sketch_method",
 ]
 
 
@@ -335,6 +347,11 @@ class FilterParams:
         off_center, off_slope: the log-likelihood ratio of a frame's evidence under "on the
             map" against "off the map" is ``off_slope * (absolute - off_center)``, clipped to
             +-:data:`OFF_LLR_CLIP` (``absolute``: :attr:`Evidence.absolute`; NaN: ratio 1).
+        stop_factor: likelihood of the stopped hypotheses (speed 0) relative to the moving
+            ones when the frame moved (its :class:`MotionSketch` is ``moved`` or more from
+            the previous frame's). 1: no motion cue, nothing sketched (the paper's filter).
+        moved: the sketch distance, in the map's median steps between consecutive
+            references, from which a frame counts as moved.
     """
 
     max_steps: int = 4
@@ -355,6 +372,8 @@ class FilterParams:
     enter: float = 0.1
     off_center: float = -0.5
     off_slope: float = 2.0
+    stop_factor: float = 1.0
+    moved: float = 0.5
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -385,6 +404,14 @@ class FilterParams:
             raise HmpfError("leave must be in [0, 1) and enter in (0, 1]")
         if self.off_slope < 0:
             raise HmpfError("off_slope must be >= 0")
+        if not (0 < self.stop_factor <= 1 and self.moved > 0):
+            raise HmpfError("stop_factor must be in (0, 1] and moved > 0")
+
+    @property
+    def motion(self) -> bool:
+        """Whether the filter weighs the frames' motion (``stop_factor`` < 1): callers then
+        give each frame's :attr:`Evidence.sketch`."""
+        return self.stop_factor < 1.0
 
     @property
     def off_prior(self) -> float:
@@ -421,6 +448,78 @@ class FilterParams:
         return 2 * self.max_steps + 1
 
 
+#: Dimensions of a :class:`MotionSketch` (a packed state carries one as float16).
+SKETCH_DIM = 32
+
+
+def sketch_method(methods: Mapping[str, Any], tier1: Sequence[str]) -> str | None:
+    """The method whose descriptor a frame's :class:`MotionSketch` projects: tier 1's first
+    global method (None: tier 1 has none, and the filter gets no sketches)."""
+    for mid in tier1:
+        if getattr(methods.get(mid), "kind", None) == "global":
+            return mid
+    return None
+
+
+class MotionSketch:
+    """How much a query frame differs from the previous one, in a few numbers per frame.
+
+    A fixed random projection (seeded, so every process and replica makes the same) of a
+    global descriptor to :data:`SKETCH_DIM` dimensions, divided by the median distance
+    between consecutive references along the map's routes in that projection: the distance
+    between two frames' sketches is then in the map's own steps (about 1 between
+    consecutive frames of a vehicle as fast as the mapping run, near 0 for a vehicle that
+    stands still). A random projection keeps distances to within tens of percent, which is
+    all a "did it move" test needs; the state carries 2 x :data:`SKETCH_DIM` bytes for it.
+    """
+
+    def __init__(self, projection: np.ndarray, step: float) -> None:
+        self.projection = np.asarray(projection, dtype=np.float64)
+        self.step = float(step)
+
+    @staticmethod
+    def projection_for(dim: int, seed: int = 0) -> np.ndarray:
+        """The (:data:`SKETCH_DIM`, dim) projection every sketch of ``dim``-d descriptors uses."""
+        rng = np.random.default_rng([seed, dim])
+        return rng.standard_normal((SKETCH_DIM, dim)) / math.sqrt(SKETCH_DIM)
+
+    @classmethod
+    def from_references(
+        cls, rows: Any, routes: RouteMap, *, pairs: int = 512, seed: int = 0
+    ) -> MotionSketch | None:
+        """The sketch of a map whose references' descriptors are ``rows`` ((N, D), any
+        array-like that reads rows by index: an in-memory matrix or rows read from disk),
+        its step measured on up to ``pairs`` consecutive pairs along ``routes`` (evenly
+        spread). None when the map has no consecutive pair or its step is 0."""
+        first = routes.ordered[:-1]
+        follows = routes.route_of[routes.ordered[1:]] == routes.route_of[first]
+        a = first[follows]
+        b = routes.ordered[1:][follows]
+        if not len(a):
+            return None
+        pick = np.unique(np.linspace(0, len(a) - 1, min(pairs, len(a))).round().astype(np.int64))
+        ids = np.unique(np.concatenate([a[pick], b[pick]]))
+        x = np.asarray(rows[ids], dtype=np.float64).reshape(len(ids), -1)
+        proj = cls.projection_for(x.shape[1], seed)
+        y = x @ proj.T
+        pos = {int(r): i for i, r in enumerate(ids)}
+        ia = np.array([pos[int(r)] for r in a[pick]])
+        ib = np.array([pos[int(r)] for r in b[pick]])
+        step = float(np.median(np.linalg.norm(y[ia] - y[ib], axis=1)))
+        if not step > 0:
+            return None
+        return cls(proj, step)
+
+    def __call__(self, descriptor: Any) -> np.ndarray:
+        """The (:data:`SKETCH_DIM`,) sketch of one frame's descriptor (float32)."""
+        x = np.asarray(descriptor, dtype=np.float64).ravel()
+        if x.shape[0] != self.projection.shape[1]:
+            raise HmpfError(
+                f"a {x.shape[0]}-d descriptor for a sketch of {self.projection.shape[1]}-d ones"
+            )
+        return (self.projection @ x / self.step).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class Evidence:
     """One frame's evidence, in reference ids of the whole map.
@@ -440,6 +539,8 @@ class Evidence:
             (:meth:`hmpf.confidence.ReferenceProfile.z` of ``result.tiers[0].raw`` at
             ``result.match``): several sigma for a right answer on the map, ~0-2 for a frame
             from elsewhere. NaN: unknown (the off hypothesis learns nothing from the frame).
+        sketch: the frame's :class:`MotionSketch` (None: unknown; the motion cue then
+            skips this frame and the next).
     """
 
     tier1: tuple[np.ndarray, ...]
@@ -448,6 +549,7 @@ class Evidence:
     combined: np.ndarray
     scored: np.ndarray | None = None
     absolute: float = float("nan")
+    sketch: np.ndarray | None = None
 
     @classmethod
     def from_result(
@@ -458,6 +560,7 @@ class Evidence:
         proposals: int = 50,
         allowed: np.ndarray | None = None,
         absolute: float = float("nan"),
+        sketch: np.ndarray | None = None,
     ) -> Evidence:
         """The evidence of a :class:`~hmpf.hierarchy.HierarchyResult`.
 
@@ -469,6 +572,8 @@ class Evidence:
                 are positions in it); references outside score 0.
             absolute: the frame's :attr:`absolute` evidence (the caller computes it: it
                 needs the map's :class:`~hmpf.confidence.ReferenceProfile`).
+            sketch: the frame's :class:`MotionSketch` (the caller's: it needs the query's
+                descriptor).
         """
         tier = result.tiers[0]
         arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
@@ -492,7 +597,15 @@ class Evidence:
                 x[allowed] = a
                 full.append(x)
             arrays, top, final = full, allowed[top], allowed[final]
-        return cls(tuple(arrays), top.astype(np.int64), final, comb, allowed, float(absolute))
+        return cls(
+            tuple(arrays),
+            top.astype(np.int64),
+            final,
+            comb,
+            allowed,
+            float(absolute),
+            None if sketch is None else np.asarray(sketch, dtype=np.float32).ravel(),
+        )
 
     def tier1_at(self, refs: np.ndarray) -> np.ndarray:
         """Mean tier-1 score at ``refs`` (NaN read as 0)."""
@@ -522,6 +635,8 @@ class FilterState:
             beyond ``max_gap``), for :attr:`Estimate.continuous`.
         held: the caller's acceptance of the previous frame's estimate
             (:meth:`SequenceFilter.hold`), handed on as :attr:`Estimate.held`.
+        sketch: the previous frame's :class:`MotionSketch`, rounded to float16 as a packed
+            state carries it (None: none; always None when the filter weighs no motion).
     """
 
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -531,13 +646,17 @@ class FilterState:
     off: float = 0.0
     last_ref: int = -1
     held: bool = False
+    sketch: np.ndarray | None = None
 
-    # Format 3: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
-    # unknown), off (f32), last_ref (i32), held (u8), then the keys (u32) and their log
-    # probabilities (f16). Format 2 had no off / last_ref / held (refused: a track of it
-    # restarts); format 1 had no speeds byte either.
-    _MAGIC = b"HQS3"
-    _HEAD = "<IfHBfiB"
+    # Format 4: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
+    # unknown), off (f32), last_ref (i32), held (u8), sketch length (u8, 0 = none), then the
+    # keys (u32), their log probabilities (f16) and the sketch (f16). Format 3 is format 4
+    # without the sketch (read, as a state without one); format 2 had no off / last_ref /
+    # held (refused: a track of it restarts); format 1 had no speeds byte either.
+    _MAGIC = b"HQS4"
+    _HEAD = "<IfHBfiBB"
+    _MAGIC_3 = b"HQS3"
+    _HEAD_3 = "<IfHBfiB"
 
     def to_bytes(self, keep: int = 64, *, speeds: int = 0) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
@@ -559,6 +678,9 @@ class FilterState:
             raise HmpfError("a packed state's last_ref is -1 or a reference below 2**31")
         if not (math.isfinite(self.off) and 0 <= self.off <= 1):
             raise HmpfError("a packed state's off mass must be in [0, 1]")
+        sketch = np.zeros(0) if self.sketch is None else np.asarray(self.sketch).ravel()
+        if len(sketch) > 0xFF or not np.isfinite(sketch).all():
+            raise HmpfError("a packed state's sketch holds at most 255 finite values")
         off = float(self.off)
         background = max(0.0, 1.0 - float(prob.sum()) - off)
         head = self._MAGIC + struct.pack(
@@ -570,9 +692,11 @@ class FilterState:
             off,
             int(self.last_ref),
             int(bool(self.held)),
+            len(sketch),
         )
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
-        return head + keys.astype("<u4").tobytes() + logs.tobytes()
+        tail = sketch.astype("<f2").tobytes()
+        return head + keys.astype("<u4").tobytes() + logs.tobytes() + tail
 
     @classmethod
     def from_bytes(cls, data: bytes, n_keys: int, *, speeds: int = 0) -> FilterState:
@@ -580,16 +704,20 @@ class FilterState:
         is for (a key beyond it is refused, and so is a ``last_ref`` beyond its references
         when the speeds are known); ``speeds`` = its :attr:`FilterParams.speeds` (refused
         when the state says other speeds; 0, or a state that does not say: not checked).
-        :meth:`SequenceFilter.unpack` passes both. An older format is refused."""
-        size = len(cls._MAGIC) + struct.calcsize(cls._HEAD)
-        if len(data) < size or not data.startswith(cls._MAGIC):
+        :meth:`SequenceFilter.unpack` passes both. Format 3 reads as a state without a
+        sketch; an older format is refused."""
+        v3 = data.startswith(cls._MAGIC_3)
+        magic, head = (cls._MAGIC_3, cls._HEAD_3) if v3 else (cls._MAGIC, cls._HEAD)
+        size = len(magic) + struct.calcsize(head)
+        if len(data) < size or not data.startswith(magic):
             if data[:3] == cls._MAGIC[:3]:
                 raise StateError("sequence state of an older format (start the track again)")
             raise StateError("not a sequence state")
-        frames, background, h, packed_speeds, off, last_ref, held = struct.unpack(
-            cls._HEAD, data[len(cls._MAGIC) : size]
+        frames, background, h, packed_speeds, off, last_ref, held, *rest = struct.unpack(
+            head, data[len(magic) : size]
         )
-        if len(data) != size + 6 * h:
+        n_sketch = int(rest[0]) if rest else 0
+        if len(data) != size + 6 * h + 2 * n_sketch:
             raise StateError("sequence state has the wrong length")
         if speeds and packed_speeds and packed_speeds != speeds:
             raise StateError(
@@ -610,6 +738,11 @@ class FilterState:
         total = float(prob.sum()) + background + off
         if total <= 0:
             raise StateError("sequence state has no probability")
+        sketch = None
+        if n_sketch:
+            sketch = np.frombuffer(data, "<f2", n_sketch, size + 6 * h).astype(np.float32)
+            if not np.isfinite(sketch).all():
+                raise StateError("sequence state has an invalid sketch")
         return cls(
             keys,
             prob / total,
@@ -618,6 +751,7 @@ class FilterState:
             off / total,
             int(last_ref),
             bool(held),
+            sketch,
         )
 
 
@@ -719,9 +853,37 @@ class SequenceFilter:
         were dropped; 0: the same instant again), weigh it with ``evidence``. The new state
         remembers the estimate (``last_ref``) and keeps ``held`` until :meth:`hold`."""
         predicted = self.predict(state, steps)
+        if self.params.motion and steps >= 1 and self.moved(state.sketch, evidence.sketch):
+            predicted = self._stops_unlikely(predicted)
         posterior = self.correct(predicted, evidence)
         est = self.estimate(posterior, last_ref=predicted.last_ref, steps=steps)
-        return replace(posterior, last_ref=est.ref), est
+        sketch = None
+        if self.params.motion and evidence.sketch is not None:
+            sketch = np.asarray(evidence.sketch).astype(np.float16).astype(np.float32)
+        return replace(posterior, last_ref=est.ref, sketch=sketch), est
+
+    def moved(self, before: np.ndarray | None, now: np.ndarray | None) -> bool:
+        """Whether a frame whose sketch is ``now`` moved since the frame sketched ``before``
+        (:attr:`FilterParams.moved` map steps or more apart); False when either is unknown
+        or they do not match in length."""
+        if before is None or now is None or len(before) != len(now):
+            return False
+        dist = float(np.linalg.norm(np.asarray(now, np.float64) - np.asarray(before, np.float64)))
+        return dist >= self.params.moved
+
+    def _stops_unlikely(self, predicted: FilterState) -> FilterState:
+        """The predicted belief weighed by the frame's motion: the stopped hypotheses (speed
+        0, explicit and their share of the even background) by ``stop_factor``, the map's
+        total mass (against the off hypothesis) unchanged."""
+        p = self.params
+        on = float(predicted.prob.sum()) + predicted.background
+        stopped = self._split(predicted.keys)[2] == 0
+        prob = np.where(stopped, predicted.prob * p.stop_factor, predicted.prob)
+        background = predicted.background * (1.0 - (1.0 - p.stop_factor) / p.speeds)
+        total = float(prob.sum()) + background
+        if not total > 0:
+            return predicted
+        return replace(predicted, prob=prob * (on / total), background=background * (on / total))
 
     def hold(self, state: FilterState, accepted: bool) -> FilterState:
         """``state`` with the caller's acceptance of its estimate, handed on to the next

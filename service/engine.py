@@ -58,7 +58,7 @@ from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index import layout
 from hmpf.index.reader import IndexReader
 from hmpf.runtime import set_compute_threads
-from hmpf.sequence import SequenceFilter
+from hmpf.sequence import MotionSketch, SequenceFilter
 from service.track import binding_digest
 
 __all__ = [
@@ -138,6 +138,9 @@ class Loaded:
     lat: np.ndarray | None = field(default=None, repr=False)
     lon: np.ndarray | None = field(default=None, repr=False)
     profile: ReferenceProfile | None = field(default=None, repr=False)
+    #: (method id, sketch) of the frames' motion, for a sequence filter that weighs it
+    #: (:meth:`hmpf.index.reader.IndexReader.motion_sketch`); None: it weighs none
+    motion: tuple[str, MotionSketch] | None = field(default=None, repr=False)
     #: how its files were verified, one of :data:`VERIFICATION_STATES`
     verification: str = "full"
     #: what the background check found, paths relative to the version (empty: nothing)
@@ -185,6 +188,9 @@ class Loaded:
             lat = None if meta.get("lat") is None else meta["lat"][:P]
             lon = None if meta.get("lon") is None else meta["lon"][:P]
             has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
+            # A view of another shape (a sharded map's) may not sketch: no motion cue there.
+            sketch_of = getattr(reader, "motion_sketch", None)
+            motion = sketch_of() if sketch_of is not None else None
             return cls(
                 reader,
                 reader.hierarchy(),
@@ -196,6 +202,7 @@ class Loaded:
                 lat=np.asarray(lat, dtype=np.float64) if has_pos else None,
                 lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
                 profile=profile,
+                motion=motion,
                 verification=verification,
             )
         except BaseException:

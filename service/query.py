@@ -93,7 +93,9 @@ class ImageQuery:
             decode_side=self.decode_side,
         )
         timing["decode"] = _ms_since(t)
-        features: dict[str, Any] | None = {} if self.keep_features else None
+        # The motion cue of a sequence filter that weighs it needs the frame's descriptor.
+        motion = loaded.motion if self.sequence else None
+        features: dict[str, Any] | None = {} if self.keep_features or motion else None
         try:
             result, allowed = run_query(
                 loaded, image, _prior(self.params), timing, self.compute, features
@@ -109,7 +111,7 @@ class ImageQuery:
             ) from None
         except HmpfError as exc:
             raise ApiError(422, "invalid_image", f"{self.source}: {exc}") from None
-        if features is not None:
+        if features is not None and self.keep_features:
             self.features, self.methods = features, loaded.reader.methods
         if result is None:
             timing["hierarchy"] = 0.0
@@ -127,6 +129,9 @@ class ImageQuery:
                     proposals=loaded.sequence.params.proposals,
                     allowed=allowed,
                     absolute=absolute_evidence(on_refs, loaded.profile),
+                    sketch=None
+                    if motion is None or features is None
+                    else motion[1](features[motion[0]]),
                 )
                 # Kept for the estimate's features (a sequence model) and its experience
                 # (which image of the estimate's place matched this frame).

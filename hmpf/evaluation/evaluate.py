@@ -39,6 +39,7 @@ from hmpf.evaluation.metrics import (
 from hmpf.evaluation.sequence import (
     format_off_map_report,
     format_sequence_report,
+    motion_sketches,
     off_map_report,
     sequence_report,
 )
@@ -246,8 +247,12 @@ def evaluate(
     profile = _once(
         lambda: ReferenceProfile.build(prep.methods, prep.db, config.tiers[0].methods, routes)
     )
+    params = config.sequence_params()
+    sketches = motion_sketches(
+        params, prep.methods, config.tiers[0].methods, prep.db, prep.queries, routes
+    )
     if sequence:
-        report["sequence"] = _sequence(results, gt, routes, config, profile())
+        report["sequence"] = _sequence(results, gt, routes, config, profile(), sketches)
     if sequence and foreign:
         # The foreign frames through the methods fitted above, against the same database: only
         # their own features are extracted (the references are not fitted or read again).
@@ -259,11 +264,20 @@ def evaluate(
             for qi in range(len(foreign))
         )
         away_results, _ = run_queries(hierarchy, scorers, n_db)
+        away_sketches = motion_sketches(
+            params, prep.methods, config.tiers[0].methods, prep.db, away, routes
+        )
         report["off_map"] = off_map_report(
-            results, away_results, gt, routes, config.sequence_params(), profile()
+            results,
+            away_results,
+            gt,
+            routes,
+            params,
+            profile(),
+            sketches=None if sketches is None else [*sketches, *(away_sketches or [])],
         )
     report["acceptance"] = acceptance_report(
-        results, gt, routes, config, sequence=sequence, profile=profile
+        results, gt, routes, config, sequence=sequence, profile=profile, sketches=sketches
     )
     return report
 
@@ -286,9 +300,12 @@ def _sequence(
     routes: RouteMap,
     config: HierarchyConfig,
     profile: ReferenceProfile | None = None,
+    sketches: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
-    rep = sequence_report(results, gt, routes, config.sequence_params(), profile=profile)
+    rep = sequence_report(
+        results, gt, routes, config.sequence_params(), profile=profile, sketches=sketches
+    )
     rep["wall_s"] = time.perf_counter() - t0
     return rep
 
@@ -301,11 +318,13 @@ def acceptance_report(
     *,
     sequence: bool = False,
     profile: Callable[[], ReferenceProfile] | None = None,
+    sketches: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """The config's acceptance applied to every answer (:mod:`hmpf.evaluation.acceptance`).
 
     ``profile`` builds the references' :class:`~hmpf.confidence.ReferenceProfile`; called
-    only when a model needs it.
+    only when a model needs it. ``sketches``: each query's motion sketch, for a sequence
+    filter that weighs motion (:func:`~hmpf.evaluation.sequence.motion_sketches`).
 
     ``single`` (and with ``sequence`` ``sequence``: the queries driven once, in order):
     ``rule`` (``p_correct``, ``quality`` or ``lock``: the one policy the service runs,
@@ -319,7 +338,7 @@ def acceptance_report(
     prof = profile() if profile and (policy.needs_profile or sequence) else None
     out = {"single": apply_acceptance(policy, single_answers(results, gt, routes, prof))}
     if sequence:
-        seq = sequence_answers(results, gt, routes, params, profile=prof)
+        seq = sequence_answers(results, gt, routes, params, profile=prof, sketches=sketches)
         out["sequence"] = apply_acceptance(policy, seq, sequence=True)
     return out
 
@@ -380,9 +399,14 @@ def evaluate_index(
         "wall_s": {"extraction": extraction_s, "hierarchy": hierarchy_s},
         "timing_ms": {"hierarchy_per_query": hierarchy_s * 1e3 / max(1, len(queries))},
     }
+    motion = reader.motion_sketch()
+    sketches = None
+    if motion is not None:
+        mid, sketch = motion
+        sketches = [sketch(f) for f in qry.features[mid]]
     if sequence:
         report["sequence"] = _sequence(
-            results, gt, reader.route_map(), reader.config, reader.reference_profile()
+            results, gt, reader.route_map(), reader.config, reader.reference_profile(), sketches
         )
     report["acceptance"] = acceptance_report(
         results,
@@ -391,6 +415,7 @@ def evaluate_index(
         reader.config,
         sequence=sequence,
         profile=reader.reference_profile,
+        sketches=sketches,
     )
     return report
 

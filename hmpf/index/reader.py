@@ -98,7 +98,7 @@ from hmpf.index.storage import (
 from hmpf.index.tables import Columns, Ragged
 from hmpf.index.thumbnails import ThumbnailStore, empty_thumbnails
 from hmpf.methods import Method
-from hmpf.sequence import RouteMap
+from hmpf.sequence import MotionSketch, RouteMap, sketch_method
 
 __all__ = ["IndexReader", "check_packages", "resolve_version"]
 
@@ -282,6 +282,7 @@ class IndexReader:
         self.thumbnails = self._open_thumbnails()
         self._faiss: dict[str, Any] = {}
         self._routes: RouteMap | None = None
+        self._motion: tuple[tuple[str, MotionSketch] | None] | None = None
         self._profile: ReferenceProfile | None = None
         k1 = self.config.tiers[0].k
         self.approx_k = approx_k or max(256, 4 * k1)
@@ -516,6 +517,21 @@ class IndexReader:
         if self._routes is None:
             self._routes = route_map_of(self.refs.meta, self.n, self.config)
         return self._routes
+
+    def motion_sketch(self) -> tuple[str, MotionSketch] | None:
+        """``(method id, sketch)``: the :class:`~hmpf.sequence.MotionSketch` of the places
+        for a config whose sequence filter weighs motion (``stop_factor`` < 1), over tier
+        1's first global method; None when the filter weighs none or the map gives no
+        sketch. Built once per reader from up to 1,024 places' rows."""
+        if self._motion is None:
+            made = None
+            if self.config.sequence_params().motion:
+                mid = sketch_method(self.methods, self.config.tiers[0].methods)
+                if mid is not None and mid in self._globals:
+                    sketch = MotionSketch.from_references(self._globals[mid], self.route_map())
+                    made = None if sketch is None else (mid, sketch)
+            self._motion = (made,)
+        return self._motion[0]
 
     def reference_profile(self) -> ReferenceProfile:
         """The places' :class:`~hmpf.confidence.ReferenceProfile` for the first tier's

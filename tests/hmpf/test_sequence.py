@@ -18,6 +18,7 @@ import pytest
 
 from hmpf.errors import HmpfError
 from hmpf.sequence import (
+    SKETCH_DIM,
     Estimate,
     Evidence,
     FilterParams,
@@ -1118,7 +1119,7 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
     f, state = driven_state()
     data = f.pack(state)
     assert data == state.to_bytes(64, speeds=PARAMS.speeds) and data[14] == PARAMS.speeds
-    assert len(f.pack(state, keep=10)) == 24 + 60
+    assert len(f.pack(state, keep=10)) == 25 + 60
     back = f.unpack(data)
     ref = FilterState.from_bytes(data, f.n_keys)  # the old call: speeds not checked
     np.testing.assert_array_equal(back.keys, ref.keys)
@@ -1154,11 +1155,14 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
 def test_state_bytes_size() -> None:
     _, state = driven_state()
     for keep in (0, 1, 10, 64, 200):
-        # magic, frames, background, hypotheses, speeds, off, last_ref, held; 4 + 2 bytes a
-        # hypothesis
-        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 4 + 4 + 1 + 6 * keep
-        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 24 + 6 * keep
-    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 408
+        # magic, frames, background, hypotheses, speeds, off, last_ref, held, sketch length;
+        # 4 + 2 bytes a hypothesis
+        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 4 + 4 + 1 + 1 + 6 * keep
+        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 25 + 6 * keep
+    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 409
+    # a sketch adds 2 bytes a value
+    sketched = replace(state, sketch=np.ones(SKETCH_DIM, np.float32))
+    assert len(sketched.to_bytes()) == 409 + 2 * SKETCH_DIM
     # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
     # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
     with pytest.raises(HmpfError):
@@ -1167,7 +1171,7 @@ def test_state_bytes_size() -> None:
     with pytest.raises(HmpfError):
         big.to_bytes()
     many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
-    assert len(many.to_bytes(keep=65535)) == 24 + 6 * 65535
+    assert len(many.to_bytes(keep=65535)) == 25 + 6 * 65535
     with pytest.raises(HmpfError):
         many.to_bytes(keep=70000)
     with pytest.raises(HmpfError):
@@ -1184,17 +1188,28 @@ def pack(
     background: float = 0.5,
     frames: int = 3,
     speeds: int = 0,
-    magic: bytes = b"HQS3",
+    magic: bytes = b"HQS4",
     off: float = 0.0,
     last_ref: int = -1,
     held: int = 0,
+    sketch: list[float] | None = None,
+    sketch_len: int | None = None,
 ) -> bytes:
     """The packed format written out: magic, frames (u32), background (f32), hypotheses
-    (u16), speeds (u8), off (f32), last_ref (i32), held (u8), keys (u32), log probabilities
-    (f16), little-endian."""
+    (u16), speeds (u8), off (f32), last_ref (i32), held (u8), sketch length (u8), keys
+    (u32), log probabilities (f16), sketch (f16), little-endian."""
+    sk = np.array(sketch or [], "<f2")
+    n_sk = len(sk) if sketch_len is None else sketch_len
     head = magic + struct.pack(
-        "<IfHBfiB", frames, background, len(keys), speeds, off, last_ref, held
+        "<IfHBfiBB", frames, background, len(keys), speeds, off, last_ref, held, n_sk
     )
+    body = np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
+    return head + body + sk.tobytes()
+
+
+def pack_v3(keys: list[int], logs: list[float], last_ref: int = -1) -> bytes:
+    """Format 3 (before the sketch): format 4 without the sketch length and sketch."""
+    head = b"HQS3" + struct.pack("<IfHBfiB", 3, 0.5, len(keys), 0, 0.0, last_ref, 1)
     return head + np.array(keys, "<u4").tobytes() + np.array(logs, "<f2").tobytes()
 
 
@@ -1211,14 +1226,19 @@ def pack_v2(keys: list[int], logs: list[float], background: float = 0.5) -> byte
         b"HQS1",
         b"garbage that is long enough to be read as a header",
         bytes(range(256)),
-        b"HQS4" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        b"HQS5" + pack([1, 2], [-1, -2])[4:],  # wrong magic
         pack_v2([1, 2], [-1, -2]),  # format 2 (no off, last_ref, held): refused
         pack_v2([], [], background=1.0),
         # format 1 (no speeds byte): refused, not misread
         b"HQS1" + struct.pack("<IfH", 3, 0.5, 2) + np.array([1, 2], "<u4").tobytes() + bytes(4),
         pack([1, 2], [-1, -2])[:-1],  # truncated
         pack([1, 2], [-1, -2]) + b"\0",  # trailing bytes
-        pack([1, 2], [-1, -2])[:24],  # header only, says 2 hypotheses
+        pack([1, 2], [-1, -2])[:25],  # header only, says 2 hypotheses
+        pack([1, 2], [-1, -2], sketch=[1.0, 2.0], sketch_len=3),  # sketch shorter than said
+        pack([1, 2], [-1, -2], sketch=[1.0, 2.0], sketch_len=1),  # and longer
+        pack([1, 2], [-1, -2], sketch=[1.0, float("nan")]),
+        pack([1, 2], [-1, -2], sketch=[float("inf")]),
+        pack_v3([1, 2], [-1, -2])[:-1],  # format 3, truncated
         pack([1, 1000], [-1, -2]),  # key beyond n_keys (= 1000)
         pack([999, 1000], [-1, -2]),
         pack([5, 3], [-1, -2]),  # unsorted
@@ -1261,6 +1281,13 @@ def test_state_from_bytes_accepts_valid_and_state_error_is_hmpf_error() -> None:
         FilterState.from_bytes(pack([1], [0], last_ref=100), 1000, speeds=5)
     with pytest.raises(StateError, match="older format"):
         FilterState.from_bytes(pack_v2([1], [0]), 1000)
+    # format 3 (a track of the release before the sketch) reads as a state without one
+    v3 = FilterState.from_bytes(pack_v3([1, 2], [-1, -2], last_ref=7), 1000)
+    assert list(v3.keys) == [1, 2] and v3.last_ref == 7 and v3.held and v3.sketch is None
+    # the sketch comes back as float16 values
+    st = FilterState.from_bytes(pack([1], [0], sketch=[0.5, -1.25, 3.0]), 1000)
+    assert st.sketch is not None and st.sketch.tolist() == [0.5, -1.25, 3.0]
+    assert FilterState.from_bytes(pack([1], [0]), 1000).sketch is None
     # the speeds byte: checked when both the state and the reader say them
     for packed, expected in ((9, 9), (0, 9), (9, 0), (0, 0), (255, 255)):
         data = pack([1, 2], [-1, -2], speeds=packed)

@@ -1,0 +1,231 @@
+"""The sequence filter's motion cue: chosen on the training parts, measured on the test parts.
+
+    python -m bench.motion_cue [--config default] [--nordland-frames 800]
+        [--out docs/experiments/sequence/motion_cue.json]
+
+The filter explains a stretch of frames that all resemble one reference by a vehicle that
+stopped there; a vehicle that drives on through look-alike places then falls behind. The
+motion cue (:attr:`hmpf.sequence.FilterParams.stop_factor`) compares each frame with the
+previous one (:class:`hmpf.sequence.MotionSketch` of tier 1's first global method): a frame
+that differs by ``moved`` map steps or more makes the stopped hypotheses ``stop_factor``
+times as likely.
+
+The routes and their parts are ``bench/shipped_acceptance.py``'s (Gardens Point's three
+protocols, Nordland summer -> winter, its first ``--nordland-frames`` frames; alternating
+stretches of 20 frames). The filter runs as ``hmpf-eval --sequence`` runs it (the preset's
+settings, the off-map state reading the part's own reference profile).
+
+* **Chosen on the training parts**: ``stop_factor`` x ``moved`` over :data:`GRID`, scored by
+  the mean sequence recall@1 of the training parts' traverses driven at the mapping run's
+  speed and at half of it (every frame twice: a vehicle slower than the mapping run), every
+  route alike; ties go to the preset (no cue).
+* **Measured on the test parts** (held out) and on Gardens Point's whole traverses (which
+  hold the training frames: not held out): the chosen setting against the preset, recall@1
+  at speeds 1, 0.5 and 2, paired frame by frame (exact sign test), and the filter's own
+  figures (:func:`~hmpf.evaluation.sequence.sequence_report`: re-lock after a jump, 25 %
+  dropped frames).
+
+It reports; it changes no default. The acceptance models are not refitted here: the lock
+rule's accepted share (posterior mass >= ``lock_mass``) is reported beside the recall.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from bench.harness import ROOT, add_json, parser, provenance, write_record
+from bench.shipped_acceptance import NORDLAND_FRAMES, ROUTES, TOLERANCE, Route
+from hmpf.config import HierarchyConfig, load_config
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
+from hmpf.evaluation.acceptance import sequence_answers
+from hmpf.evaluation.calibrate import paired_test
+from hmpf.evaluation.evaluate import EvalData
+from hmpf.evaluation.sequence import motion_sketches, sequence_report, speed_drive
+from hmpf.evaluation.study import ScoreBank
+from hmpf.features import FeatureCache
+from hmpf.runtime import default_cache_dir
+from hmpf.sequence import FilterParams, RouteMap
+
+#: The grid over the preset's filter settings (``stop_factor`` 1: no cue, the preset).
+GRID: dict[str, tuple[float, ...]] = {
+    "stop_factor": (1.0, 0.3, 0.1, 0.03),
+    "moved": (0.3, 0.5, 0.8),
+}
+#: Speed ratios of the drives (vehicle / mapping run).
+SPEEDS = (1.0, 0.5, 2.0)
+#: Speeds the choice is scored on.
+TRAIN_SPEEDS = (1.0, 0.5)
+
+
+class Part:
+    """One traverse (a route's training or test part, or a whole protocol): its hierarchy
+    results, ground truth, routes, reference profile and every query's motion sketch."""
+
+    def __init__(self, bank: ScoreBank, config: HierarchyConfig) -> None:
+        self.results = bank.results(config)
+        self.gt = np.asarray(bank.gt, bool)
+        self.routes = RouteMap.from_metadata(bank.n_db)
+        self.profile = bank.profile(config)
+        db = {m: f[0] for m, f in bank.features.items()}
+        qs = {m: f[1] for m, f in bank.features.items()}
+        # the sketches do not depend on the cue's settings, only on the map and the frames
+        probe = FilterParams(stop_factor=0.5)
+        self.sketches = motion_sketches(
+            probe, bank.methods, config.tiers[0].methods, db, qs, self.routes
+        )
+
+    def correct(self, params: FilterParams, ratio: float) -> np.ndarray:
+        """Per frame of the drive at ``ratio`` (one offset), whether the estimate is right."""
+        d = speed_drive(len(self.results), ratio)
+        return sequence_answers(
+            self.results,
+            self.gt,
+            self.routes,
+            params,
+            [d],
+            self.profile,
+            self.sketches if params.motion else None,
+        ).correct
+
+    def locked(self, params: FilterParams) -> dict[str, float]:
+        """The drive at the mapping run's speed: the share of its estimates that are locked
+        (posterior mass >= ``lock_mass``: the lock rule) and their precision."""
+        run = sequence_answers(
+            self.results,
+            self.gt,
+            self.routes,
+            params,
+            None,
+            self.profile,
+            self.sketches if params.motion else None,
+        )
+        locked = run.score >= params.lock_mass
+        precision = float(run.correct[locked].mean()) if locked.any() else float("nan")
+        return {"share": float(locked.mean()), "precision": precision}
+
+    def report(self, params: FilterParams) -> dict[str, Any]:
+        rep = sequence_report(
+            self.results,
+            self.gt,
+            self.routes,
+            params,
+            profile=self.profile,
+            sketches=self.sketches if params.motion else None,
+        )
+        return {
+            "recall_at_1": rep["recall_at_1"],
+            "recall_by_speed": rep["recall_by_speed"],
+            "dropped_recall_at_1": rep["dropped"]["recall_at_1"],
+            "relock_within_10": rep["lock_after_jump"].get("within_10"),
+            "lock_after_start_within_10": rep["lock_after_start"].get("within_10"),
+            "accepted_lock": rep["accepted"],
+        }
+
+
+def compare(part: Part, chosen: FilterParams, preset: FilterParams) -> dict[str, Any]:
+    """The chosen setting against the preset on one traverse, per speed, paired."""
+    out: dict[str, Any] = {}
+    for ratio in SPEEDS:
+        a, b = part.correct(chosen, ratio), part.correct(preset, ratio)
+        out[f"{ratio:g}"] = {"cue": float(a.mean()), "preset": float(b.mean()), **paired_test(a, b)}
+    out["locked"] = {"cue": part.locked(chosen), "preset": part.locked(preset)}
+    return out
+
+
+def choose(train: dict[str, Part], preset: FilterParams) -> tuple[FilterParams, list[dict]]:
+    """The grid scored on the training parts (mean recall@1 over routes and
+    :data:`TRAIN_SPEEDS`); ties: the preset's setting, then the earlier grid point."""
+    rows = []
+    for values in itertools.product(*GRID.values()):
+        setting = dict(zip(GRID, values, strict=True))
+        params = preset.with_(**setting)
+        rec = {
+            name: {f"{r:g}": float(p.correct(params, r).mean()) for r in TRAIN_SPEEDS}
+            for name, p in train.items()
+        }
+        score = float(np.mean([v for per in rec.values() for v in per.values()]))
+        rows.append({**setting, "recall": rec, "score": score})
+        print(f"  {setting}: score {score:.4f}", flush=True)
+    best = max(rows, key=lambda r: (round(r["score"], 12), r["stop_factor"] == 1.0))
+    return preset.with_(**{k: best[k] for k in GRID}), rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = parser(__doc__)
+    ap.add_argument("--config", default="default", help="the bundled preset")
+    ap.add_argument(
+        "--nordland-frames", type=int, default=NORDLAND_FRAMES, help="Nordland's first frames"
+    )
+    ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
+    add_json(ap, "--out", default=str(ROOT / "docs/experiments/sequence/motion_cue.json"))
+    ap.smoke(nordland_frames=100, routes="gp_dl_nr")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    config = load_config(args.config)
+    prov = provenance(args.config, config, args)
+    preset = config.sequence_params()
+    if preset.motion:
+        raise SystemExit(f"{args.config}: its filter already weighs motion; compare another")
+    cache = FeatureCache(default_cache_dir())
+    names = args.routes.split(",")
+    train: dict[str, Part] = {}
+    test: dict[str, Part] = {}
+    for name in names:
+        limit = args.nordland_frames or None if name == "nordland_s_w" else None
+        route = Route(name, config, cache, 0, limit)
+        train[name] = Part(route.train.rows(np.arange(route.n_train)), config)
+        test[name] = Part(route.test.rows(np.arange(route.n_test)), config)
+        print(f"{name}: parts ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+    root = dataset_root()
+    wholes = {}
+    for name in names:
+        if name in GARDENS_POINT_PROTOCOLS:
+            ref, qry = GARDENS_POINT_PROTOCOLS[name]
+            data = EvalData.frames(root / ref, root / qry, TOLERANCE)
+            wholes[name] = Part(ScoreBank.build(config, data, cache=cache), config)
+    print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+    chosen, rows = choose(train, preset)
+    print(f"chosen: stop_factor {chosen.stop_factor}, moved {chosen.moved}", flush=True)
+    report: dict[str, Any] = {
+        "grid": {k: list(v) for k, v in GRID.items()},
+        "train_speeds": list(TRAIN_SPEEDS),
+        "rows": rows,
+        "chosen": {"stop_factor": chosen.stop_factor, "moved": chosen.moved},
+        "test_parts": {n: compare(p, chosen, preset) for n, p in test.items()},
+        "whole": {
+            n: {
+                **compare(p, chosen, preset),
+                "cue_report": p.report(chosen),
+                "preset_report": p.report(preset),
+            }
+            for n, p in wholes.items()
+        },
+        "nordland_frames": args.nordland_frames,
+    }
+    report["wall_s"] = time.perf_counter() - t0
+    print_report(report)
+    write_record(args.out, report, prov=prov)
+    return 0
+
+
+def print_report(report: dict[str, Any]) -> None:
+    c = report["chosen"]
+    print(f"\nchosen on the training parts: stop_factor {c['stop_factor']}, moved {c['moved']}")
+    for key, title in (("test_parts", "test parts (held out)"), ("whole", "whole traverses")):
+        print(f"\n{title}: recall@1 cue / preset (wins / losses, p)")
+        for name, per in report[key].items():
+            cells = [
+                f"x{r}: {per[r]['cue']:.3f} / {per[r]['preset']:.3f} "
+                f"({per[r]['wins']}/{per[r]['losses']}, p {per[r]['p']:.2g})"
+                for r in (f"{s:g}" for s in SPEEDS)
+            ]
+            print(f"  {name:14s} " + "; ".join(cells))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

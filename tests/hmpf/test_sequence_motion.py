@@ -1,0 +1,218 @@
+"""The sequence filter's motion cue (``stop_factor``): a frame that differs from the previous
+one makes the stopped hypotheses unlikely.
+
+Against brute force (the weighing of the predicted belief), against the filter without it
+(``stop_factor = 1`` changes nothing, sketches or not), and on the failure it is for: a
+vehicle moving through places whose frames all resemble one reference."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from hmpf.errors import HmpfError
+from hmpf.sequence import (
+    SKETCH_DIM,
+    Evidence,
+    FilterParams,
+    FilterState,
+    MotionSketch,
+    RouteMap,
+    SequenceFilter,
+)
+from tests.hmpf.test_sequence import PARAMS, drive, evidence, hits, routes_map
+
+CUE = PARAMS.with_(stop_factor=0.1, moved=0.5)
+
+
+def sketched(ev: Evidence, sketch: np.ndarray | None) -> Evidence:
+    return replace(ev, sketch=None if sketch is None else np.asarray(sketch, np.float32))
+
+
+# -- the sketch ----------------------------------------------------------------------------------
+
+
+def test_sketch_is_in_the_maps_steps_and_the_same_in_every_process():
+    rng = np.random.default_rng(0)
+    rm = routes_map(2, 60)
+    # a route's descriptors drift: consecutive references are about 0.3 apart
+    rows = np.cumsum(rng.normal(0.0, 0.3 / np.sqrt(256), (120, 256)), axis=0)
+    sk = MotionSketch.from_references(rows, rm)
+    assert sk is not None and sk.projection.shape == (SKETCH_DIM, 256)
+    again = MotionSketch.from_references(rows, rm)
+    assert again is not None and np.array_equal(sk.projection, again.projection)
+    assert sk.step == again.step
+    # consecutive references of a route are one step apart (median), in the sketch's units
+    order = rm.ordered
+    same = rm.route_of[order[1:]] == rm.route_of[order[:-1]]
+    d = [
+        float(np.linalg.norm(sk(rows[a]) - sk(rows[b])))
+        for a, b in zip(order[:-1][same], order[1:][same], strict=True)
+    ]
+    assert np.median(d) == pytest.approx(1.0, rel=1e-5)
+    # the pair across the two routes' boundary is not a step: a huge jump there changes nothing
+    rows2 = rows.copy()
+    rows2[60:] += 100.0
+    sk2 = MotionSketch.from_references(rows2, rm)
+    assert sk2 is not None and sk2.step == pytest.approx(sk.step, rel=1e-9)
+    # a frame that stands still is 0 steps away from the last; one on the move about 1
+    assert np.linalg.norm(sk(rows[10]) - sk(rows[10])) == 0.0
+    assert sk(rows[10]).dtype == np.float32
+
+
+def test_sketch_needs_consecutive_references_and_the_right_size():
+    one_each = routes_map(5, 1)  # every route a single reference: no step to measure
+    assert MotionSketch.from_references(np.eye(5), one_each) is None
+    same = MotionSketch.from_references(np.ones((10, 4)), routes_map(1, 10))
+    assert same is None  # every step 0
+    sk = MotionSketch.from_references(
+        np.random.default_rng(1).normal(size=(10, 8)), routes_map(1, 10)
+    )
+    assert sk is not None
+    with pytest.raises(HmpfError, match="4-d descriptor"):
+        sk(np.zeros(4))
+
+
+# -- the filter ----------------------------------------------------------------------------------
+
+
+def test_settings_are_checked():
+    for bad in ({"stop_factor": 0.0}, {"stop_factor": 1.5}, {"moved": 0.0}):
+        with pytest.raises(HmpfError):
+            FilterParams(**bad)  # type: ignore[arg-type]
+    assert not FilterParams().motion and CUE.motion
+
+
+def test_without_the_cue_sketches_change_nothing():
+    """stop_factor = 1 (the default): the same states and estimates with or without
+    sketches, and no sketch kept in the state (nor in its packed form)."""
+    rng = np.random.default_rng(2)
+    rm = routes_map(1, 80)
+    truth = drive(rm, 0, 3.0, 1.0, 40)
+    evs = [evidence(rm.n, int(t), rng) for t in truth]
+    f = SequenceFilter(rm, PARAMS)
+    a, b = f.start(), f.start()
+    for i, ev in enumerate(evs):
+        a, ea = f.update(a, ev)
+        b, eb = f.update(b, sketched(ev, np.full(SKETCH_DIM, float(i))))
+        assert ea == eb and np.array_equal(a.keys, b.keys) and np.array_equal(a.prob, b.prob)
+        assert b.sketch is None and f.pack(a) == f.pack(b)
+
+
+def test_a_moved_frame_weighs_the_stopped_hypotheses_by_the_factor():
+    """Brute force of one frame: the predicted belief's speed-0 hypotheses (and their share
+    of the even background) times stop_factor, the map's total kept; then the usual
+    correction. A frame that did not move, a first frame, a frame without a sketch, or the
+    same instant again (steps = 0): no weighing."""
+    rng = np.random.default_rng(3)
+    rm = routes_map(1, 60)
+    f = SequenceFilter(rm, CUE.with_(leave=0.01, enter=0.1))
+    state = f.start()
+    for t in drive(rm, 0, 5.0, 1.0, 6):
+        state, _ = f.update(state, sketched(evidence(rm.n, int(t), rng), np.zeros(SKETCH_DIM)))
+    assert state.sketch is not None and not state.sketch.any()
+    ev = evidence(rm.n, 12, rng)
+    moved_sk = np.zeros(SKETCH_DIM, np.float32)
+    moved_sk[0] = 0.6  # 0.6 steps from the last frame's: moved (>= 0.5)
+
+    predicted = f.predict(state, 1)
+    speeds = f._split(predicted.keys)[2]
+    on = predicted.prob.sum() + predicted.background
+    prob = np.where(speeds == 0, predicted.prob * 0.1, predicted.prob)
+    bg = predicted.background * (1 - 0.9 / CUE.speeds)
+    want = replace(
+        predicted,
+        prob=prob * on / (prob.sum() + bg),
+        background=bg * on / (prob.sum() + bg),
+    )
+    want_post = f.correct(want, ev)
+    got, est = f.update(state, sketched(ev, moved_sk))
+    assert np.array_equal(got.keys, want_post.keys)
+    np.testing.assert_allclose(got.prob, want_post.prob, rtol=1e-12)
+    assert got.background == pytest.approx(want_post.background, rel=1e-12)
+    assert got.off == pytest.approx(want_post.off, rel=1e-12)
+    assert got.sketch is not None and got.sketch[0] == np.float16(0.6)
+
+    plain = f.correct(f.predict(state, 1), ev)
+    still = moved_sk.copy()
+    still[0] = 0.4  # under 0.5 steps: not moved
+    for st, e, steps in (
+        (state, sketched(ev, still), 1),
+        (replace(state, sketch=None), sketched(ev, moved_sk), 1),
+        (state, sketched(ev, None), 1),
+        (state, sketched(ev, moved_sk[:5]), 1),
+    ):
+        got, _ = f.update(st, e, steps)
+        np.testing.assert_allclose(got.prob, plain.prob, rtol=1e-12)
+    again, _ = f.update(state, sketched(ev, moved_sk), 0)
+    same_instant = f.correct(f.predict(state, 0), ev)
+    np.testing.assert_allclose(again.prob, same_instant.prob, rtol=1e-12)
+
+
+def test_the_sketch_survives_packing_and_the_filter_reads_it_back():
+    rng = np.random.default_rng(4)
+    rm = routes_map(1, 60)
+    f = SequenceFilter(rm, CUE)
+    state = f.start()
+    for i, t in enumerate(drive(rm, 0, 5.0, 1.0, 8)):
+        sk = np.full(SKETCH_DIM, 0.37 * i, np.float32)
+        state, _ = f.update(state, sketched(evidence(rm.n, int(t), rng), sk))
+    back = f.unpack(f.pack(state))
+    assert back.sketch is not None and np.array_equal(back.sketch, state.sketch)
+    ev = sketched(evidence(rm.n, 14, rng), np.full(SKETCH_DIM, 4.0, np.float32))
+    a, ea = f.update(state, ev)
+    b, eb = f.update(back, ev)
+    assert ea.ref == eb.ref and ea.mass == pytest.approx(eb.mass, abs=1e-3)
+
+
+def test_moving_through_look_alike_places_the_cue_keeps_the_estimate_moving():
+    """The failure it is for: the vehicle drives on at one reference a frame, but for 10
+    frames every frame looks most like the reference where the stretch began (night frames
+    of a stretch that all resemble one reference). Without the cue the filter explains them
+    by a stop there and falls behind; with it (the frames differ from each other: the
+    vehicle moves) it keeps the speed it had."""
+    rm = routes_map(1, 120)
+    truth = drive(rm, 0, 0.0, 1.0, 70)
+    hub = int(truth[40])
+
+    def run(params: FilterParams, seed: int) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        f = SequenceFilter(rm, params)
+        state, out = f.start(), []
+        for i, t in enumerate(truth):
+            if 40 < i <= 50:  # the look-alike stretch: the hub scores best, the truth weakly
+                ev = evidence(rm.n, int(t), rng, alias=1.0, wrong=hub, bump=0.5)
+            else:
+                ev = evidence(rm.n, int(t), rng, alias=0.05)
+            sk = np.zeros(SKETCH_DIM, np.float32)
+            sk[0] = float(i)  # one step a frame
+            state, est = f.update(state, sketched(ev, sk))
+            out.append(est)
+        return hits(rm, out, truth)[40:55]
+
+    plain = np.mean([run(PARAMS, s).mean() for s in range(8)])
+    cue = np.mean([run(CUE, s).mean() for s in range(8)])
+    assert cue >= plain + 0.2, (plain, cue)
+    assert cue >= 0.8
+
+
+def test_state_fields_round_trip_with_and_without_a_sketch():
+    st = FilterState(np.array([3, 9]), np.array([0.25, 0.25]), 0.5, 4, 0.0, 1, True)
+    assert FilterState.from_bytes(st.to_bytes(), 100).sketch is None
+    st2 = replace(st, sketch=np.array([1.5, -2.0], np.float32))
+    back = FilterState.from_bytes(st2.to_bytes(), 100)
+    assert back.sketch is not None and back.sketch.tolist() == [1.5, -2.0]
+    with pytest.raises(HmpfError):
+        replace(st, sketch=np.array([np.nan], np.float32)).to_bytes()
+    with pytest.raises(HmpfError):
+        replace(st, sketch=np.zeros(256, np.float32)).to_bytes()
+
+
+def test_route_map_sample_is_unchanged_by_the_sketch():
+    """Building a sketch reads the references only: the map's own figures stay."""
+    rm = routes_map(1, 30)
+    before = RouteMap.from_metadata(30, sequence=["r0"] * 30)
+    MotionSketch.from_references(np.random.default_rng(5).normal(size=(30, 6)), rm)
+    assert np.array_equal(rm.sample, before.sample) and np.array_equal(rm.ordered, before.ordered)
