@@ -554,6 +554,64 @@ def sequence_whole(root: Path) -> str:
     )
 
 
+MOTION_CUE = "docs/experiments/sequence/motion_cue.json"
+
+
+@generator("sequence.motion_cue")
+def sequence_motion_cue(root: Path) -> str:
+    """``python -m bench.motion_cue``: the setting chosen on the training parts, then the
+    cue against the preset on the test parts and the whole traverses, per speed."""
+    data = load(root, MOTION_CUE)
+    c = data["chosen"]
+    preset_row = next(r for r in data["rows"] if r["stop_factor"] == 1.0)
+    chosen_row = next(
+        r for r in data["rows"] if (r["stop_factor"], r["moved"]) == (c["stop_factor"], c["moved"])
+    )
+    intro = (
+        f"Chosen on the training parts (mean recall@1 at speeds "
+        f"{' and '.join(f'x{s:g}' for s in data['train_speeds'])}, every route alike, over "
+        f"`stop_factor` {', '.join(f'{x:g}' for x in data['grid']['stop_factor'])} x `moved` "
+        f"{', '.join(f'{x:g}' for x in data['grid']['moved'])}): **`stop_factor` "
+        f"{c['stop_factor']:g}, `moved` {c['moved']:g}**, score {f3(chosen_row['score'])} "
+        f"against the preset's {f3(preset_row['score'])}.\n\n"
+    )
+    speeds = [k for k in next(iter(data["test_parts"].values())) if k != "locked"]
+    rows = []
+    for key, what in (("test_parts", "test part"), ("whole", "whole traverse")):
+        for route, per in data[key].items():
+            cells = []
+            for sp in speeds:
+                x = per[sp]
+                cells.append(
+                    f"{f3(x['preset'])} -> **{f3(x['cue'])}** ({x['wins']} / {x['losses']}, "
+                    f"p = {pvalue(x['p'])})"
+                )
+            lk = per["locked"]
+            rows.append(
+                [
+                    f"{PROTOCOL_TITLES.get(route, route)}, {what}",
+                    *cells,
+                    f"{pct(lk['preset']['share'])} ({f3(lk['preset']['precision'])}) -> "
+                    f"{pct(lk['cue']['share'])} ({f3(lk['cue']['precision'])})",
+                ]
+            )
+    header = [
+        "route",
+        *[f"recall@1 x{sp}: preset -> cue (won / lost)" for sp in speeds],
+        "locked at x1, lock rule (precision)",
+    ]
+    return (
+        intro
+        + table(header, rows)
+        + source(
+            MOTION_CUE,
+            data,
+            extra=f"Nordland: its first {data['nordland_frames']} frames; the whole "
+            "traverses include the training parts",
+        )
+    )
+
+
 SERVICE_LOAD = "docs/experiments/service_load"
 
 

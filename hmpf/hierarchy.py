@@ -133,6 +133,10 @@ class HierarchyResult:
     with several experiences per place, :meth:`hmpf.index.reader.IndexReader.matched_rows`):
     per place of the whole map (its id, also under a GPS prior), the stored row (experience)
     that matched it, -1 where none was scored; None: every place is one image.
+
+    ``sketch`` is set by whoever ran the query for a sequence filter that weighs motion:
+    the frame's :class:`~hmpf.sequence.MotionSketch` (None: not sketched), which
+    :meth:`~hmpf.sequence.Evidence.from_result` hands on to the filter.
     """
 
     match: int
@@ -142,6 +146,7 @@ class HierarchyResult:
     tiers: list[TierResult] = field(default_factory=list)
     fusion_ms: float = 0.0
     matched_rows: np.ndarray | None = field(default=None, repr=False)
+    sketch: np.ndarray | None = field(default=None, repr=False)
 
     def ranking(self) -> np.ndarray:
         """Final candidates ranked by Combined z-score, duplicates removed (an extension)."""

@@ -573,8 +573,10 @@ class Evidence:
             absolute: the frame's :attr:`absolute` evidence (the caller computes it: it
                 needs the map's :class:`~hmpf.confidence.ReferenceProfile`).
             sketch: the frame's :class:`MotionSketch` (the caller's: it needs the query's
-                descriptor).
+                descriptor); None: the result's own ``sketch``, if it has one.
         """
+        if sketch is None:
+            sketch = getattr(result, "sketch", None)
         tier = result.tiers[0]
         arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
         mean = mean_of(arrays)

@@ -150,14 +150,15 @@ def motion_sketches(
     (:attr:`FilterParams.motion`), from tier 1's first global method
     (:func:`~hmpf.sequence.sketch_method`): its stacked ``references`` and ``queries``
     features by method id, as :class:`~hmpf.evaluation.data.Prepared` holds them. None
-    when the filter weighs no motion or the map gives no sketch (then none is needed)."""
+    when the filter weighs no motion, the method's features are not given or the map gives
+    no sketch."""
     if not params.motion:
         return None
     mid = sketch_method(methods, tier1)
-    sketch = None if mid is None else MotionSketch.from_references(references[mid], routes)
-    if sketch is None or mid is None:
+    if mid is None or mid not in references:
         return None
-    return [sketch(q) for q in queries[mid]]
+    sketch = MotionSketch.from_references(references[mid], routes)
+    return None if sketch is None else [sketch(q) for q in queries[mid]]
 
 
 def drive(

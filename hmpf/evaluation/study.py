@@ -34,7 +34,7 @@ from hmpf.evaluation import SPLITS
 from hmpf.evaluation.batch import batch_outcome
 from hmpf.evaluation.data import EvalData, prepare
 from hmpf.evaluation.metrics import HierarchyOutcome, outcome_of, recall_at_n, run_queries
-from hmpf.evaluation.sequence import sequence_report, tune_sequence
+from hmpf.evaluation.sequence import motion_sketches, sequence_report, tune_sequence
 from hmpf.features import FeatureCache, extract_query
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
@@ -161,6 +161,8 @@ class ScoreBank:
         gt: (nq, nd) ground truth.
         data: the split.
         features: method id -> (reference set, per-query features), for timing real runs.
+        motion_features: the global methods' (reference matrix, per-query features) of a
+            bank without ``features`` (:meth:`subset`), for the frames' motion sketches.
     """
 
     methods: dict[str, Method]
@@ -168,6 +170,7 @@ class ScoreBank:
     gt: np.ndarray
     data: EvalData
     features: dict[str, tuple[Any, list[Any]]] = field(default_factory=dict)
+    motion_features: dict[str, tuple[Any, list[Any]]] = field(default_factory=dict)
 
     @classmethod
     def build(
@@ -200,10 +203,16 @@ class ScoreBank:
 
     def subset(self, keep: np.ndarray) -> ScoreBank:
         """The bank over the references ``keep`` only (a map with the others removed; the
-        methods stay fitted as they were, no features for timing)."""
+        methods stay fitted as they were, no features for timing; the global methods'
+        matrices cut to ``keep`` for the frames' motion sketches)."""
         k = np.asarray(keep, dtype=np.int64)
         scores = {m: s[:, k] for m, s in self.scores.items()}
-        return ScoreBank(self.methods, scores, self.gt[:, k], self.data)
+        motion = {
+            m: (db[k], qs)
+            for m, (db, qs) in (self.features or self.motion_features).items()
+            if isinstance(db, np.ndarray)
+        }
+        return ScoreBank(self.methods, scores, self.gt[:, k], self.data, {}, motion)
 
     def rows(self, keep: np.ndarray) -> ScoreBank:
         """The bank of the queries ``keep`` only (the same map and fitted methods)."""
@@ -211,7 +220,21 @@ class ScoreBank:
         scores = {m: s[k] for m, s in self.scores.items()}
         data = replace(self.data, query=[self.data.query[i] for i in k], gt=self.data.gt[k])
         feats = {m: (db, [qs[i] for i in k]) for m, (db, qs) in self.features.items()}
-        return ScoreBank(self.methods, scores, self.gt[k], data, feats)
+        motion = {m: (db, [qs[i] for i in k]) for m, (db, qs) in self.motion_features.items()}
+        return ScoreBank(self.methods, scores, self.gt[k], data, feats, motion)
+
+    def sketches(self, config: HierarchyConfig) -> list[np.ndarray] | None:
+        """Every query's motion sketch for ``config``'s sequence filter
+        (:func:`~hmpf.evaluation.sequence.motion_sketches`; None when it weighs no motion or
+        the bank holds no features of the method sketched)."""
+        params = config.sequence_params()
+        if not params.motion:
+            return None
+        source = self.features or self.motion_features
+        db = {m: f[0] for m, f in source.items()}
+        qs = {m: f[1] for m, f in source.items()}
+        routes = RouteMap.from_metadata(self.n_db)
+        return motion_sketches(params, self.methods, config.tiers[0].methods, db, qs, routes)
 
     def profile(self, config: HierarchyConfig) -> ReferenceProfile:
         """The :class:`~hmpf.confidence.ReferenceProfile` of this part's references for
@@ -235,6 +258,10 @@ class ScoreBank:
         hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
         scorers = (self.scorer(q) for q in range(self.n_query))
         results, _ = run_queries(hier, scorers, self.n_db)
+        sketches = self.sketches(config)
+        if sketches is not None:  # a filter that weighs motion reads them from the results
+            for r, sketch in zip(results, sketches, strict=True):
+                r.sketch = sketch
         return results
 
     def run(self, config: HierarchyConfig) -> HierarchyOutcome:

@@ -8,6 +8,7 @@ vehicle moving through places whose frames all resemble one reference."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -216,3 +217,68 @@ def test_route_map_sample_is_unchanged_by_the_sketch():
     before = RouteMap.from_metadata(30, sequence=["r0"] * 30)
     MotionSketch.from_references(np.random.default_rng(5).normal(size=(30, 6)), rm)
     assert np.array_equal(rm.sample, before.sample) and np.array_equal(rm.ordered, before.ordered)
+
+
+# -- every evaluation path gets the sketches: score banks (benches, hmpf-calibrate) -------------
+
+
+def _bank(config_seq: dict | None, rng: np.random.Generator, nq: int = 12, n_db: int = 30):
+    from hmpf.config import parse_config
+    from hmpf.evaluation.data import EvalData
+    from hmpf.evaluation.study import ScoreBank
+    from hmpf.methods import create_method
+
+    config = parse_config(
+        {
+            "name": "t",
+            "tiers": [{"methods": ["sad", "gist"], "k": 5}, {"methods": ["gist", "hog"], "k": 1}],
+            **({"sequence": config_seq} if config_seq else {}),
+        }
+    )
+    methods = {m: create_method(m) for m in ("sad", "gist", "hog")}
+    scores = {m: rng.normal(size=(nq, n_db)) for m in methods}
+    gt = np.abs(np.arange(nq)[:, None] * n_db // nq - np.arange(n_db)[None, :]) <= 2
+    # a drifting route of descriptors; the queries near it
+    refs = np.cumsum(rng.normal(0.0, 0.1, (n_db, 16)), axis=0)
+    qs = [refs[i * n_db // nq] + rng.normal(0.0, 0.02, 16) for i in range(nq)]
+    feats = {m: (refs + j, [q + j for q in qs]) for j, m in enumerate(methods)}
+    data = EvalData(
+        [Path(f"r{i}.jpg") for i in range(n_db)], [Path(f"q{i}.jpg") for i in range(nq)], gt, "t"
+    )
+    return config, ScoreBank(methods, scores, gt, data, feats)
+
+
+def test_score_bank_results_carry_the_sketches_of_a_filter_that_weighs_motion():
+    """What a bank's results carry is what the service sketches: tier 1's first global
+    method (``sad`` here) over the bank's map; for the queries of a row subset, the same;
+    over a reference subset (a map with references removed), that map's step. Without the
+    cue: no sketch."""
+    from hmpf.evaluation.sequence import motion_sketches
+
+    rng = np.random.default_rng(7)
+    plain_config, bank = _bank(None, rng)
+    assert all(r.sketch is None for r in bank.results(plain_config))
+    config, bank = _bank({"stop_factor": 0.1}, np.random.default_rng(7))
+    results = bank.results(config)
+    refs, qs = bank.features["sad"]
+    routes = RouteMap.from_metadata(bank.n_db)
+    want = motion_sketches(
+        config.sequence_params(), bank.methods, ["sad", "gist"], {"sad": refs}, {"sad": qs}, routes
+    )
+    assert want is not None
+    for r, w in zip(results, want, strict=True):
+        assert r.sketch is not None and np.array_equal(r.sketch, w)
+        ev = Evidence.from_result(r, bank.n_db, proposals=5)
+        assert ev.sketch is not None and np.array_equal(ev.sketch, w)
+    k = np.array([1, 4, 5, 9])
+    for r, i in zip(bank.rows(k).results(config), k, strict=True):
+        assert np.array_equal(r.sketch, want[i])
+    keep = np.arange(0, bank.n_db, 2)
+    sub = bank.subset(keep)
+    assert not sub.features and "sad" in sub.motion_features
+    sk = MotionSketch.from_references(refs[keep], RouteMap.from_metadata(len(keep)))
+    assert sk is not None
+    for r, q in zip(sub.results(config), qs, strict=True):
+        np.testing.assert_allclose(r.sketch, sk(q), rtol=1e-6)
+    # rows of a subset keep its sketches too
+    assert all(r.sketch is not None for r in sub.rows(k).results(config))
