@@ -4289,6 +4289,53 @@ def acceptance_map_prior(root: Path) -> str:
     )
 
 
+MOTION_CUE_ACCEPTANCE = {
+    "preset's filter": "docs/experiments/acceptance/motion_cue_preset.json",
+    "with the motion cue": "docs/experiments/acceptance/motion_cue_refit.json",
+}
+
+
+@generator("acceptance.motion_cue")
+def acceptance_motion_cue(root: Path) -> str:
+    """``python -m bench.shipped_acceptance`` on the default preset and on the same preset
+    with the motion cue (bench/motion_cue_configs/default.yaml): the models refitted for
+    each filter, per route's test part, fitted on all routes and leave one route out."""
+    recs = {label: load(root, path) for label, path in MOTION_CUE_ACCEPTANCE.items()}
+
+    def share(x: dict[str, Any]) -> str:
+        return f"{x['accepted']:.3f} ({f3(x['precision'])})"
+
+    rows = []
+    for route in ROUTES:
+        for fit, fit_label in (("shipped", "all routes"), ("folds", "held out")):
+            cells = []
+            for rec in recs.values():
+                q = rec[fit][route]["sequence"]
+                cells += [f3(q["recall_at_1"]), share(q), f3(q["ece"])]
+            rows.append([PROTOCOL_TITLES[route], fit_label, *cells])
+    head = ["route (test part)", "models fitted on"]
+    for label in recs:
+        head += [
+            f"{label}: sequence recall@1",
+            f"{label}: accepted (precision)",
+            f"{label}: ECE",
+        ]
+    ece = "; ".join(
+        f"{label} {rec['pooled_sequence_ece_shipped']['all']:.3f} (held out "
+        f"{rec['pooled_sequence_ece_folds']['all']:.3f}; Gardens Point alone "
+        f"{rec['pooled_sequence_ece_shipped']['gardens_point']:.3f})"
+        for label, rec in recs.items()
+    )
+    return (
+        table(head, rows)
+        + f"\nPooled sequence ECE over the test parts, fitted on all routes: {ece}.\n"
+        + "".join(
+            source(path, rec, extra=f"Nordland: its first {rec['nordland_frames']} frames")
+            for path, rec in zip(MOTION_CUE_ACCEPTANCE.values(), recs.values(), strict=True)
+        )
+    )
+
+
 @generator("acceptance.sequence_modes")
 def acceptance_sequence_modes(root: Path) -> str:
     """``python -m bench.sequence``'s tables: sequence mode per test part and model set, and
