@@ -4226,7 +4226,21 @@ _MAP_PRIOR_VARIANTS = {
 def acceptance_map_prior(root: Path) -> str:
     """``python -m bench.map_prior``: the acceptance models with and without the map's
     pseudo-query prior, fitted on all routes and leave one route out."""
-    rep = load(root, MAP_PRIOR)
+    return _map_prior_table(root, MAP_PRIOR)
+
+
+MAP_PRIOR_MOTION = "docs/experiments/acceptance/map_prior_motion_cue.json"
+
+
+@generator("acceptance.map_prior_motion_cue")
+def acceptance_map_prior_motion_cue(root: Path) -> str:
+    """``python -m bench.map_prior --config bench/motion_cue_configs/default.yaml``: the same
+    variants with the sequence filter's motion cue."""
+    return _map_prior_table(root, MAP_PRIOR_MOTION)
+
+
+def _map_prior_table(root: Path, path: str) -> str:
+    rep = load(root, path)
 
     def share(x: float, prec: float | None) -> str:
         return f"{x:.3f}" + ("" if prec is None else f" ({prec:.3f})")
@@ -4285,7 +4299,7 @@ def acceptance_map_prior(root: Path) -> str:
         + "\nPooled sequence ECE over the test parts, fitted on all routes (held out): "
         + "; ".join(ece)
         + ".\n"
-        + source(MAP_PRIOR, rep, extra=f"Nordland: its first {rep['nordland_frames']} frames")
+        + source(path, rep, extra=f"Nordland: its first {rep['nordland_frames']} frames")
     )
 
 
