@@ -54,6 +54,7 @@ import numpy as np
 from hmpf.acceptance import DEFAULT_ACCEPT_THRESHOLD, Policy
 from hmpf.confidence import ReferenceProfile
 from hmpf.datasets import haversine_m
+from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index import layout
 from hmpf.index.reader import IndexReader
@@ -174,6 +175,15 @@ class Loaded:
         the same shape such as a sharded map's), closed again when this fails."""
         try:
             params = reader.config.sequence_params()
+            # A view of another shape (a sharded map's) may not sketch the frames' motion:
+            # refused rather than answering otherwise than the unsharded version would.
+            sketch_of = getattr(reader, "motion_sketch", None)
+            if params.motion and sketch_of is None:
+                raise ConfigError(
+                    f"{reader.path}: its sequence filter weighs motion (sequence.stop_factor "
+                    f"{params.stop_factor:g}), which this kind of map cannot sketch; serve "
+                    "the unsharded version or set stop_factor 1"
+                )
             acceptance = Policy.of(
                 reader.config.acceptance,
                 threshold=threshold,
@@ -188,8 +198,6 @@ class Loaded:
             lat = None if meta.get("lat") is None else meta["lat"][:P]
             lon = None if meta.get("lon") is None else meta["lon"][:P]
             has_pos = lat is not None and lon is not None and bool(np.isfinite(lat).any())
-            # A view of another shape (a sharded map's) may not sketch: no motion cue there.
-            sketch_of = getattr(reader, "motion_sketch", None)
             motion = sketch_of() if sketch_of is not None else None
             return cls(
                 reader,

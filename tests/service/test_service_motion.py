@@ -137,3 +137,20 @@ def test_a_track_restarted_mid_drive_keeps_answering(client: TestClient, keys, n
     frames = [night[i] for i in range(30, 34)]
     served = _drive(client, keys, frames)
     assert [s["frames"] for s in served] == [1, 2, 3, 4]
+
+
+def test_a_map_that_cannot_sketch_is_refused_for_a_filter_that_weighs_motion() -> None:
+    """A reader of another shape (a sharded map's view has no motion_sketch) under a config
+    whose filter weighs motion: refused when loaded (start exits 2, a reload is a 409),
+    rather than answering otherwise than the unsharded version would."""
+    from types import SimpleNamespace
+
+    from hmpf.errors import ConfigError
+    from service.engine import Loaded
+
+    closed = []
+    config = parse_config(dict(SERVICE_CONFIG, sequence={"stop_factor": 0.1}))
+    view = SimpleNamespace(config=config, path="shards", close=lambda: closed.append(True))
+    with pytest.raises(ConfigError, match="stop_factor 0.1"):
+        Loaded.over(view, None)
+    assert closed == [True]
