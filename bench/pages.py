@@ -3119,22 +3119,25 @@ def scale_scan_cost(root: Path) -> str:
 BINARY_200K = "docs/experiments/scale/factories-netvlad-200k-binary.json"
 
 
+def _factory_cells(s: dict[str, Any]) -> list[str]:
+    """One ``bench.scale factories`` setting's cells: the type, recall@100 and @10, the right
+    place in the top 10 (exact search's in brackets), bytes per reference, FAISS's p50."""
+    return [
+        f"`{s['factory']}`",
+        f"{s['recall_at_100']:.3f}",
+        f"{s['recall_at_10']:.3f}",
+        f"{s['right_in_approx_top10']:.3f} ({s['right_in_exact_top10']:.3f})",
+        f"{s['bytes_per_reference']:,.0f}",
+        f"{s['faiss_ms_p50']:.1f}",
+    ]
+
+
 @generator("scale.binary_short_list")
 def scale_binary_short_list(root: Path) -> str:
     """``bench.scale factories``: the projected scan with and without a binary scan in
     front, NetVLAD at 200k references."""
     rec = load(root, BINARY_200K)
-    rows = [
-        [
-            f"`{s['factory']}`",
-            f"{s['recall_at_100']:.3f}",
-            f"{s['recall_at_10']:.3f}",
-            f"{s['right_in_approx_top10']:.3f} ({s['right_in_exact_top10']:.3f})",
-            f"{s['bytes_per_reference']:,.0f}",
-            f"{s['faiss_ms_p50']:.1f}",
-        ]
-        for s in rec["settings"]
-    ]
+    rows = [_factory_cells(s) for s in rec["settings"]]
     head = [
         "NetVLAD tier 1",
         "recall@100",
@@ -3166,19 +3169,7 @@ def scale_fast_scan_short_list(root: Path) -> str:
     """``bench.scale factories``: the projected scan's short scan on scalar codes against
     4-bit fast-scan product codes, both tier-1 methods at 200k references."""
     recs = {name: load(root, path) for name, path in FAST_SCAN_200K.items()}
-    rows = [
-        [
-            name,
-            f"`{s['factory']}`",
-            f"{s['recall_at_100']:.3f}",
-            f"{s['recall_at_10']:.3f}",
-            f"{s['right_in_approx_top10']:.3f} ({s['right_in_exact_top10']:.3f})",
-            f"{s['bytes_per_reference']:,.0f}",
-            f"{s['faiss_ms_p50']:.1f}",
-        ]
-        for name, rec in recs.items()
-        for s in rec["settings"]
-    ]
+    rows = [[name, *_factory_cells(s)] for name, rec in recs.items() for s in rec["settings"]]
     head = [
         "method",
         "tier 1",

@@ -193,3 +193,20 @@ def metric_sum(text: str, name: str, **labels: str) -> float:
         if all(have.get(k) == v for k, v in labels.items()):
             total += float(m.group(3))
     return total
+
+
+def evaluate_frames(index: Path, frames: list[Path], positions: list[int], tolerance: int) -> dict:
+    """``hmpf-eval --index``'s report (:func:`hmpf.evaluation.evaluate.evaluate_index`, in
+    sequence mode too) of ``frames`` against ``index``, frame ``j`` right within
+    ``+-tolerance`` references of ``positions[j]`` (frame-aligned with the references)."""
+    from hmpf.evaluation.evaluate import evaluate_index
+    from hmpf.index.reader import IndexReader
+
+    reader = IndexReader(index)
+    try:
+        gt = np.zeros((len(frames), reader.n), dtype=bool)
+        for j, i in enumerate(positions):
+            gt[j, max(0, i - tolerance) : i + tolerance + 1] = True
+        return evaluate_index(reader, frames, gt, f"frames +-{tolerance}", sequence=True)
+    finally:
+        reader.close()

@@ -53,7 +53,7 @@ from service.cli import main as serve_main
 from service.engine import restricted
 from service.settings import load_settings
 from tests.conftest import SERVICE_CONFIG
-from tests.service_helpers import BUILD_OPTIONS, ROOT, nan_in_final_tier
+from tests.service_helpers import BUILD_OPTIONS, ROOT, evaluate_frames, nan_in_final_tier
 
 #: Training frames (night_right, frame-aligned with day_right) and the test frames.
 TRAIN = range(0, 20)
@@ -476,18 +476,9 @@ def test_hmpf_eval_on_the_index_gives_the_services_p_correct(
     """hmpf-eval --index runs the service's policy (hmpf.acceptance) with the same absolute
     evidence (the reader's reference profile): the same p_correct and the same accepted per
     frame, single frame and in sequence mode (the frames driven in order, one vehicle)."""
-    from hmpf.evaluation.evaluate import evaluate_index
-
     order = list(range(0, 12))
     frames = [night[i] for i in order]
-    reader = IndexReader(model_index)
-    try:
-        gt = np.zeros((len(frames), reader.n), dtype=bool)
-        for j, i in enumerate(order):
-            gt[j, max(0, i - TOLERANCE) : i + TOLERANCE + 1] = True
-        rep = evaluate_index(reader, frames, gt, "frames +-2", sequence=True)
-    finally:
-        reader.close()
+    rep = evaluate_frames(model_index, frames, order, TOLERANCE)
     single, seq = rep["acceptance"]["single"], rep["acceptance"]["sequence"]
     assert single["rule"] == "p_correct" and seq["rule"] == "p_correct"
     answers = [_post(client, keys, f)["match"] for f in frames]

@@ -12,7 +12,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -24,7 +23,7 @@ from service.app import create_app
 from service.auth import add_key
 from service.settings import load_settings
 from tests.conftest import SERVICE_CONFIG
-from tests.service_helpers import BUILD_OPTIONS
+from tests.service_helpers import BUILD_OPTIONS, evaluate_frames
 
 TOLERANCE = 2
 FRAMES = range(0, 14)
@@ -93,17 +92,8 @@ def test_hmpf_eval_on_the_index_gives_the_services_sequence_answers(
     """The service and hmpf-eval --index run the filter with the same sketches: the same
     estimates, right or wrong, and masses equal up to the token's float16 logs. The token
     carries the sketch: it is longer than a version without the cue's by the sketch's bytes."""
-    from hmpf.evaluation.evaluate import evaluate_index
-
     frames = [night[i] for i in FRAMES]
-    reader = IndexReader(motion_index)
-    try:
-        gt = np.zeros((len(frames), reader.n), dtype=bool)
-        for j, i in enumerate(FRAMES):
-            gt[j, max(0, i - TOLERANCE) : i + TOLERANCE + 1] = True
-        rep = evaluate_index(reader, frames, gt, "frames +-2", sequence=True)
-    finally:
-        reader.close()
+    rep = evaluate_frames(motion_index, frames, list(FRAMES), TOLERANCE)
     assert rep["sequence"]["params"]["stop_factor"] == 0.1
     with _client(motion_index, keys) as c:
         served = _drive(c, keys, frames)

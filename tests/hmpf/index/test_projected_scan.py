@@ -168,6 +168,15 @@ def test_memory_mapped_codes_search_as_read_ones(tmp_path):
     assert read_faiss(path, "nprobe=8", mmap=True).ntotal == len(x)
 
 
+def _projected(x: np.ndarray, q: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rows and the queries on the rows' top ``dim`` principal directions (centred)."""
+    mean, comps = pca_rows(x, dim)
+    return (
+        ((x - mean) @ comps.T).astype(np.float32),
+        ((q - mean) @ comps.T).astype(np.float32),
+    )
+
+
 def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(len(a), len(b)) Hamming distances between rows of booleans."""
     return (a[:, None, :] != b[None, :, :]).sum(-1)
@@ -185,9 +194,7 @@ def test_binary_scan_short_list_is_the_nearest_signs_then_the_projected_ranking(
     index, _ = build_faiss(x, L2, "PCA32:8,SQfp16,B16x4,k2")
     k = 5
     dist, ids = index.search(q, k)
-    mean, comps = pca_rows(x, 32)
-    y = ((x - mean) @ comps.T).astype(np.float32)
-    qy = ((q - mean) @ comps.T).astype(np.float32)
+    y, qy = _projected(x, q, 32)
     refine = faiss.downcast_index(faiss.downcast_index(index).index)
     signs = faiss.downcast_index(faiss.downcast_index(refine.base_index).base_index)
     turn = faiss.downcast_VectorTransform(signs.chain.at(0))
@@ -249,9 +256,7 @@ def test_fast_scan_short_list_is_the_nearest_product_codes_then_the_projected_ra
     index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,PQ8x4fs,k4")
     k = 10
     dist, ids = index.search(q, k)
-    mean, comps = pca_rows(x, 32)
-    y = ((x - mean) @ comps.T).astype(np.float32)
-    qy = ((q - mean) @ comps.T).astype(np.float32)
+    y, qy = _projected(x, q, 32)
     refine = faiss.downcast_index(faiss.downcast_index(index).index)
     short = faiss.downcast_index(refine.base_index)
     pq = faiss.downcast_index(short.index)
