@@ -45,7 +45,12 @@ from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
 from hmpf.evaluation.acceptance import sequence_answers
 from hmpf.evaluation.calibrate import paired_test
 from hmpf.evaluation.evaluate import EvalData
-from hmpf.evaluation.sequence import motion_sketches, sequence_report, speed_drive
+from hmpf.evaluation.sequence import (
+    motion_sketches,
+    sequence_report,
+    sketch_results,
+    speed_drive,
+)
 from hmpf.evaluation.study import ScoreBank
 from hmpf.features import FeatureCache
 from hmpf.runtime import default_cache_dir
@@ -73,50 +78,28 @@ class Part:
         self.profile = bank.profile(config)
         db = {m: f[0] for m, f in bank.features.items()}
         qs = {m: f[1] for m, f in bank.features.items()}
-        # the sketches do not depend on the cue's settings, only on the map and the frames
-        probe = FilterParams(stop_factor=0.5)
-        self.sketches = motion_sketches(
-            probe, bank.methods, config.tiers[0].methods, db, qs, self.routes
-        )
+        # The sketches depend on the map and the frames only; a filter that weighs no motion
+        # reads none of them.
+        sketches = motion_sketches(bank.methods, config.tiers[0].methods, db, qs, self.routes)
+        sketch_results(self.results, sketches)
 
     def correct(self, params: FilterParams, ratio: float) -> np.ndarray:
         """Per frame of the drive at ``ratio`` (one offset), whether the estimate is right."""
         d = speed_drive(len(self.results), ratio)
         return sequence_answers(
-            self.results,
-            self.gt,
-            self.routes,
-            params,
-            [d],
-            self.profile,
-            self.sketches if params.motion else None,
+            self.results, self.gt, self.routes, params, [d], self.profile
         ).correct
 
     def locked(self, params: FilterParams) -> dict[str, float]:
         """The drive at the mapping run's speed: the share of its estimates that are locked
         (posterior mass >= ``lock_mass``: the lock rule) and their precision."""
-        run = sequence_answers(
-            self.results,
-            self.gt,
-            self.routes,
-            params,
-            None,
-            self.profile,
-            self.sketches if params.motion else None,
-        )
+        run = sequence_answers(self.results, self.gt, self.routes, params, None, self.profile)
         locked = run.score >= params.lock_mass
         precision = float(run.correct[locked].mean()) if locked.any() else float("nan")
         return {"share": float(locked.mean()), "precision": precision}
 
     def report(self, params: FilterParams) -> dict[str, Any]:
-        rep = sequence_report(
-            self.results,
-            self.gt,
-            self.routes,
-            params,
-            profile=self.profile,
-            sketches=self.sketches if params.motion else None,
-        )
+        rep = sequence_report(self.results, self.gt, self.routes, params, profile=self.profile)
         return {
             "recall_at_1": rep["recall_at_1"],
             "recall_by_speed": rep["recall_by_speed"],

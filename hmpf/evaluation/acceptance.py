@@ -141,16 +141,13 @@ def sequence_answers(
     params: FilterParams,
     drives: Sequence[Drive] | None = None,
     profile: ReferenceProfile | None = None,
-    sketches: Sequence[np.ndarray | None] | None = None,
 ) -> Answers:
     """Every answer of ``drives`` through the sequence filter (default: the queries once,
-    in order), with its estimate's features; ``gt`` None: all marked wrong. ``sketches``:
-    each query's motion sketch (for a filter that weighs motion,
-    :func:`~hmpf.evaluation.sequence.motion_sketches`)."""
+    in order), with its estimate's features; ``gt`` None: all marked wrong."""
     n_q = len(results)
     truth = np.zeros((n_q, routes.n), dtype=bool) if gt is None else np.asarray(gt, bool)
     drives = [Drive.along(np.arange(n_q))] if drives is None else drives
-    evs = evidences_of(results, routes.n, params.proposals, profile, sketches)
+    evs = evidences_of(results, routes.n, params.proposals, profile)
     if profile is None:  # no absolute evidence: no off hypothesis (as sequence_report)
         params = params.with_(leave=0.0)
     filt = SequenceFilter(routes, params)

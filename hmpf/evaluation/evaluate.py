@@ -42,6 +42,7 @@ from hmpf.evaluation.sequence import (
     motion_sketches,
     off_map_report,
     sequence_report,
+    sketch_results,
 )
 from hmpf.features import FeatureCache, extract_images
 from hmpf.fusion import flat_fusion, nan_argmax, zscore
@@ -248,11 +249,11 @@ def evaluate(
         lambda: ReferenceProfile.build(prep.methods, prep.db, config.tiers[0].methods, routes)
     )
     params = config.sequence_params()
-    sketches = motion_sketches(
-        params, prep.methods, config.tiers[0].methods, prep.db, prep.queries, routes
-    )
+    tier1 = config.tiers[0].methods
+    if params.motion:  # the filter reads each frame's sketch from its result
+        sketch_results(results, motion_sketches(prep.methods, tier1, prep.db, prep.queries, routes))
     if sequence:
-        report["sequence"] = _sequence(results, gt, routes, config, profile(), sketches)
+        report["sequence"] = _sequence(results, gt, routes, config, profile())
     if sequence and foreign:
         # The foreign frames through the methods fitted above, against the same database: only
         # their own features are extracted (the references are not fitted or read again).
@@ -264,20 +265,13 @@ def evaluate(
             for qi in range(len(foreign))
         )
         away_results, _ = run_queries(hierarchy, scorers, n_db)
-        away_sketches = motion_sketches(
-            params, prep.methods, config.tiers[0].methods, prep.db, away, routes
-        )
-        report["off_map"] = off_map_report(
-            results,
-            away_results,
-            gt,
-            routes,
-            params,
-            profile(),
-            sketches=None if sketches is None else [*sketches, *(away_sketches or [])],
-        )
+        if params.motion:
+            sketch_results(
+                away_results, motion_sketches(prep.methods, tier1, prep.db, away, routes)
+            )
+        report["off_map"] = off_map_report(results, away_results, gt, routes, params, profile())
     report["acceptance"] = acceptance_report(
-        results, gt, routes, config, sequence=sequence, profile=profile, sketches=sketches
+        results, gt, routes, config, sequence=sequence, profile=profile
     )
     return report
 
@@ -300,12 +294,9 @@ def _sequence(
     routes: RouteMap,
     config: HierarchyConfig,
     profile: ReferenceProfile | None = None,
-    sketches: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
-    rep = sequence_report(
-        results, gt, routes, config.sequence_params(), profile=profile, sketches=sketches
-    )
+    rep = sequence_report(results, gt, routes, config.sequence_params(), profile=profile)
     rep["wall_s"] = time.perf_counter() - t0
     return rep
 
@@ -318,13 +309,11 @@ def acceptance_report(
     *,
     sequence: bool = False,
     profile: Callable[[], ReferenceProfile] | None = None,
-    sketches: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """The config's acceptance applied to every answer (:mod:`hmpf.evaluation.acceptance`).
 
     ``profile`` builds the references' :class:`~hmpf.confidence.ReferenceProfile`; called
-    only when a model needs it. ``sketches``: each query's motion sketch, for a sequence
-    filter that weighs motion (:func:`~hmpf.evaluation.sequence.motion_sketches`).
+    only when a model needs it.
 
     ``single`` (and with ``sequence`` ``sequence``: the queries driven once, in order):
     ``rule`` (``p_correct``, ``quality`` or ``lock``: the one policy the service runs,
@@ -338,7 +327,7 @@ def acceptance_report(
     prof = profile() if profile and (policy.needs_profile or sequence) else None
     out = {"single": apply_acceptance(policy, single_answers(results, gt, routes, prof))}
     if sequence:
-        seq = sequence_answers(results, gt, routes, params, profile=prof, sketches=sketches)
+        seq = sequence_answers(results, gt, routes, params, profile=prof)
         out["sequence"] = apply_acceptance(policy, seq, sequence=True)
     return out
 
@@ -400,13 +389,12 @@ def evaluate_index(
         "timing_ms": {"hierarchy_per_query": hierarchy_s * 1e3 / max(1, len(queries))},
     }
     motion = reader.motion_sketch()
-    sketches = None
-    if motion is not None:
+    if motion is not None:  # the filter reads each frame's sketch from its result
         mid, sketch = motion
-        sketches = [sketch(f) for f in qry.features[mid]]
+        sketch_results(results, [sketch(f) for f in qry.features[mid]])
     if sequence:
         report["sequence"] = _sequence(
-            results, gt, reader.route_map(), reader.config, reader.reference_profile(), sketches
+            results, gt, reader.route_map(), reader.config, reader.reference_profile()
         )
     report["acceptance"] = acceptance_report(
         results,
@@ -415,7 +403,6 @@ def evaluate_index(
         reader.config,
         sequence=sequence,
         profile=reader.reference_profile,
-        sketches=sketches,
     )
     return report
 

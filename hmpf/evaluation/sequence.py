@@ -62,6 +62,7 @@ __all__ = [
     "leave_drives",
     "lock_frames",
     "motion_sketches",
+    "sketch_results",
     "off_map_report",
     "lock_threshold",
     "sequence_report",
@@ -117,48 +118,45 @@ def evidences_of(
     n: int,
     proposals: int,
     profile: ReferenceProfile | None = None,
-    sketches: Sequence[np.ndarray | None] | None = None,
 ) -> list[Evidence]:
     """Each query's :class:`Evidence` from its hierarchy result (``n`` references), with
     its absolute evidence when a ``profile`` of the map's references is given
     (:func:`absolute_evidence`; without one: NaN, the off hypothesis learns nothing) and
-    its :class:`~hmpf.sequence.MotionSketch` when ``sketches`` are (one per result, as
-    :func:`motion_sketches` makes them)."""
-    if sketches is not None and len(sketches) != len(results):
-        raise ValueError(f"{len(sketches)} sketches for {len(results)} results")
+    the result's motion sketch, if it carries one (:func:`sketch_results`)."""
     return [
-        Evidence.from_result(
-            r,
-            n,
-            proposals=proposals,
-            absolute=absolute_evidence(r, profile),
-            sketch=None if sketches is None else sketches[i],
-        )
-        for i, r in enumerate(results)
+        Evidence.from_result(r, n, proposals=proposals, absolute=absolute_evidence(r, profile))
+        for r in results
     ]
 
 
 def motion_sketches(
-    params: FilterParams,
     methods: Mapping[str, Method],
     tier1: Sequence[str],
     references: Mapping[str, Any],
     queries: Mapping[str, Sequence[Any]],
     routes: RouteMap,
 ) -> list[np.ndarray] | None:
-    """Each query's :class:`~hmpf.sequence.MotionSketch` for a filter that weighs motion
-    (:attr:`FilterParams.motion`), from tier 1's first global method
+    """Each query's :class:`~hmpf.sequence.MotionSketch`, from tier 1's first global method
     (:func:`~hmpf.sequence.sketch_method`): its stacked ``references`` and ``queries``
     features by method id, as :class:`~hmpf.evaluation.data.Prepared` holds them. None
-    when the filter weighs no motion, the method's features are not given or the map gives
-    no sketch."""
-    if not params.motion:
-        return None
+    when the method's features are not given or the map gives no sketch. Needed only for a
+    filter that weighs motion (:attr:`FilterParams.motion`)."""
     mid = sketch_method(methods, tier1)
     if mid is None or mid not in references:
         return None
     sketch = MotionSketch.from_references(references[mid], routes)
     return None if sketch is None else [sketch(q) for q in queries[mid]]
+
+
+def sketch_results(
+    results: Sequence[HierarchyResult], sketches: Sequence[np.ndarray] | None
+) -> None:
+    """Give each result its query's motion sketch (``sketches`` None: nothing to give), which
+    :meth:`~hmpf.sequence.Evidence.from_result` hands on to the filter."""
+    if sketches is None:
+        return
+    for r, sketch in zip(results, sketches, strict=True):
+        r.sketch = sketch
 
 
 def drive(
@@ -316,21 +314,19 @@ def sequence_report(
     dropped: float = 0.25,
     speeds: Sequence[float] = SPEEDS,
     profile: ReferenceProfile | None = None,
-    sketches: Sequence[np.ndarray | None] | None = None,
 ) -> dict[str, Any]:
     """Sequence-mode figures of one route's query traverse (``results`` in route order):
     the estimate's recall@1 beside the single-frame one, the accepted (locked) answers'
     share and precision, frames to lock after a start and after a jump, recall by speed
     ratio and by frames of history, and with dropped frames. Without a ``profile`` (no
     absolute evidence) the filter runs without the off hypothesis (``leave = 0``: it could
-    not tell it, and its resting mass would cap every estimate's). ``sketches``: each
-    query's motion sketch (:func:`motion_sketches`; for a filter that weighs motion)."""
+    not tell it, and its resting mass would cap every estimate's)."""
     gt = np.asarray(gt, dtype=bool)
     nq = len(results)
     if profile is None:
         params = params.with_(leave=0.0)
     filt = SequenceFilter(routes, params)
-    evs = evidences_of(results, routes.n, params.proposals, profile, sketches)
+    evs = evidences_of(results, routes.n, params.proposals, profile)
     rng = np.random.default_rng(seed)
     single = np.array([r.match >= 0 and bool(gt[q, r.match]) for q, r in enumerate(results)])
     full = drive(filt, evs, Drive.along(np.arange(nq)), gt)
@@ -421,7 +417,6 @@ def off_map_report(
     before: int = 20,
     away: int = 30,
     after: int = 30,
-    sketches: Sequence[np.ndarray | None] | None = None,
 ) -> dict[str, Any]:
     """Drives that leave the map and come back (:func:`leave_drives`): the route's queries
     (``results`` in route order, ground truth ``gt``) and frames of a place the map does not
@@ -436,12 +431,11 @@ def off_map_report(
     frames-to-lock summaries, the frames from leaving until ``off_map`` >= 0.5
     (``frames_to_detect``), from re-entering until it is < 0.5 (``frames_back_on_map``) and
     until the estimate is right :data:`HOLD` frames in a row (``frames_to_relock``).
-    ``sketches``: the motion sketches of ``results`` then ``away_results`` (one list).
     """
     gt = np.asarray(gt, dtype=bool)
     nq, na = len(results), len(away_results)
     both = np.vstack([gt, np.zeros((na, gt.shape[1]), dtype=bool)])
-    evs = evidences_of([*results, *away_results], routes.n, params.proposals, profile, sketches)
+    evs = evidences_of([*results, *away_results], routes.n, params.proposals, profile)
     rng = np.random.default_rng(seed)
     after = min(after, nq - before)
     drives = leave_drives(nq, na, count, before, away, after, rng)

@@ -34,7 +34,12 @@ from hmpf.evaluation import SPLITS
 from hmpf.evaluation.batch import batch_outcome
 from hmpf.evaluation.data import EvalData, prepare
 from hmpf.evaluation.metrics import HierarchyOutcome, outcome_of, recall_at_n, run_queries
-from hmpf.evaluation.sequence import motion_sketches, sequence_report, tune_sequence
+from hmpf.evaluation.sequence import (
+    motion_sketches,
+    sequence_report,
+    sketch_results,
+    tune_sequence,
+)
 from hmpf.features import FeatureCache, extract_query
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn, feature_scorer
 from hmpf.imageio import load_image
@@ -227,14 +232,13 @@ class ScoreBank:
         """Every query's motion sketch for ``config``'s sequence filter
         (:func:`~hmpf.evaluation.sequence.motion_sketches`; None when it weighs no motion or
         the bank holds no features of the method sketched)."""
-        params = config.sequence_params()
-        if not params.motion:
+        if not config.sequence_params().motion:
             return None
         source = self.features or self.motion_features
         db = {m: f[0] for m, f in source.items()}
         qs = {m: f[1] for m, f in source.items()}
         routes = RouteMap.from_metadata(self.n_db)
-        return motion_sketches(params, self.methods, config.tiers[0].methods, db, qs, routes)
+        return motion_sketches(self.methods, config.tiers[0].methods, db, qs, routes)
 
     def profile(self, config: HierarchyConfig) -> ReferenceProfile:
         """The :class:`~hmpf.confidence.ReferenceProfile` of this part's references for
@@ -258,10 +262,7 @@ class ScoreBank:
         hier = Hierarchy(config, {m: self.methods[m] for m in config.method_ids})
         scorers = (self.scorer(q) for q in range(self.n_query))
         results, _ = run_queries(hier, scorers, self.n_db)
-        sketches = self.sketches(config)
-        if sketches is not None:  # a filter that weighs motion reads them from the results
-            for r, sketch in zip(results, sketches, strict=True):
-                r.sketch = sketch
+        sketch_results(results, self.sketches(config))  # a filter that weighs motion reads them
         return results
 
     def run(self, config: HierarchyConfig) -> HierarchyOutcome:

@@ -262,9 +262,7 @@ def test_score_bank_results_carry_the_sketches_of_a_filter_that_weighs_motion():
     results = bank.results(config)
     refs, qs = bank.features["sad"]
     routes = RouteMap.from_metadata(bank.n_db)
-    want = motion_sketches(
-        config.sequence_params(), bank.methods, ["sad", "gist"], {"sad": refs}, {"sad": qs}, routes
-    )
+    want = motion_sketches(bank.methods, ["sad", "gist"], {"sad": refs}, {"sad": qs}, routes)
     assert want is not None
     for r, w in zip(results, want, strict=True):
         assert r.sketch is not None and np.array_equal(r.sketch, w)
