@@ -20,10 +20,12 @@ coefficient 1, not fitted), so a held-out route's prior comes from its own map e
 the training maps' priors are all alike (a fitted coefficient could not be learnt from
 three Gardens Point maps and carried to Nordland).
 
-Three variants, each fitted as the shipped models are (:mod:`bench.shipped_acceptance`:
+Five variants, each fitted as the shipped models are (:mod:`bench.shipped_acceptance`:
 pooled over the routes' training parts, thresholds for 99 % precision on out-of-fold
-predictions) and checked on every route's test part with the models fitted on all routes
-(``pooled``) and leave one route out (``held_out``):
+predictions) and checked with the models fitted on all routes (``pooled``) and leave one
+route out (``held_out``) on every route's test part and on its whole traverse
+(:func:`bench.shipped_acceptance.evaluate_whole`: no stretches joined, so no estimate is
+wrong only because the part joins two stretches):
 
 * ``without``: the shipped procedure as it is;
 * ``map_prior``: ``map_prior`` added to both models as an offset;
@@ -32,7 +34,9 @@ predictions) and checked on every route's test part with the models fitted on al
   out-of-fold drives keep 99 % precision with the stay (else the entry threshold itself);
 * ``map_prior_every_route``: the same, with the sequence entry threshold chosen so that
   every training route's out-of-fold answers (not the routes pooled) keep 99 % precision
-  frame by frame (:func:`every_route_threshold`).
+  frame by frame (:func:`every_route_threshold`);
+* ``map_prior_stay_high``: the offset, and the stay threshold fixed at :data:`HIGH_STAY`
+  (an accepted estimate stays accepted while its ``p_correct`` is at least 0.9, not 0.5).
 
 Nothing is shipped by this bench.
 """
@@ -63,6 +67,8 @@ OUT = ROOT / "docs" / "experiments" / "acceptance" / "map_prior.json"
 #: Stay thresholds tried by ``map_prior_stay``, lowest first (the entry threshold caps them).
 STAYS = (STAY_P, 0.6, 0.7, 0.8, 0.9)
 Features = tuple[tuple[str, ...], tuple[str, ...]]
+#: The fixed stay threshold of ``map_prior_stay_high``.
+HIGH_STAY = 0.9
 #: The experience log's default threshold (``experience_min_p_correct``): the share of
 #: sequence answers at or above it is what a recording service would keep.
 RECORD_P = 0.99
@@ -125,8 +131,15 @@ def every_route_threshold(seqs: list[RoutePart], policy: Policy) -> float:
 
 
 def fit_variant(
-    parts: list[tuple[RoutePart, RoutePart]], features: Features, stay: bool, every: bool = False
+    parts: list[tuple[RoutePart, RoutePart]],
+    features: Features,
+    stay: bool | float,
+    every: bool = False,
 ) -> tuple[Policy, dict[str, Any]]:
+    """The pooled fit of ``parts`` on ``features``; ``stay``: True, the stay threshold
+    chosen as decided (:func:`choose_stay`); a number, that stay threshold (at most the
+    entry threshold); False, the shipped one. ``every``: the entry threshold of
+    :func:`every_route_threshold`."""
     policy, train = sa.fit([p[0] for p in parts], [p[1] for p in parts], features)
     if every:
         entry = every_route_threshold([p[1] for p in parts], policy)
@@ -136,8 +149,13 @@ def fit_variant(
             sequence_stay_threshold=min(STAY_P, entry),
         )
         train["every_route_threshold"] = entry
-    if stay:
+    if stay is True:
         policy, train["stay_choice"] = choose_stay([p[1] for p in parts], policy)
+        train["stay_threshold"] = policy.sequence_stay_threshold
+    elif stay is not False:
+        entry = policy.sequence_threshold
+        assert entry is not None
+        policy = replace(policy, sequence_stay_threshold=min(float(stay), entry))
         train["stay_threshold"] = policy.sequence_stay_threshold
     return policy, train
 
@@ -198,6 +216,7 @@ def main() -> int:
         "map_prior": (with_prior, False, False),
         "map_prior_stay": (with_prior, True, False),
         "map_prior_every_route": (with_prior, True, True),
+        "map_prior_stay_high": (with_prior, HIGH_STAY, False),
     }
     report: dict[str, Any] = {
         "config": args.config,
@@ -222,6 +241,7 @@ def main() -> int:
                 runs[label].append(ev)
                 row[label] = figures(ev)
                 row[label]["thresholds"] = policy.describe()
+                row[label]["whole"] = sa.evaluate_whole(r, policy, params, extra[r.name])
                 print(
                     f"{vname:15s} {r.name:13s} {label:8s} single {ev['single']['accepted']:.3f}"
                     f" ({ev['single']['precision']}) sequence {ev['sequence']['accepted']:.3f}"

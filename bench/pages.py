@@ -4210,6 +4210,7 @@ _MAP_PRIOR_VARIANTS = {
     "map_prior": "`map_prior` offset",
     "map_prior_stay": "offset + stay chosen as decided",
     "map_prior_every_route": "offset + 99 % on every route + stay as decided",
+    "map_prior_stay_high": "offset + stay 0.9",
 }
 
 
@@ -4292,6 +4293,79 @@ def _map_prior_table(root: Path, path: str) -> str:
         + ".\n"
         + source(path, rep, extra=f"Nordland: its first {rep['nordland_frames']} frames")
     )
+
+
+@generator("acceptance.map_prior_whole")
+def acceptance_map_prior_whole(root: Path) -> str:
+    """``python -m bench.map_prior``: the same models on each route's whole traverse."""
+    return _map_prior_whole_table(root, MAP_PRIOR)
+
+
+@generator("acceptance.map_prior_motion_cue_whole")
+def acceptance_map_prior_motion_cue_whole(root: Path) -> str:
+    """The same with the sequence filter's motion cue, on each route's whole traverse."""
+    return _map_prior_whole_table(root, MAP_PRIOR_MOTION)
+
+
+def _map_prior_whole_table(root: Path, path: str) -> str:
+    rep = load(root, path)
+
+    def share(x: dict[str, Any]) -> str:
+        prec = x["precision"]
+        return f"{x['accepted']:.3f}" + ("" if prec is None else f" ({prec:.3f})")
+
+    rows = []
+    for vname, label in _MAP_PRIOR_VARIANTS.items():
+        v = rep["variants"].get(vname)
+        if v is None:
+            continue
+        for route, row in v["routes"].items():
+            for fit_label, fit_name in (("pooled", "all routes"), ("held_out", "held out")):
+                r = row[fit_label]
+                w, q = r["whole"], r["whole"]["sequence"]
+                wrong = q["wrong_accepted"]
+                rows.append(
+                    [
+                        label,
+                        route,
+                        fit_name,
+                        str(q["n"]),
+                        share(w["single"]),
+                        share(q),
+                        f"{q['recall_at_1']:.3f}",
+                        f1(q["flips_per_100"]),
+                        _frame_list(wrong),
+                    ]
+                )
+    head = [
+        "models",
+        "route (whole traverse)",
+        "fitted on",
+        "frames",
+        "single: accepted (precision)",
+        "sequence: accepted (precision)",
+        "sequence recall@1",
+        "flips / 100",
+        "wrong sequence answers accepted (frames)",
+    ]
+    return table(head, rows) + source(
+        path, rep, extra=f"Nordland: its first {rep['nordland_frames']} frames"
+    )
+
+
+def _frame_list(frames: list[int], most: int = 12) -> str:
+    """``frames`` as ranges (``124-131``), the first ``most`` ranges; "none" when empty."""
+    if not frames:
+        return "none"
+    runs: list[list[int]] = []
+    for f in frames:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    text = [str(a) if a == b else f"{a}-{b}" for a, b in runs[:most]]
+    more = f" (+{len(runs) - most} more)" if len(runs) > most else ""
+    return ", ".join(text) + more
 
 
 MOTION_CUE_ACCEPTANCE = {

@@ -156,6 +156,15 @@ class Route:
         self.n_test = len(test.query)
         self.n_foreign = len(away)
         self.config = config
+        self._cache = cache
+        self._whole: ScoreBank | None = None
+
+    def whole(self) -> ScoreBank:
+        """The bank of the route's whole traverse (every reference, every query, in order:
+        no stretch joined to another), built on first use."""
+        if self._whole is None:
+            self._whole = ScoreBank.build(self.config, self.data, cache=self._cache)
+        return self._whole
 
 
 def limit_of(name: str, nordland_frames: int) -> int | None:
@@ -281,6 +290,35 @@ def evaluate(
         "accepted_in_map": float(accepted[~is_away].mean()),
     }
     return out
+
+
+def evaluate_whole(
+    route: Route, policy: Policy, params: FilterParams, extra: dict[str, float] | None = None
+) -> dict[str, Any]:
+    """The policy on the route's whole traverse: its map of every reference, its queries
+    driven once in order. Unlike a test part (stretches of 20 frames joined into one map
+    and one drive, where an estimate one reference behind across a join is 21 frames off),
+    no place is next to one it is not next to on the route. Only the held-out fit is new to
+    the route's frames; a Gardens Point traverse also appears in the other protocols'
+    training parts, paired with another traverse."""
+    bank, config = route.whole(), route.config
+    routes = RouteMap.from_metadata(bank.n_db)
+    results = bank.results(config)
+    profile = bank.profile(config)
+    single = with_constants(single_answers(results, bank.gt, routes, profile), extra)
+    seq = with_constants(sequence_answers(results, bank.gt, routes, params, None, profile), extra)
+    s = apply_acceptance(policy, single)
+    q = apply_acceptance(policy, seq, sequence=True)
+    acc = np.array(q["accepted_answers"], bool)
+    return {
+        "single": _figures(s, single),
+        "sequence": {
+            **_figures(q, seq),
+            "recall_at_1": float(seq.correct.mean()),
+            "flips_per_100": 100.0 * flips(acc) / len(acc),
+            "wrong_accepted": np.flatnonzero(acc & ~seq.correct).tolist(),
+        },
+    }
 
 
 def pooled_ece(runs: Any) -> dict[str, float]:

@@ -88,3 +88,15 @@ def test_every_route_threshold_is_the_lowest_that_holds_on_each_route():
     below = p[p < t]
     if len(below):
         assert not holds(float(below.max()))
+
+
+def test_a_fixed_stay_is_that_threshold_capped_by_the_entry_threshold():
+    parts = _parts(np.random.default_rng(3))
+    with_prior = (sa.SINGLE_FEATURES + ("map_prior",), sa.SEQUENCE_FEATURES + ("map_prior",))
+    shipped, _ = mp.fit_variant(parts, with_prior, stay=False)
+    entry = shipped.sequence_threshold
+    assert entry is not None
+    for asked in (0.3, mp.HIGH_STAY, 1.0):
+        policy, train = mp.fit_variant(parts, with_prior, stay=asked)
+        assert policy.sequence_threshold == entry  # the entry threshold is not touched
+        assert policy.sequence_stay_threshold == train["stay_threshold"] == min(asked, entry)
