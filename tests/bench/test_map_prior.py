@@ -100,3 +100,12 @@ def test_a_fixed_stay_is_that_threshold_capped_by_the_entry_threshold():
         policy, train = mp.fit_variant(parts, with_prior, stay=asked)
         assert policy.sequence_threshold == entry  # the entry threshold is not touched
         assert policy.sequence_stay_threshold == train["stay_threshold"] == min(asked, entry)
+
+
+def test_the_whole_traverse_table_lists_wrong_frames_as_ranges():
+    from bench.pages import _frame_list
+
+    assert _frame_list([]) == "none"
+    assert _frame_list([77, 78, 124, 125, 126, 168]) == "77-78, 124-126, 168"
+    many = [i * 3 for i in range(14)]  # 14 separate frames
+    assert _frame_list(many, most=12).endswith("30, 33 (+2 more)")
