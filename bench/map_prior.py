@@ -43,8 +43,6 @@ Nothing is shipped by this bench.
 
 from __future__ import annotations
 
-import math
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -58,8 +56,7 @@ from hmpf.acceptance import STAY_P, Policy
 from hmpf.config import HierarchyConfig
 from hmpf.datasets import dataset_root, list_images
 from hmpf.evaluation.acceptance import RoutePart
-from hmpf.evaluation.auto import pseudo_bank
-from hmpf.evaluation.pseudo import plan, route_positions
+from hmpf.evaluation.auto import map_prior
 from hmpf.features import FeatureCache
 from hmpf.runtime import default_cache_dir
 
@@ -78,20 +75,9 @@ def pseudo_recall(
     config: HierarchyConfig, paths: list[Path], cache: FeatureCache, seed: int = 0
 ) -> dict[str, Any]:
     """The hierarchy's recall@1 on pseudo-queries of the references ``paths`` (one route,
-    in order), with the plan's sizes."""
-    t0 = time.perf_counter()
-    plan_ = plan(route_positions(len(paths)), seed=seed)
-    with tempfile.TemporaryDirectory(prefix="hmpf-map-prior-") as tmp:
-        bank, _ = pseudo_bank(config, paths, plan_, Path(tmp), cache=cache)
-    right = [bool(bank.gt[i, r.match]) for i, r in enumerate(bank.results(config))]
-    recall = float(np.mean(right))
-    return {
-        "references": len(paths),
-        "pseudo_queries": len(right),
-        "recall_at_1": recall,
-        "map_prior": math.log(recall / (1.0 - recall)),
-        "seconds": time.perf_counter() - t0,
-    }
+    in order), with the plan's sizes (:func:`hmpf.evaluation.auto.map_prior`, what an index
+    stores)."""
+    return map_prior(config, paths, cache=cache, seed=seed)
 
 
 def choose_stay(seqs: list[RoutePart], policy: Policy) -> tuple[Policy, dict[str, Any]]:

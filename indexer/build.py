@@ -43,7 +43,7 @@ import numpy as np
 import hmpf.features as hfeatures
 from hmpf.confidence import profile_params
 from hmpf.config import HierarchyConfig, build_methods, load_config
-from hmpf.errors import ImageError
+from hmpf.errors import DatasetError, ImageError
 from hmpf.evaluation.auto import choose_config
 from hmpf.features import FeatureCache, extract_images, file_digest
 from hmpf.index import layout, thumbnails
@@ -547,6 +547,8 @@ class NewVersion:
             :class:`Summary` ``experiences``); None for other operations.
         choice: why ``build --config auto`` chose the config (manifest ``choice``); None
             otherwise.
+        map_prior: the manifest's ``map_prior`` entry (:func:`map_prior_entry`); None: the
+            parent's, if it has one under the same config, else none.
     """
 
     config: HierarchyConfig
@@ -559,6 +561,7 @@ class NewVersion:
     thumbnails: Ragged | None = None
     report: dict[str, Any] | None = None
     choice: dict[str, Any] | None = None
+    map_prior: dict[str, Any] | None = None
 
 
 class VersionTransaction:
@@ -801,7 +804,55 @@ def _manifest(
         out["experiences"] = new.report
     if new.choice is not None:
         out["choice"] = new.choice
+    prior = new.map_prior if new.map_prior is not None else _carried_prior(new)
+    if prior is not None:
+        out["map_prior"] = prior
     return out
+
+
+def map_prior_entry(
+    config: HierarchyConfig,
+    paths: Sequence[Path],
+    refs: RefTable,
+    cache: FeatureCache | None,
+    options: BuildOptions,
+) -> dict[str, Any]:
+    """The manifest's ``map_prior`` entry: the config's recall@1 on pseudo-queries of the
+    references ``paths`` (``refs``' rows, their metadata giving the route order;
+    :func:`hmpf.evaluation.auto.map_prior`), under the config's digest. Too few references
+    to make pseudo-queries from: the entry says why, with no value."""
+    from hmpf.evaluation.auto import map_prior
+
+    meta: dict[str, Any] = {
+        k: refs.meta[k] for k in ("sequence", "timestamp", "lat", "lon") if k in refs.meta
+    }
+    entry: dict[str, Any] = {"config_sha256": config.digest()}
+    try:
+        entry.update(
+            map_prior(
+                config,
+                list(paths),
+                metadata=meta,
+                cache=cache,
+                workers=options.workers,
+                progress=options.progress,
+            )
+        )
+    except DatasetError as exc:
+        entry.update({"map_prior": None, "why_none": str(exc)})
+    return entry
+
+
+def _carried_prior(new: NewVersion) -> dict[str, Any] | None:
+    """The parent's ``map_prior`` entry for a version derived from it under the same config
+    (``add``, ``remove``, experiences), marked with the version it was computed in; None
+    without one."""
+    if new.parent is None:
+        return None
+    entry = new.parent.manifest.get("map_prior")
+    if not isinstance(entry, dict) or entry.get("config_sha256") != new.config.digest():
+        return None
+    return {**entry, "computed_in": entry.get("computed_in", new.parent.version)}
 
 
 def _choice_summary(choice: Mapping[str, Any] | None) -> dict[str, Any] | None:
@@ -861,8 +912,13 @@ def build(
     seed: int = 0,
     cache: FeatureCache | None = None,
     auto_options: Mapping[str, Any] | None = None,
+    with_map_prior: bool = False,
 ) -> Summary:
     """Extract every method for every image of ``images`` and publish a new version.
+
+    ``with_map_prior``: also store the config's recall@1 on pseudo-queries of the
+    references (:func:`map_prior_entry`; the manifest's ``map_prior``, carried to the
+    versions derived from this one), through ``cache`` when given.
 
     ``config`` ``"auto"`` (:data:`AUTO`) chooses the hierarchy and its acceptance models from
     the readable references and ``metadata`` alone, on pseudo-queries made from them
@@ -901,7 +957,10 @@ def build(
         refs = refs.select(_kept(refs, paths))
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
         thumbs = _thumbnails(paths, refs, tx.work)
-        new = NewVersion(cfg, methods, refs, cols, opt, thumbnails=thumbs, choice=choice)
+        prior = map_prior_entry(cfg, paths, refs, cache, opt) if with_map_prior else None
+        new = NewVersion(
+            cfg, methods, refs, cols, opt, thumbnails=thumbs, choice=choice, map_prior=prior
+        )
         return tx.publish(new, extracted=len(refs), resumed=resumed, skipped=skipped)
 
 

@@ -124,10 +124,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--cache-dir",
-        help=f"with --config auto: the feature cache the choice reads and fills (default "
-        f"{default_cache_dir()}), so a rerun or --resume does not extract its sample again",
+        help="with --config auto or --map-prior: the feature cache the choice or the "
+        f"pseudo-queries read and fill (default {default_cache_dir()}), so a rerun or "
+        "--resume does not extract them again",
     )
-    b.add_argument("--no-cache", action="store_true", help="with --config auto: no cache")
+    b.add_argument(
+        "--no-cache", action="store_true", help="with --config auto or --map-prior: no cache"
+    )
+    b.add_argument(
+        "--map-prior",
+        action="store_true",
+        help="also store the config's recall@1 on pseudo-queries made from the references "
+        "(the acceptance models' map-level prior; extracts a few hundred more images; "
+        "hmpf-index info shows it)",
+    )
     _add_write_options(b)
 
     a = sub.add_parser(
@@ -289,6 +299,9 @@ def _print_info(args: argparse.Namespace) -> int:
             f"candidates, {choice['time_s']['total_s']:.0f} s): {choice['chosen']['hierarchy']}: "
             f"{choice['chosen']['why']} (all of it: --json, key choice)"
         )
+    prior = data.get("map_prior")
+    if prior:
+        print(map_prior_line(prior))
     print(f"bytes {s.get('bytes_total')}  built in {s.get('seconds', 0):.1f} s")
     for mid, m in data["methods"].items():
         fa = m.get("faiss") or {}
@@ -298,6 +311,17 @@ def _print_info(args: argparse.Namespace) -> int:
     for n in data.get("names", []):
         print(n)
     return 0
+
+
+def map_prior_line(entry: dict[str, object]) -> str:
+    """``hmpf-index info``'s line for a manifest's ``map_prior`` entry."""
+    where = f", computed in {entry['computed_in']}" if entry.get("computed_in") else ""
+    if entry.get("map_prior") is None:
+        return f"map prior: none ({entry.get('why_none', 'not computed')}){where}"
+    return (
+        f"map prior {entry['map_prior']:+.2f}: recall@1 {entry['recall_at_1']:.3f} on "
+        f"{entry['pseudo_queries']} pseudo-queries of the references{where}"
+    )
 
 
 def _verify(args: argparse.Namespace) -> int:
@@ -367,8 +391,11 @@ def _run(args: argparse.Namespace) -> int:
 
     cmd = args.command
     if cmd == "build":
-        if args.config != "auto" and (args.seed != 0 or args.cache_dir or args.no_cache):
-            raise HmpfError("--seed, --cache-dir and --no-cache go with --config auto")
+        if args.config != "auto" and args.seed != 0:
+            raise HmpfError("--seed can only go with --config auto")
+        if args.config != "auto" and not args.map_prior and (args.cache_dir or args.no_cache):
+            raise HmpfError("--cache-dir and --no-cache go with --config auto or --map-prior")
+        uses_cache = args.config == "auto" or args.map_prior
         summary = build(
             args.config,
             args.images,
@@ -377,7 +404,8 @@ def _run(args: argparse.Namespace) -> int:
             options=_options(args),
             resume=args.resume,
             seed=args.seed,
-            cache=cache_from_args(args) if args.config == "auto" else None,
+            cache=cache_from_args(args) if uses_cache else None,
+            with_map_prior=args.map_prior,
         )
     elif cmd == "add" and args.experiences:
         return _merge(args)

@@ -295,6 +295,47 @@ def pseudo_bank(
     return ScoreBank(methods, scores, plan_.gt.copy(), data, feats), times
 
 
+def map_prior(
+    config: HierarchyConfig,
+    reference_paths: Sequence[str | Path],
+    *,
+    metadata: Mapping[str, Any] | None = None,
+    cache: FeatureCache | None = None,
+    seed: int = 0,
+    workers: int | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """How well ``config`` tells the map's own places apart: its recall@1 on pseudo-queries
+    made from the references (:func:`~hmpf.evaluation.pseudo.plan`, :func:`pseudo_bank`),
+    and ``map_prior``, that recall's log-odds (the recall kept within half a query of 0 and
+    1, so the log-odds stay finite). No query and no ground truth are needed, so an index
+    can store it when a version is written; the acceptance models read it as the
+    ``map_prior`` offset (``docs/experiments/acceptance/README.md``).
+
+    Raises:
+        DatasetError: too few references along a route to make pseudo-queries from.
+    """
+    t0 = time.perf_counter()
+    paths = [Path(p) for p in reference_paths]
+    plan_ = plan(route_positions(len(paths), metadata), seed=seed)
+    with tempfile.TemporaryDirectory(prefix="hmpf-map-prior-") as tmp:
+        bank, _ = pseudo_bank(
+            config, paths, plan_, Path(tmp), cache=cache, workers=workers, progress=progress
+        )
+        right = [bool(bank.gt[i, r.match]) for i, r in enumerate(bank.results(config))]
+    n = len(right)
+    recall = float(np.mean(right))
+    kept = min(max(recall, 0.5 / n), 1.0 - 0.5 / n)
+    return {
+        "references": len(paths),
+        "pseudo_queries": n,
+        "seed": seed,
+        "recall_at_1": recall,
+        "map_prior": float(np.log(kept / (1.0 - kept))),
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+
+
 def _one_blas_thread() -> contextlib.AbstractContextManager[Any]:
     """One BLAS thread while scoring: one query's products are small, and a multi-threaded
     BLAS on a busy machine stalls on them (OLO's batched products against 100 references:

@@ -426,6 +426,27 @@ class IndexReader:
                 )
         return places
 
+    def map_prior(self) -> float | None:
+        """The version's map-level prior (the manifest's ``map_prior``: the log-odds of its
+        config's recall@1 on pseudo-queries of the references, ``hmpf-index build
+        --map-prior``); None when the version has none, none could be computed, or it was
+        computed under another config.
+
+        Raises:
+            IndexCorruptError: an entry whose value is not a finite number.
+        """
+        entry = self.manifest.get("map_prior")
+        if not isinstance(entry, dict) or entry.get("config_sha256") != self.config.digest():
+            return None
+        value = entry.get("map_prior")
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+            raise IndexCorruptError(
+                f"{self.path / layout.MANIFEST}: map_prior {value!r} is not a finite number"
+            )
+        return float(value)
+
     def _open_thumbnails(self) -> ThumbnailStore | None:
         entry = self.manifest.get("thumbnails")
         if not isinstance(entry, dict) or not entry.get("file"):
