@@ -45,6 +45,7 @@ import numpy as np
 
 from hmpf.confidence import (
     FEATURES,
+    MAP_FEATURES,
     PROFILE_FEATURES,
     SEQUENCE_FEATURES,
     ConfidenceModel,
@@ -160,8 +161,8 @@ class Policy:
         model = settings.confidence_model()
         seq = settings.confidence_model(sequence=True)
         for name, m, known in (
-            ("model", model, (*FEATURES, "ref_z")),
-            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES),
+            ("model", model, (*FEATURES, "ref_z", *MAP_FEATURES)),
+            ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES),
         ):
             extra = [] if m is None else [f for f in m.features if f not in known]
             if extra:
@@ -182,13 +183,36 @@ class Policy:
 
     @property
     def needs_profile(self) -> bool:
-        """Whether a model reads absolute evidence (the references' profile)."""
+        """Whether a model reads absolute evidence or the map's prior (both come with the
+        references' profile)."""
         return any(
-            f in PROFILE_FEATURES
+            f in PROFILE_FEATURES or f in MAP_FEATURES
             for m in (self.model, self.sequence_model)
             if m is not None
             for f in m.features
         )
+
+    @property
+    def needs_map_prior(self) -> bool:
+        """Whether a model reads the map's prior (``map_prior``)."""
+        return any(
+            f in MAP_FEATURES
+            for m in (self.model, self.sequence_model)
+            if m is not None
+            for f in m.features
+        )
+
+    def check_map_prior(self, profile: ReferenceProfile | None, label: str = "the map") -> None:
+        """Refuse a map whose profile lacks the prior a model reads.
+
+        Raises:
+            ModelError: a model reads ``map_prior`` and ``profile`` does not know it.
+        """
+        if self.needs_map_prior and (profile is None or profile.map_prior is None):
+            raise ModelError(
+                f"{label}: the acceptance models read the map's prior (map_prior), which this "
+                "version does not store; build it with hmpf-index build --map-prior"
+            )
 
     @property
     def single_rule(self) -> AcceptedBy:

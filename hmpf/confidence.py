@@ -36,6 +36,7 @@ if TYPE_CHECKING:  # annotations only: hmpf.hierarchy sits above this module (it
 
 __all__ = [
     "ALL_FEATURES",
+    "MAP_FEATURES",
     "FEATURES",
     "FORMAT",
     "FORMAT_VERSION",
@@ -74,8 +75,11 @@ SEQUENCE_FEATURES = ("sequence_mass", "sequence_logit", "sequence_agrees")
 #: Absolute evidence, added when a :class:`ReferenceProfile` is given (``sequence_ref_z``
 #: with an estimate too).
 PROFILE_FEATURES = ("ref_z", "sequence_ref_z")
+#: A property of the map, the same for every answer, added when the profile knows it
+#: (:attr:`ReferenceProfile.map_prior`, stored by ``hmpf-index build --map-prior``).
+MAP_FEATURES = ("map_prior",)
 #: Every feature a model may use.
-ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES
+ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES
 #: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
 LOGIT_CLIP = 20.0
 
@@ -197,7 +201,8 @@ def answer_features(
     the map's references with each other, so a query from a place the map does not hold
     can look as good as a right one); with an estimate too, ``sequence_ref_z``, the same at
     the estimate's reference. No raw score there (not scored, a result without raw
-    scores): 0, an unrelated reference's score.
+    scores): 0, an unrelated reference's score. A profile that knows its map's prior
+    (:attr:`ReferenceProfile.map_prior`) adds ``map_prior``, the same for every answer.
 
     Without an answer (``match`` < 0, no candidates) every feature takes its "no evidence"
     value: 0, and ``tier1_rank`` the database's size (as log1p).
@@ -273,6 +278,8 @@ def answer_features(
         if estimate is not None:
             ref = int(estimate.ref)
             out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0
+        if profile.map_prior is not None:
+            out["map_prior"] = float(profile.map_prior)
     return out
 
 
@@ -314,12 +321,17 @@ class ReferenceProfile:
         methods: the profiled method ids (the tier's global methods).
         sign: per method, +1 (higher is better) or -1 (distances).
         mean, std: (len(methods), N) per method and reference.
+        map_prior: the map's prior, if known (an index version's
+            :meth:`~hmpf.index.reader.IndexReader.map_prior`): every answer against this map
+            gets it as its ``map_prior`` feature (:func:`answer_features`). Not part of what
+            is stored with the profile.
     """
 
     methods: tuple[str, ...]
     sign: tuple[float, ...]
     mean: np.ndarray
     std: np.ndarray
+    map_prior: float | None = None
 
     @classmethod
     def build(
@@ -424,7 +436,9 @@ class ReferenceProfile:
     def subset(self, keep: np.ndarray) -> ReferenceProfile:
         """The profile of the references ``keep`` (a map with some references removed)."""
         k = np.asarray(keep, dtype=np.int64)
-        return ReferenceProfile(self.methods, self.sign, self.mean[:, k], self.std[:, k])
+        return ReferenceProfile(
+            self.methods, self.sign, self.mean[:, k], self.std[:, k], self.map_prior
+        )
 
     def z(self, raw: Mapping[str, np.ndarray], ref: int) -> float:
         """The lowest, over the profiled methods, of ``sign * (raw - mean) / std`` at ``ref``

@@ -39,7 +39,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from hmpf.confidence import PROFILE_FEATURES, ConfidenceModel
+from hmpf.confidence import MAP_FEATURES, PROFILE_FEATURES, ConfidenceModel
 from hmpf.errors import ConfigError, HmpfError
 from hmpf.fusion import default_weights
 from hmpf.methods import Method, create_method, get_method_class
@@ -179,10 +179,11 @@ class AcceptanceSettings(BaseModel):
 
     @property
     def needs_profile(self) -> bool:
-        """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`),
-        so whoever applies it must build the references' profile."""
+        """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`)
+        or the map's prior (:data:`~hmpf.confidence.MAP_FEATURES`), so whoever applies it
+        must build the references' profile."""
         feats = [f for m in (self.model, self.sequence_model) if m for f in m.get("features", ())]
-        return any(f in PROFILE_FEATURES for f in feats)
+        return any(f in PROFILE_FEATURES or f in MAP_FEATURES for f in feats)
 
     def confidence_model(self, sequence: bool = False) -> Any:
         """The :class:`~hmpf.confidence.ConfidenceModel` (single frame, or ``sequence``), or

@@ -193,6 +193,7 @@ class Loaded:
             # Always: the models read it, and the sequence filter's off-map state weighs
             # each frame's absolute evidence with it.
             profile = reader.reference_profile()
+            acceptance.check_map_prior(profile, str(reader.path))
             # Positions are the places' (their original references', rows 0 .. P-1).
             meta, P = reader.refs.meta, reader.n
             lat = None if meta.get("lat") is None else meta["lat"][:P]

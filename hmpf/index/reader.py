@@ -569,11 +569,12 @@ class IndexReader:
         if self._profile is None:
             tier1 = [m for m in self.config.tiers[0].methods if m in self._globals]
             stored = stored_profile(self.path, self.manifest, tier1, self.n)
-            self._profile = (
+            profile = (
                 stored
                 if stored is not None
                 else places_profile(self.config, self.methods, self._globals, self.route_map())
             )
+            self._profile = dataclasses.replace(profile, map_prior=self.map_prior())
         return self._profile
 
     def extract_query(

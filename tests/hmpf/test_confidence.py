@@ -506,3 +506,39 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
         m.predict(plain)
     with pytest.raises(ModelError, match="ref_z"):
         feature_matrix([plain], m.features)
+
+
+def test_a_profile_that_knows_its_maps_prior_gives_every_answer_map_prior() -> None:
+    from dataclasses import replace
+
+    from hmpf.acceptance import Policy
+    from hmpf.confidence import ALL_FEATURES, MAP_FEATURES, ModelError, ReferenceProfile
+
+    res = make_result()
+    res.tiers[0].raw = {"a": np.linspace(0.0, 0.9, 10)}
+    prof = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.1), np.full((1, 10), 0.2))
+    without = answer_features(res, ROUTES, profile=prof)
+    assert "map_prior" not in without
+    known = replace(prof, map_prior=-1.25)
+    est = Estimate(ref=7, mass=0.9, locked=True, speed=1.0, frames=3)
+    for f, plain in (
+        (answer_features(res, ROUTES, profile=known), without),
+        (answer_features(res, ROUTES, estimate=est, profile=known),
+         answer_features(res, ROUTES, estimate=est, profile=prof)),
+    ):  # fmt: skip
+        assert f.pop("map_prior") == -1.25 and f == plain
+    assert known.subset(np.array([1, 3])).map_prior == -1.25
+    # a model may read it; a policy with such a model refuses a profile without it
+    assert set(MAP_FEATURES) <= set(ALL_FEATURES)
+    names = ("quality", "map_prior")
+    x = np.array([[0.0, 1.0], [1.0, -1.0], [2.0, 0.5], [3.0, 0.0]])
+    model = ConfidenceModel.fit(x, [False, False, True, True], names)
+    assert ConfidenceModel.from_dict(model.to_dict()) == model
+    policy = Policy(2.0, model, 0.5)
+    assert policy.needs_profile and policy.needs_map_prior
+    policy.check_map_prior(known)
+    for missing in (prof, None):
+        with pytest.raises(ModelError, match="--map-prior"):
+            policy.check_map_prior(missing)
+    assert not Policy(2.0).needs_map_prior
+    Policy(2.0).check_map_prior(None)  # no model reads it: nothing to refuse

@@ -63,6 +63,8 @@ def test_the_stored_prior_is_the_configs_pseudo_query_recall_on_the_references(
     assert entry["map_prior"] == pytest.approx(math.log(kept / (1 - kept)), abs=1e-12)
     with IndexReader(built) as reader:
         assert reader.map_prior() == pytest.approx(entry["map_prior"], abs=0)
+        # every answer against the version gets it through the references' profile
+        assert reader.reference_profile().map_prior == reader.map_prior()
 
 
 def test_a_version_derived_from_it_carries_the_prior_and_says_where_it_was_computed(

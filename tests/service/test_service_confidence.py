@@ -131,14 +131,19 @@ def _build_version(service_index: Path, root: Path, acceptance: dict[str, Any] |
 def _tamper(root: Path, version: str, change: Any) -> str:
     """A copy of ``version`` whose stored config's acceptance is changed by ``change`` (as
     an index made by another hmpf, or damaged, would hold it), made current."""
+    return _copy_with(root, version, lambda m: change(m["config"]["resolved"]["acceptance"]))
+
+
+def _copy_with(root: Path, version: str, change: Any) -> str:
+    """A copy of ``version`` whose manifest is changed by ``change``, made current."""
     versions = layout.list_versions(root)
     new = f"v{int(versions[-1][1:]) + 1:04d}"
     shutil.copytree(root / version, root / new)
     path = root / new / layout.MANIFEST
     manifest = json.loads(path.read_text())
     manifest["version"] = new
-    change(manifest["config"]["resolved"]["acceptance"])
-    layout.write_manifest(path.parent, manifest)  # sealed: the acceptance is what is checked
+    change(manifest)
+    layout.write_manifest(path.parent, manifest)  # sealed: the change is what is checked
     layout.set_current(root, new)
     return new
 
@@ -497,3 +502,70 @@ def test_hmpf_eval_on_the_index_gives_the_services_p_correct(
     assert seq["p_correct"] == pytest.approx([m["p_correct"] for m in served], abs=5e-3)
     assert seq["accepted_answers"] == [m["accepted"] for m in served]
     assert seq["off_map"] == off
+
+
+# -- a model that reads the map's prior ---------------------------------------------------------
+def _with_offset(model: dict[str, Any]) -> dict[str, Any]:
+    """``model`` with ``map_prior`` added as an offset (coefficient 1, unscaled), as the
+    acceptance benches fit it."""
+    return {
+        **model,
+        "features": [*model["features"], "map_prior"],
+        "mean": [*model["mean"], 0.0],
+        "scale": [*model["scale"], 1.0],
+        "coef": [*model["coef"], 1.0],
+    }
+
+
+def _set_prior(value: float) -> Any:
+    def change(manifest: dict[str, Any]) -> None:
+        manifest["map_prior"] = {
+            "config_sha256": manifest["config"]["sha256"],
+            "recall_at_1": 0.5,
+            "pseudo_queries": 40,
+            "map_prior": value,
+        }
+
+    return change
+
+
+def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
+    service_index: Path, models: dict[str, Any], keys: dict[str, str], night: list[Path],
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    acc = _acceptance(models)
+    acc["model"] = _with_offset(acc["model"])
+    acc["sequence_model"] = _with_offset(acc["sequence_model"])
+    root = tmp_path / "index"
+    bare = _build_version(service_index, root, acc)  # 20 references: no prior stored
+    monkeypatch.setenv("HMPF_AUTH", "false")
+    assert serve_main(["--index", str(root), "--port", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "map_prior" in err and "hmpf-index build --map-prior" in err and "Traceback" not in err
+    frames = [night[i] for i in TEST]
+    logits = {}
+    for value in (1.5, -2.0):
+        _copy_with(root, bare, _set_prior(value))
+        reader = IndexReader(root)
+        try:
+            assert reader.map_prior() == value
+            profile = reader.reference_profile()
+            model = reader.config.acceptance.confidence_model()  # type: ignore[union-attr]
+            results = [
+                reader.hierarchy().run(reader.scorer(reader.extract_query(_rgb(f))), reader.n)
+                for f in frames
+            ]
+            feats = [answer_features(r, reader.route_map(), profile=profile) for r in results]
+        finally:
+            reader.close()
+        assert all(f["map_prior"] == value for f in feats)
+        with _client(root, keys) as c:
+            served = [_post(c, keys, f)["match"] for f in frames]
+        p = np.array([m["p_correct"] for m in served])
+        assert p == pytest.approx([model.predict(f) for f in feats], rel=1e-9, abs=1e-12)
+        # hmpf-eval --index decides with the same prior: the same probabilities
+        rep = evaluate_frames(root, frames, list(TEST), TOLERANCE)
+        assert rep["acceptance"]["single"]["p_correct"] == pytest.approx(p, rel=1e-9, abs=1e-12)
+        logits[value] = np.log(p) - np.log1p(-p)
+    # an offset: the prior moves every answer's log-odds by exactly its own change
+    assert logits[1.5] - logits[-2.0] == pytest.approx(np.full(len(frames), 3.5), abs=1e-6)
