@@ -43,6 +43,7 @@ camera and season). With ``--write`` the shipped fit goes to
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Iterable
@@ -70,6 +71,7 @@ from hmpf.evaluation.acceptance import (
     sequence_answers,
     single_answers,
 )
+from hmpf.evaluation.auto import map_prior
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import Drive, training_drives
 from hmpf.evaluation.study import ScoreBank, split_data
@@ -126,6 +128,7 @@ class Route:
         cache: FeatureCache,
         foreign: int,
         limit: int | None = None,
+        map_prior: float | None = None,
     ) -> None:
         ref, qry, other, train_other = ROUTES[name]
         root = dataset_root()
@@ -156,6 +159,10 @@ class Route:
         self.n_test = len(test.query)
         self.n_foreign = len(away)
         self.config = config
+        #: The map's prior (:func:`route_prior`), given to every bank's profile and so to
+        #: every answer's features; None: unknown (no model here reads it).
+        self.map_prior = map_prior
+        self.train.map_prior = self.test.map_prior = map_prior
         self._cache = cache
         self._whole: ScoreBank | None = None
 
@@ -164,7 +171,18 @@ class Route:
         no stretch joined to another), built on first use."""
         if self._whole is None:
             self._whole = ScoreBank.build(self.config, self.data, cache=self._cache)
+            self._whole.map_prior = self.map_prior
         return self._whole
+
+
+def route_prior(
+    config: HierarchyConfig, name: str, cache: FeatureCache, nordland_frames: int
+) -> dict[str, Any]:
+    """Route ``name``'s map prior (:func:`hmpf.evaluation.auto.map_prior`): the config's
+    recall@1 on pseudo-queries of the route's reference traverse (the frames the route
+    uses), as ``hmpf-index build --map-prior`` stores it for a map of those references."""
+    paths = list_images(dataset_root() / ROUTES[name][0])[: limit_of(name, nordland_frames)]
+    return map_prior(config, paths, cache=cache)
 
 
 def limit_of(name: str, nordland_frames: int) -> int | None:
@@ -357,16 +375,18 @@ def fit(
     singles: list[RoutePart],
     seqs: list[RoutePart],
     features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
+    stay: float = STAY_P,
 ) -> tuple[Policy, dict[str, Any]]:
     """The pooled models of ``singles`` / ``seqs`` (on ``features``: single frame,
-    sequence) and their thresholds, as a policy."""
+    sequence) and their thresholds, as a policy; ``stay``: the sequence stay threshold
+    (hysteresis), at most the entry threshold."""
     single_features, sequence_features = features
     model, thr, s_train = fit_pooled(singles, single_features, TARGET, outside_share=OFF_SHARE)
     smodel, sthr, q_train = fit_pooled(seqs, sequence_features, TARGET, outside_share=OFF_SHARE)
     policy = Policy(
         model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
     )
-    stay = min(STAY_P, sthr)
+    stay = min(stay, sthr)
     policy = replace(policy, sequence_stay_threshold=stay)
     q_train["as_decided"] = as_decided(seqs, policy)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
@@ -427,13 +447,76 @@ def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
     return out
 
 
-def held_out(parts: list[tuple[RoutePart, RoutePart]]) -> list[tuple[Policy, dict[str, Any]]]:
+class Recipe(NamedTuple):
+    """How the shipped models are fitted: each model's features and the sequence stay
+    threshold (at most the entry threshold). A recipe whose features include ``map_prior``
+    needs each route's prior (:func:`route_prior`)."""
+
+    single: tuple[str, ...] = SINGLE_FEATURES
+    sequence: tuple[str, ...] = SEQUENCE_FEATURES
+    stay: float = STAY_P
+
+    @property
+    def features(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        return self.single, self.sequence
+
+    @property
+    def needs_prior(self) -> bool:
+        return "map_prior" in self.single + self.sequence
+
+    @classmethod
+    def of(cls, map_prior: bool, stay: float = STAY_P) -> Recipe:
+        """The shipped features, with ``map_prior`` added to both models or not."""
+        extra = ("map_prior",) if map_prior else ()
+        return cls(SINGLE_FEATURES + extra, SEQUENCE_FEATURES + extra, stay)
+
+    def describe(self) -> dict[str, Any]:
+        return {"single": list(self.single), "sequence": list(self.sequence), "stay": self.stay}
+
+
+#: What made the models shipped before recipes were recorded.
+DEFAULT_RECIPE = Recipe()
+
+
+def shipped_recipe(preset: str) -> Recipe:
+    """The recipe ``hmpf/presets/acceptance/<preset>.json`` was fitted with (its
+    ``recipe``; a file without one: the default recipe, which made it)."""
+    path = ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json"
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    r = doc.get("recipe")
+    if not r:
+        return DEFAULT_RECIPE
+    return Recipe(tuple(r["single"]), tuple(r["sequence"]), float(r["stay"]))
+
+
+def route_priors(
+    config: HierarchyConfig, names: Iterable[str], cache: FeatureCache, nordland_frames: int,
+    recipe: Recipe,
+) -> dict[str, float | None]:  # fmt: skip
+    """Each route's prior when the recipe reads it (:func:`route_prior`, once per reference
+    traverse), else None."""
+    out: dict[str, float | None] = {}
+    by_folder: dict[str, float] = {}
+    for name in names:
+        if not recipe.needs_prior:
+            out[name] = None
+            continue
+        folder = ROUTES[name][0]
+        if folder not in by_folder:
+            by_folder[folder] = route_prior(config, name, cache, nordland_frames)["map_prior"]
+        out[name] = by_folder[folder]
+    return out
+
+
+def held_out(
+    parts: list[tuple[RoutePart, RoutePart]], recipe: Recipe = DEFAULT_RECIPE
+) -> list[tuple[Policy, dict[str, Any]]]:
     """Leave one route out: per route of ``parts`` (:func:`training_part`), the policy
-    fitted (:func:`fit`) on the other routes' training parts only."""
+    fitted (:func:`fit`, with ``recipe``) on the other routes' training parts only."""
     out = []
     for i in range(len(parts)):
         rest = [p for j, p in enumerate(parts) if j != i]
-        out.append(fit([p[0] for p in rest], [p[1] for p in rest]))
+        out.append(fit([p[0] for p in rest], [p[1] for p in rest], recipe.features, recipe.stay))
     return out
 
 
@@ -483,9 +566,14 @@ def model_sets(preset: str, names: Iterable[str], foreign: int, nordland_frames:
     params = shipped_config.sequence_params()
     no_model = Policy.of(None, lock_mass=params.lock_mass)
     cache = FeatureCache(default_cache_dir())
-    routes = [Route(n, config, cache, foreign, limit_of(n, nordland_frames)) for n in names]
+    recipe = shipped_recipe(preset)
+    names = list(names)
+    priors = route_priors(config, names, cache, nordland_frames, recipe)
+    routes = [
+        Route(n, config, cache, foreign, limit_of(n, nordland_frames), priors[n]) for n in names
+    ]
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    folds = held_out([training_part(r, params) for r in routes])
+    folds = held_out([training_part(r, params) for r in routes], recipe)
     print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
     return ModelSets(shipped_config, config, shipped, params, no_model, routes, folds)
 
@@ -572,13 +660,19 @@ def goals(report: dict[str, Any]) -> list[str]:
 
 
 def fold_reports(
-    routes: list[Route], parts: list[tuple[RoutePart, RoutePart]], params: FilterParams, t0: float
+    routes: list[Route],
+    parts: list[tuple[RoutePart, RoutePart]],
+    params: FilterParams,
+    t0: float,
+    recipe: Recipe = DEFAULT_RECIPE,
 ) -> dict[str, Any]:
-    """Per route: the policy fitted on the other routes (:func:`held_out`) on its test part."""
+    """Per route: the policy fitted on the other routes (:func:`held_out`) on its test part
+    and its whole traverse (:func:`evaluate_whole`)."""
     out = {}
-    for route, (policy, train) in zip(routes, held_out(parts), strict=True):
+    for route, (policy, train) in zip(routes, held_out(parts, recipe), strict=True):
         out[route.name] = {
             **evaluate(route, policy, params),
+            "whole": evaluate_whole(route, policy, params),
             "train": train,
             "thresholds": policy.describe(),
         }
@@ -587,30 +681,48 @@ def fold_reports(
 
 
 def shipped_report(
-    routes: list[Route], parts: list[tuple[RoutePart, RoutePart]], params: FilterParams
+    routes: list[Route],
+    parts: list[tuple[RoutePart, RoutePart]],
+    params: FilterParams,
+    recipe: Recipe = DEFAULT_RECIPE,
 ) -> tuple[Policy, dict[str, Any]]:
-    """The shipped fit (every route's training part) and its figures on every test part."""
-    policy, train = fit([p[0] for p in parts], [p[1] for p in parts])
+    """The shipped fit (every route's training part) and its figures on every test part
+    and whole traverse."""
+    policy, train = fit([p[0] for p in parts], [p[1] for p in parts], recipe.features, recipe.stay)
     report: dict[str, Any] = {"train": train, "thresholds": policy.describe()}
     for route in routes:
-        report[route.name] = evaluate(route, policy, params)
+        report[route.name] = {
+            **evaluate(route, policy, params),
+            "whole": evaluate_whole(route, policy, params),
+        }
     return policy, report
 
 
 def write_shipped(
-    preset: str, config: HierarchyConfig, routes: list[Route], policy: Policy
+    preset: str,
+    config: HierarchyConfig,
+    routes: list[Route],
+    policy: Policy,
+    recipe: Recipe = DEFAULT_RECIPE,
 ) -> Path:
-    """``hmpf/presets/acceptance/<preset>.json``: the shipped fit, with the config's digest."""
+    """``hmpf/presets/acceptance/<preset>.json``: the shipped fit, with the config's digest
+    and the recipe it was fitted with."""
+    prior = (
+        "; both models read the map's prior (map_prior: hmpf-index build --map-prior)"
+        if recipe.needs_prior
+        else ""
+    )
     note = (
         f"shipped with preset {preset!r}: fitted by bench/shipped_acceptance.py on "
         f"the training parts of {', '.join(r.name for r in routes)} (each route alike), "
         "thresholds for 99 % precision on out-of-fold predictions (stretches of each "
-        "route); sequence stay threshold 0.5 (hysteresis)"
+        f"route); sequence stay threshold {recipe.stay:g} (hysteresis){prior}"
     )
     doc = {
         "preset": preset,
         "digest": config.digest(),
         "routes": [r.name for r in routes],
+        "recipe": recipe.describe(),
         "acceptance": settings_of(policy, note).model_dump(exclude_none=True),
     }
     return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)
@@ -621,6 +733,15 @@ def main() -> int:
     add_route_arguments(ap)
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
     ap.add_argument("--write", action="store_true", help="write the preset's shipped models")
+    ap.add_argument(
+        "--map-prior",
+        action="store_true",
+        help="both models read the map's prior (each route's, from pseudo-queries of its "
+        "references, as hmpf-index build --map-prior stores it)",
+    )
+    ap.add_argument(
+        "--stay", type=float, default=STAY_P, help=f"sequence stay threshold (default {STAY_P})"
+    )
     add_json(ap, "--out", help="JSON report (default results/shipped_acceptance_<config>)")
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -628,22 +749,27 @@ def main() -> int:
     prov = provenance(args.config, config, args)
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
+    recipe = Recipe.of(args.map_prior, args.stay)
+    names = args.routes.split(",")
+    priors = route_priors(config, names, cache, args.nordland_frames, recipe)
     routes = [
-        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames))
-        for n in args.routes.split(",")
+        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames), priors[n])
+        for n in names
     ]
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     parts = [training_part(r, params) for r in routes]
     report: dict[str, Any] = {
         "config": args.config,
         "target_precision": TARGET,
-        "single_features": list(SINGLE_FEATURES),
-        "sequence_features": list(SEQUENCE_FEATURES),
+        "single_features": list(recipe.single),
+        "sequence_features": list(recipe.sequence),
+        "recipe": recipe.describe(),
+        "map_priors": priors,
         "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
         "nordland_frames": args.nordland_frames or "all",
-        "folds": fold_reports(routes, parts, params, t0),
+        "folds": fold_reports(routes, parts, params, t0, recipe),
     }
-    policy, report["shipped"] = shipped_report(routes, parts, params)
+    policy, report["shipped"] = shipped_report(routes, parts, params, recipe)
     for key, runs in (
         ("folds", report["folds"]),
         ("shipped", {k: v for k, v in report["shipped"].items() if k in report["folds"]}),
@@ -659,7 +785,7 @@ def main() -> int:
         f"{report['pooled_sequence_ece_folds']}, shipped {report['pooled_sequence_ece_shipped']}"
     )
     if args.write:
-        print(f"wrote {write_shipped(args.config, config, routes, policy)}")
+        print(f"wrote {write_shipped(args.config, config, routes, policy, recipe)}")
     print(f"wrote {out} ({report['wall_s']:.0f} s)")
     return 0
 

@@ -168,6 +168,9 @@ class ScoreBank:
         features: method id -> (reference set, per-query features), for timing real runs.
         motion_features: the global methods' (reference matrix, per-query features) of a
             bank without ``features`` (:meth:`subset`), for the frames' motion sketches.
+        map_prior: the map's prior (:func:`hmpf.evaluation.auto.map_prior`'s ``map_prior``,
+            what an index version stores), given to :meth:`profile` and so to every
+            answer's features; None: unknown. :meth:`subset` and :meth:`rows` keep it.
     """
 
     methods: dict[str, Method]
@@ -176,6 +179,7 @@ class ScoreBank:
     data: EvalData
     features: dict[str, tuple[Any, list[Any]]] = field(default_factory=dict)
     motion_features: dict[str, tuple[Any, list[Any]]] = field(default_factory=dict)
+    map_prior: float | None = None
 
     @classmethod
     def build(
@@ -217,7 +221,7 @@ class ScoreBank:
             for m, (db, qs) in (self.features or self.motion_features).items()
             if isinstance(db, np.ndarray)
         }
-        return ScoreBank(self.methods, scores, self.gt[:, k], self.data, {}, motion)
+        return ScoreBank(self.methods, scores, self.gt[:, k], self.data, {}, motion, self.map_prior)
 
     def rows(self, keep: np.ndarray) -> ScoreBank:
         """The bank of the queries ``keep`` only (the same map and fitted methods)."""
@@ -226,7 +230,7 @@ class ScoreBank:
         data = replace(self.data, query=[self.data.query[i] for i in k], gt=self.data.gt[k])
         feats = {m: (db, [qs[i] for i in k]) for m, (db, qs) in self.features.items()}
         motion = {m: (db, [qs[i] for i in k]) for m, (db, qs) in self.motion_features.items()}
-        return ScoreBank(self.methods, scores, self.gt[k], data, feats, motion)
+        return ScoreBank(self.methods, scores, self.gt[k], data, feats, motion, self.map_prior)
 
     def sketches(self, config: HierarchyConfig) -> list[np.ndarray] | None:
         """Every query's motion sketch for ``config``'s sequence filter
@@ -242,10 +246,12 @@ class ScoreBank:
 
     def profile(self, config: HierarchyConfig) -> ReferenceProfile:
         """The :class:`~hmpf.confidence.ReferenceProfile` of this part's references for
-        ``config``'s tier-1 methods (one route, file order)."""
+        ``config``'s tier-1 methods (one route, file order), with the bank's
+        :attr:`map_prior`."""
         db = {m: f[0] for m, f in self.features.items()}
         tier1 = config.tiers[0].methods
-        return ReferenceProfile.build(self.methods, db, tier1, RouteMap.from_metadata(self.n_db))
+        prof = ReferenceProfile.build(self.methods, db, tier1, RouteMap.from_metadata(self.n_db))
+        return replace(prof, map_prior=self.map_prior)
 
     def scorer(self, qi: int) -> ScoreFn:
         """A :data:`ScoreFn` for query ``qi`` gathering from the matrices."""

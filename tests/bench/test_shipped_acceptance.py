@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -58,3 +59,37 @@ def test_as_decided_gives_each_route_with_and_without_the_stay(sa):
         for fig in (stay, entry):
             assert fig["precision"] is None or 0.0 <= fig["precision"] <= 1.0
     assert policy.sequence_stay_threshold == min(sa.STAY_P, policy.sequence_threshold)
+
+
+def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path, monkeypatch):
+    rng = np.random.default_rng(1)
+    parts = []
+    for name, prior in (("a", 1.2), ("b", 1.1), ("c", -2.0)):
+        y = rng.random(200) < (0.8 if prior > 0 else 0.2)
+        inside = _answers(sa, y, rng, 1.5)
+        outside = _answers(sa, np.zeros(60, bool), rng, 1.5)
+        for a in (inside, outside):
+            sa.with_constants(a, {"map_prior": prior})
+        parts.append(RoutePart(name, inside, outside))
+    recipe = sa.Recipe.of(True, 0.9)
+    assert recipe.needs_prior and not sa.Recipe.of(False).needs_prior
+    assert recipe.features == (
+        (*sa.SINGLE_FEATURES, "map_prior"),
+        (*sa.SEQUENCE_FEATURES, "map_prior"),
+    )
+    policy, _ = sa.fit(parts, parts, recipe.features, recipe.stay)
+    for model in (policy.model, policy.sequence_model):
+        j = model.features.index("map_prior")
+        assert (model.mean[j], model.scale[j], model.coef[j]) == (0.0, 1.0, 1.0)
+    assert policy.sequence_stay_threshold == min(0.9, policy.sequence_threshold)
+    folds = sa.held_out([(p, p) for p in parts], recipe)
+    assert all(f.sequence_model.features == recipe.sequence for f, _ in folds)
+    # the recipe a shipped file records is the one model_sets refits the folds with
+    monkeypatch.setattr(sa, "ROOT", tmp_path)
+    folder = tmp_path / "hmpf" / "presets" / "acceptance"
+    folder.mkdir(parents=True)
+    assert sa.shipped_recipe("p") == sa.DEFAULT_RECIPE  # no file
+    (folder / "p.json").write_text('{"preset": "p"}')
+    assert sa.shipped_recipe("p") == sa.DEFAULT_RECIPE  # written before recipes
+    (folder / "p.json").write_text(json.dumps({"recipe": recipe.describe()}))
+    assert sa.shipped_recipe("p") == recipe

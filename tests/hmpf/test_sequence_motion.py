@@ -280,3 +280,15 @@ def test_score_bank_results_carry_the_sketches_of_a_filter_that_weighs_motion():
         np.testing.assert_allclose(r.sketch, sk(q), rtol=1e-6)
     # rows of a subset keep its sketches too
     assert all(r.sketch is not None for r in sub.rows(k).results(config))
+
+
+def test_a_banks_map_prior_reaches_its_profile_and_stays_with_its_subsets():
+    """The benches give a route's banks its prior (what an index version stores); every
+    answer built with the bank's profile then carries it, as the service's answers do."""
+    config, bank = _bank(None, np.random.default_rng(3))
+    assert bank.profile(config).map_prior is None
+    bank.map_prior = -1.5
+    prof = bank.profile(config)
+    assert prof.map_prior == -1.5 and prof.methods  # the profile itself is built as before
+    for part in (bank.subset(np.arange(0, 30, 2)), bank.rows(np.arange(4))):
+        assert part.map_prior == -1.5
