@@ -98,16 +98,18 @@ def gardens_point() -> Path:
 def link_route(src: Path, dst: Path, n: int) -> dict[str, Path]:
     """Symlink the first ``n`` images of Gardens Point's day_right and night_right under
     ``dst`` (a short route for quick end-to-end runs); returns traverse -> folder."""
+    return {trav: link_frames(src / trav, dst / trav, n) for trav in ("day_right", "night_right")}
+
+
+def link_frames(src: Path, dst: Path, n: int, start: int = 0) -> Path:
+    """Symlink images ``start .. start + n - 1`` of the folder ``src`` into the new folder
+    ``dst``; returns ``dst``."""
     from hmpf.datasets import list_images
 
-    out = {}
-    for trav in ("day_right", "night_right"):
-        d = dst / trav
-        d.mkdir()
-        for p in list_images(src / trav)[:n]:
-            (d / p.name).symlink_to(p)
-        out[trav] = d
-    return out
+    dst.mkdir()
+    for p in list_images(src)[start : start + n]:
+        (dst / p.name).symlink_to(p)
+    return dst
 
 
 @pytest.fixture(scope="session")

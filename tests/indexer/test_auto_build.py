@@ -22,6 +22,7 @@ from hmpf.index import layout
 from hmpf.index.reader import IndexReader
 from indexer import cli
 from indexer.build import build
+from tests.conftest import link_frames
 
 METHODS = ("hog", "gist", "sad")
 POOL = HierarchyConfig.model_validate(
@@ -48,11 +49,9 @@ N_IMAGES = 40
 @pytest.fixture(scope="module")
 def refs(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The first 40 day_left frames, symlinked into their own folder."""
-    folder = tmp_path_factory.mktemp("auto-build") / "day_left"
-    folder.mkdir()
-    for p in list_images(gardens_point / "day_left")[:N_IMAGES]:
-        (folder / p.name).symlink_to(p)
-    return folder
+    return link_frames(
+        gardens_point / "day_left", tmp_path_factory.mktemp("auto-build") / "day_left", N_IMAGES
+    )
 
 
 @pytest.fixture(scope="module")

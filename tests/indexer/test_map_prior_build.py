@@ -19,7 +19,7 @@ from hmpf.index.layout import IndexCorruptError
 from hmpf.index.reader import IndexReader
 from indexer import cli
 from indexer.build import BuildOptions, add, build
-from tests.conftest import write_synthetic_images
+from tests.conftest import link_frames, write_synthetic_images
 
 N_IMAGES = 40  # the fewest along one route that a pseudo-query plan accepts
 CONFIG = "single-tier"
@@ -27,11 +27,9 @@ CONFIG = "single-tier"
 
 @pytest.fixture(scope="module")
 def refs(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("prior-refs") / "day_left"
-    folder.mkdir()
-    for p in list_images(gardens_point / "day_left")[:N_IMAGES]:
-        (folder / p.name).symlink_to(p)
-    return folder
+    return link_frames(
+        gardens_point / "day_left", tmp_path_factory.mktemp("prior-refs") / "day_left", N_IMAGES
+    )
 
 
 @pytest.fixture(scope="module")
@@ -70,10 +68,7 @@ def test_the_stored_prior_is_the_configs_pseudo_query_recall_on_the_references(
 def test_a_version_derived_from_it_carries_the_prior_and_says_where_it_was_computed(
     built: Path, gardens_point: Path, tmp_path: Path
 ) -> None:
-    more = tmp_path / "more"
-    more.mkdir()
-    for p in list_images(gardens_point / "day_left")[N_IMAGES : N_IMAGES + 3]:
-        (more / p.name).symlink_to(p)
+    more = link_frames(gardens_point / "day_left", tmp_path / "more", 3, start=N_IMAGES)
     parent = layout.current_version(built)
     add(built, more, options=BuildOptions(workers=1, progress=False))
     child = _manifest(built)

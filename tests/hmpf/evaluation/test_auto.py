@@ -36,6 +36,7 @@ from hmpf.evaluation.pseudo import (
 from hmpf.evaluation.study import CostModel, derive_config
 from hmpf.features import FeatureCache
 from hmpf.imageio import load_image
+from tests.conftest import link_frames
 
 #: Cheap methods only (no CNN): the whole choice runs in seconds.
 POOL = {"name": "auto-test-pool", "tiers": [{"methods": ["hog", "gist", "sad"], "k": 1}]}
@@ -61,11 +62,9 @@ SMALL: dict[str, Any] = {
 @pytest.fixture(scope="module")
 def refs(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The first 40 day_right frames, symlinked into their own folder."""
-    folder = tmp_path_factory.mktemp("auto") / "day_right"
-    folder.mkdir()
-    for p in list_images(gardens_point / "day_right")[:N_IMAGES]:
-        (folder / p.name).symlink_to(p)
-    return folder
+    return link_frames(
+        gardens_point / "day_right", tmp_path_factory.mktemp("auto") / "day_right", N_IMAGES
+    )
 
 
 @pytest.fixture(scope="module")
