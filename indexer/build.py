@@ -44,7 +44,7 @@ import hmpf.features as hfeatures
 from hmpf.confidence import profile_params
 from hmpf.config import HierarchyConfig, build_methods, load_config
 from hmpf.errors import DatasetError, ImageError
-from hmpf.evaluation.auto import choose_config
+from hmpf.evaluation.auto import choose_config, map_prior
 from hmpf.features import FeatureCache, extract_images, file_digest
 from hmpf.index import layout, thumbnails
 from hmpf.index.ann import (
@@ -821,8 +821,6 @@ def map_prior_entry(
     references ``paths`` (``refs``' rows, their metadata giving the route order;
     :func:`hmpf.evaluation.auto.map_prior`), under the config's digest. Too few references
     to make pseudo-queries from: the entry says why, with no value."""
-    from hmpf.evaluation.auto import map_prior
-
     meta: dict[str, Any] = {
         k: refs.meta[k] for k in ("sequence", "timestamp", "lat", "lon") if k in refs.meta
     }
