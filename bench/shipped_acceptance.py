@@ -55,7 +55,7 @@ import numpy as np
 
 from bench.harness import ROOT, Parser, add_json, parser, provenance, write_json, write_record
 from hmpf.acceptance import STAY_P, Policy
-from hmpf.confidence import ConfidenceModel, expected_calibration_error
+from hmpf.confidence import ConfidenceModel, ReferenceProfile, expected_calibration_error
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -165,6 +165,7 @@ class Route:
         self.train.map_prior = self.test.map_prior = map_prior
         self._cache = cache
         self._whole: ScoreBank | None = None
+        self._whole_answers: tuple[list[Any], ReferenceProfile] | None = None
 
     def whole(self) -> ScoreBank:
         """The bank of the route's whole traverse (every reference, every query, in order:
@@ -173,6 +174,14 @@ class Route:
             self._whole = ScoreBank.build(self.config, self.data, cache=self._cache)
             self._whole.map_prior = self.map_prior
         return self._whole
+
+    def whole_results(self) -> tuple[list[Any], ReferenceProfile]:
+        """The hierarchy's results on the whole traverse and its map's profile, computed
+        once (every policy reads the same answers)."""
+        if self._whole_answers is None:
+            bank = self.whole()
+            self._whole_answers = (bank.results(self.config), bank.profile(self.config))
+        return self._whole_answers
 
 
 def route_prior(
@@ -319,10 +328,9 @@ def evaluate_whole(
     no place is next to one it is not next to on the route. Only the held-out fit is new to
     the route's frames; a Gardens Point traverse also appears in the other protocols'
     training parts, paired with another traverse."""
-    bank, config = route.whole(), route.config
+    bank = route.whole()
     routes = RouteMap.from_metadata(bank.n_db)
-    results = bank.results(config)
-    profile = bank.profile(config)
+    results, profile = route.whole_results()
     single = with_constants(single_answers(results, bank.gt, routes, profile), extra)
     seq = with_constants(sequence_answers(results, bank.gt, routes, params, None, profile), extra)
     s = apply_acceptance(policy, single)
