@@ -177,6 +177,30 @@ def _projected(x: np.ndarray, q: np.ndarray, dim: int) -> tuple[np.ndarray, np.n
     )
 
 
+def _short_list_search(spec: str, x: np.ndarray, q: np.ndarray, k: int) -> tuple:
+    """A projected-scan index of ``spec`` over ``x`` searched for ``q``'s top ``k``:
+    (distances, ids, the rows and queries projected on the first 32 principal
+    coordinates, the index that makes the short list, the whole index). Keep the whole
+    index while using the short list's: FAISS frees its parts with it."""
+    faiss = faiss_module()
+    index, _ = build_faiss(x, L2, spec)
+    dist, ids = index.search(q, k)
+    y, qy = _projected(x, q, 32)
+    refine = faiss.downcast_index(faiss.downcast_index(index).index)
+    return dist, ids, y, qy, faiss.downcast_index(refine.base_index), index
+
+
+def _assert_ranked_by_fp16_codes(
+    dist: np.ndarray, ids: np.ndarray, y: np.ndarray, qy: np.ndarray
+) -> None:
+    """The rows that came back are ranked by the squared distances of their fp16 codes on
+    all the projected dimensions."""
+    y16 = y.astype(np.float16).astype(np.float32)
+    want = ((y16[ids] - qy[:, None, :]) ** 2).sum(-1)
+    np.testing.assert_allclose(dist, want, rtol=2e-3, atol=1e-3)
+    assert (np.diff(dist, axis=1) >= 0).all()
+
+
 def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(len(a), len(b)) Hamming distances between rows of booleans."""
     return (a[:, None, :] != b[None, :, :]).sum(-1)
@@ -191,12 +215,9 @@ def test_binary_scan_short_list_is_the_nearest_signs_then_the_projected_ranking(
     faiss = faiss_module()
     x = _rows(n=3000, noise=0.3)
     q = _rows(n=15, noise=0.3, seed=4)
-    index, _ = build_faiss(x, L2, "PCA32:8,SQfp16,B16x4,k2")
     k = 5
-    dist, ids = index.search(q, k)
-    y, qy = _projected(x, q, 32)
-    refine = faiss.downcast_index(faiss.downcast_index(index).index)
-    signs = faiss.downcast_index(faiss.downcast_index(refine.base_index).base_index)
+    dist, ids, y, qy, short, _index = _short_list_search("PCA32:8,SQfp16,B16x4,k2", x, q, k)
+    signs = faiss.downcast_index(short.base_index)
     turn = faiss.downcast_VectorTransform(signs.chain.at(0))
     a = faiss.vector_to_array(turn.A).reshape(16, 32)
     assert not a[:, 16:].any()  # the first b coordinates only
@@ -205,10 +226,7 @@ def test_binary_scan_short_list_is_the_nearest_signs_then_the_projected_ranking(
     cut = np.sort(ham, axis=1)[:, 4 * 2 * k - 1]
     assert (ids >= 0).all()
     assert (np.take_along_axis(ham, ids, axis=1) <= cut[:, None]).all()
-    y16 = y.astype(np.float16).astype(np.float32)
-    want = ((y16[ids] - qy[:, None, :]) ** 2).sum(-1)
-    np.testing.assert_allclose(dist, want, rtol=2e-3, atol=1e-3)
-    assert (np.diff(dist, axis=1) >= 0).all()
+    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
 
 
 def test_binary_scan_changes_nothing_when_its_short_list_covers_the_map():
@@ -253,12 +271,8 @@ def test_fast_scan_short_list_is_the_nearest_product_codes_then_the_projected_ra
     faiss = faiss_module()
     x = _rows(n=4000, noise=0.3)
     q = _rows(n=15, noise=0.3, seed=5)
-    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,PQ8x4fs,k4")
     k = 10
-    dist, ids = index.search(q, k)
-    y, qy = _projected(x, q, 32)
-    refine = faiss.downcast_index(faiss.downcast_index(index).index)
-    short = faiss.downcast_index(refine.base_index)
+    dist, ids, y, qy, short, _index = _short_list_search("PCA32:16,SQfp16,PQ8x4fs,k4", x, q, k)
     pq = faiss.downcast_index(short.index)
     assert isinstance(pq, faiss.IndexPQFastScan) and (pq.d, pq.M, pq.nbits) == (16, 8, 4)
     decoded = np.stack([pq.reconstruct(i) for i in range(pq.ntotal)])
@@ -268,11 +282,7 @@ def test_fast_scan_short_list_is_the_nearest_product_codes_then_the_projected_ra
     assert overlap >= 0.9
     for row, short_list in zip(ids, got, strict=True):
         assert set(row) <= set(short_list)
-    y16 = y.astype(np.float16).astype(np.float32)
-    np.testing.assert_allclose(
-        dist, ((y16[ids] - qy[:, None, :]) ** 2).sum(-1), rtol=2e-3, atol=1e-3
-    )
-    assert (np.diff(dist, axis=1) >= 0).all()
+    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
 
 
 def test_fast_scan_changes_nothing_when_its_short_list_covers_the_map(tmp_path):
