@@ -135,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--map-prior",
         action="store_true",
         help="also store the config's recall@1 on pseudo-queries made from the references "
-        "(the acceptance models' map-level prior; extracts a few hundred more images; "
+        "(the acceptance models' map-level prior; extracts the pseudo-queries and, again, "
+        "up to 1,000 references; "
         "hmpf-index info shows it)",
     )
     _add_write_options(b)
