@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,10 +52,7 @@ import numpy as np
 from bench import shipped_acceptance as sa
 from bench.harness import ROOT, add_json, parser, provenance, write_record
 from hmpf.acceptance import STAY_P, Policy
-from hmpf.config import HierarchyConfig
-from hmpf.datasets import dataset_root, list_images
 from hmpf.evaluation.acceptance import RoutePart
-from hmpf.evaluation.auto import map_prior
 from hmpf.features import FeatureCache
 from hmpf.runtime import default_cache_dir
 
@@ -69,15 +65,6 @@ HIGH_STAY = 0.9
 #: The experience log's default threshold (``experience_min_p_correct``): the share of
 #: sequence answers at or above it is what a recording service would keep.
 RECORD_P = 0.99
-
-
-def pseudo_recall(
-    config: HierarchyConfig, paths: list[Path], cache: FeatureCache, seed: int = 0
-) -> dict[str, Any]:
-    """The hierarchy's recall@1 on pseudo-queries of the references ``paths`` (one route,
-    in order), with the plan's sizes (:func:`hmpf.evaluation.auto.map_prior`, what an index
-    stores)."""
-    return map_prior(config, paths, cache=cache, seed=seed)
 
 
 def choose_stay(seqs: list[RoutePart], policy: Policy) -> tuple[Policy, dict[str, Any]]:
@@ -139,9 +126,9 @@ def fit_variant(
         policy, train["stay_choice"] = choose_stay([p[1] for p in parts], policy)
         train["stay_threshold"] = policy.sequence_stay_threshold
     elif stay is not False:
-        entry = policy.sequence_threshold
-        assert entry is not None
-        policy = replace(policy, sequence_stay_threshold=min(float(stay), entry))
+        cap = policy.sequence_threshold
+        assert cap is not None
+        policy = replace(policy, sequence_stay_threshold=min(float(stay), cap))
         train["stay_threshold"] = policy.sequence_stay_threshold
     return policy, train
 
@@ -179,22 +166,16 @@ def main() -> int:
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
     names = list(sa.ROUTES)
-    priors: dict[str, dict[str, Any]] = {}
-    for name in names:
-        folder = sa.ROUTES[name][0]
-        if folder not in priors:
-            limit = sa.limit_of(name, args.nordland_frames)
-            paths = list_images(dataset_root() / folder)[:limit]
-            priors[folder] = pseudo_recall(config, paths, cache)
-            recall = priors[folder]["recall_at_1"]
-            print(f"{folder}: pseudo-query recall@1 {recall:.3f}", flush=True)
-    extra = {n: {"map_prior": priors[sa.ROUTES[n][0]]["map_prior"]} for n in names}
+    priors = sa.route_priors(config, names, cache, args.nordland_frames)
     routes = [
-        sa.Route(n, config, cache, args.foreign, sa.limit_of(n, args.nordland_frames))
+        sa.Route(
+            n, config, cache, args.foreign, sa.limit_of(n, args.nordland_frames),
+            priors[n]["map_prior"],
+        )
         for n in names
-    ]
+    ]  # fmt: skip
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    parts = [sa.training_part(r, params, extra[r.name]) for r in routes]
+    parts = [sa.training_part(r, params) for r in routes]
     plain: Features = (sa.SINGLE_FEATURES, sa.SEQUENCE_FEATURES)
     with_prior: Features = (plain[0] + ("map_prior",), plain[1] + ("map_prior",))
     variants = {
@@ -209,7 +190,7 @@ def main() -> int:
         "target_precision": sa.TARGET,
         "nordland_frames": args.nordland_frames or "all",
         "foreign_frames": args.foreign,
-        "pseudo_recall": priors,
+        "pseudo_recall": {sa.ROUTES[n][0]: priors[n] for n in names},
         "variants": {},
     }
     for vname, (features, stay, every) in variants.items():
@@ -223,11 +204,11 @@ def main() -> int:
         for i, r in enumerate(routes):
             row = {}
             for label, policy in (("pooled", pooled), ("held_out", folds[i][0])):
-                ev = sa.evaluate(r, policy, params, extra[r.name])
+                ev = sa.evaluate(r, policy, params)
                 runs[label].append(ev)
                 row[label] = figures(ev)
                 row[label]["thresholds"] = policy.describe()
-                row[label]["whole"] = sa.evaluate_whole(r, policy, params, extra[r.name])
+                row[label]["whole"] = sa.evaluate_whole(r, policy, params)
                 print(
                     f"{vname:15s} {r.name:13s} {label:8s} single {ev['single']['accepted']:.3f}"
                     f" ({ev['single']['precision']}) sequence {ev['sequence']['accepted']:.3f}"

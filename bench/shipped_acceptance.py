@@ -184,36 +184,15 @@ class Route:
         return self._whole_answers
 
 
-def route_prior(
-    config: HierarchyConfig, name: str, cache: FeatureCache, nordland_frames: int
-) -> dict[str, Any]:
-    """Route ``name``'s map prior (:func:`hmpf.evaluation.auto.map_prior`): the config's
-    recall@1 on pseudo-queries of the route's reference traverse (the frames the route
-    uses), as ``hmpf-index build --map-prior`` stores it for a map of those references."""
-    paths = list_images(dataset_root() / ROUTES[name][0])[: limit_of(name, nordland_frames)]
-    return map_prior(config, paths, cache=cache)
-
-
 def limit_of(name: str, nordland_frames: int) -> int | None:
     """The frames of route ``name`` used (None: all)."""
     return nordland_frames or None if name.startswith("nordland") else None
 
 
-def with_constants(answers: Answers, extra: dict[str, float] | None) -> Answers:
-    """``answers`` with the features ``extra`` (the same values for every answer: a
-    property of the map, such as ``map_prior``) added in place."""
-    if extra:
-        for f in answers.features:
-            f.update(extra)
-    return answers
-
-
-def training_part(
-    route: Route, params: FilterParams, extra: dict[str, float] | None = None
-) -> tuple[RoutePart, RoutePart]:
+def training_part(route: Route, params: FilterParams) -> tuple[RoutePart, RoutePart]:
     """The route's single-frame and sequence training answers, each with its out-of-map
-    ones (:func:`outside_answers` and frames of another data set); ``extra``: features the
-    same for every answer of the map (:func:`with_constants`)."""
+    ones (:func:`outside_answers` and frames of another data set); with the route's
+    :attr:`Route.map_prior` in every answer's features (through the bank's profile)."""
     full, config = route.train, route.config
     nq = route.n_train
     bank = full.rows(np.arange(nq))
@@ -230,8 +209,6 @@ def training_part(
     f_single = single_answers([all_results[i] for i in away], None, routes, profile)
     f_single.query = away
     f_seq = sequence_answers(all_results, full.gt, routes, params, [Drive.along(away)], profile)
-    for a in (single, drives, out_single, f_single, out_seq, f_seq):
-        with_constants(a, extra)
     return (
         RoutePart(route.name, single, concat_answers([out_single, f_single])),
         RoutePart(route.name, drives, concat_answers([out_seq, f_seq])),
@@ -247,29 +224,22 @@ def flips(accepted: np.ndarray) -> int:
     return int(np.sum(a[first[0] + 1 :] != a[first[0] : -1]))
 
 
-def evaluate(
-    route: Route, policy: Policy, params: FilterParams, extra: dict[str, float] | None = None
-) -> dict[str, Any]:
+def evaluate(route: Route, policy: Policy, params: FilterParams) -> dict[str, Any]:
     """The policy on the route's test part (in the map, off it, and leaving and coming
-    back); ``extra``: features the same for every answer of the map."""
+    back)."""
     bank, config = route.test, route.config
     routes = RouteMap.from_metadata(bank.n_db)
     results = bank.results(config)
     profile = bank.profile(config)
 
-    def with_map(answers: Answers) -> Answers:
-        return with_constants(answers, extra)
-
     nq, nf = route.n_test, route.n_foreign
     inside = np.arange(nq)
     away = np.arange(nq, nq + nf)
     out: dict[str, Any] = {"gp": route.name.startswith("gp_")}
-    single = with_map(single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile))
+    single = single_answers([results[i] for i in inside], bank.gt[:nq], routes, profile)
     s = apply_acceptance(policy, single)
     out["single"] = _figures(s, single)
-    seq = with_map(
-        sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
-    )
+    seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(inside)], profile)
     q = apply_acceptance(policy, seq, sequence=True)
     acc = np.array(q["accepted_answers"], bool)
     entry = apply_acceptance(replace(policy, sequence_stay_threshold=None), seq, sequence=True)
@@ -282,11 +252,9 @@ def evaluate(
         "p_correct": q["p_correct"],
         "correct": seq.correct.tolist(),
     }
-    f_single = with_map(single_answers([results[i] for i in away], None, routes, profile))
+    f_single = single_answers([results[i] for i in away], None, routes, profile)
     fs = apply_acceptance(policy, f_single)
-    f_seq = with_map(
-        sequence_answers(results, bank.gt, routes, params, [Drive.along(away)], profile)
-    )
+    f_seq = sequence_answers(results, bank.gt, routes, params, [Drive.along(away)], profile)
     fq = apply_acceptance(policy, f_seq, sequence=True)
     out["foreign"] = {
         "n": nf,
@@ -298,9 +266,7 @@ def evaluate(
     }
     a, b = AWAY
     frames = np.concatenate([inside[:a], away[:b], inside[a:]])
-    trip = with_map(
-        sequence_answers(results, bank.gt, routes, params, [Drive.along(frames)], profile)
-    )
+    trip = sequence_answers(results, bank.gt, routes, params, [Drive.along(frames)], profile)
     dec = decide(policy, trip, sequence=True)
     accepted = np.array([d.accepted for d in dec], bool)
     off = np.array([d.off_map for d in dec], bool)
@@ -319,9 +285,7 @@ def evaluate(
     return out
 
 
-def evaluate_whole(
-    route: Route, policy: Policy, params: FilterParams, extra: dict[str, float] | None = None
-) -> dict[str, Any]:
+def evaluate_whole(route: Route, policy: Policy, params: FilterParams) -> dict[str, Any]:
     """The policy on the route's whole traverse: its map of every reference, its queries
     driven once in order. Unlike a test part (stretches of 20 frames joined into one map
     and one drive, where an estimate one reference behind across a join is 21 frames off),
@@ -331,8 +295,8 @@ def evaluate_whole(
     bank = route.whole()
     routes = RouteMap.from_metadata(bank.n_db)
     results, profile = route.whole_results()
-    single = with_constants(single_answers(results, bank.gt, routes, profile), extra)
-    seq = with_constants(sequence_answers(results, bank.gt, routes, params, None, profile), extra)
+    single = single_answers(results, bank.gt, routes, profile)
+    seq = sequence_answers(results, bank.gt, routes, params, None, profile)
     s = apply_acceptance(policy, single)
     q = apply_acceptance(policy, seq, sequence=True)
     acc = np.array(q["accepted_answers"], bool)
@@ -498,22 +462,40 @@ def shipped_recipe(preset: str) -> Recipe:
 
 
 def route_priors(
-    config: HierarchyConfig, names: Iterable[str], cache: FeatureCache, nordland_frames: int,
-    recipe: Recipe,
-) -> dict[str, float | None]:  # fmt: skip
-    """Each route's prior when the recipe reads it (:func:`route_prior`, once per reference
-    traverse), else None."""
-    out: dict[str, float | None] = {}
-    by_folder: dict[str, float] = {}
+    config: HierarchyConfig, names: Iterable[str], cache: FeatureCache, nordland_frames: int
+) -> dict[str, dict[str, Any]]:
+    """Each route's map prior (:func:`hmpf.evaluation.auto.map_prior`, computed once per
+    reference traverse): the config's recall@1 on pseudo-queries of the route's references
+    (the frames the route uses), as ``hmpf-index build --map-prior`` stores it for a map of
+    those references; progress printed."""
+    out: dict[str, dict[str, Any]] = {}
+    by_folder: dict[str, dict[str, Any]] = {}
     for name in names:
-        if not recipe.needs_prior:
-            out[name] = None
-            continue
         folder = ROUTES[name][0]
         if folder not in by_folder:
-            by_folder[folder] = route_prior(config, name, cache, nordland_frames)["map_prior"]
+            paths = list_images(dataset_root() / folder)[: limit_of(name, nordland_frames)]
+            by_folder[folder] = map_prior(config, paths, cache=cache)
+            print(f"{folder}: pseudo-query recall@1 {by_folder[folder]['recall_at_1']:.3f}")
         out[name] = by_folder[folder]
     return out
+
+
+def recipe_routes(
+    config: HierarchyConfig,
+    names: list[str],
+    cache: FeatureCache,
+    foreign: int,
+    nordland_frames: int,
+    recipe: Recipe,
+) -> tuple[list[Route], dict[str, float | None]]:
+    """The routes ``names``, each with its map prior when the recipe reads it (else None),
+    and those priors by route."""
+    entries = route_priors(config, names, cache, nordland_frames) if recipe.needs_prior else {}
+    priors = {n: entries[n]["map_prior"] if entries else None for n in names}
+    routes = [
+        Route(n, config, cache, foreign, limit_of(n, nordland_frames), priors[n]) for n in names
+    ]
+    return routes, priors
 
 
 def held_out(
@@ -575,11 +557,7 @@ def model_sets(preset: str, names: Iterable[str], foreign: int, nordland_frames:
     no_model = Policy.of(None, lock_mass=params.lock_mass)
     cache = FeatureCache(default_cache_dir())
     recipe = shipped_recipe(preset)
-    names = list(names)
-    priors = route_priors(config, names, cache, nordland_frames, recipe)
-    routes = [
-        Route(n, config, cache, foreign, limit_of(n, nordland_frames), priors[n]) for n in names
-    ]
+    routes = recipe_routes(config, list(names), cache, foreign, nordland_frames, recipe)[0]
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     folds = held_out([training_part(r, params) for r in routes], recipe)
     print(f"held-out folds fitted ({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -758,12 +736,9 @@ def main() -> int:
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
     recipe = Recipe.of(args.map_prior, args.stay)
-    names = args.routes.split(",")
-    priors = route_priors(config, names, cache, args.nordland_frames, recipe)
-    routes = [
-        Route(n, config, cache, args.foreign, limit_of(n, args.nordland_frames), priors[n])
-        for n in names
-    ]
+    routes, priors = recipe_routes(
+        config, args.routes.split(","), cache, args.foreign, args.nordland_frames, recipe
+    )
     print(f"banks ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     parts = [training_part(r, params) for r in routes]
     report: dict[str, Any] = {

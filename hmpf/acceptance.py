@@ -185,22 +185,17 @@ class Policy:
     def needs_profile(self) -> bool:
         """Whether a model reads absolute evidence or the map's prior (both come with the
         references' profile)."""
-        return any(
-            f in PROFILE_FEATURES or f in MAP_FEATURES
-            for m in (self.model, self.sequence_model)
-            if m is not None
-            for f in m.features
-        )
+        return self._reads(PROFILE_FEATURES + MAP_FEATURES)
 
     @property
     def needs_map_prior(self) -> bool:
         """Whether a model reads the map's prior (``map_prior``)."""
-        return any(
-            f in MAP_FEATURES
-            for m in (self.model, self.sequence_model)
-            if m is not None
-            for f in m.features
-        )
+        return self._reads(MAP_FEATURES)
+
+    def _reads(self, names: tuple[str, ...]) -> bool:
+        """Whether either model reads one of the features ``names``."""
+        models = [m for m in (self.model, self.sequence_model) if m is not None]
+        return any(f in names for m in models for f in m.features)
 
     def check_map_prior(self, profile: ReferenceProfile | None, label: str = "the map") -> None:
         """Refuse a map whose profile lacks the prior a model reads.

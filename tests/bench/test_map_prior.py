@@ -24,7 +24,9 @@ def _answers(correct: np.ndarray, rng: np.random.Generator, prior: float) -> Ans
         [Estimate(i % 50, 0.9, False, i + 1, continuous=i > 0) for i in range(n)],
         np.zeros(n, np.int64),
     )
-    return sa.with_constants(answers, {"map_prior": prior})
+    for f in answers.features:  # a property of the map: the same in every answer
+        f["map_prior"] = prior
+    return answers
 
 
 def _parts(rng: np.random.Generator) -> list[tuple[RoutePart, RoutePart]]:

@@ -68,8 +68,8 @@ def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path
         y = rng.random(200) < (0.8 if prior > 0 else 0.2)
         inside = _answers(sa, y, rng, 1.5)
         outside = _answers(sa, np.zeros(60, bool), rng, 1.5)
-        for a in (inside, outside):
-            sa.with_constants(a, {"map_prior": prior})
+        for f in inside.features + outside.features:
+            f["map_prior"] = prior
         parts.append(RoutePart(name, inside, outside))
     recipe = sa.Recipe.of(True, 0.9)
     assert recipe.needs_prior and not sa.Recipe.of(False).needs_prior
