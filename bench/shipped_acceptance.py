@@ -606,7 +606,9 @@ def held_out_fit(sets: ModelSets, i: int) -> dict[str, Any]:
     return {"train": train, "thresholds": fold.describe()}
 
 
-def settings_of(policy: Policy, note: str) -> AcceptanceSettings:
+def settings_of(
+    policy: Policy, note: str, map_prior_fallback: float | None = None
+) -> AcceptanceSettings:
     assert policy.model is not None and policy.sequence_model is not None
     return AcceptanceSettings(
         threshold=policy.threshold,
@@ -617,6 +619,7 @@ def settings_of(policy: Policy, note: str) -> AcceptanceSettings:
         sequence_model=policy.sequence_model.to_dict(),
         sequence_threshold=policy.sequence_threshold,
         sequence_stay_threshold=policy.sequence_stay_threshold,
+        map_prior_fallback=map_prior_fallback,
     )
 
 
@@ -692,10 +695,14 @@ def write_shipped(
     recipe: Recipe = DEFAULT_RECIPE,
 ) -> Path:
     """``hmpf/presets/acceptance/<preset>.json``: the shipped fit, with the config's digest
-    and the recipe it was fitted with."""
+    and the recipe it was fitted with. A recipe that reads the map's prior falls back, for a
+    version that stores none, to the lowest prior of the routes fitted on (conservative)."""
+    priors = [r.map_prior for r in routes if r.map_prior is not None]
+    fallback = min(priors) if recipe.needs_prior and priors else None
     prior = (
-        "; both models read the map's prior (map_prior: hmpf-index build --map-prior)"
-        if recipe.needs_prior
+        "; both models read the map's prior (map_prior: hmpf-index build --map-prior; "
+        f"a version without one: {fallback:+.2f}, the lowest of these routes')"
+        if fallback is not None
         else ""
     )
     note = (
@@ -709,7 +716,7 @@ def write_shipped(
         "digest": config.digest(),
         "routes": [r.name for r in routes],
         "recipe": recipe.describe(),
-        "acceptance": settings_of(policy, note).model_dump(exclude_none=True),
+        "acceptance": settings_of(policy, note, fallback).model_dump(exclude_none=True),
     }
     return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)
 

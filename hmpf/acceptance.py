@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -126,6 +126,8 @@ class Policy:
         sequence_stay_threshold: the sequence model's threshold for an estimate held and
             continuous since the last frame (None: no hysteresis, ``sequence_threshold``).
         lock_mass, unlock_mass: the lock rule's thresholds (no sequence model).
+        map_prior_fallback: the ``map_prior`` the models read for a map that stores none
+            (None: such a map is refused, :meth:`with_map_prior`).
     """
 
     threshold: float = DEFAULT_ACCEPT_THRESHOLD
@@ -136,6 +138,7 @@ class Policy:
     sequence_stay_threshold: float | None = None
     lock_mass: float = 0.99
     unlock_mass: float = DEFAULT_UNLOCK_MASS
+    map_prior_fallback: float | None = None
 
     @classmethod
     def of(
@@ -179,6 +182,7 @@ class Policy:
             settings.sequence_stay_threshold,
             lock_mass,
             unlock,
+            settings.map_prior_fallback,
         )
 
     @property
@@ -197,17 +201,25 @@ class Policy:
         models = [m for m in (self.model, self.sequence_model) if m is not None]
         return any(f in names for m in models for f in m.features)
 
-    def check_map_prior(self, profile: ReferenceProfile | None, label: str = "the map") -> None:
-        """Refuse a map whose profile lacks the prior a model reads.
+    def with_map_prior(
+        self, profile: ReferenceProfile | None, label: str = "the map"
+    ) -> ReferenceProfile | None:
+        """``profile`` as the models read it: when a model reads the map's prior and the map
+        stores none, with :attr:`map_prior_fallback` in its place (a conservative prior: few
+        answers accepted until the version is built with ``hmpf-index build --map-prior``).
 
         Raises:
-            ModelError: a model reads ``map_prior`` and ``profile`` does not know it.
+            ModelError: a model reads ``map_prior``, the map does not store it and the
+                models carry no fallback (or there is no profile at all).
         """
-        if self.needs_map_prior and (profile is None or profile.map_prior is None):
+        if not self.needs_map_prior or (profile is not None and profile.map_prior is not None):
+            return profile
+        if profile is None or self.map_prior_fallback is None:
             raise ModelError(
                 f"{label}: the acceptance models read the map's prior (map_prior), which this "
                 "version does not store; build it with hmpf-index build --map-prior"
             )
+        return replace(profile, map_prior=float(self.map_prior_fallback))
 
     @property
     def single_rule(self) -> AcceptedBy:
@@ -321,6 +333,7 @@ class Policy:
             "sequence_model": seq,
             "lock_mass": self.lock_mass,
             "unlock_mass": self.unlock_mass,
+            "map_prior_fallback": self.map_prior_fallback if self.needs_map_prior else None,
         }
 
 

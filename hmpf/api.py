@@ -369,6 +369,20 @@ class AcceptanceInfo(BaseModel):
     )
     lock_mass: float | None = Field(None, description="the lock rule's threshold")
     unlock_mass: float | None = Field(None, description="the lock rule's stay threshold")
+    map_prior: float | None = Field(
+        None,
+        description="the map's prior the models read (log-odds of the map's pseudo-query "
+        "recall@1; null: no model reads it)",
+    )
+    map_prior_stored: bool | None = Field(
+        None,
+        description="whether the version stores its prior (`hmpf-index build --map-prior`); "
+        "false: the models' conservative `map_prior_fallback` stands in, so few answers are "
+        "accepted",
+    )
+    map_prior_fallback: float | None = Field(
+        None, description="the prior used for a version that stores none"
+    )
 
 
 class BuildInfo(BaseModel):

@@ -134,7 +134,10 @@ class AcceptanceSettings(BaseModel):
     model_threshold``; ``sequence_model`` / ``sequence_threshold`` do the same for the
     sequence filter's estimates (sequence features), and ``sequence_stay_threshold`` the
     lower bar of an estimate accepted on the previous frame that moved on consistently
-    (hysteresis, :mod:`hmpf.acceptance`). Written by ``hmpf-calibrate`` (the
+    (hysteresis, :mod:`hmpf.acceptance`). ``map_prior_fallback``: the ``map_prior`` a model
+    that reads it uses for an index version that stores none (the shipped models: the lowest
+    prior of the maps they were fitted on, so such a version is accepted conservatively;
+    None: such a version is refused). Written by ``hmpf-calibrate`` (the
     thresholds that gave ``precision`` on its training split); not part of the index's
     identity (:meth:`HierarchyConfig.digest` ignores it). A model that does not load
     (another format version, missing or extra features, non-finite numbers) makes the
@@ -151,6 +154,7 @@ class AcceptanceSettings(BaseModel):
     sequence_model: dict[str, Any] | None = None
     sequence_threshold: float | None = Field(default=None, ge=0, le=1)
     sequence_stay_threshold: float | None = Field(default=None, ge=0, le=1)
+    map_prior_fallback: float | None = Field(default=None, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _models(self) -> AcceptanceSettings:
@@ -182,8 +186,15 @@ class AcceptanceSettings(BaseModel):
         """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`)
         or the map's prior (:data:`~hmpf.confidence.MAP_FEATURES`), so whoever applies it
         must build the references' profile."""
-        feats = [f for m in (self.model, self.sequence_model) if m for f in m.get("features", ())]
-        return any(f in PROFILE_FEATURES or f in MAP_FEATURES for f in feats)
+        return any(f in PROFILE_FEATURES or f in MAP_FEATURES for f in self._features())
+
+    @property
+    def reads_map_prior(self) -> bool:
+        """Whether a model reads the map's prior (:data:`~hmpf.confidence.MAP_FEATURES`)."""
+        return any(f in MAP_FEATURES for f in self._features())
+
+    def _features(self) -> list[str]:
+        return [f for m in (self.model, self.sequence_model) if m for f in m.get("features", ())]
 
     def confidence_model(self, sequence: bool = False) -> Any:
         """The :class:`~hmpf.confidence.ConfidenceModel` (single frame, or ``sequence``), or

@@ -42,7 +42,7 @@ import numpy as np
 
 import hmpf.features as hfeatures
 from hmpf.confidence import profile_params
-from hmpf.config import HierarchyConfig, build_methods, load_config
+from hmpf.config import HierarchyConfig, build_methods, load_config, with_shipped_acceptance
 from hmpf.errors import DatasetError, ImageError
 from hmpf.evaluation.auto import choose_config, map_prior
 from hmpf.features import FeatureCache, extract_images, file_digest
@@ -174,6 +174,9 @@ class Summary:
     #: ``--config auto``: what was chosen, why, and how long the choice took (from the
     #: manifest's ``choice``); None for a named config
     choice: dict[str, Any] | None = None
+    #: what serving the version will do about the map's prior when its config's acceptance
+    #: models read one and the version stores none (:func:`prior_note`); None otherwise
+    map_prior_note: str | None = None
 
     def lines(self) -> list[str]:
         n = max(self.images, 1)
@@ -203,6 +206,8 @@ class Summary:
                 "before extraction): "
                 f"{ch['chosen']['hierarchy']}, digest {ch['digest'][:12]}: {ch['chosen']['why']}"
             )
+        if self.map_prior_note:
+            out.append(self.map_prior_note)
         return out
 
 
@@ -650,6 +655,7 @@ class VersionTransaction:
             summary.experiences = new.report
             summary.choice = _choice_summary(new.choice)
             manifest = _manifest(name, self.operation, new, faiss_info, models)
+            summary.map_prior_note = prior_note(new.config, manifest.get("map_prior"))
             manifest["profile"] = profile
             manifest["summary"] = asdict(summary)
             stats = layout.file_stats(out)  # before hashing: the stamp vouches for these
@@ -810,6 +816,24 @@ def _manifest(
     return out
 
 
+def prior_note(config: HierarchyConfig, entry: Mapping[str, Any] | None) -> str | None:
+    """The build's warning when ``config``'s acceptance models (its own or the shipped ones)
+    read the map's prior and the version's manifest entry ``entry`` holds none."""
+    acc = with_shipped_acceptance(config).acceptance
+    if acc is None or not acc.reads_map_prior or (entry or {}).get("map_prior") is not None:
+        return None
+    if acc.map_prior_fallback is None:
+        then = "hmpf-serve will refuse it"
+    else:
+        then = (
+            f"hmpf-serve uses the models' conservative fallback {acc.map_prior_fallback:+.2f}, "
+            "so few answers will be accepted"
+        )
+    why = (entry or {}).get("why_none")
+    fix = f"none could be computed ({why})" if why else "build with --map-prior"
+    return f"no map prior stored, which this config's acceptance models read: {then}; {fix}"
+
+
 def map_prior_entry(
     config: HierarchyConfig,
     paths: Sequence[Path],
@@ -910,13 +934,14 @@ def build(
     seed: int = 0,
     cache: FeatureCache | None = None,
     auto_options: Mapping[str, Any] | None = None,
-    with_map_prior: bool = False,
+    with_map_prior: bool | None = None,
 ) -> Summary:
     """Extract every method for every image of ``images`` and publish a new version.
 
     ``with_map_prior``: also store the config's recall@1 on pseudo-queries of the
     references (:func:`map_prior_entry`; the manifest's ``map_prior``, carried to the
-    versions derived from this one), through ``cache`` when given.
+    versions derived from this one), through ``cache`` when given; None (the default): when
+    the config's acceptance models (its own or the shipped ones) read it.
 
     ``config`` ``"auto"`` (:data:`AUTO`) chooses the hierarchy and its acceptance models from
     the readable references and ``metadata`` alone, on pseudo-queries made from them
@@ -955,6 +980,9 @@ def build(
         refs = refs.select(_kept(refs, paths))
         cols = {mid: columns_from_features(m, feats[mid]) for mid, m in methods.items()}
         thumbs = _thumbnails(paths, refs, tx.work)
+        if with_map_prior is None:
+            acc = with_shipped_acceptance(cfg).acceptance
+            with_map_prior = acc is not None and acc.reads_map_prior
         prior = map_prior_entry(cfg, paths, refs, cache, opt) if with_map_prior else None
         new = NewVersion(
             cfg, methods, refs, cols, opt, thumbnails=thumbs, choice=choice, map_prior=prior

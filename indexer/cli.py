@@ -124,20 +124,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--cache-dir",
-        help="with --config auto or --map-prior: the feature cache the choice or the "
+        help="with --config auto or the map prior: the feature cache the choice or the "
         f"pseudo-queries read and fill (default {default_cache_dir()}), so a rerun or "
         "--resume does not extract them again",
     )
     b.add_argument(
-        "--no-cache", action="store_true", help="with --config auto or --map-prior: no cache"
+        "--no-cache", action="store_true", help="with --config auto or the map prior: no cache"
     )
     b.add_argument(
         "--map-prior",
-        action="store_true",
-        help="also store the config's recall@1 on pseudo-queries made from the references "
-        "(the acceptance models' map-level prior; extracts the pseudo-queries and, again, "
-        "up to 1,000 references; "
-        "hmpf-index info shows it)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="store the config's recall@1 on pseudo-queries made from the references (the "
+        "acceptance models' map-level prior; extracts the pseudo-queries and, again, up to "
+        "1,000 references; hmpf-index info shows it). Default: when the config's acceptance "
+        "models read it (the default preset's do); --no-map-prior: never (hmpf-serve then "
+        "uses the models' conservative fallback)",
     )
     _add_write_options(b)
 
@@ -394,9 +396,9 @@ def _run(args: argparse.Namespace) -> int:
     if cmd == "build":
         if args.config != "auto" and args.seed != 0:
             raise HmpfError("--seed can only go with --config auto")
-        if args.config != "auto" and not args.map_prior and (args.cache_dir or args.no_cache):
-            raise HmpfError("--cache-dir and --no-cache go with --config auto or --map-prior")
-        uses_cache = args.config == "auto" or args.map_prior
+        if args.config != "auto" and args.map_prior is False and (args.cache_dir or args.no_cache):
+            raise HmpfError("--cache-dir and --no-cache go with --config auto or the map prior")
+        uses_cache = args.config == "auto" or args.map_prior is not False
         summary = build(
             args.config,
             args.images,

@@ -192,8 +192,16 @@ class Loaded:
             )
             # Always: the models read it, and the sequence filter's off-map state weighs
             # each frame's absolute evidence with it.
-            profile = reader.reference_profile()
-            acceptance.check_map_prior(profile, str(reader.path))
+            stored = reader.reference_profile()
+            profile = acceptance.with_map_prior(stored, str(reader.path))
+            if profile is not stored:
+                log.warning(
+                    "%s stores no map prior: the acceptance models read the conservative "
+                    "fallback %+.2f, so few answers will be accepted; build the version with "
+                    "hmpf-index build --map-prior",
+                    reader.path,
+                    acceptance.map_prior_fallback,
+                )
             # Positions are the places' (their original references', rows 0 .. P-1).
             meta, P = reader.refs.meta, reader.n
             lat = None if meta.get("lat") is None else meta["lat"][:P]

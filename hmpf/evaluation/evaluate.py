@@ -325,7 +325,7 @@ def acceptance_report(
     policy = Policy.of(config.acceptance, lock_mass=params.lock_mass)
     # The sequence filter's off-map state reads the profile too.
     prof = profile() if profile and (policy.needs_profile or sequence) else None
-    policy.check_map_prior(prof)
+    prof = policy.with_map_prior(prof)
     out = {"single": apply_acceptance(policy, single_answers(results, gt, routes, prof))}
     if sequence:
         seq = sequence_answers(results, gt, routes, params, profile=prof)

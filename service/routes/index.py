@@ -14,7 +14,7 @@ from fastapi import APIRouter
 from hmpf.errors import HmpfError
 from hmpf.index import layout
 from service.deps import AdminKey, EngineDep, MetricsDep, VehicleKey, is_admin
-from service.engine import Acceptance, Engine
+from service.engine import Engine, Loaded
 from service.errors import ApiError
 from service.reloader import current_version, reload_index
 from service.schemas import ErrorBody, IndexInfo, ReloadResponse
@@ -99,7 +99,7 @@ def _index_info(engine: Engine) -> dict[str, Any]:
         },
         "has_positions": loaded.has_positions,
         "threshold": loaded.threshold,
-        "acceptance": _acceptance(loaded.acceptance),
+        "acceptance": _acceptance(loaded),
         "loaded_at": loaded.loaded_at,
         "verification": {
             "state": loaded.verification,
@@ -110,5 +110,10 @@ def _index_info(engine: Engine) -> dict[str, Any]:
     }
 
 
-def _acceptance(acc: Acceptance) -> dict[str, Any]:
-    return acc.describe()
+def _acceptance(loaded: Loaded) -> dict[str, Any]:
+    out = loaded.acceptance.describe()
+    if loaded.acceptance.needs_map_prior and loaded.profile is not None:
+        stored = getattr(loaded.reader, "map_prior", None)
+        out["map_prior"] = loaded.profile.map_prior
+        out["map_prior_stored"] = stored is not None and stored() is not None
+    return out

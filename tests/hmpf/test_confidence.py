@@ -536,9 +536,18 @@ def test_a_profile_that_knows_its_maps_prior_gives_every_answer_map_prior() -> N
     assert ConfidenceModel.from_dict(model.to_dict()) == model
     policy = Policy(2.0, model, 0.5)
     assert policy.needs_profile and policy.needs_map_prior
-    policy.check_map_prior(known)
+    assert policy.with_map_prior(known) is known
     for missing in (prof, None):
         with pytest.raises(ModelError, match="--map-prior"):
-            policy.check_map_prior(missing)
+            policy.with_map_prior(missing)
     assert not Policy(2.0).needs_map_prior
-    Policy(2.0).check_map_prior(None)  # no model reads it: nothing to refuse
+    assert Policy(2.0).with_map_prior(None) is None  # no model reads it: nothing to refuse
+    assert Policy(2.0).with_map_prior(prof) is prof
+    # with a fallback, a profile without the prior gets it (one with its own keeps its own)
+    safe = replace(policy, map_prior_fallback=-2.5)
+    assert safe.with_map_prior(prof) == replace(prof, map_prior=-2.5)
+    assert safe.with_map_prior(known) is known
+    with pytest.raises(ModelError, match="--map-prior"):
+        safe.with_map_prior(None)
+    assert safe.describe()["map_prior_fallback"] == -2.5
+    assert Policy(2.0, map_prior_fallback=-2.5).describe()["map_prior_fallback"] is None

@@ -5,22 +5,28 @@ cheap handcrafted config (HOG + Gist), so the pseudo-queries extract in seconds.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from hmpf.config import load_config
+from hmpf.config import AcceptanceSettings, load_config
 from hmpf.datasets import list_images
 from hmpf.evaluation.auto import map_prior
 from hmpf.index import layout
 from hmpf.index.layout import IndexCorruptError
 from hmpf.index.reader import IndexReader
 from indexer import cli
-from indexer.build import BuildOptions, add, build
+from indexer.build import BuildOptions, add, build, prior_note
 from tests.conftest import link_frames, write_synthetic_images
 
+#: A single-frame confidence model that reads the map's prior.
+_READS_PRIOR = {
+    "format": "hmpf-confidence", "version": 1, "features": ["quality", "map_prior"],
+    "mean": [0.0, 0.0], "scale": [1.0, 1.0], "coef": [1.0, 1.0], "intercept": 0.0, "l2": 1.0,
+}  # fmt: skip
 N_IMAGES = 40  # the fewest along one route that a pseudo-query plan accepts
 CONFIG = "single-tier"
 
@@ -121,6 +127,49 @@ def test_the_command_stores_it_and_info_shows_it(
     out = capsys.readouterr().out
     assert f"map prior {entry['map_prior']:+.2f}" in out
     assert f"recall@1 {entry['recall_at_1']:.3f} on {entry['pseudo_queries']} pseudo" in out
-    # the cache options now go with --map-prior too, still not with a plain build
-    assert cli.main([*argv, "--no-cache"]) == 2
-    assert "--map-prior" in capsys.readouterr().err
+    # the cache options now go with the map prior too, not with a build that skips it
+    assert cli.main([*argv, "--no-map-prior", "--no-cache"]) == 2
+    assert "map prior" in capsys.readouterr().err
+
+
+def test_a_config_whose_models_read_the_prior_gets_it_without_asking(
+    refs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "reads.json"
+    doc = load_config(CONFIG).model_dump(mode="json", exclude_none=True)
+    doc["acceptance"] = {"threshold": 2.0, "model": _READS_PRIOR, "model_threshold": 0.9}
+    config.write_text(json.dumps(doc))
+    index = tmp_path / "auto"
+    argv = ["build", "--config", str(config), "--images", str(refs), "--index", str(index)]
+    assert cli.main([*argv, "--no-cache", "--workers", "1", "--quiet"]) == 0
+    entry = _manifest(index)["map_prior"]
+    assert math.isfinite(entry["map_prior"]) and entry["pseudo_queries"] > 0
+    assert "no map prior" not in capsys.readouterr().out
+    # --no-map-prior skips it, and the build says what serving will do
+    skipped = tmp_path / "skipped"
+    argv = ["build", "--config", str(config), "--images", str(refs), "--index", str(skipped)]
+    assert cli.main([*argv, "--no-map-prior", "--workers", "1", "--quiet"]) == 0
+    assert "map_prior" not in _manifest(skipped)
+    out = capsys.readouterr().out
+    assert "no map prior stored" in out and "refuse" in out
+
+
+def test_the_build_says_what_serving_does_when_the_models_read_a_prior_it_lacks() -> None:
+    plain = load_config(CONFIG)  # no model reads the prior: nothing to say
+    assert plain.acceptance is None or not plain.acceptance.reads_map_prior
+    assert prior_note(plain, None) is None
+    acc = {"threshold": 2.0, "model": _READS_PRIOR, "model_threshold": 0.9}
+    reads = plain.model_copy(update={"acceptance": AcceptanceSettings(**acc)})
+    safe = plain.model_copy(
+        update={"acceptance": AcceptanceSettings(**acc, map_prior_fallback=-2.31)}
+    )
+    stored = {"map_prior": 1.2}
+    for entry, fix in (
+        (None, "--map-prior"),
+        ({"map_prior": None, "why_none": "too few references"}, "too few references"),
+    ):
+        refused = prior_note(reads, entry)
+        assert refused is not None and "refuse" in refused and fix in refused
+        fallback = prior_note(safe, entry)
+        assert fallback is not None and "-2.31" in fallback and fix in fallback
+    assert prior_note(reads, stored) is None and prior_note(safe, stored) is None

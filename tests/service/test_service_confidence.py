@@ -561,6 +561,9 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
         assert all(f["map_prior"] == value for f in feats)
         with _client(root, keys) as c:
             served = [_post(c, keys, f)["match"] for f in frames]
+            info = c.get("/v1/index", headers={"X-API-Key": keys["vehicle"]}).json()
+        assert info["acceptance"]["map_prior"] == value
+        assert info["acceptance"]["map_prior_stored"] is True
         p = np.array([m["p_correct"] for m in served])
         assert p == pytest.approx([model.predict(f) for f in feats], rel=1e-9, abs=1e-12)
         # hmpf-eval --index decides with the same prior: the same probabilities
@@ -569,3 +572,18 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
         logits[value] = np.log(p) - np.log1p(-p)
     # an offset: the prior moves every answer's log-odds by exactly its own change
     assert logits[1.5] - logits[-2.0] == pytest.approx(np.full(len(frames), 3.5), abs=1e-6)
+
+    # Models with a fallback serve a version without a prior as if it stored the fallback,
+    # and say so; hmpf-eval --index decides alike.
+    acc["map_prior_fallback"] = -2.0
+    _build_version(service_index, root, acc)
+    with _client(root, keys) as c:
+        served = [_post(c, keys, f)["match"] for f in frames]
+        info = c.get("/v1/index", headers={"X-API-Key": keys["vehicle"]}).json()
+    assert info["acceptance"]["map_prior"] == -2.0
+    assert info["acceptance"]["map_prior_stored"] is False
+    assert info["acceptance"]["map_prior_fallback"] == -2.0
+    p = np.array([m["p_correct"] for m in served])
+    assert np.log(p) - np.log1p(-p) == pytest.approx(logits[-2.0], abs=1e-9)
+    rep = evaluate_frames(root, frames, list(TEST), TOLERANCE)
+    assert rep["acceptance"]["single"]["p_correct"] == pytest.approx(p, rel=1e-9, abs=1e-12)
