@@ -207,6 +207,8 @@ def removed_answers(
         EvalData(route.train_data.reference, route.test_data.query, gt, data.ground_truth),
         cache=cache,
     )
+    # The map is half the route's references: the route's prior stands in for its own.
+    bank.map_prior = route.map_prior
     routes = RouteMap.from_metadata(bank.n_db)
     results = bank.results(config)
     profile = bank.profile(config)

@@ -294,11 +294,18 @@ def route_figures(
 class Whole:
     """A Gardens Point protocol's whole traverse against its whole map (``hmpf-eval``)."""
 
-    def __init__(self, name: str, config: HierarchyConfig, cache: FeatureCache) -> None:
+    def __init__(
+        self,
+        name: str,
+        config: HierarchyConfig,
+        cache: FeatureCache,
+        map_prior: float | None = None,
+    ) -> None:
         ref, qry = GARDENS_POINT_PROTOCOLS[name]
         root = dataset_root()
         data = EvalData.frames(root / ref, root / qry, TOLERANCE)
         bank = ScoreBank.build(config, data, cache=cache)
+        bank.map_prior = map_prior  # the map's prior (the route's), when the models read it
         self.name = name
         self.results = bank.results(config)
         self.gt = np.asarray(bank.gt, bool)
@@ -588,7 +595,8 @@ def main() -> int:
     config, params, routes = sets.config, sets.params, sets.routes
     digest = config.digest()
     cache = FeatureCache(default_cache_dir())
-    wholes = [Whole(n, config, cache) for n in GARDENS_POINT_PROTOCOLS if n in names]
+    priors = {r.name: r.map_prior for r in routes}
+    wholes = [Whole(n, config, cache, priors.get(n)) for n in GARDENS_POINT_PROTOCOLS if n in names]
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     goals = {
         "whole_gp_dl_nr_recall": GOAL_WHOLE,

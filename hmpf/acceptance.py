@@ -80,12 +80,15 @@ DEFAULT_ACCEPT_THRESHOLD = 2.9
 DEFAULT_UNLOCK_MASS = 0.9
 #: Off-map probability from which an estimate is reported off the map (never accepted).
 OFF_MAP = 0.5
-#: The stay threshold the shipped sequence models carry (``sequence_stay_threshold``): an
-#: estimate accepted on the previous frame that moved on consistently stays accepted while
-#: it is more likely right than wrong. Searching it on the training drives (the lowest
-#: value keeping 99 % precision) left it next to the entry threshold, so the lock still
-#: flickered (16 flips per 100 frames on a held-out Gardens Point night route); 0.5 gave 2
-#: at the same precision (bench/shipped_acceptance.py).
+#: The stay threshold of the acceptance benches' default recipe (``sequence_stay_threshold``):
+#: an estimate accepted on the previous frame that moved on consistently stays accepted while
+#: it is more likely right than wrong. Searching it on the training drives (the lowest value
+#: keeping 99 % precision) left it next to the entry threshold, so the lock still flickered
+#: (16 flips per 100 frames on a held-out Gardens Point night route); 0.5 gave 2 at the same
+#: precision (bench/shipped_acceptance.py). The ``default`` preset's shipped models carry 0.9
+#: since 2026-11-29: with the map's prior, 0.5 carried a look-alike stretch of wrong answers,
+#: and the filter's motion cue keeps 0.9 from flickering
+#: (docs/experiments/acceptance/README.md).
 STAY_P = 0.5
 
 

@@ -16,8 +16,10 @@ those the unsharded version extracts.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import math
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor
 from pathlib import Path
@@ -34,7 +36,7 @@ from hmpf.index.reader import IndexReader
 from hmpf.index.storage import open_h5, read_profile, read_ref_table
 from hmpf.index.tables import RefTable
 from hmpf.methods import Method
-from hmpf.sequence import RouteMap
+from hmpf.sequence import MotionSketch, RouteMap
 from hmpf.shards import MAP_DIR, ShardedScorer, ShardError, ShardScores, read_shard_map
 
 __all__ = [
@@ -220,13 +222,51 @@ class ShardedReader:
         return self._routes
 
     def reference_profile(self) -> ReferenceProfile:
-        """The whole map's reference profile, as the split stored it."""
+        """The whole map's reference profile, as the split stored it, with the source
+        version's map prior (:meth:`map_prior`)."""
         if self._profile is None:
             profile = read_profile(self.folder / MAP_DIR / layout.PROFILE_H5)
             if profile.n != self.n:
                 raise ShardError(f"{self.folder}: a profile of {profile.n} places for {self.n}")
-            self._profile = profile
+            self._profile = dataclasses.replace(profile, map_prior=self.map_prior())
         return self._profile
+
+    def map_prior(self) -> float | None:
+        """The map prior of the version the map was split from (None: it stored none, or
+        the map was split before splits kept it)."""
+        value = self.info.get("map_prior")
+        if value is None:
+            return None
+        finite = isinstance(value, int | float) and math.isfinite(value)
+        if isinstance(value, bool) or not finite:
+            raise ShardError(f"{self.folder}: map_prior {value!r} is not a finite number")
+        return float(value)
+
+    def motion_sketch(self) -> tuple[str, MotionSketch] | None:
+        """``(method id, sketch)`` of the frames' motion for a config whose filter weighs it,
+        as the source version made it (the split stores its step): the router sketches each
+        frame from the query's own descriptor, as the unsharded version does. None when the
+        filter weighs no motion.
+
+        Raises:
+            ShardError: the filter weighs motion and the map was split without the sketch
+                (before splits kept it, or from a version that could not make one).
+        """
+        if not self.config.sequence_params().motion:
+            return None
+        entry = self.info.get("motion_sketch")
+        if not isinstance(entry, dict):
+            raise ShardError(
+                f"{self.folder}: the sequence filter weighs motion (sequence.stop_factor) and "
+                "this split holds no motion sketch; split the version again"
+            )
+        try:
+            mid, dim, step = str(entry["method"]), int(entry["dim"]), float(entry["step"])
+        except (KeyError, TypeError, ValueError):
+            raise ShardError(f"{self.folder}: an unreadable motion sketch {entry!r}") from None
+        if mid not in self.methods or dim < 1 or not (math.isfinite(step) and step > 0):
+            raise ShardError(f"{self.folder}: an unusable motion sketch {entry!r}")
+        return mid, MotionSketch(MotionSketch.projection_for(dim), step)
 
     def extract_query(
         self,

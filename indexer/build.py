@@ -43,8 +43,8 @@ import numpy as np
 import hmpf.features as hfeatures
 from hmpf.confidence import profile_params
 from hmpf.config import HierarchyConfig, build_methods, load_config, with_shipped_acceptance
-from hmpf.errors import DatasetError, ImageError
-from hmpf.evaluation.auto import choose_config, map_prior
+from hmpf.errors import ImageError
+from hmpf.evaluation.auto import choose_config, map_prior_or_why
 from hmpf.features import FeatureCache, extract_images, file_digest
 from hmpf.index import layout, thumbnails
 from hmpf.index.ann import (
@@ -848,21 +848,15 @@ def map_prior_entry(
     meta: dict[str, Any] = {
         k: refs.meta[k] for k in ("sequence", "timestamp", "lat", "lon") if k in refs.meta
     }
-    entry: dict[str, Any] = {"config_sha256": config.digest()}
-    try:
-        entry.update(
-            map_prior(
-                config,
-                list(paths),
-                metadata=meta,
-                cache=cache,
-                workers=options.workers,
-                progress=options.progress,
-            )
-        )
-    except DatasetError as exc:
-        entry.update({"map_prior": None, "why_none": str(exc)})
-    return entry
+    found = map_prior_or_why(
+        config,
+        list(paths),
+        metadata=meta,
+        cache=cache,
+        workers=options.workers,
+        progress=options.progress,
+    )
+    return {"config_sha256": config.digest(), **found}
 
 
 def _carried_prior(new: NewVersion) -> dict[str, Any] | None:

@@ -165,6 +165,17 @@ def _order(parent: IndexReader, by: str) -> np.ndarray:
     return position_order(lat[:n], lon[:n])
 
 
+def _sketch_entry(parent: IndexReader) -> dict[str, Any] | None:
+    """The parent's :meth:`~hmpf.index.reader.IndexReader.motion_sketch` as the shard map
+    stores it: the method, the descriptors' dimension (the projection is seeded by it) and
+    the map's step; None when its filter weighs no motion."""
+    made = parent.motion_sketch()
+    if made is None:
+        return None
+    mid, sketch = made
+    return {"method": mid, "dim": int(sketch.projection.shape[1]), "step": sketch.step}
+
+
 def _write_map(
     out: Path, parent: IndexReader, shard_map: ShardMap, versions: list[str], by: str
 ) -> None:
@@ -181,6 +192,11 @@ def _write_map(
         "config_digest": parent.config.digest(),
         "by": by,
         "profile": layout.PROFILE_H5,
+        # the source version's map prior, which every answer's features carry
+        "map_prior": parent.map_prior(),
+        # the source version's sketch of the frames' motion (a filter that weighs it): the
+        # router sketches each query frame as the unsharded version does
+        "motion_sketch": _sketch_entry(parent),
     }
     data = shard_map.to_json(extra)
     tmp = out / f".{MAP_FILE}.tmp"

@@ -63,7 +63,7 @@ from hmpf.config import (
     parse_config,
     shipped_acceptance,
 )
-from hmpf.errors import ConfigError
+from hmpf.errors import ConfigError, DatasetError
 from hmpf.evaluation.calibrate import (
     SearchSpace,
     Trial,
@@ -334,6 +334,17 @@ def map_prior(
         "map_prior": float(np.log(kept / (1.0 - kept))),
         "seconds": round(time.perf_counter() - t0, 3),
     }
+
+
+def map_prior_or_why(
+    config: HierarchyConfig, reference_paths: Sequence[str | Path], **kwargs: Any
+) -> dict[str, Any]:
+    """:func:`map_prior`, or, with too few references to make pseudo-queries from,
+    ``{"map_prior": None, "why_none": <the reason>}`` (``kwargs``: :func:`map_prior`'s)."""
+    try:
+        return map_prior(config, reference_paths, **kwargs)
+    except DatasetError as exc:
+        return {"map_prior": None, "why_none": str(exc)}
 
 
 def _one_blas_thread() -> contextlib.AbstractContextManager[Any]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,6 +27,7 @@ from hmpf.acceptance import Policy
 from hmpf.confidence import ReferenceProfile
 from hmpf.config import HierarchyConfig, build_methods
 from hmpf.evaluation.acceptance import apply_acceptance, sequence_answers, single_answers
+from hmpf.evaluation.auto import map_prior_or_why
 from hmpf.evaluation.data import EvalData, Prepared, prepare
 from hmpf.evaluation.metrics import (
     RECALL_NS,
@@ -245,9 +247,19 @@ def evaluate(
         "fitted_methods": prep.fitted,
     }
     routes = RouteMap.from_metadata(n_db)
-    profile = _once(
-        lambda: ReferenceProfile.build(prep.methods, prep.db, config.tiers[0].methods, routes)
-    )
+
+    def built_profile() -> ReferenceProfile:
+        prof = ReferenceProfile.build(prep.methods, prep.db, config.tiers[0].methods, routes)
+        if config.acceptance is None or not config.acceptance.reads_map_prior:
+            return prof
+        # the models read the map's prior: what an index of these references would store
+        entry = map_prior_or_why(
+            config, data.reference, cache=cache, workers=workers, progress=progress
+        )
+        report["map_prior"] = entry
+        return replace(prof, map_prior=entry["map_prior"])
+
+    profile = _once(built_profile)
     params = config.sequence_params()
     tier1 = config.tiers[0].methods
     if params.motion:  # the filter reads each frame's sketch from its result

@@ -9,6 +9,8 @@ sequence filter's estimates); a GPS prior reaches only the shards covering it.""
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +61,8 @@ def maps(gardens_point: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[
     csv = write_positions(refs, base / "meta.csv")
     config = dict(CONFIG, acceptance=_model())
     index = base / "index"
-    build(parse_config(config), refs, index, metadata=csv, options=BUILD_OPTIONS)
+    build(parse_config(config), refs, index, metadata=csv, options=BUILD_OPTIONS,
+          with_map_prior=True)  # fmt: skip
     out = base / "shards"
     assert index_main(["shard", "--index", str(index), "--shards", "3", "--overlap", "5",
                        "--out", str(out)]) == 0  # fmt: skip
@@ -184,6 +187,10 @@ def test_sharded_answers_equal_unsharded_on_every_query(
     loaded: tuple[Loaded, Loaded], night: list[np.ndarray]
 ) -> None:
     whole, sharded = loaded
+    # the split keeps the version's map prior: answers' features carry the same one
+    assert whole.profile is not None and sharded.profile is not None
+    assert whole.profile.map_prior is not None
+    assert sharded.profile.map_prior == whole.profile.map_prior
     params = LocalizeParams(top_k=10)
     routes = whole.sequence.routes
     backend = sharded.reader.backend  # type: ignore[attr-defined]
@@ -310,3 +317,60 @@ def test_euclidean_distance_of_a_row_does_not_depend_on_the_others(
         assert np.array_equal(euclidean(q, refs[lo:hi])[0], whole[lo:hi]), (lo, hi)
     pick = rng.choice(len(refs), 37, replace=False)
     assert np.array_equal(euclidean(q, refs[pick])[0], whole[pick])
+
+
+# -- a filter that weighs motion ---------------------------------------------------------------
+@pytest.fixture(scope="module")
+def moving(maps: dict[str, Path]) -> Any:
+    """The same references under a config whose filter weighs motion, whole and split."""
+    base = maps["index"].parent
+    config = dict(CONFIG, acceptance=_model(), sequence={"lock_mass": 0.9, "stop_factor": 0.1})
+    index = base / "moving"
+    build(parse_config(config), base / "refs", index, metadata=base / "meta.csv",
+          options=BUILD_OPTIONS)  # fmt: skip
+    out = base / "moving-shards"
+    assert index_main(["shard", "--index", str(index), "--shards", "2", "--out", str(out)]) == 0
+    whole = Loaded.open(index, None)
+    sharded = open_sharded(ShardedReader.open_local(out), None)
+    yield whole, sharded
+    whole.reader.close()
+    sharded.reader.close()
+
+
+def test_a_filter_that_weighs_motion_is_served_sharded_as_unsharded(
+    moving: tuple[Loaded, Loaded], night: list[np.ndarray]
+) -> None:
+    whole, sharded = moving
+    assert whole.motion is not None and sharded.motion is not None
+    (mid_w, sk_w), (mid_s, sk_s) = whole.motion, sharded.motion
+    assert mid_w == mid_s and sk_w.step == sk_s.step
+    assert np.array_equal(sk_w.projection, sk_s.projection)
+    states = [whole.sequence.start(), sharded.sequence.start()]
+    stopped = 0
+    for i, image in enumerate(night):
+        estimates = []
+        for k, loaded in enumerate((whole, sharded)):
+            feats: dict[str, Any] = {}
+            result, allowed = run_query(loaded, image, None, {}, None, feats)
+            assert loaded.motion is not None
+            mid, sketch = loaded.motion
+            ev = Evidence.from_result(result, loaded.reader.n, sketch=sketch(feats[mid]))
+            states[k], est = loaded.sequence.update(states[k], ev)
+            estimates.append(est)
+        a, b = estimates
+        assert a.ref == b.ref and approx(a.mass, b.mass), f"frame {i}: {a} != {b}"
+        stopped += a.speed == 0
+    assert stopped < len(night)  # the cue let the estimate move on
+
+
+def test_a_split_without_the_sketch_is_refused_for_a_filter_that_weighs_motion(
+    moving: tuple[Loaded, Loaded], tmp_path: Path
+) -> None:
+    src = moving[1].reader.folder  # type: ignore[attr-defined]
+    old = tmp_path / "old-split"
+    shutil.copytree(src, old)
+    doc = json.loads((old / "shards.json").read_text())
+    doc.pop("motion_sketch")
+    (old / "shards.json").write_text(json.dumps(doc))
+    with pytest.raises(ShardError, match="no motion sketch"):
+        open_sharded(ShardedReader.open_local(old), None)

@@ -199,7 +199,12 @@ def test_hmpf_eval_sequence_with_foreign_frames_drives_off_the_map_and_back(
     args += ["--workers", "1", "--sequence", "--foreign", str(folders["away"])]
     assert eval_main([*args, "--json", str(out)]) == 0
     assert "leaving the map and coming back" in capsys.readouterr().out
-    rep = json.loads(out.read_text())["off_map"]
+    full = json.loads(out.read_text())
+    # the default preset's models read the map's prior: hmpf-eval computes it for these
+    # references, as hmpf-index build stores it
+    assert full["map_prior"]["pseudo_queries"] > 0
+    assert -10 < full["map_prior"]["map_prior"] < 10
+    rep = full["off_map"]
     with_off, without = rep["with_off"], rep["without_off"]
     assert rep["n_drives"] > 0
     assert with_off["away_off_map"] > 0.5 and without["away_off_map"] == 0.0
