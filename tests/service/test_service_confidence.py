@@ -114,16 +114,22 @@ def _acceptance(models: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _build_version(service_index: Path, root: Path, acceptance: dict[str, Any] | None) -> str:
+def _build_version(
+    service_index: Path,
+    root: Path,
+    acceptance: dict[str, Any] | None,
+    with_map_prior: bool | None = None,
+) -> str:
     """Build a version of the service index's references at ``root`` (a new one when the
-    root has versions already) with ``acceptance`` in its config; returns its name."""
+    root has versions already) with ``acceptance`` in its config (``with_map_prior``: as
+    :func:`indexer.build.build`'s); returns its name."""
     config = dict(SERVICE_CONFIG, sequence={"lock_mass": 0.9})
     if acceptance is not None:
         config["acceptance"] = acceptance
     base = service_index.parent
     summary = build(
         parse_config(config), base / "refs", root, metadata=base / "meta.csv",
-        options=BUILD_OPTIONS,
+        options=BUILD_OPTIONS, with_map_prior=with_map_prior,
     )  # fmt: skip
     return summary.version
 
@@ -241,6 +247,10 @@ def test_answers_carry_p_correct_and_the_model_decides(
         },
         "lock_mass": 0.9,  # the version's sequence settings (see _build_version)
         "unlock_mass": 0.9,  # the lock rule's stay bar, never above lock_mass
+        # no model reads the map's prior
+        "map_prior": None,
+        "map_prior_stored": None,
+        "map_prior_fallback": None,
     }
     doc = client.get("/openapi.json").json()["components"]["schemas"]["Match"]["properties"]
     for name in ("p_correct", "accepted_by"):
@@ -537,7 +547,7 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
     acc["model"] = _with_offset(acc["model"])
     acc["sequence_model"] = _with_offset(acc["sequence_model"])
     root = tmp_path / "index"
-    bare = _build_version(service_index, root, acc)  # 20 references: no prior stored
+    bare = _build_version(service_index, root, acc, with_map_prior=False)  # no prior stored
     monkeypatch.setenv("HMPF_AUTH", "false")
     assert serve_main(["--index", str(root), "--port", "1"]) == 2
     err = capsys.readouterr().err
@@ -576,7 +586,7 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
     # Models with a fallback serve a version without a prior as if it stored the fallback,
     # and say so; hmpf-eval --index decides alike.
     acc["map_prior_fallback"] = -2.0
-    _build_version(service_index, root, acc)
+    _build_version(service_index, root, acc, with_map_prior=False)
     with _client(root, keys) as c:
         served = [_post(c, keys, f)["match"] for f in frames]
         info = c.get("/v1/index", headers={"X-API-Key": keys["vehicle"]}).json()
