@@ -377,7 +377,7 @@ class AcceptanceInfo(BaseModel):
     map_prior_stored: bool | None = Field(
         None,
         description="whether the version stores its prior (`hmpf-index build --map-prior`); "
-        "false: the models' conservative `map_prior_fallback` stands in, so few answers are "
+        "false: the models' conservative `map_prior_fallback` stands in, so fewer answers are "
         "accepted",
     )
     map_prior_fallback: float | None = Field(

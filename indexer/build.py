@@ -827,7 +827,7 @@ def prior_note(config: HierarchyConfig, entry: Mapping[str, Any] | None) -> str 
     else:
         then = (
             f"hmpf-serve uses the models' conservative fallback {acc.map_prior_fallback:+.2f}, "
-            "so few answers will be accepted"
+            "so fewer answers will be accepted"
         )
     why = (entry or {}).get("why_none")
     fix = f"none could be computed ({why})" if why else "build with --map-prior"

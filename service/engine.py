@@ -197,7 +197,7 @@ class Loaded:
             if profile is not stored:
                 log.warning(
                     "%s stores no map prior: the acceptance models read the conservative "
-                    "fallback %+.2f, so few answers will be accepted; build the version with "
+                    "fallback %+.2f, so fewer answers will be accepted; build the version with "
                     "hmpf-index build --map-prior",
                     reader.path,
                     acceptance.map_prior_fallback,
