@@ -400,7 +400,7 @@ def plan(
     if len(picked) < 2:
         raise DatasetError(
             f"too few references to make pseudo-queries from ({where.n} references; "
-            f"at least {2 * len(ROLES) * block} along a route are needed)"
+            f"{2 * len(ROLES) * block} along a route always suffice)"
         )
     copies = int(min(max_copies, max(1, math.ceil(min_queries / len(picked)))))
     if len(picked) * copies > max_queries:

@@ -27,7 +27,7 @@ _READS_PRIOR = {
     "format": "hmpf-confidence", "version": 1, "features": ["quality", "map_prior"],
     "mean": [0.0, 0.0], "scale": [1.0, 1.0], "coef": [1.0, 1.0], "intercept": 0.0, "l2": 1.0,
 }  # fmt: skip
-N_IMAGES = 40  # the fewest along one route that a pseudo-query plan accepts
+N_IMAGES = 40  # enough along one route for a pseudo-query plan, always
 CONFIG = "single-tier"
 
 
