@@ -2,7 +2,7 @@
 routes they never saw.
 
     python -m bench.shipped_acceptance [--config default] [--foreign 200] [--write]
-        [--out results/shipped_acceptance_default.json]
+        [--[no-]map-prior] [--stay X] [--out results/shipped_acceptance_default.json]
 
 Each route (Gardens Point's three protocols, Nordland summer -> winter; all with the same
 preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames). On the
@@ -18,7 +18,11 @@ preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 fr
   out-of-map answers (at most 1 % accepted) left the night routes' sequence mode at 2-4 %
   accepted, so the off-map answers shape the model and the filter's off state, not the
   threshold;
-* the sequence model's stay threshold (hysteresis): :data:`hmpf.acceptance.STAY_P`.
+* the sequence model's stay threshold (hysteresis, ``--stay``) and whether both models read
+  the map's prior (``--map-prior``): by default the recipe the preset's shipped models were
+  fitted with (:func:`shipped_recipe`; ``default``: the prior and 0.9, since 2026-11-29), so
+  ``--write`` refits them as they are; a preset without shipped models:
+  :data:`hmpf.acceptance.STAY_P` and no prior.
 
 Then, per held-out route (**leave one route out**: the models fitted on the other routes
 only) and for the shipped fit (all routes), on the route's *test* part:
@@ -728,12 +732,16 @@ def main() -> int:
     ap.add_argument("--write", action="store_true", help="write the preset's shipped models")
     ap.add_argument(
         "--map-prior",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="both models read the map's prior (each route's, from pseudo-queries of its "
-        "references, as hmpf-index build --map-prior stores it)",
+        "references, as hmpf-index build stores it); default: as the preset's shipped models",
     )
     ap.add_argument(
-        "--stay", type=float, default=STAY_P, help=f"sequence stay threshold (default {STAY_P})"
+        "--stay",
+        type=float,
+        default=None,
+        help=f"sequence stay threshold; default: the shipped models' (else {STAY_P})",
     )
     add_json(ap, "--out", help="JSON report (default results/shipped_acceptance_<config>)")
     args = ap.parse_args()
@@ -742,7 +750,12 @@ def main() -> int:
     prov = provenance(args.config, config, args)
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())
-    recipe = Recipe.of(args.map_prior, args.stay)
+    # the shipped models' recipe unless told otherwise, so that --write refits them as they are
+    shipped = shipped_recipe(args.config)
+    recipe = Recipe.of(
+        shipped.needs_prior if args.map_prior is None else args.map_prior,
+        shipped.stay if args.stay is None else args.stay,
+    )
     routes, priors = recipe_routes(
         config, args.routes.split(","), cache, args.foreign, args.nordland_frames, recipe
     )

@@ -6,10 +6,12 @@ import importlib.util
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from hmpf.config import AcceptanceSettings, load_config
 from hmpf.evaluation.acceptance import Answers, RoutePart
 from hmpf.sequence import Estimate
 
@@ -93,3 +95,13 @@ def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path
     assert sa.shipped_recipe("p") == sa.DEFAULT_RECIPE  # written before recipes
     (folder / "p.json").write_text(json.dumps({"recipe": recipe.describe()}))
     assert sa.shipped_recipe("p") == recipe
+    # a recipe that reads the prior ships the lowest of the routes' priors as the fallback
+    priors = (1.2, 1.1, -2.0)
+    routes = [SimpleNamespace(name=p.name, map_prior=v) for p, v in zip(parts, priors, strict=True)]
+    path = sa.write_shipped("p", load_config("single-tier"), routes, policy, recipe)
+    doc = json.loads(path.read_text())
+    assert doc["recipe"] == recipe.describe()
+    assert AcceptanceSettings(**doc["acceptance"]).map_prior_fallback == -2.0
+    assert sa.shipped_recipe("p") == recipe
+    plain = sa.write_shipped("p", load_config("single-tier"), routes, policy, sa.DEFAULT_RECIPE)
+    assert "map_prior_fallback" not in json.loads(plain.read_text())["acceptance"]
