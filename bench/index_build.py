@@ -5,20 +5,25 @@
 
 Builds into a fresh temporary folder (no feature cache, so every image is extracted), then
 prints images/s and bytes on disk per reference (per method and in total); with ``--json``
-writes them too. The CNN runtime is the process's (``HMPF_CNN_RUNTIME``). A replica's memory
-per reference is measured by ``python -m bench.capacity`` on two indexes of different sizes
-(in the building process the allocator reuses the build's freed pages, so a reader opened
-there shows no growth).
+writes them too. The build stores the map prior when the config's acceptance models read it
+(the ``default`` preset's, since 2026-11-29), which extracts its pseudo-queries and references
+again: its seconds are printed apart (``map_prior_s``, part of the build's);
+``--no-map-prior`` builds without it. The CNN runtime is the process's
+(``HMPF_CNN_RUNTIME``). A replica's memory per reference is measured by ``python -m
+bench.capacity`` on two indexes of different sizes (in the building process the allocator
+reuses the build's freed pages, so a reader opened there shows no growth).
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 from pathlib import Path
 
 from bench.harness import add_json, parser, write_record
 from hmpf.datasets import list_images
+from hmpf.index import layout
 from hmpf.runtime import cnn_runtime
 from indexer.build import BuildOptions, build
 
@@ -30,6 +35,12 @@ def main() -> None:
     p.add_argument("--limit", type=int, default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--precision", default="exact", choices=["exact", "compact"])
+    p.add_argument(
+        "--map-prior",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="store the map prior (default: when the config's models read it)",
+    )
     add_json(p)
     a = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -39,8 +50,10 @@ def main() -> None:
         for src in paths:
             (folder / src.name).symlink_to(src.resolve())
         opts = BuildOptions(workers=a.workers, progress=False, precision=a.precision)
-        s = build(a.config, folder, Path(tmp) / "index", options=opts)
+        s = build(a.config, folder, Path(tmp) / "index", options=opts, with_map_prior=a.map_prior)
         n = s.images
+        entry = layout.read_manifest(Path(tmp) / "index" / s.version).get("map_prior") or {}
+        prior_s = entry.get("seconds")
         print(
             f"config {a.config}, {n} images from {a.images} ({a.precision}), "
             f"{os.cpu_count()} CPUs, workers {a.workers or os.cpu_count()}"
@@ -49,6 +62,11 @@ def main() -> None:
             f"build: {s.seconds:.1f} s, {s.images_per_s:.1f} images/s (end to end: hashing, "
             "extraction, HDF5, FAISS, fsync)"
         )
+        if entry:
+            print(
+                f"of which the map prior: {prior_s or 0:.1f} s ({entry.get('pseudo_queries')} "
+                f"pseudo-queries, map_prior {entry.get('map_prior')})"
+            )
         print(
             f"on disk: {(s.bytes_total - s.bytes_models) / n / 1024:.1f} KiB per reference "
             f"({s.bytes_total / 1e6:.2f} MB in all, of which CNN models "
@@ -69,6 +87,10 @@ def main() -> None:
                 "bytes_per_reference_without_models": (s.bytes_total - s.bytes_models) / n,
                 "bytes_per_reference_by_method": {m: b / n for m, b in s.bytes_per_method.items()},
                 "bytes_per_reference_thumbnails": s.bytes_thumbnails / n,
+                # the map prior's part of ``seconds`` (None: not stored)
+                "map_prior_s": prior_s,
+                "map_prior": entry.get("map_prior"),
+                "pseudo_queries": entry.get("pseudo_queries"),
             }
             write_record(a.json, results, a, config=a.config)
 
