@@ -208,7 +208,7 @@ class Policy:
         self, profile: ReferenceProfile | None, label: str = "the map"
     ) -> ReferenceProfile | None:
         """``profile`` as the models read it: when a model reads the map's prior and the map
-        stores none, with :attr:`map_prior_fallback` in its place (a conservative prior: few
+        stores none, with :attr:`map_prior_fallback` in its place (a conservative prior: fewer
         answers accepted until the version is built with ``hmpf-index build --map-prior``).
 
         Raises:

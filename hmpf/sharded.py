@@ -246,20 +246,24 @@ class ShardedReader:
         """``(method id, sketch)`` of the frames' motion for a config whose filter weighs it,
         as the source version made it (the split stores its step): the router sketches each
         frame from the query's own descriptor, as the unsharded version does. None when the
-        filter weighs no motion.
+        filter weighs no motion, or the version could not make a sketch either.
 
         Raises:
-            ShardError: the filter weighs motion and the map was split without the sketch
-                (before splits kept it, or from a version that could not make one).
+            ShardError: the filter weighs motion and the map was split before splits kept
+                the sketch, or the stored sketch is unusable.
         """
         if not self.config.sequence_params().motion:
             return None
-        entry = self.info.get("motion_sketch")
-        if not isinstance(entry, dict):
+        if "motion_sketch" not in self.info:
             raise ShardError(
                 f"{self.folder}: the sequence filter weighs motion (sequence.stop_factor) and "
                 "this split holds no motion sketch; split the version again"
             )
+        entry = self.info["motion_sketch"]
+        if entry is None:  # the version gave none either (no consecutive places)
+            return None
+        if not isinstance(entry, dict):
+            raise ShardError(f"{self.folder}: an unreadable motion sketch {entry!r}")
         try:
             mid, dim, step = str(entry["method"]), int(entry["dim"]), float(entry["step"])
         except (KeyError, TypeError, ValueError):

@@ -374,3 +374,11 @@ def test_a_split_without_the_sketch_is_refused_for_a_filter_that_weighs_motion(
     (old / "shards.json").write_text(json.dumps(doc))
     with pytest.raises(ShardError, match="no motion sketch"):
         open_sharded(ShardedReader.open_local(old), None)
+    # a split that says the version had no sketch either serves without one, as it would
+    doc["motion_sketch"] = None
+    (old / "shards.json").write_text(json.dumps(doc))
+    none = open_sharded(ShardedReader.open_local(old), None)
+    try:
+        assert none.motion is None
+    finally:
+        none.reader.close()
