@@ -65,7 +65,6 @@ from bench.harness import ROOT, add_json, parser, provenance, write_record
 from bench.shipped_acceptance import (
     ROUTES,
     TARGET,
-    TOLERANCE,
     Route,
     add_route_arguments,
     evaluate,
@@ -78,18 +77,15 @@ from bench.shipped_acceptance import (
 )
 from hmpf.acceptance import Policy
 from hmpf.config import HierarchyConfig
-from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
+from hmpf.datasets import GARDENS_POINT_PROTOCOLS
 from hmpf.evaluation.acceptance import Answers, apply_acceptance, sequence_answers
 from hmpf.evaluation.calibrate import paired_test
-from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import (
     Drive,
     jump_drives,
     sequence_report,
     start_drives,
 )
-from hmpf.evaluation.study import ScoreBank
-from hmpf.features import FeatureCache, default_cache_dir
 from hmpf.sequence import FilterParams, RouteMap
 
 __all__ = [
@@ -292,25 +288,15 @@ def route_figures(
 
 
 class Whole:
-    """A Gardens Point protocol's whole traverse against its whole map (``hmpf-eval``)."""
+    """A Gardens Point protocol's whole traverse against its whole map (``hmpf-eval``): the
+    route's own (:meth:`~bench.shipped_acceptance.Route.whole_results`, with its prior)."""
 
-    def __init__(
-        self,
-        name: str,
-        config: HierarchyConfig,
-        cache: FeatureCache,
-        map_prior: float | None = None,
-    ) -> None:
-        ref, qry = GARDENS_POINT_PROTOCOLS[name]
-        root = dataset_root()
-        data = EvalData.frames(root / ref, root / qry, TOLERANCE)
-        bank = ScoreBank.build(config, data, cache=cache)
-        bank.map_prior = map_prior  # the map's prior (the route's), when the models read it
-        self.name = name
-        self.results = bank.results(config)
+    def __init__(self, route: Route) -> None:
+        bank = route.whole()
+        self.name = route.name
+        self.results, self.profile = route.whole_results()
         self.gt = np.asarray(bank.gt, bool)
         self.routes = RouteMap.from_metadata(bank.n_db)
-        self.profile = bank.profile(config)
 
     def answers(self, params: FilterParams) -> Answers:
         return sequence_answers(self.results, self.gt, self.routes, params, None, self.profile)
@@ -594,9 +580,8 @@ def main() -> int:
     sets = model_sets(args.config, names, args.foreign, args.nordland_frames)
     config, params, routes = sets.config, sets.params, sets.routes
     digest = config.digest()
-    cache = FeatureCache(default_cache_dir())
-    priors = {r.name: r.map_prior for r in routes}
-    wholes = [Whole(n, config, cache, priors.get(n)) for n in GARDENS_POINT_PROTOCOLS if n in names]
+    by_route = {r.name: r for r in routes}
+    wholes = [Whole(by_route[n]) for n in GARDENS_POINT_PROTOCOLS if n in by_route]
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
     goals = {
         "whole_gp_dl_nr_recall": GOAL_WHOLE,
