@@ -57,6 +57,7 @@ __all__ = [
     "feature_matrix",
     "profile_params",
     "reliability",
+    "stored_map_prior",
     "threshold_for_precision",
 ]
 
@@ -156,6 +157,20 @@ def _best_outside(
     v = values[far]
     v = v[np.isfinite(v)]
     return float(v.max()) if v.size else None
+
+
+def stored_map_prior(value: object) -> float | None:
+    """A map prior as stored (a manifest's or a shard map's ``map_prior``): None stays None,
+    a finite number becomes a float.
+
+    Raises:
+        ValueError: anything else (the caller says whose file is damaged).
+    """
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"map_prior {value!r} is not a finite number")
+    return float(value)
 
 
 def answer_features(

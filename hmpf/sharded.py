@@ -27,7 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from hmpf.confidence import ReferenceProfile
+from hmpf.confidence import ReferenceProfile, stored_map_prior
 from hmpf.config import HierarchyConfig
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
@@ -234,13 +234,10 @@ class ShardedReader:
     def map_prior(self) -> float | None:
         """The map prior of the version the map was split from (None: it stored none, or
         the map was split before splits kept it)."""
-        value = self.info.get("map_prior")
-        if value is None:
-            return None
-        finite = isinstance(value, int | float) and math.isfinite(value)
-        if isinstance(value, bool) or not finite:
-            raise ShardError(f"{self.folder}: map_prior {value!r} is not a finite number")
-        return float(value)
+        try:
+            return stored_map_prior(self.info.get("map_prior"))
+        except ValueError as exc:
+            raise ShardError(f"{self.folder}: {exc}") from None
 
     def motion_sketch(self) -> tuple[str, MotionSketch] | None:
         """``(method id, sketch)`` of the frames' motion for a config whose filter weighs it,

@@ -142,6 +142,10 @@ class Loaded:
     #: (method id, sketch) of the frames' motion, for a sequence filter that weighs it
     #: (:meth:`hmpf.index.reader.IndexReader.motion_sketch`); None: it weighs none
     motion: tuple[str, MotionSketch] | None = field(default=None, repr=False)
+    #: whether the version stores the map prior its models read (False: the models'
+    #: fallback stands in, :meth:`hmpf.acceptance.Policy.with_map_prior`); None: no model
+    #: reads it
+    map_prior_stored: bool | None = None
     #: how its files were verified, one of :data:`VERIFICATION_STATES`
     verification: str = "full"
     #: what the background check found, paths relative to the version (empty: nothing)
@@ -220,6 +224,7 @@ class Loaded:
                 lon=np.asarray(lon, dtype=np.float64) if has_pos else None,
                 profile=profile,
                 motion=motion,
+                map_prior_stored=(profile is stored) if acceptance.needs_map_prior else None,
                 verification=verification,
             )
         except BaseException:

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from hmpf.confidence import ReferenceProfile
+from hmpf.confidence import ReferenceProfile, stored_map_prior
 from hmpf.config import HierarchyConfig, build_methods, parse_config, with_shipped_acceptance
 from hmpf.errors import ConfigError
 from hmpf.features import extract_query
@@ -438,14 +438,10 @@ class IndexReader:
         entry = self.manifest.get("map_prior")
         if not isinstance(entry, dict) or entry.get("config_sha256") != self.config.digest():
             return None
-        value = entry.get("map_prior")
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
-            raise IndexCorruptError(
-                f"{self.path / layout.MANIFEST}: map_prior {value!r} is not a finite number"
-            )
-        return float(value)
+        try:
+            return stored_map_prior(entry.get("map_prior"))
+        except ValueError as exc:
+            raise IndexCorruptError(f"{self.path / layout.MANIFEST}: {exc}") from None
 
     def _open_thumbnails(self) -> ThumbnailStore | None:
         entry = self.manifest.get("thumbnails")

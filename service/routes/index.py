@@ -112,8 +112,7 @@ def _index_info(engine: Engine) -> dict[str, Any]:
 
 def _acceptance(loaded: Loaded) -> dict[str, Any]:
     out = loaded.acceptance.describe()
-    if loaded.acceptance.needs_map_prior and loaded.profile is not None:
-        stored = getattr(loaded.reader, "map_prior", None)
+    if loaded.map_prior_stored is not None and loaded.profile is not None:
         out["map_prior"] = loaded.profile.map_prior
-        out["map_prior_stored"] = stored is not None and stored() is not None
+        out["map_prior_stored"] = loaded.map_prior_stored
     return out
