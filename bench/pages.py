@@ -919,6 +919,16 @@ def experiences_summary(root: Path) -> str:
 SCENARIOS_BEFORE = "docs/experiments/experiences/scenarios_before.json"
 
 
+def _before_cell(old: dict[str, Any], old_bare: dict[str, Any], bare: dict[str, Any], key: str) -> str:
+    """The earlier code's merged figure, with its own bare figure in brackets where that
+    differs from the current run's bare one (the two runs then differ in more than the
+    place scoring)."""
+    cell = f3(old[key])
+    if f3(old_bare[key]) != f3(bare[key]):
+        cell += f" (bare {f3(old_bare[key])})"
+    return cell
+
+
 def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
     """The ``scenarios`` run: bare -> merged, and the merged figure of the place scoring
     before the paired alignment (its own record, the same bench run on the earlier code)."""
@@ -927,6 +937,7 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
     for name, sc in scenarios.items():
         st, qt = sc["single_test"], sc["sequence_test"]
         old = before["scenarios"][name]["merged"]
+        old_bare = before["scenarios"][name]["bare"]
         rows.append(
             [
                 SCENARIOS.get(name, name),
@@ -934,10 +945,10 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
                 f"{sc['tested']}",
                 f"{f3(sc['bare']['single'])} -> {f3(sc['merged']['single'])}",
                 f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
-                f3(old["single"]),
+                _before_cell(old, old_bare, sc["bare"], "single"),
                 f"{f3(sc['bare']['sequence'])} -> {f3(sc['merged']['sequence'])}",
                 f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
-                f3(old["sequence"]),
+                _before_cell(old, old_bare, sc["bare"], "sequence"),
             ]
         )
     return (
@@ -946,7 +957,8 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
         "version; *before*: the merged version under the place scoring this replaced (each "
         "set shifted by the difference of its sampled median and the originals', tier 1 only, "
         "no chance gain, each method taking its own best image of a place in every tier), the "
-        "same run on that code:\n\n"
+        "same run on that code (in brackets, that run's bare map where it differs from this "
+        "one's: the sequence filter has changed since):\n\n"
         + table(
             [
                 "map + experiences",
