@@ -919,7 +919,9 @@ def experiences_summary(root: Path) -> str:
 SCENARIOS_BEFORE = "docs/experiments/experiences/scenarios_before.json"
 
 
-def _before_cell(old: dict[str, Any], old_bare: dict[str, Any], bare: dict[str, Any], key: str) -> str:
+def _before_cell(
+    old: dict[str, Any], old_bare: dict[str, Any], bare: dict[str, Any], key: str
+) -> str:
     """The earlier code's merged figure, with its own bare figure in brackets where that
     differs from the current run's bare one (the two runs then differ in more than the
     place scoring)."""
