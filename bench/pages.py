@@ -919,15 +919,13 @@ def experiences_summary(root: Path) -> str:
 SCENARIOS_BEFORE = "docs/experiments/experiences/scenarios_before.json"
 
 
-def _before_cell(
-    old: dict[str, Any], old_bare: dict[str, Any], bare: dict[str, Any], key: str
-) -> str:
-    """The earlier code's merged figure, with its own bare figure in brackets where that
-    differs from the current run's bare one (the two runs then differ in more than the
-    place scoring)."""
-    cell = f3(old[key])
-    if f3(old_bare[key]) != f3(bare[key]):
-        cell += f" (bare {f3(old_bare[key])})"
+def _before_cell(old: dict[str, Any], bare: dict[str, Any], key: str) -> str:
+    """The earlier run's merged figure (``old``: its scenario), with its own bare figure in
+    brackets where that differs from the current run's ``bare`` (the two runs then differ
+    in more than the place scoring)."""
+    cell = f3(old["merged"][key])
+    if f3(old["bare"][key]) != f3(bare[key]):
+        cell += f" (bare {f3(old['bare'][key])})"
     return cell
 
 
@@ -938,8 +936,7 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
     rows = []
     for name, sc in scenarios.items():
         st, qt = sc["single_test"], sc["sequence_test"]
-        old = before["scenarios"][name]["merged"]
-        old_bare = before["scenarios"][name]["bare"]
+        old = before["scenarios"][name]
         rows.append(
             [
                 SCENARIOS.get(name, name),
@@ -947,10 +944,10 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
                 f"{sc['tested']}",
                 f"{f3(sc['bare']['single'])} -> {f3(sc['merged']['single'])}",
                 f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
-                _before_cell(old, old_bare, sc["bare"], "single"),
+                _before_cell(old, sc["bare"], "single"),
                 f"{f3(sc['bare']['sequence'])} -> {f3(sc['merged']['sequence'])}",
                 f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
-                _before_cell(old, old_bare, sc["bare"], "sequence"),
+                _before_cell(old, sc["bare"], "sequence"),
             ]
         )
     return (
