@@ -1032,7 +1032,11 @@ class SequenceFilter:
         else:  # no off hypothesis: exactly the filter without it
             post, bg = post / total, bg / total
         if len(keys) > p.hypotheses:
-            keep = np.sort(np.argpartition(-post, p.hypotheses - 1)[: p.hypotheses])
+            # The best, ties to the lower key: which of equal hypotheses survive must not
+            # hang on how a partition happens to order them (keys of one reference often tie
+            # exactly; a tie broken one way on the whole map and the other on its shards sent
+            # their filters apart by 1e-4 of mass).
+            keep = np.sort(top_k(post, p.hypotheses))
             bg += float(post.sum() - post[keep].sum())
             keys, post = keys[keep], post[keep]
         return FilterState(
