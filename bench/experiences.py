@@ -349,6 +349,8 @@ def fleet_pass(
         print(f"{name} at {t:g}: merged in {merged['seconds']:.0f} s: {rows}", flush=True)
         after = evaluate(index, test, gt)
         out["merges"][f"{t:g}"] = {
+            "_correct": after["correct"],  # for the poisoning's paired tests (not recorded)
+            "_seq_correct": after["seq_correct"],
             "index": str(index),
             "merge": merged,
             "added": rows,
@@ -436,20 +438,72 @@ def nordland(
 
 
 def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -> dict[str, Any]:
-    """The ``gp`` pass's log (recorded at ``threshold``) with ``POISON_SHARE`` of its records
-    moved ``POISON_SHIFT`` places away, merged into a copy of the bare map at that threshold:
-    with the gates, and with every gate open (``--no-gates``: what poisoning costs when
-    nothing keeps it out), against the clean merge at the same threshold."""
+    """The ``gp`` pass's log (recorded at ``threshold``) poisoned two ways, each merged into a
+    copy of the bare map at that threshold with the gates and with every gate open
+    (``--no-gates``: what poisoning costs when nothing keeps it out), against the clean merge
+    at the same threshold (paired sign tests on the same queries):
+
+    * ``moved``: ``POISON_SHARE`` of its records moved ``POISON_SHIFT`` places away (a wrong
+      lock: the frames' own places lose them too);
+    * ``added``: copies of as many records, ``POISON_SHIFT`` places away, added to the clean
+      log so that they are ``POISON_SHARE`` of it (wrong experiences on top of the right
+      ones: what the wrong ones alone cost)."""
     records = [r for r in read_log(gp["_log"]) if r.p_correct >= threshold]
     rng = np.random.default_rng(0)
     n_bad = max(1, round(POISON_SHARE * len(records)))
-    bad = {int(i) for i in rng.choice(len(records), n_bad, replace=False)}
+    bad = sorted(int(i) for i in rng.choice(len(records), n_bad, replace=False))
     with IndexReader(base) as reader:
         names, n_map = list(reader.place_names), reader.n
-    log = base.parent / "poisoned.log"
+    n_added = max(1, round(POISON_SHARE * len(records) / (1.0 - POISON_SHARE)))
+    added = sorted(int(i) for i in rng.choice(len(records), n_added, replace=False))
+    # (record, place it is written at, by the poisoner?)
+    moved = [
+        (r, (r.place + POISON_SHIFT) % n_map if i in bad else r.place, i in bad)
+        for i, r in enumerate(records)
+    ]
+    extra = [(records[i], (records[i].place + POISON_SHIFT) % n_map, True) for i in added]
+    truth = truth_of(list_images(dataset_root() / "gardens_point" / "day_right"))
+    clean_run = gp["merges"][f"{threshold:g}"]
+    clean = clean_run["merged"]
+    gt = frame_ground_truth(len(test), n_map, TOLERANCE)
+    out: dict[str, Any] = {
+        "threshold": threshold,
+        "records": len(records),
+        "poisoned": n_bad,
+        "added_wrong": n_added,
+    }
+    for kind, rows in (("moved", moved), ("added", [*_clean_rows(records), *extra])):
+        log = base.parent / f"poisoned_{kind}.log"
+        _write_log(log, rows, names)
+        gates = (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",)))
+        for name, args in gates:
+            index = _copy(base, f"poison_{kind}_{name}")
+            merged = merge(index, [log], *args)
+            counted = merged_rows(index, truth)
+            print(f"poison {kind} {name}: {counted}", flush=True)
+            after = evaluate(index, test, gt)
+            out.setdefault(kind, {})[name] = {
+                "merge": merged,
+                "added": counted,
+                "merged": _recall(after),
+                "vs_clean_merge": {k: after[k] - clean[k] for k in ("single", "sequence")},
+                "single_test": paired_test(after["correct"], clean_run["_correct"]),
+                "sequence_test": paired_test(after["seq_correct"], clean_run["_seq_correct"]),
+            }
+    return out
+
+
+def _clean_rows(records: list[Any]) -> list[tuple[Any, int, bool]]:
+    """The records at their recorded places (the clean log's rows for :func:`_write_log`)."""
+    return [(r, r.place, False) for r in records]
+
+
+def _write_log(log: Path, rows: list[tuple[Any, int, bool]], names: list[str]) -> None:
+    """A log of ``(record, place, poisoner)`` rows: each record's image and fields at that
+    place, its vehicle ``poisoner`` where the row says so (no features: the merge extracts
+    them)."""
     with ExperienceLog(log) as writer:
-        for i, r in enumerate(records):
-            place = (r.place + POISON_SHIFT) % n_map if i in bad else r.place
+        for r, place, bad in rows:
             writer.append(
                 r.image,
                 content_type=r.content_type,
@@ -457,27 +511,10 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
                 place_name=names[place],
                 index_version=r.index_version,
                 p_correct=r.p_correct,
-                vehicle="poisoner" if i in bad else r.vehicle,
+                vehicle="poisoner" if bad else r.vehicle,
                 timestamp=r.timestamp,
                 mode=r.mode,
             )
-    truth = truth_of(list_images(dataset_root() / "gardens_point" / "day_right"))
-    clean = gp["merges"][f"{threshold:g}"]["merged"]
-    gt = frame_ground_truth(len(test), n_map, TOLERANCE)
-    out: dict[str, Any] = {"threshold": threshold, "records": len(records), "poisoned": n_bad}
-    for name, extra in (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",))):
-        index = _copy(base, f"poison_{name}")
-        merged = merge(index, [log], *extra)
-        rows = merged_rows(index, truth)
-        print(f"poison {name}: {rows}", flush=True)
-        after = evaluate(index, test, gt)
-        out[name] = {
-            "merge": merged,
-            "added": rows,
-            "merged": _recall(after),
-            "vs_clean_merge": {k: after[k] - clean[k] for k in ("single", "sequence")},
-        }
-    return out
 
 
 def cost(

@@ -681,12 +681,17 @@ def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
                 f"{shares['n']} ({shares['n'] - shares['right']} wrong)",
                 f"{m['added']['experiences']} ({m['added']['wrong']} wrong)",
                 f"{f3(bare['single'])} -> {f3(m['merged']['single'])}",
-                f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
+                _wins(st),
                 f"{f3(bare['sequence'])} -> {f3(m['merged']['sequence'])}",
-                f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
+                _wins(qt),
             ]
         )
     return rows
+
+
+def _wins(test: dict[str, Any]) -> str:
+    """A paired sign test as ``wins/losses, p P``."""
+    return f"{test['wins']}/{test['losses']}, p {pvalue(test['p'])}"
 
 
 AUTO_CONFIG = "docs/experiments/auto_config/auto_config.json"
@@ -830,6 +835,40 @@ def experiences_merge_speed(root: Path) -> str:
     )
 
 
+def _poisoning(poison: dict[str, Any]) -> str:
+    """The poisoning table of :func:`experiences_summary`: each poisoned log, merged with the
+    gates and without, against the clean merge."""
+    kinds = {
+        "moved": f"{poison['poisoned']} of its frames moved",
+        "added": f"{poison.get('added_wrong')} copies of its frames added",
+    }
+    rows = []
+    for kind, what in kinds.items():
+        for name in ("gated", "open"):
+            g = poison[kind][name]
+            d = g["vs_clean_merge"]
+            rows.append(
+                [
+                    what,
+                    "gates on" if name == "gated" else "every gate off (`--no-gates`)",
+                    f"{g['added']['experiences']} ({g['added']['wrong']} wrong)",
+                    f"{f3(g['merged']['single'])} ({d['single'] * 100:+.1f} points)",
+                    _wins(g["single_test"]),
+                    f"{f3(g['merged']['sequence'])} ({d['sequence'] * 100:+.1f} points)",
+                    _wins(g["sequence_test"]),
+                ]
+            )
+    header = ["poisoned log", "merge", "merged", "single-frame recall@1", "wins/losses",
+              "sequence recall@1", "wins/losses"]  # fmt: skip
+    return (
+        f"\nPoisoning: the Gardens Point pass's log at p_correct >= {poison['threshold']:g} "
+        f"({poison['records']} frames), with frames put at a place 50 frames away on purpose: "
+        "some of its frames moved there (a wrong lock: their own places lose them), or copies "
+        "of some added there (5 % of the log wrong, the right frames all kept); recall on "
+        "night_right against the clean merge, paired on the same queries:\n\n" + table(header, rows)
+    )
+
+
 @generator("experiences.summary")
 def experiences_summary(root: Path) -> str:
     """``python -m bench.experiences``: record, merge, test; poisoning; cost."""
@@ -854,24 +893,7 @@ def experiences_summary(root: Path) -> str:
     out = [table(header, [r for label, run in passes for r in _pass_rows(label, run)])]
     poison = data.get("poison")
     if poison:
-        rows = []
-        for name in ("gated", "open"):
-            g = poison[name]
-            d = g["vs_clean_merge"]
-            rows.append(
-                [
-                    "merge's gates on" if name == "gated" else "every gate off (`--no-gates`)",
-                    f"{g['added']['experiences']} ({g['added']['wrong']} wrong)",
-                    f"{f3(g['merged']['single'])} ({d['single'] * 100:+.1f} points)",
-                    f"{f3(g['merged']['sequence'])} ({d['sequence'] * 100:+.1f} points)",
-                ]
-            )
-        out.append(
-            f"\nPoisoning: the Gardens Point pass's log at p_correct >= {poison['threshold']:g} "
-            f"({poison['records']} frames) with {poison['poisoned']} of them moved on purpose to "
-            "a place 50 frames away; recall on night_right against the clean merge:\n\n"
-            + table(["merge", "merged", "single-frame recall@1", "sequence recall@1"], rows)
-        )
+        out.append(_poisoning(poison))
     scenarios = data.get("scenarios")
     if scenarios:
         out.append(_scenarios(root, scenarios))
@@ -943,10 +965,10 @@ def _scenarios(root: Path, scenarios: dict[str, Any]) -> str:
                 f"{sc['experiences']}",
                 f"{sc['tested']}",
                 f"{f3(sc['bare']['single'])} -> {f3(sc['merged']['single'])}",
-                f"{st['wins']}/{st['losses']}, p {pvalue(st['p'])}",
+                _wins(st),
                 _before_cell(old, sc["bare"], "single"),
                 f"{f3(sc['bare']['sequence'])} -> {f3(sc['merged']['sequence'])}",
-                f"{qt['wins']}/{qt['losses']}, p {pvalue(qt['p'])}",
+                _wins(qt),
                 _before_cell(old, sc["bare"], "sequence"),
             ]
         )

@@ -719,6 +719,30 @@ def test_background_likelihood_on_the_sample() -> None:
     assert max(errors) <= 0.08, errors
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_pruning_keeps_tied_hypotheses_by_lower_key(seed: int) -> None:
+    """More hypotheses than ``hypotheses``, the cut among exactly tied ones: the best are
+    kept, and of the tied ones those of the lower keys, wherever the clear winners sit (a
+    partition's order of equal values hangs on the other values: a map and its shards, fed
+    the same evidence to float rounding, kept different ones and their masses drifted apart
+    by 1e-4)."""
+    rm = RouteMap.from_metadata(100)
+    f = SequenceFilter(rm, PARAMS.with_(hypotheses=6))
+    rng = np.random.default_rng(seed)
+    keys = np.sort(rng.choice(rm.n * 2 * PARAMS.speeds, 30, replace=False)).astype(np.int64)
+    prob = np.full(30, 0.01)
+    winners = rng.choice(30, 2, replace=False)
+    prob[winners] = [0.2, 0.3]
+    state = FilterState(keys, prob, background=1.0 - float(prob.sum()))
+    # a frame that tells nothing apart: every likelihood equal, no new hypotheses
+    flat = Evidence((np.ones(rm.n),), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    out = f.correct(state, flat)
+    tied = [int(k) for i, k in enumerate(keys) if i not in winners][:4]
+    assert out.keys.tolist() == sorted([*keys[winners].tolist(), *tied])
+    # what the cut dropped joined the background: the mass is whole
+    assert out.prob.sum() + out.background == pytest.approx(1.0, abs=1e-12)
+
+
 def test_gap_beyond_max_gap_restarts() -> None:
     rm = routes_map(4, 300)
     f = SequenceFilter(rm, PARAMS)
