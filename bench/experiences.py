@@ -20,9 +20,10 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
   the second half is the test; and the reverse.
 * ``nordland``: a stated proxy. Map = summer, the first ``--nordland-places`` frames; the
   fleet drives winter's even frames, the test is winter's odd frames.
-* ``poison``: the ``gp`` log with 5 % of its records moved on purpose to a wrong place
-  (50 frames away) before the merge: how many the merge's gates keep out, and the recall
-  of the poisoned merge.
+* ``poison``: the ``gp`` log poisoned on purpose before the merge, two ways: 5 % of its
+  records moved to a wrong place (50 frames away), and wrong copies (the same frames, 50
+  frames away) added until they are 5 % of the log: how many the merge's gates keep out, and
+  the recall of each poisoned merge against the clean one (paired sign tests).
 * ``cost``: index bytes per experience, the resident memory of a reader, the hierarchy's
   time per query with 1, 2 and 4 experiences per place (the extra experiences beyond the
   recorded pass are other traverses' frames merged with the gates open), and the merge's
