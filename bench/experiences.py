@@ -452,7 +452,7 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
     records = [r for r in read_log(gp["_log"]) if r.p_correct >= threshold]
     rng = np.random.default_rng(0)
     n_bad = max(1, round(POISON_SHARE * len(records)))
-    bad = sorted(int(i) for i in rng.choice(len(records), n_bad, replace=False))
+    bad = {int(i) for i in rng.choice(len(records), n_bad, replace=False)}
     with IndexReader(base) as reader:
         names, n_map = list(reader.place_names), reader.n
     n_added = max(1, round(POISON_SHARE * len(records) / (1.0 - POISON_SHARE)))
@@ -473,7 +473,8 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
         "poisoned": n_bad,
         "added_wrong": n_added,
     }
-    for kind, rows in (("moved", moved), ("added", [*_clean_rows(records), *extra])):
+    clean_rows = [(r, r.place, False) for r in records]
+    for kind, rows in (("moved", moved), ("added", [*clean_rows, *extra])):
         log = base.parent / f"poisoned_{kind}.log"
         _write_log(log, rows, names)
         gates = (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",)))
@@ -492,11 +493,6 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
                 "sequence_test": paired_test(after["seq_correct"], clean_run["_seq_correct"]),
             }
     return out
-
-
-def _clean_rows(records: list[Any]) -> list[tuple[Any, int, bool]]:
-    """The records at their recorded places (the clean log's rows for :func:`_write_log`)."""
-    return [(r, r.place, False) for r in records]
 
 
 def _write_log(log: Path, rows: list[tuple[Any, int, bool]], names: list[str]) -> None:

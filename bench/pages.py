@@ -840,7 +840,7 @@ def _poisoning(poison: dict[str, Any]) -> str:
     gates and without, against the clean merge."""
     kinds = {
         "moved": f"{poison['poisoned']} of its frames moved",
-        "added": f"{poison.get('added_wrong')} copies of its frames added",
+        "added": f"{poison['added_wrong']} copies of its frames added",
     }
     rows = []
     for kind, what in kinds.items():
