@@ -61,6 +61,19 @@ GRID: dict[str, tuple[float, ...]] = {
     "stop_factor": (1.0, 0.3, 0.1, 0.03),
     "moved": (0.3, 0.5, 0.8),
 }
+#: ``--grid evidence``: how much one frame's evidence weighs, the Combined score's bonus at
+#: the final candidates (min-max normalised per frame, so even a frame that tells nothing
+#: gives its best candidate the whole bonus) and the tier-1 z-score's weight.
+EVIDENCE_GRID: dict[str, tuple[float, ...]] = {
+    "combined_weight": (0.5, 1.0, 1.5, 2.0, 3.0),
+    "evidence_weight": (0.15, 0.25, 0.35),
+}
+GRIDS = {"motion": GRID, "evidence": EVIDENCE_GRID}
+#: Each grid's record when ``--out`` is not given.
+OUTS = {
+    "motion": "docs/experiments/sequence/motion_cue.json",
+    "evidence": "docs/experiments/sequence/evidence_weights.json",
+}
 #: Speed ratios of the drives (vehicle / mapping run).
 SPEEDS = (1.0, 0.5, 2.0)
 #: Speeds the choice is scored on.
@@ -120,12 +133,14 @@ def compare(part: Part, chosen: FilterParams, preset: FilterParams) -> dict[str,
     return out
 
 
-def choose(train: dict[str, Part], preset: FilterParams) -> tuple[FilterParams, list[dict]]:
+def choose(
+    train: dict[str, Part], preset: FilterParams, grid: dict[str, tuple[float, ...]] = GRID
+) -> tuple[FilterParams, list[dict]]:
     """The grid scored on the training parts (mean recall@1 over routes and
     :data:`TRAIN_SPEEDS`); ties: the preset's setting, then the earlier grid point."""
     rows = []
-    for values in itertools.product(*GRID.values()):
-        setting = dict(zip(GRID, values, strict=True))
+    for values in itertools.product(*grid.values()):
+        setting = dict(zip(grid, values, strict=True))
         params = preset.with_(**setting)
         rec = {
             name: {f"{r:g}": float(p.correct(params, r).mean()) for r in TRAIN_SPEEDS}
@@ -134,8 +149,11 @@ def choose(train: dict[str, Part], preset: FilterParams) -> tuple[FilterParams, 
         score = float(np.mean([v for per in rec.values() for v in per.values()]))
         rows.append({**setting, "recall": rec, "score": score})
         print(f"  {setting}: score {score:.4f}", flush=True)
-    best = max(rows, key=lambda r: (round(r["score"], 12), r["stop_factor"] == 1.0))
-    return preset.with_(**{k: best[k] for k in GRID}), rows
+    best = max(
+        rows,
+        key=lambda r: (round(r["score"], 12), all(r[k] == getattr(preset, k) for k in grid)),
+    )
+    return preset.with_(**{k: best[k] for k in grid}), rows
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -145,14 +163,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--nordland-frames", type=int, default=NORDLAND_FRAMES, help="Nordland's first frames"
     )
     ap.add_argument("--routes", default=",".join(ROUTES), help="comma-separated")
-    add_json(ap, "--out", default=str(ROOT / "docs/experiments/sequence/motion_cue.json"))
+    ap.add_argument(
+        "--grid",
+        choices=sorted(GRIDS),
+        default="motion",
+        help="motion: the motion cue against a preset without it; evidence: the weights of "
+        "a frame's evidence against the preset's",
+    )
+    add_json(ap, "--out", default=None, help="the record (default: the grid's own, OUTS)")
     ap.smoke(nordland_frames=100, routes="gp_dl_nr")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     config = load_config(args.config)
     prov = provenance(args.config, config, args)
     preset = config.sequence_params()
-    if preset.motion:
+    grid = GRIDS[args.grid]
+    out = args.out or str(ROOT / OUTS[args.grid])
+    if args.grid == "motion" and preset.motion:
         raise SystemExit(f"{args.config}: its filter already weighs motion; compare another")
     cache = FeatureCache(default_cache_dir())
     names = args.routes.split(",")
@@ -172,13 +199,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             data = EvalData.frames(root / ref, root / qry, TOLERANCE)
             wholes[name] = Part(ScoreBank.build(config, data, cache=cache), config)
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    chosen, rows = choose(train, preset)
-    print(f"chosen: stop_factor {chosen.stop_factor}, moved {chosen.moved}", flush=True)
+    chosen, rows = choose(train, preset, grid)
+    picked = {k: getattr(chosen, k) for k in grid}
+    print(f"chosen: {picked}", flush=True)
     report: dict[str, Any] = {
-        "grid": {k: list(v) for k, v in GRID.items()},
+        "grid": {k: list(v) for k, v in grid.items()},
         "train_speeds": list(TRAIN_SPEEDS),
         "rows": rows,
-        "chosen": {"stop_factor": chosen.stop_factor, "moved": chosen.moved},
+        "chosen": picked,
+        "preset": {k: getattr(preset, k) for k in grid},
         "test_parts": {n: compare(p, chosen, preset) for n, p in test.items()},
         "whole": {
             n: {
@@ -192,13 +221,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     report["wall_s"] = time.perf_counter() - t0
     print_report(report)
-    write_record(args.out, report, prov=prov)
+    write_record(out, report, prov=prov)
     return 0
 
 
 def print_report(report: dict[str, Any]) -> None:
-    c = report["chosen"]
-    print(f"\nchosen on the training parts: stop_factor {c['stop_factor']}, moved {c['moved']}")
+    c = ", ".join(f"{k} {v:g}" for k, v in report["chosen"].items())
+    print(f"\nchosen on the training parts: {c}")
     for key, title in (("test_parts", "test parts (held out)"), ("whole", "whole traverses")):
         print(f"\n{title}: recall@1 cue / preset (wins / losses, p)")
         for name, per in report[key].items():
