@@ -555,25 +555,49 @@ def sequence_whole(root: Path) -> str:
 
 
 MOTION_CUE = "docs/experiments/sequence/motion_cue.json"
+EVIDENCE_WEIGHTS = "docs/experiments/sequence/evidence_weights.json"
 
 
 @generator("sequence.motion_cue")
 def sequence_motion_cue(root: Path) -> str:
     """``python -m bench.motion_cue``: the setting chosen on the training parts, then the
     cue against the preset on the test parts and the whole traverses, per speed."""
-    data = load(root, MOTION_CUE)
-    c = data["chosen"]
-    preset_row = next(r for r in data["rows"] if r["stop_factor"] == 1.0)
-    chosen_row = next(
-        r for r in data["rows"] if (r["stop_factor"], r["moved"]) == (c["stop_factor"], c["moved"])
-    )
+    return _filter_choice(root, MOTION_CUE, "cue")
+
+
+@generator("sequence.evidence_weights")
+def sequence_evidence_weights(root: Path) -> str:
+    """``python -m bench.motion_cue --grid evidence``: the weights of a frame's evidence
+    chosen on the training parts, then against the preset's as the motion cue above."""
+    return _filter_choice(root, EVIDENCE_WEIGHTS, "chosen")
+
+
+def _filter_choice(root: Path, rel: str, label: str) -> str:
+    """A :mod:`bench.motion_cue` record: the grid's choice on the training parts, then the
+    chosen setting (``label``) against the preset's per route and speed, paired."""
+    data = load(root, rel)
+    c, grid = data["chosen"], data["grid"]
+    # records before the preset's own values were kept: the motion grid's preset is no cue
+    preset = data.get("preset_setting", {"stop_factor": 1.0})
+    preset_row = next(r for r in data["rows"] if all(r[k] == v for k, v in preset.items()))
+    chosen_row = next(r for r in data["rows"] if all(r[k] == c[k] for k in grid))
+    relock = data.get("score_relock_within")
+    score = f"mean recall@1 at speeds {' and '.join(f'x{s:g}' for s in data['train_speeds'])}"
+    if relock:
+        score += f" and the share of jumps re-locked within {relock} frames"
     intro = (
-        f"Chosen on the training parts (mean recall@1 at speeds "
-        f"{' and '.join(f'x{s:g}' for s in data['train_speeds'])}, every route alike, over "
-        f"`stop_factor` {', '.join(f'{x:g}' for x in data['grid']['stop_factor'])} x `moved` "
-        f"{', '.join(f'{x:g}' for x in data['grid']['moved'])}): **`stop_factor` "
-        f"{c['stop_factor']:g}, `moved` {c['moved']:g}**, score {f3(chosen_row['score'])} "
-        f"against the preset's {f3(preset_row['score'])}.\n\n"
+        f"Chosen on the training parts ({score}, every route alike, over "
+        + " x ".join(f"`{k}` {', '.join(f'{x:g}' for x in v)}" for k, v in grid.items())
+        + "): **"
+        + ", ".join(f"`{k}` {c[k]:g}" for k in grid)
+        + f"**, score {f3(chosen_row['score'])} against the preset's "
+        f"{f3(preset_row['score'])}"
+        + (
+            " (" + ", ".join(f"`{k}` {v:g}" for k, v in preset.items()) + ")"
+            if "preset_setting" in data
+            else ""
+        )
+        + ".\n\n"
     )
     speeds = [k for k in next(iter(data["test_parts"].values())) if k != "locked"]
     rows = []
@@ -597,14 +621,14 @@ def sequence_motion_cue(root: Path) -> str:
             )
     header = [
         "route",
-        *[f"recall@1 x{sp}: preset -> cue (won / lost)" for sp in speeds],
+        *[f"recall@1 x{sp}: preset -> {label} (won / lost)" for sp in speeds],
         "locked at x1, lock rule (precision)",
     ]
     return (
         intro
         + table(header, rows)
         + source(
-            MOTION_CUE,
+            rel,
             data,
             extra=f"Nordland: its first {data['nordland_frames']} frames; the whole "
             "traverses include the training parts",
