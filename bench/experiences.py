@@ -86,7 +86,7 @@ def main() -> int:
     ap.add_argument("--config", default="default", help="preset or YAML of the map")
     ap.add_argument("--work", type=Path, default=ROOT / "results" / "experiences")
     ap.add_argument("--nordland-places", type=int, default=600)
-    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,cost,scenarios")
+    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,placement,cost,scenarios")
     ap.add_argument(
         "--thresholds",
         default="0.99,0.9",
@@ -107,7 +107,7 @@ def main() -> int:
     gp = dataset_root() / "gardens_point"
     out: dict[str, Any] = {}
     map_dl = build_map(args.work / "gp_map", gp / "day_left", args.config, args.keep_maps)
-    if runs & {"gp", "poison", "cost"}:
+    if runs & {"gp", "poison", "placement", "cost"}:
         out["gp"] = gp_pass(map_dl, gp, ts)
     if "gp_halves" in runs:
         out["gp_halves"] = halves(map_dl, list_images(gp / "night_right"), ts)
@@ -115,6 +115,8 @@ def main() -> int:
         out["nordland"] = nordland(args.work, args.config, args.nordland_places, ts, args.keep_maps)
     if "poison" in runs:
         out["poison"] = poison(map_dl, out["gp"], list_images(gp / "night_right"), min(ts))
+    if "placement" in runs:
+        out["placement"] = placement(map_dl, out["gp"], list_images(gp / "night_right"), ts)
     if "cost" in runs:
         out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
     if "merge_speed" in runs:
@@ -492,6 +494,46 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
                 "single_test": paired_test(after["correct"], clean_run["_correct"]),
                 "sequence_test": paired_test(after["seq_correct"], clean_run["_seq_correct"]),
             }
+    return out
+
+
+def placement(
+    base: Path, gp: dict[str, Any], test: list[Path], thresholds: list[float]
+) -> dict[str, Any]:
+    """Where the recorded merge falls short of a perfect recorder: the ``gp`` pass's records
+    at or above each threshold merged at their *true* places (the frame's own position)
+    instead of the places the service answered, with the gates and with every gate open,
+    against the recorded merge at that threshold (paired). The recorded places are right
+    (within ``TOLERANCE``) but carry the drive's own localisation error (day_right's frames
+    answered one place early about half the time), which a night query's error adds to; the
+    perfect recorder of the scenarios also has every frame, not only the accepted ones."""
+    records = list(read_log(gp["_log"]))
+    truth = truth_of(list_images(dataset_root() / "gardens_point" / "day_right"))
+    with IndexReader(base) as reader:
+        names, n_map = list(reader.place_names), reader.n
+    gt = frame_ground_truth(len(test), n_map, TOLERANCE)
+    out: dict[str, Any] = {}
+    for t in sorted(thresholds, reverse=True):
+        kept = [r for r in records if r.p_correct >= t]
+        at_truth = [(r, truth[hashlib.sha256(r.image).hexdigest()], False) for r in kept]
+        log = base.parent / f"placement_{t:g}.log"
+        _write_log(log, at_truth, names)
+        recorded = gp["merges"][f"{t:g}"]
+        row: dict[str, Any] = {"records": len(kept), "recorded_places": recorded["merged"]}
+        gates = (("gated", ("--min-p-correct", str(t))), ("open", ("--no-gates",)))
+        for name, args in gates:
+            index = _copy(base, f"placement_{t:g}_{name}")
+            merge(index, [log], *args)
+            counted = merged_rows(index, truth)
+            after = evaluate(index, test, gt)
+            print(f"placement at {t:g}, true places, {name}: {counted}", flush=True)
+            row[name] = {
+                "added": counted,
+                "merged": _recall(after),
+                "single_test": paired_test(after["correct"], recorded["_correct"]),
+                "sequence_test": paired_test(after["seq_correct"], recorded["_seq_correct"]),
+            }
+        out[f"{t:g}"] = row
     return out
 
 

@@ -615,8 +615,7 @@ def _filter_choice(root: Path, rel: str, label: str) -> str:
                 [
                     f"{PROTOCOL_TITLES.get(route, route)}, {what}",
                     *cells,
-                    f"{pct(lk['preset']['share'])} ({f3(lk['preset']['precision'])}) -> "
-                    f"{pct(lk['cue']['share'])} ({f3(lk['cue']['precision'])})",
+                    f"{_locked(lk['preset'])} -> {_locked(lk['cue'])}",
                 ]
             )
     header = [
@@ -634,6 +633,13 @@ def _filter_choice(root: Path, rel: str, label: str) -> str:
             "traverses include the training parts",
         )
     )
+
+
+def _locked(share: dict[str, float]) -> str:
+    """A lock rule's accepted share (its precision; none where nothing was locked)."""
+    if not share["share"]:
+        return "0 %"
+    return f"{pct(share['share'])} ({f3(share['precision'])})"
 
 
 SERVICE_LOAD = "docs/experiments/service_load"

@@ -394,11 +394,45 @@ def shipped_acceptance() -> dict[str, AcceptanceSettings]:
     return out
 
 
+def shipped_filters() -> dict[str, dict[str, Any]]:
+    """The sequence filter settings each shipped sequence model was fitted under, by
+    hierarchy digest: the ``sequence:`` of the preset its file names (``{}`` where the preset
+    sets none)."""
+    folder = _presets_dir().joinpath(SHIPPED_ACCEPTANCE)
+    presets = _preset_files(_presets_dir())
+    out: dict[str, dict[str, Any]] = {}
+    if not folder.is_dir():
+        return out
+    for entry in folder.iterdir():
+        if not entry.name.endswith(".json"):
+            continue
+        try:
+            data = json.loads(entry.read_text())
+            preset = presets.get(str(data.get("preset")))
+            raw = yaml.safe_load(preset.read_text()) if preset is not None else None
+            out[str(data["digest"])] = dict((raw or {}).get("sequence") or {})
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError) as exc:
+            raise ConfigError(f"shipped acceptance {entry.name}: {exc}") from None
+    return out
+
+
 def with_shipped_acceptance(config: HierarchyConfig) -> HierarchyConfig:
     """``config`` with the shipped acceptance of its hierarchy (:func:`shipped_acceptance`)
     when it has no ``acceptance`` section of its own (``hmpf-calibrate``'s models override
-    the shipped ones); else ``config`` itself."""
+    the shipped ones); else ``config`` itself.
+
+    With the shipped models come the filter settings their sequence model was fitted under
+    (:func:`shipped_filters`) for every setting the config's ``sequence:`` leaves unset: an
+    index built before its preset's filter changed keeps its hierarchy (the digest) and gets
+    the filter its shipped model reads, not a model fitted for another filter."""
     if config.acceptance is not None:
         return config
-    shipped = shipped_acceptance().get(config.digest())
-    return config if shipped is None else config.model_copy(update={"acceptance": shipped})
+    digest = config.digest()
+    shipped = shipped_acceptance().get(digest)
+    if shipped is None:
+        return config
+    update: dict[str, Any] = {"acceptance": shipped}
+    filt = shipped_filters().get(digest)
+    if filt:
+        update["sequence"] = {**filt, **(config.sequence or {})}
+    return config.model_copy(update=update)

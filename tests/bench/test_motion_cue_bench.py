@@ -48,3 +48,41 @@ def test_compare_pairs_the_settings_per_speed():
     assert (x1["cue"], x1["preset"], x1["wins"], x1["losses"]) == (0.8, 0.6, 2, 0)
     assert out["0.5"]["wins"] == out["0.5"]["losses"] == 0
     assert set(out) == {"1", "0.5", "2", "locked"}
+
+
+class WeightPart:
+    """A traverse for the evidence grid: recall out of 10 per ``combined_weight``, and the
+    share of jumps re-locked per ``combined_weight`` (default 5 / 0.5)."""
+
+    def __init__(self, right: dict[float, int], relock: dict[float, float]) -> None:
+        self.right, self.relock = right, relock
+
+    def correct(self, params: FilterParams, ratio: float) -> np.ndarray:
+        return np.arange(10) < self.right.get(params.combined_weight, 5)
+
+    def relocked(self, params: FilterParams) -> float:
+        return self.relock.get(params.combined_weight, 0.5)
+
+
+def test_the_evidence_grid_weighs_relocking_like_a_speed():
+    grid = motion_cue.EVIDENCE_GRID
+    preset = FilterParams()
+    # 0.5 wins the drives (9 of 10) but re-locks no jump: 1.0 (8 of 10, every jump) wins
+    part = WeightPart({0.5: 9, 1.0: 8}, {0.5: 0.0, 1.0: 1.0})
+    chosen, rows = motion_cue.choose({"a": part}, preset, grid, relock=True)
+    assert chosen.combined_weight == 1.0
+    row = next(r for r in rows if r["combined_weight"] == 1.0 and r["evidence_weight"] == 0.25)
+    assert row["recall"]["a"]["relock"] == 1.0
+    assert row["score"] == pytest.approx((0.8 + 0.8 + 1.0) / 3)
+    # without the re-lock term the drives alone decide
+    chosen, _ = motion_cue.choose({"a": part}, preset, grid)
+    assert chosen.combined_weight == 0.5
+
+
+def test_an_evidence_grid_tie_keeps_the_presets_weights():
+    preset = FilterParams()
+    chosen, _ = motion_cue.choose({"a": WeightPart({}, {})}, preset, motion_cue.EVIDENCE_GRID, True)
+    assert (chosen.combined_weight, chosen.evidence_weight) == (
+        preset.combined_weight,
+        preset.evidence_weight,
+    )

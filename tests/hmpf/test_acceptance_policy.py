@@ -203,6 +203,27 @@ def test_shipped_models_are_matched_by_the_hierarchys_digest() -> None:
     assert with_shipped_acceptance(own).acceptance == AcceptanceSettings(threshold=1.5)
 
 
+def test_shipped_models_bring_the_filter_settings_they_were_fitted_under() -> None:
+    default = load_config("default")
+    preset_filter = default.sequence_params()
+    raw = default.model_dump(exclude={"acceptance"})
+    # an index built before the preset's filter weighed motion stored no filter settings
+    old = parse_config({**raw, "sequence": None})
+    assert preset_filter.motion and not old.sequence_params().motion
+    got = with_shipped_acceptance(old)
+    assert got.acceptance == default.acceptance
+    assert got.sequence_params() == preset_filter
+    assert got.digest() == default.digest()
+    # a setting the config makes itself stays its own; the others come with the models
+    own = parse_config({**raw, "sequence": {"moved": 0.5, "combined_weight": 3.0}})
+    mine = with_shipped_acceptance(own).sequence_params()
+    assert (mine.moved, mine.combined_weight) == (0.5, 3.0)
+    assert mine.stop_factor == preset_filter.stop_factor
+    # with its own acceptance (hmpf-calibrate's models) the config's filter is left alone
+    calibrated = parse_config({**raw, "sequence": None, "acceptance": {"threshold": 1.5}})
+    assert with_shipped_acceptance(calibrated).sequence is None
+
+
 def test_every_shipped_model_loads_and_names_its_preset(tmp_path) -> None:
     from importlib.resources import files
 
