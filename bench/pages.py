@@ -968,6 +968,40 @@ def experiences_summary(root: Path) -> str:
     return "\n".join(out)
 
 
+EXPERIENCES_PLACEMENT = "docs/experiments/experiences/placement.json"
+
+
+@generator("experiences.placement")
+def experiences_placement(root: Path) -> str:
+    """``python -m bench.experiences --runs gp,placement``: the pass's records merged at the
+    places the service answered and at their true places, with and without the gates."""
+    data = load(root, EXPERIENCES_PLACEMENT)
+    rows = []
+    for t, row in data["placement"].items():
+        rec = row["recorded_places"]
+        cells = [t, str(row["records"]), f"{f3(rec['single'])} / {f3(rec['sequence'])}"]
+        for name in ("gated", "open"):
+            x = row[name]
+            cells += [
+                f"{x['added']['experiences']} ({x['added']['wrong']} wrong)",
+                f"{f3(x['merged']['single'])} ({_wins(x['single_test'])})",
+                f"{f3(x['merged']['sequence'])} ({_wins(x['sequence_test'])})",
+            ]
+        rows.append(cells)
+    header = [
+        "record at p_correct >=",
+        "records",
+        "at the answered places, gates on: single / sequence recall@1",
+        "true places, gates on: merged",
+        "single-frame recall@1 (wins/losses vs answered)",
+        "sequence recall@1 (wins/losses)",
+        "true places, gates open: merged",
+        "single-frame recall@1 (wins/losses)",
+        "sequence recall@1 (wins/losses)",
+    ]
+    return table(header, rows) + source(EXPERIENCES_PLACEMENT, data)
+
+
 SCENARIOS_BEFORE = "docs/experiments/experiences/scenarios_before.json"
 
 
