@@ -720,6 +720,9 @@ def write_shipped(
         "digest": config.digest(),
         "routes": [r.name for r in routes],
         "recipe": recipe.describe(),
+        # the filter the sequence model read: a config that leaves a setting unset gets it
+        # with the models (hmpf.config.shipped_filters)
+        "sequence": dict(config.sequence or {}),
         "acceptance": settings_of(policy, note, fallback).model_dump(exclude_none=True),
     }
     return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)

@@ -396,8 +396,8 @@ def shipped_acceptance() -> dict[str, AcceptanceSettings]:
 
 def shipped_filters() -> dict[str, dict[str, Any]]:
     """The sequence filter settings each shipped sequence model was fitted under, by
-    hierarchy digest: the ``sequence:`` of the preset its file names (``{}`` where the preset
-    sets none)."""
+    hierarchy digest: the file's own ``sequence`` (``bench/shipped_acceptance.py --write``
+    records it), else the ``sequence:`` of the preset it names (``{}``: none set)."""
     folder = _presets_dir().joinpath(SHIPPED_ACCEPTANCE)
     presets = _preset_files(_presets_dir())
     out: dict[str, dict[str, Any]] = {}
@@ -408,6 +408,9 @@ def shipped_filters() -> dict[str, dict[str, Any]]:
             continue
         try:
             data = json.loads(entry.read_text())
+            if "sequence" in data:
+                out[str(data["digest"])] = dict(data["sequence"] or {})
+                continue
             preset = presets.get(str(data.get("preset")))
             raw = yaml.safe_load(preset.read_text()) if preset is not None else None
             out[str(data["digest"])] = dict((raw or {}).get("sequence") or {})

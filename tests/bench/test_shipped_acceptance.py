@@ -101,6 +101,7 @@ def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path
     path = sa.write_shipped("p", load_config("single-tier"), routes, policy, recipe)
     doc = json.loads(path.read_text())
     assert doc["recipe"] == recipe.describe()
+    assert doc["sequence"] == dict(load_config("single-tier").sequence or {})  # the filter read
     assert AcceptanceSettings(**doc["acceptance"]).map_prior_fallback == -2.0
     assert sa.shipped_recipe("p") == recipe
     plain = sa.write_shipped("p", load_config("single-tier"), routes, policy, sa.DEFAULT_RECIPE)

@@ -249,3 +249,22 @@ def test_a_corrupt_shipped_file_is_a_clear_error(monkeypatch, tmp_path) -> None:
     monkeypatch.setattr(cfg, "_presets_dir", lambda: tmp_path)
     with pytest.raises(ConfigError, match="x.json"):
         shipped_acceptance()
+
+
+def test_a_shipped_files_own_filter_settings_win_over_its_presets(monkeypatch, tmp_path) -> None:
+    import shutil
+
+    import hmpf.config as cfg
+
+    presets = tmp_path / "presets"
+    shutil.copytree(cfg._presets_dir(), presets)  # type: ignore[arg-type]
+    monkeypatch.setattr(cfg, "_presets_dir", lambda: presets)
+    default = load_config("default")
+    shipped = presets / "acceptance" / "default.json"
+    doc = json.loads(shipped.read_text())
+    assert "sequence" not in doc or doc["sequence"] == default.sequence
+    doc["sequence"] = {"combined_weight": 1.0}  # the filter a refit read, recorded with it
+    shipped.write_text(json.dumps(doc))
+    old = parse_config({**default.model_dump(exclude={"acceptance"}), "sequence": None})
+    got = with_shipped_acceptance(old).sequence_params()
+    assert got.combined_weight == 1.0 and not got.motion
