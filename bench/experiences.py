@@ -24,6 +24,10 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
   records moved to a wrong place (50 frames away), and wrong copies (the same frames, 50
   frames away) added until they are 5 % of the log: how many the merge's gates keep out, and
   the recall of each poisoned merge against the clean one (paired sign tests).
+* ``placement``: the ``gp`` pass's records merged at their true places instead of the
+  places the service answered, with the gates and with them open, paired against the merge
+  at the answered places: what the recorder's placement costs (its records are right within
+  +-2 frames, but a night query's own error adds to theirs).
 * ``cost``: index bytes per experience, the resident memory of a reader, the hierarchy's
   time per query with 1, 2 and 4 experiences per place (the extra experiences beyond the
   recorded pass are other traverses' frames merged with the gates open), and the merge's
