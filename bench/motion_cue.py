@@ -46,11 +46,9 @@ from hmpf.evaluation.acceptance import sequence_answers
 from hmpf.evaluation.calibrate import paired_test
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.sequence import (
-    drive,
     evidences_of,
-    jump_drives,
-    lock_frames,
     motion_sketches,
+    relock_frames,
     sequence_report,
     sketch_results,
     speed_drive,
@@ -116,20 +114,13 @@ class Part:
         ).correct
 
     def relocked(self, params: FilterParams, jumps: int = JUMPS) -> float:
-        """The share of ``jumps`` drives (20 frames, a jump of at least a fifth of the part,
-        30 frames; the same drives for every setting) whose estimate is right again, and stays
-        so, within :data:`RELOCK_WITHIN` frames of the jump."""
-        nq = len(self.results)
-        before, after = min(20, nq // 4), min(30, nq // 3)
-        rng = np.random.default_rng(0)
-        drives = jump_drives(nq, jumps, before, after, max(10, nq // 5), rng)
+        """The share of ``jumps`` drives with a jump (:func:`relock_frames`; the same drives
+        for every setting) whose estimate is right again, and stays so, within
+        :data:`RELOCK_WITHIN` frames of the jump."""
         evs = evidences_of(self.results, self.routes.n, params.proposals, self.profile)
         filt = SequenceFilter(self.routes, params)
-        hits = []
-        for d in drives:
-            frames = lock_frames(drive(filt, evs, d, self.gt).correct, d.splice or 0)
-            hits.append(frames is not None and frames <= RELOCK_WITHIN)
-        return float(np.mean(hits))
+        frames, _ = relock_frames(filt, evs, self.gt, jumps, np.random.default_rng(0))
+        return float(np.mean([f is not None and f <= RELOCK_WITHIN for f in frames]))
 
     def locked(self, params: FilterParams) -> dict[str, float]:
         """The drive at the mapping run's speed: the share of its estimates that are locked

@@ -65,6 +65,7 @@ __all__ = [
     "sketch_results",
     "off_map_report",
     "lock_threshold",
+    "relock_frames",
     "sequence_report",
     "sequence_settings",
     "speed_drive",
@@ -234,6 +235,25 @@ def jump_drives(
     return out
 
 
+def relock_frames(
+    filt: SequenceFilter,
+    evs: Sequence[Evidence],
+    gt: np.ndarray,
+    count: int,
+    rng: np.random.Generator,
+) -> tuple[list[int | None], int]:
+    """Frames to lock again after a jump (:func:`lock_frames` from the splice) on ``count``
+    :func:`jump_drives` of the traverse (20 frames, then 30 of a stretch at least a fifth of
+    it away, fewer on a short traverse), and how many frames each drive has after its jump."""
+    nq = len(evs)
+    before, after = min(20, nq // 4), min(30, nq // 3)
+    runs = [
+        drive(filt, evs, d, gt)
+        for d in jump_drives(nq, count, before, after, max(10, nq // 5), rng)
+    ]
+    return [lock_frames(r.correct, r.drive.splice or 0) for r in runs], after
+
+
 def leave_drives(
     nq: int,
     n_away: int,
@@ -344,11 +364,7 @@ def sequence_report(
         curve = np.array([r.correct for r in s_runs if len(r.correct) == start_length])
         history[f"{ratio:g}"] = curve.mean(axis=0).tolist() if len(curve) else []
     start_runs = [drive(filt, evs, d, gt) for d in start_drives(nq, starts, start_length, 1.0, rng)]
-    before, after = min(20, nq // 4), min(30, nq // 3)
-    jump_runs = [
-        drive(filt, evs, d, gt)
-        for d in jump_drives(nq, jumps, before, after, max(10, nq // 5), rng)
-    ]
+    relocks, after = relock_frames(filt, evs, gt, jumps, rng)
     drop_run = drive(filt, evs, dropped_drive(nq, dropped, rng), gt)
     return {
         "params": asdict(params),
@@ -358,9 +374,7 @@ def sequence_report(
         "vs_single": paired_test(full.correct, single),
         "accepted": _precision_recall([full]),
         "lock_after_start": _summary([lock_frames(r.correct) for r in start_runs], start_length),
-        "lock_after_jump": _summary(
-            [lock_frames(r.correct, r.drive.splice or 0) for r in jump_runs], after
-        ),
+        "lock_after_jump": _summary(relocks, after),
         "recall_by_speed": by_speed,
         "recall_by_history": history,
         "dropped": {"share": dropped, "recall_at_1": float(drop_run.correct.mean())},
