@@ -721,7 +721,7 @@ def write_shipped(
         "routes": [r.name for r in routes],
         "recipe": recipe.describe(),
         # the filter the sequence model read: a config that leaves a setting unset gets it
-        # with the models (hmpf.config.shipped_filters)
+        # with the models (hmpf.config.with_shipped_acceptance)
         "sequence": dict(config.sequence or {}),
         "acceptance": settings_of(policy, note, fallback).model_dump(exclude_none=True),
     }

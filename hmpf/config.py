@@ -373,14 +373,11 @@ def load_config(path_or_name: str | Path) -> HierarchyConfig:
 SHIPPED_ACCEPTANCE = "acceptance"
 
 
-def shipped_acceptance() -> dict[str, AcceptanceSettings]:
-    """The shipped acceptance settings by hierarchy digest: each
-    ``hmpf/presets/acceptance/<preset>.json`` (written by ``bench/shipped_acceptance.py``)
-    holds the ``digest`` of the hierarchy its models were fitted for and the ``acceptance``
-    section. Keyed by digest, not name: a preset edited since its model was fitted gets no
-    stale model, and a YAML file equal to a preset gets the preset's."""
+def _shipped_files() -> list[tuple[str, str, dict[str, Any]]]:
+    """Each ``hmpf/presets/acceptance/<preset>.json`` as ``(file name, digest, content)``,
+    read once by :func:`shipped_acceptance` and :func:`with_shipped_acceptance`."""
     folder = _presets_dir().joinpath(SHIPPED_ACCEPTANCE)
-    out: dict[str, AcceptanceSettings] = {}
+    out: list[tuple[str, str, dict[str, Any]]] = []
     if not folder.is_dir():
         return out
     for entry in sorted(folder.iterdir(), key=lambda e: e.name):
@@ -388,35 +385,41 @@ def shipped_acceptance() -> dict[str, AcceptanceSettings]:
             continue
         try:
             data = json.loads(entry.read_text())
-            out[str(data["digest"])] = AcceptanceSettings.model_validate(data["acceptance"])
-        except (OSError, ValueError, KeyError, TypeError, ValidationError) as exc:
+            out.append((entry.name, str(data["digest"]), data))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ConfigError(f"shipped acceptance {entry.name}: {exc}") from None
     return out
 
 
-def shipped_filters() -> dict[str, dict[str, Any]]:
-    """The sequence filter settings each shipped sequence model was fitted under, by
-    hierarchy digest: the file's own ``sequence`` (``bench/shipped_acceptance.py --write``
-    records it), else the ``sequence:`` of the preset it names (``{}``: none set)."""
-    folder = _presets_dir().joinpath(SHIPPED_ACCEPTANCE)
-    presets = _preset_files(_presets_dir())
-    out: dict[str, dict[str, Any]] = {}
-    if not folder.is_dir():
-        return out
-    for entry in folder.iterdir():
-        if not entry.name.endswith(".json"):
-            continue
-        try:
-            data = json.loads(entry.read_text())
-            if "sequence" in data:
-                out[str(data["digest"])] = dict(data["sequence"] or {})
-                continue
-            preset = presets.get(str(data.get("preset")))
-            raw = yaml.safe_load(preset.read_text()) if preset is not None else None
-            out[str(data["digest"])] = dict((raw or {}).get("sequence") or {})
-        except (OSError, ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError) as exc:
-            raise ConfigError(f"shipped acceptance {entry.name}: {exc}") from None
-    return out
+def _settings_of(name: str, data: dict[str, Any]) -> AcceptanceSettings:
+    """A shipped file's ``acceptance`` section, validated."""
+    try:
+        return AcceptanceSettings.model_validate(data["acceptance"])
+    except (ValueError, KeyError, TypeError, ValidationError) as exc:
+        raise ConfigError(f"shipped acceptance {name}: {exc}") from None
+
+
+def _filter_of(name: str, data: dict[str, Any]) -> dict[str, Any]:
+    """The filter settings a shipped file's sequence model was fitted under: its own
+    ``sequence`` (``bench/shipped_acceptance.py --write`` records it), else the ``sequence:``
+    of the preset it names (``{}``: none set)."""
+    try:
+        if "sequence" in data:
+            return dict(data["sequence"] or {})
+        preset = _preset_files(_presets_dir()).get(str(data.get("preset")))
+        raw = yaml.safe_load(preset.read_text()) if preset is not None else None
+        return dict((raw or {}).get("sequence") or {})
+    except (OSError, ValueError, TypeError, AttributeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"shipped acceptance {name}: {exc}") from None
+
+
+def shipped_acceptance() -> dict[str, AcceptanceSettings]:
+    """The shipped acceptance settings by hierarchy digest: each
+    ``hmpf/presets/acceptance/<preset>.json`` (written by ``bench/shipped_acceptance.py``)
+    holds the ``digest`` of the hierarchy its models were fitted for and the ``acceptance``
+    section. Keyed by digest, not name: a preset edited since its model was fitted gets no
+    stale model, and a YAML file equal to a preset gets the preset's."""
+    return {digest: _settings_of(name, data) for name, digest, data in _shipped_files()}
 
 
 def with_shipped_acceptance(config: HierarchyConfig) -> HierarchyConfig:
@@ -425,17 +428,19 @@ def with_shipped_acceptance(config: HierarchyConfig) -> HierarchyConfig:
     the shipped ones); else ``config`` itself.
 
     With the shipped models come the filter settings their sequence model was fitted under
-    (:func:`shipped_filters`) for every setting the config's ``sequence:`` leaves unset: an
+    (:func:`_filter_of`) for every setting the config's ``sequence:`` leaves unset: an
     index built before its preset's filter changed keeps its hierarchy (the digest) and gets
     the filter its shipped model reads, not a model fitted for another filter."""
     if config.acceptance is not None:
         return config
     digest = config.digest()
-    shipped = shipped_acceptance().get(digest)
-    if shipped is None:
+    files = _shipped_files()
+    shipped = {d: _settings_of(name, data) for name, d, data in files}  # every file checked
+    if digest not in shipped:
         return config
-    update: dict[str, Any] = {"acceptance": shipped}
-    filt = shipped_filters().get(digest)
+    update: dict[str, Any] = {"acceptance": shipped[digest]}
+    name, _, data = next(f for f in files if f[1] == digest)
+    filt = _filter_of(name, data)
     if filt:
         update["sequence"] = {**filt, **(config.sequence or {})}
     return config.model_copy(update=update)
