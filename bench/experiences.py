@@ -483,21 +483,11 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
     for kind, rows in (("moved", moved), ("added", [*clean_rows, *extra])):
         log = base.parent / f"poisoned_{kind}.log"
         _write_log(log, rows, names)
-        gates = (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",)))
-        for name, args in gates:
-            index = _copy(base, f"poison_{kind}_{name}")
-            merged = merge(index, [log], *args)
-            counted = merged_rows(index, truth)
-            print(f"poison {kind} {name}: {counted}", flush=True)
-            after = evaluate(index, test, gt)
-            out.setdefault(kind, {})[name] = {
-                "merge": merged,
-                "added": counted,
-                "merged": _recall(after),
-                "vs_clean_merge": {k: after[k] - clean[k] for k in ("single", "sequence")},
-                "single_test": paired_test(after["correct"], clean_run["_correct"]),
-                "sequence_test": paired_test(after["seq_correct"], clean_run["_seq_correct"]),
-            }
+        out[kind] = _gated_and_open(
+            base, f"poison_{kind}", log, threshold, clean_run, truth, test, gt
+        )
+        for row in out[kind].values():
+            row["vs_clean_merge"] = {k: row["merged"][k] - clean[k] for k in ("single", "sequence")}
     return out
 
 
@@ -523,21 +513,39 @@ def placement(
         log = base.parent / f"placement_{t:g}.log"
         _write_log(log, at_truth, names)
         recorded = gp["merges"][f"{t:g}"]
-        row: dict[str, Any] = {"records": len(kept), "recorded_places": recorded["merged"]}
-        gates = (("gated", ("--min-p-correct", str(t))), ("open", ("--no-gates",)))
-        for name, args in gates:
-            index = _copy(base, f"placement_{t:g}_{name}")
-            merge(index, [log], *args)
-            counted = merged_rows(index, truth)
-            after = evaluate(index, test, gt)
-            print(f"placement at {t:g}, true places, {name}: {counted}", flush=True)
-            row[name] = {
-                "added": counted,
-                "merged": _recall(after),
-                "single_test": paired_test(after["correct"], recorded["_correct"]),
-                "sequence_test": paired_test(after["seq_correct"], recorded["_seq_correct"]),
-            }
-        out[f"{t:g}"] = row
+        runs = _gated_and_open(base, f"placement_{t:g}", log, t, recorded, truth, test, gt)
+        out[f"{t:g}"] = {"records": len(kept), "recorded_places": recorded["merged"], **runs}
+    return out
+
+
+def _gated_and_open(
+    base: Path,
+    name: str,
+    log: Path,
+    threshold: float,
+    against: dict[str, Any],
+    truth: dict[str, int],
+    test: list[Path],
+    gt: np.ndarray,
+) -> dict[str, dict[str, Any]]:
+    """``log`` merged into two copies of ``base`` (``<name>_gated``: the gates at
+    ``threshold``; ``<name>_open``: ``--no-gates``), each audited against ``truth`` and its
+    ``test`` frames (ground truth ``gt``) paired with the merge ``against`` (a
+    :func:`fleet_pass` merge)."""
+    out: dict[str, dict[str, Any]] = {}
+    for gate, args in (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",))):
+        index = _copy(base, f"{name}_{gate}")
+        merged = merge(index, [log], *args)
+        counted = merged_rows(index, truth)
+        print(f"{name} {gate}: {counted}", flush=True)
+        after = evaluate(index, test, gt)
+        out[gate] = {
+            "merge": merged,
+            "added": counted,
+            "merged": _recall(after),
+            "single_test": paired_test(after["correct"], against["_correct"]),
+            "sequence_test": paired_test(after["seq_correct"], against["_seq_correct"]),
+        }
     return out
 
 
