@@ -1,7 +1,7 @@
 """The sequence filter's motion cue: chosen on the training parts, measured on the test parts.
 
     python -m bench.motion_cue [--config default] [--nordland-frames 800]
-        [--out docs/experiments/sequence/motion_cue.json]
+        [--grid motion|evidence|still] [--out docs/experiments/sequence/motion_cue.json]
 
 The filter explains a stretch of frames that all resemble one reference by a vehicle that
 stopped there; a vehicle that drives on through look-alike places then falls behind. The
@@ -25,8 +25,11 @@ settings, the off-map state reading the part's own reference profile).
   figures (:func:`~hmpf.evaluation.sequence.sequence_report`: re-lock after a jump, 25 %
   dropped frames).
 
-It reports; it changes no default. The acceptance models are not refitted here: the lock
-rule's accepted share (posterior mass >= ``lock_mass``) is reported beside the recall.
+``--grid evidence`` chooses the weights of a frame's evidence (:data:`EVIDENCE_GRID`) and
+``--grid still`` the weight of a frame that did not move (:data:`STILL_GRID`) the same way,
+their score also counting re-locks after a jump. It reports; it changes no default. The
+acceptance models are not refitted here: the lock rule's accepted share (posterior mass >=
+``lock_mass``) is reported beside the recall.
 """
 
 from __future__ import annotations
@@ -74,7 +77,11 @@ EVIDENCE_GRID: dict[str, tuple[float, ...]] = {
     "combined_weight": (0.5, 1.0, 1.5, 2.0),
     "evidence_weight": (0.15, 0.25),
 }
-GRIDS = {"motion": GRID, "evidence": EVIDENCE_GRID}
+#: ``--grid still``: how much a frame that did not move weighs (its sketch within ``moved``
+#: of the previous frame's): it shows what the previous frame showed. Scored like
+#: ``--grid evidence`` (a weight of the evidence: the re-lock counts).
+STILL_GRID: dict[str, tuple[float, ...]] = {"still_weight": (1.0, 0.5, 0.25, 0.1, 0.0)}
+GRIDS = {"motion": GRID, "evidence": EVIDENCE_GRID, "still": STILL_GRID}
 #: Frames within which a jump must be re-locked (``--grid evidence``'s score).
 RELOCK_WITHIN = 10
 #: Jumps per training part (``--grid evidence``'s score).
@@ -83,6 +90,7 @@ JUMPS = 100
 OUTS = {
     "motion": "docs/experiments/sequence/motion_cue.json",
     "evidence": "docs/experiments/sequence/evidence_weights.json",
+    "still": "docs/experiments/sequence/still_weight.json",
 }
 #: Speed ratios of the drives (vehicle / mapping run).
 SPEEDS = (1.0, 0.5, 2.0)
@@ -192,7 +200,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=sorted(GRIDS),
         default="motion",
         help="motion: the motion cue against a preset without it; evidence: the weights of "
-        "a frame's evidence against the preset's",
+        "a frame's evidence against the preset's; still: the weight of a frame that did not "
+        "move against the preset's",
     )
     add_json(ap, "--out", default=None, help="the record (default: the grid's own, OUTS)")
     ap.smoke(nordland_frames=100, routes="gp_dl_nr")
@@ -223,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             data = EvalData.frames(root / ref, root / qry, TOLERANCE)
             wholes[name] = Part(ScoreBank.build(config, data, cache=cache), config)
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    relock = args.grid == "evidence"
+    relock = args.grid in ("evidence", "still")
     chosen, rows = choose(train, preset, grid, relock)
     picked = {k: getattr(chosen, k) for k in grid}
     print(f"chosen: {picked}", flush=True)

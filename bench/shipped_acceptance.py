@@ -728,6 +728,25 @@ def write_shipped(
     return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)
 
 
+def with_filter(config: HierarchyConfig, settings: Iterable[str]) -> HierarchyConfig:
+    """``config`` with the sequence filter settings ``NAME=VALUE`` over its own (a number:
+    an integer setting's as int, else float; checked by :class:`FilterParams`)."""
+    seq = dict(config.sequence or {})
+    for item in settings:
+        name, sep, value = item.partition("=")
+        if not sep or name not in FilterParams.__dataclass_fields__:
+            raise SystemExit(f"--filter {item!r}: NAME=VALUE with a filter setting's name")
+        kind = FilterParams.__dataclass_fields__[name].type
+        try:
+            seq[name] = int(value) if kind in ("int", int) else float(value)
+        except ValueError:
+            raise SystemExit(f"--filter {item!r}: not a number") from None
+    if not settings:
+        return config
+    FilterParams.from_mapping(seq)  # refused here, not after the banks are built
+    return config.model_copy(update={"sequence": seq})
+
+
 def main() -> int:
     ap = parser(__doc__)
     add_route_arguments(ap)
@@ -746,10 +765,20 @@ def main() -> int:
         default=None,
         help=f"sequence stay threshold; default: the shipped models' (else {STAY_P})",
     )
+    ap.add_argument(
+        "--filter",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="try a sequence filter setting over the preset's (repeatable; not with --write: "
+        "the preset's own settings are what its shipped models are read with)",
+    )
     add_json(ap, "--out", help="JSON report (default results/shipped_acceptance_<config>)")
     args = ap.parse_args()
+    if args.filter and args.write:
+        ap.error("--filter tries settings; change the preset's sequence: to ship them")
     t0 = time.perf_counter()
-    config = out_of_the_box(args.config)[1]
+    config = with_filter(out_of_the_box(args.config)[1], args.filter)
     prov = provenance(args.config, config, args)
     params = config.sequence_params()
     cache = FeatureCache(default_cache_dir())

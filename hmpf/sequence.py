@@ -352,6 +352,13 @@ class FilterParams:
             the previous frame's). 1: no motion cue, nothing sketched (the paper's filter).
         moved: the sketch distance, in the map's median steps between consecutive
             references, from which a frame counts as moved.
+        still_weight: weight of the evidence of a frame that did not move (its sketch less
+            than ``moved`` from the previous frame's; both known): the tier-1, Combined and
+            absolute (off-map) log-likelihoods scaled by it. Such a frame shows what the
+            previous one showed, so counting it in full counts the same evidence again: a
+            stopped vehicle, or frames that all look alike (snow, dark), grew an estimate
+            ever more certain on one reference that was no more likely right. 1: every frame
+            counts in full (the paper's filter).
     """
 
     max_steps: int = 4
@@ -374,6 +381,7 @@ class FilterParams:
     off_slope: float = 2.0
     stop_factor: float = 1.0
     moved: float = 0.5
+    still_weight: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -406,6 +414,8 @@ class FilterParams:
             raise HmpfError("off_slope must be >= 0")
         if not (0 < self.stop_factor <= 1 and self.moved > 0):
             raise HmpfError("stop_factor must be in (0, 1] and moved > 0")
+        if not 0 <= self.still_weight <= 1:
+            raise HmpfError("still_weight must be in [0, 1]")
 
     @property
     def motion(self) -> bool:
@@ -855,9 +865,13 @@ class SequenceFilter:
         were dropped; 0: the same instant again), weigh it with ``evidence``. The new state
         remembers the estimate (``last_ref``) and keeps ``held`` until :meth:`hold`."""
         predicted = self.predict(state, steps)
-        if self.params.motion and steps >= 1 and self.moved(state.sketch, evidence.sketch):
-            predicted = self._stops_unlikely(predicted)
-        posterior = self.correct(predicted, evidence)
+        weight = 1.0
+        if self.params.motion and steps >= 1:
+            if self.moved(state.sketch, evidence.sketch):
+                predicted = self._stops_unlikely(predicted)
+            elif self.still(state.sketch, evidence.sketch):
+                weight = self.params.still_weight
+        posterior = self.correct(predicted, evidence, weight)
         est = self.estimate(posterior, last_ref=predicted.last_ref, steps=steps)
         sketch = None
         if self.params.motion and evidence.sketch is not None:
@@ -872,6 +886,14 @@ class SequenceFilter:
             return False
         dist = float(np.linalg.norm(np.asarray(now, np.float64) - np.asarray(before, np.float64)))
         return dist >= self.params.moved
+
+    def still(self, before: np.ndarray | None, now: np.ndarray | None) -> bool:
+        """Whether a frame whose sketch is ``now`` did not move since the frame sketched
+        ``before`` (both known, of one length, less than :attr:`FilterParams.moved` apart);
+        False when either is unknown: not :meth:`moved` is not "still"."""
+        if before is None or now is None or len(before) != len(now):
+            return False
+        return not self.moved(before, now)
 
     def _stops_unlikely(self, predicted: FilterState) -> FilterState:
         """The predicted belief weighed by the frame's motion: the stopped hypotheses (speed
@@ -964,8 +986,12 @@ class SequenceFilter:
         uniq, inv = np.unique(np.concatenate(to)[keep], return_inverse=True)
         return uniq, np.bincount(inv, weights=all_w[keep], minlength=len(uniq)), left
 
-    def correct(self, predicted: FilterState, evidence: Evidence) -> FilterState:
-        """Weigh the predicted belief with one frame's evidence, keep the best hypotheses."""
+    def correct(
+        self, predicted: FilterState, evidence: Evidence, weight: float = 1.0
+    ) -> FilterState:
+        """Weigh the predicted belief with one frame's evidence, keep the best hypotheses.
+        ``weight`` scales every log-likelihood of the frame (tier 1, Combined, on / off the
+        map): 1 counts it in full, 0 not at all (:attr:`FilterParams.still_weight`)."""
         p, n_keys = self.params, self.n_keys
         new_refs = np.concatenate([evidence.proposals, evidence.final])
         new = (new_refs[:, None] * (2 * p.speeds) + np.arange(2 * p.speeds)[None, :]).ravel()
@@ -989,7 +1015,7 @@ class SequenceFilter:
         at_stats = at_sample if evidence.scored is None else self._at_scored(evidence)
         mu = float(at_stats.mean()) if len(at_stats) else 0.0
         sd = float(at_stats.std()) if len(at_stats) else 0.0
-        scale = p.evidence_weight / sd if sd > 1e-9 else 0.0
+        scale = weight * p.evidence_weight / sd if sd > 1e-9 else 0.0
         loglik = scale * (evidence.tier1_at(refs) - mu)
         if len(evidence.final) and p.combined_weight:
             bonus = np.zeros(len(keys))
@@ -999,7 +1025,7 @@ class SequenceFilter:
             hit = at < len(fin)
             hit[hit] = fin[at[hit]] == refs[hit]
             bonus[hit] = np.nan_to_num(comb[at[hit]], nan=0.0)  # like tier 1: NaN reads 0
-            loglik = loglik + p.combined_weight * bonus
+            loglik = loglik + weight * p.combined_weight * bonus
         # Background: the even mass (background / n_keys per key) on the keys without a
         # hypothesis, weighed by their likelihood, estimated on a fixed sample of references:
         # a sampled reference counts for its speeds that have no hypothesis (exact when the
@@ -1015,7 +1041,7 @@ class SequenceFilter:
         post = prior * lik
         bg = even / n_keys * bg_sum
         total = float(post.sum()) + bg
-        on, off = self._on_off(predicted, evidence)
+        on, off = self._on_off(predicted, evidence, weight)
         if not total > 0 or not math.isfinite(total):
             return replace(
                 predicted,
@@ -1043,13 +1069,17 @@ class SequenceFilter:
             keys, post, bg, predicted.frames + 1, off, predicted.last_ref, predicted.held
         )
 
-    def _on_off(self, predicted: FilterState, evidence: Evidence) -> tuple[float, float]:
+    def _on_off(
+        self, predicted: FilterState, evidence: Evidence, weight: float = 1.0
+    ) -> tuple[float, float]:
         """(on-map, off-map) posterior mass: the on-map prior mass weighed by the frame's
-        likelihood ratio (:meth:`FilterParams.off_loglr`) against the off mass."""
+        likelihood ratio (:meth:`FilterParams.off_loglr`, times ``weight``) against the off
+        mass."""
         off = float(predicted.off)
         if off <= 0.0:
             return 1.0, 0.0
-        on = max(0.0, 1.0 - off) * math.exp(self.params.off_loglr(evidence.absolute))
+        llr = weight * self.params.off_loglr(evidence.absolute)
+        on = max(0.0, 1.0 - off) * math.exp(llr)
         return on / (on + off), off / (on + off)
 
     def _at_scored(self, evidence: Evidence) -> np.ndarray:

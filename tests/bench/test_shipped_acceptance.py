@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from hmpf.config import AcceptanceSettings, load_config
+from hmpf.errors import HmpfError
 from hmpf.evaluation.acceptance import Answers, RoutePart
 from hmpf.sequence import Estimate
 
@@ -106,3 +107,20 @@ def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path
     assert sa.shipped_recipe("p") == recipe
     plain = sa.write_shipped("p", load_config("single-tier"), routes, policy, sa.DEFAULT_RECIPE)
     assert "map_prior_fallback" not in json.loads(plain.read_text())["acceptance"]
+
+
+def test_filter_settings_are_tried_over_the_preset(sa):
+    config = load_config("default")
+    tried = sa.with_filter(config, ["combined_weight=1.0", "max_steps=3"])
+    assert tried.sequence_params().combined_weight == 1.0
+    assert tried.sequence_params().max_steps == 3
+    assert isinstance(tried.sequence["max_steps"], int)
+    # the other settings stay the preset's, and so does its digest (the filter stores none)
+    assert tried.sequence_params().stop_factor == config.sequence_params().stop_factor
+    assert tried.digest() == config.digest()
+    assert sa.with_filter(config, []) is config
+    for bad in (["combined_weight"], ["nope=1"], ["combined_weight=x"]):
+        with pytest.raises(SystemExit, match="--filter"):
+            sa.with_filter(config, bad)
+    with pytest.raises(HmpfError, match="weights must be >= 0"):
+        sa.with_filter(config, ["combined_weight=-1"])

@@ -292,3 +292,78 @@ def test_a_banks_map_prior_reaches_its_profile_and_stays_with_its_subsets():
     assert prof.map_prior == -1.5 and prof.methods  # the profile itself is built as before
     for part in (bank.subset(np.arange(0, 30, 2)), bank.rows(np.arange(4))):
         assert part.map_prior == -1.5
+
+
+# -- a frame that did not move ------------------------------------------------------------------
+
+
+def test_a_still_frame_weighs_its_evidence_by_still_weight():
+    """Brute force of one frame: a frame whose sketch lies within ``moved`` of the previous
+    one's is weighed as a filter with every evidence weight times ``still_weight`` weighs it
+    (tier 1, Combined, the off-map ratio); a moved frame, a frame without a sketch and a
+    first frame in full. still_weight 1 (the default) is the filter without it."""
+    rng = np.random.default_rng(5)
+    rm = routes_map(1, 60)
+    params = CUE.with_(leave=0.01, enter=0.1, still_weight=0.25)
+    f = SequenceFilter(rm, params)
+    state = f.start()
+    for t in drive(rm, 0, 5.0, 1.0, 6):
+        state, _ = f.update(state, sketched(evidence(rm.n, int(t), rng), np.zeros(SKETCH_DIM)))
+    ev = replace(evidence(rm.n, 12, rng), absolute=1.5)
+    still = np.zeros(SKETCH_DIM, np.float32)
+    still[0] = 0.4  # under moved (0.5): did not move
+    scaled = params.with_(
+        evidence_weight=params.evidence_weight * 0.25,
+        combined_weight=params.combined_weight * 0.25,
+        off_slope=params.off_slope * 0.25,
+    )
+    want = SequenceFilter(rm, scaled).correct(f.predict(state, 1), ev)
+    got, _ = f.update(state, sketched(ev, still))
+    assert np.array_equal(got.keys, want.keys)
+    np.testing.assert_allclose(got.prob, want.prob, rtol=1e-10)
+    assert got.off == pytest.approx(want.off, rel=1e-10)
+    plain = f.correct(f.predict(state, 1), ev)
+    for st, e in (
+        (replace(state, sketch=None), sketched(ev, still)),  # no previous sketch
+        (state, sketched(ev, None)),  # no sketch now
+        (state, sketched(ev, still[:5])),  # another length: unknown
+    ):
+        got, _ = f.update(st, e)
+        np.testing.assert_allclose(got.prob, plain.prob, rtol=1e-12)
+    # the default weighs a still frame in full: as before the setting existed
+    full = SequenceFilter(rm, params.with_(still_weight=1.0))
+    a, _ = full.update(state, sketched(ev, still))
+    np.testing.assert_allclose(a.prob, full.correct(full.predict(state, 1), ev).prob, rtol=1e-12)
+    assert FilterParams().still_weight == 1.0
+    for bad in (-0.1, 1.5):
+        with pytest.raises(HmpfError, match="still_weight"):
+            FilterParams(still_weight=bad)
+
+
+def test_frames_that_do_not_change_do_not_make_a_look_alike_certain():
+    """The failure it is for (Nordland's winter frames): the vehicle drives on, but its frames
+    barely change (snow) and all look most like one reference elsewhere on the route. Counted
+    in full, the same evidence again and again makes the filter certain of that reference;
+    weighed by still_weight it stays uncertain."""
+    rm = routes_map(1, 200)
+    truth = drive(rm, 0, 20.0, 1.0, 30)
+    hub = int(rm.ordered[150])
+
+    def masses(still_weight: float) -> list[tuple[int, float]]:
+        rng = np.random.default_rng(7)
+        f = SequenceFilter(rm, CUE.with_(still_weight=still_weight))
+        state, out = f.start(), []
+        for t in truth:
+            ev = evidence(rm.n, int(t), rng, alias=1.0, wrong=hub, bump=0.5)
+            state, est = f.update(state, sketched(ev, np.zeros(SKETCH_DIM)))  # never moves
+            out.append((est.ref, est.mass))
+        return out
+
+    full, still = masses(1.0), masses(0.25)
+    assert all(rm.separation(r, hub) <= CUE.window for r, _ in full[3:] + still[3:])
+    # in full: a mass of 0.99 (the default's lock) on the look-alike within a few frames
+    assert all(m >= 0.99 for _, m in full[6:])
+    # weighed: never that sure, and some 3x as many frames to pass 0.9
+    assert max(m for _, m in still) < 0.99
+    first = [next(i for i, (_, m) in enumerate(run) if m >= 0.9) for run in (full, still)]
+    assert first[1] >= 3 * first[0], first
