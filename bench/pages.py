@@ -556,6 +556,7 @@ def sequence_whole(root: Path) -> str:
 
 MOTION_CUE = "docs/experiments/sequence/motion_cue.json"
 EVIDENCE_WEIGHTS = "docs/experiments/sequence/evidence_weights.json"
+STILL_WEIGHT = "docs/experiments/sequence/still_weight.json"
 
 
 @generator("sequence.motion_cue")
@@ -570,6 +571,13 @@ def sequence_evidence_weights(root: Path) -> str:
     """``python -m bench.motion_cue --grid evidence``: the weights of a frame's evidence
     chosen on the training parts, then against the preset's as the motion cue above."""
     return _filter_choice(root, EVIDENCE_WEIGHTS, "chosen")
+
+
+@generator("sequence.still_weight")
+def sequence_still_weight(root: Path) -> str:
+    """``python -m bench.motion_cue --grid still``: the weight of a frame that did not move
+    chosen on the training parts, then against the preset's as the motion cue above."""
+    return _filter_choice(root, STILL_WEIGHT, "chosen")
 
 
 def _filter_choice(root: Path, rel: str, label: str) -> str:
