@@ -47,6 +47,11 @@ from tests.service_helpers import BUILD_OPTIONS, Server
 
 N_REFS = 32
 THRESHOLD = 0.9
+#: The recording servers' threshold: above the first frames of the drive below (their
+#: p_correct about 0.97 with the default's shipped models), below most of the rest, so that
+#: a drive records some of its accepted answers and not all (read from each answer by
+#: ``_to_record``, not assumed).
+RECORD_AT = 0.985
 #: The drive: day_right frames (frame-aligned with day_left), 2 per second.
 FPS = 2.0
 T0 = 1.7e9  # the vehicles' clock: seconds since the epoch
@@ -66,7 +71,7 @@ def frames(gardens_point: Path) -> list[Path]:
 
 
 def _server(index: Path, log: Path | None, tmp: Path, **env: str) -> Server:
-    settings = {"auth": "false", "workers": "1", "experience_min_p_correct": str(THRESHOLD)}
+    settings = {"auth": "false", "workers": "1", "experience_min_p_correct": str(RECORD_AT)}
     if log is not None:
         settings["experience_log"] = str(log)
     return Server(index, tmp / "serve.log", **settings, **env)
@@ -170,7 +175,7 @@ def _to_record(body: dict[str, Any]) -> bool:
         m is not None
         and m["accepted"]
         and m["p_correct"] is not None
-        and m["p_correct"] >= THRESHOLD
+        and m["p_correct"] >= RECORD_AT
         and body["match_source"] == "sequence"
     )
 
@@ -288,7 +293,7 @@ def test_a_sequence_drive_records_its_accepted_answers(
     car = Car(url, "car-7", frames)
     car.drive(range(0, 20))
     singles = [_single(url, frames[i]) for i in (1, 4, 9)]  # single mode: not enabled
-    assert any(b["match"]["accepted"] and b["match"]["p_correct"] >= THRESHOLD for b in singles)
+    assert any(b["match"]["accepted"] and b["match"]["p_correct"] >= RECORD_AT for b in singles)
     # A batch in sequence mode: each frame's final answer, stamped when it was received.
     files = [("images", (frames[i].name, frames[i].read_bytes(), "image/jpeg")) for i in (20, 21)]
     before = time.time()
@@ -315,7 +320,7 @@ def test_a_sequence_drive_records_its_accepted_answers(
         match = body["match"]
         assert rec.image == data and rec.content_type == "image/jpeg"
         assert (rec.place, rec.place_name) == (match["reference_id"], match["name"])
-        assert rec.p_correct == match["p_correct"] >= THRESHOLD
+        assert rec.p_correct == match["p_correct"] >= RECORD_AT
         assert rec.vehicle == "car-7" and rec.mode == "sequence"
         assert rec.index_version == body["index_version"] == "v0001"
         if ts is None:  # the batch: when it was received
