@@ -991,7 +991,8 @@ class SequenceFilter:
     ) -> FilterState:
         """Weigh the predicted belief with one frame's evidence, keep the best hypotheses.
         ``weight`` scales every log-likelihood of the frame (tier 1, Combined, on / off the
-        map): 1 counts it in full, 0 not at all (:attr:`FilterParams.still_weight`)."""
+        map): 1 counts it in full, 0 not at all (:attr:`FilterParams.still_weight`); the
+        ``reset`` share of the "anywhere" mass still goes to the frame's proposals."""
         p, n_keys = self.params, self.n_keys
         new_refs = np.concatenate([evidence.proposals, evidence.final])
         new = (new_refs[:, None] * (2 * p.speeds) + np.arange(2 * p.speeds)[None, :]).ravel()
