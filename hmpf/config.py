@@ -434,12 +434,15 @@ def with_shipped_acceptance(config: HierarchyConfig) -> HierarchyConfig:
     if config.acceptance is not None:
         return config
     digest = config.digest()
-    files = _shipped_files()
-    shipped = {d: _settings_of(name, data) for name, d, data in files}  # every file checked
-    if digest not in shipped:
+    mine = None
+    for name, d, data in _shipped_files():
+        settings = _settings_of(name, data)  # every file checked, as shipped_acceptance does
+        if d == digest:
+            mine = name, data, settings
+    if mine is None:
         return config
-    update: dict[str, Any] = {"acceptance": shipped[digest]}
-    name, _, data = next(f for f in files if f[1] == digest)
+    name, data, settings = mine
+    update: dict[str, Any] = {"acceptance": settings}
     filt = _filter_of(name, data)
     if filt:
         update["sequence"] = {**filt, **(config.sequence or {})}
