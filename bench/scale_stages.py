@@ -101,9 +101,7 @@ def measure(index: Path, frames: Sequence[Path], rounds: int = 2) -> dict[str, A
     clock.install()
     loaded = Loaded.open(index, None, verify="stamp")
     try:
-        images = [
-decode_upload(p.read_bytes(), max_pixels=1 << 30, source=p.name) for p in frames
-        ]
+        images = [decode_upload(p.read_bytes(), max_pixels=1 << 30, source=p.name) for p in frames]
         params = LocalizeParams()
         rows: list[dict[str, float]] = []
         matches: list[int] = []
