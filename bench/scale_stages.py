@@ -60,24 +60,18 @@ class _Clock:
         self._approx = IndexReader._approx_scores
 
     def install(self) -> None:
-        clock = self
+        IndexReader.search = self._timed(self._search, "search")  # type: ignore[method-assign]
+        IndexReader._approx_scores = self._timed(self._approx, "approx")  # type: ignore[method-assign]
 
-        def search(reader: IndexReader, *a: Any, **k: Any) -> Any:
+    def _timed(self, fn: Any, key: str) -> Any:
+        def timed(*a: Any, **k: Any) -> Any:
             t = time.perf_counter()
             try:
-                return clock._search(reader, *a, **k)
+                return fn(*a, **k)
             finally:
-                clock.search += time.perf_counter() - t
+                setattr(self, key, getattr(self, key) + time.perf_counter() - t)
 
-        def approx(reader: IndexReader, *a: Any, **k: Any) -> Any:
-            t = time.perf_counter()
-            try:
-                return clock._approx(reader, *a, **k)
-            finally:
-                clock.approx += time.perf_counter() - t
-
-        IndexReader.search = search  # type: ignore[method-assign]
-        IndexReader._approx_scores = approx  # type: ignore[method-assign]
+        return timed
 
     def uninstall(self) -> None:
         IndexReader.search = self._search  # type: ignore[method-assign]

@@ -50,7 +50,7 @@ import argparse
 import json
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -728,9 +728,11 @@ def write_shipped(
     return write_json(ROOT / "hmpf" / "presets" / "acceptance" / f"{preset}.json", doc)
 
 
-def with_filter(config: HierarchyConfig, settings: Iterable[str]) -> HierarchyConfig:
+def with_filter(config: HierarchyConfig, settings: Sequence[str]) -> HierarchyConfig:
     """``config`` with the sequence filter settings ``NAME=VALUE`` over its own (a number:
     an integer setting's as int, else float; checked by :class:`FilterParams`)."""
+    if not settings:
+        return config
     seq = dict(config.sequence or {})
     for item in settings:
         name, sep, value = item.partition("=")
@@ -741,8 +743,6 @@ def with_filter(config: HierarchyConfig, settings: Iterable[str]) -> HierarchyCo
             seq[name] = int(value) if kind in ("int", int) else float(value)
         except ValueError:
             raise SystemExit(f"--filter {item!r}: not a number") from None
-    if not settings:
-        return config
     FilterParams.from_mapping(seq)  # refused here, not after the banks are built
     return config.model_copy(update={"sequence": seq})
 

@@ -867,9 +867,10 @@ class SequenceFilter:
         predicted = self.predict(state, steps)
         weight = 1.0
         if self.params.motion and steps >= 1:
-            if self.moved(state.sketch, evidence.sketch):
+            dist = self.sketch_distance(state.sketch, evidence.sketch)
+            if dist is not None and dist >= self.params.moved:
                 predicted = self._stops_unlikely(predicted)
-            elif self.still(state.sketch, evidence.sketch):
+            elif dist is not None:  # did not move (unknown is neither)
                 weight = self.params.still_weight
         posterior = self.correct(predicted, evidence, weight)
         est = self.estimate(posterior, last_ref=predicted.last_ref, steps=steps)
@@ -878,22 +879,14 @@ class SequenceFilter:
             sketch = np.asarray(evidence.sketch).astype(np.float16).astype(np.float32)
         return replace(posterior, last_ref=est.ref, sketch=sketch), est
 
-    def moved(self, before: np.ndarray | None, now: np.ndarray | None) -> bool:
-        """Whether a frame whose sketch is ``now`` moved since the frame sketched ``before``
-        (:attr:`FilterParams.moved` map steps or more apart); False when either is unknown
-        or they do not match in length."""
+    @staticmethod
+    def sketch_distance(before: np.ndarray | None, now: np.ndarray | None) -> float | None:
+        """How far a frame sketched ``now`` moved since the frame sketched ``before`` (in the
+        map's median steps, what :attr:`FilterParams.moved` is compared with); None when
+        either is unknown or they do not match in length."""
         if before is None or now is None or len(before) != len(now):
-            return False
-        dist = float(np.linalg.norm(np.asarray(now, np.float64) - np.asarray(before, np.float64)))
-        return dist >= self.params.moved
-
-    def still(self, before: np.ndarray | None, now: np.ndarray | None) -> bool:
-        """Whether a frame whose sketch is ``now`` did not move since the frame sketched
-        ``before`` (both known, of one length, less than :attr:`FilterParams.moved` apart);
-        False when either is unknown: not :meth:`moved` is not "still"."""
-        if before is None or now is None or len(before) != len(now):
-            return False
-        return not self.moved(before, now)
+            return None
+        return float(np.linalg.norm(np.asarray(now, np.float64) - np.asarray(before, np.float64)))
 
     def _stops_unlikely(self, predicted: FilterState) -> FilterState:
         """The predicted belief weighed by the frame's motion: the stopped hypotheses (speed
