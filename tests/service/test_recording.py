@@ -341,7 +341,9 @@ def test_a_sequence_drive_records_its_accepted_answers(
                 want, have = m.to_arrays(again[mid]), m.to_arrays(feats[mid])
                 assert want.keys() == have.keys()
                 for k in want:
-                    np.testing.assert_allclose(have[k], want[k], rtol=0, atol=1e-5)
+                    # The service extracted with its own thread count: a float32 sum may
+                    # round to the neighbouring float16 (one step is at most 2**-10 relative).
+                    np.testing.assert_allclose(have[k], want[k], rtol=2**-10, atol=1e-5)
     # What the log holds is (nearly always) the right place: frame i shows place i.
     right = sum(abs(rec.place - i) <= 2 for rec, (i, *_) in zip(got, expected, strict=True))
     assert right >= 0.9 * len(got), f"{right}/{len(got)} recorded at the right place"
