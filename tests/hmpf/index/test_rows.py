@@ -13,7 +13,7 @@ from hmpf.config import parse_config
 from hmpf.imageio import load_image
 from hmpf.index import IndexReader
 from hmpf.index import reader as reader_module
-from hmpf.index.rows import DiskRows, LruCache, disk_rows
+from hmpf.index.rows import DiskRows, LruCache, disk_rows, widen
 from hmpf.index.storage import open_h5
 from indexer.build import BuildOptions, build
 
@@ -167,3 +167,24 @@ def test_lru_cache_stays_within_its_bound():
     cache.put("too big", 0, 101)
     assert cache.lookup("too big") == (False, None)
     assert cache.get("y", lambda: 5, lambda v: 10) == 5 and cache.lookup("y") == (True, 5)
+
+
+@pytest.mark.parametrize("torch_loaded", [True, False])
+def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, monkeypatch):
+    """Every float16 bit pattern (tiled past the size torch takes over) widens to numpy's
+    float32, bit for bit (NaN to NaN), with torch loaded and without."""
+    import sys
+
+    if torch_loaded:
+        pytest.importorskip("torch")
+    else:
+        monkeypatch.delitem(sys.modules, "torch", raising=False)
+    half = np.tile(np.arange(1 << 16, dtype=np.uint16), 2).view(np.float16).reshape(-1, 64)
+    got, want = widen(half, np.float32), half.astype(np.float32)
+    assert got.dtype == np.float32 and got.shape == want.shape
+    nan = np.isnan(want)
+    assert np.array_equal(np.isnan(got), nan)
+    assert np.array_equal(got[~nan].view(np.uint32), want[~nan].view(np.uint32))
+    small = half[:2]  # below the size torch takes over, and other dtypes: numpy's astype
+    assert np.array_equal(widen(small, np.float32), small.astype(np.float32), equal_nan=True)
+    assert widen(want, np.float32) is want
