@@ -715,7 +715,7 @@ def approx_top(reader: IndexReader, mid: str, q: np.ndarray, k: int) -> tuple[np
     ms = []
     for j in range(len(q)):
         t = time.perf_counter()
-        s = reader.row_scorer({mid: q[j]})(mid, None)
+        s = np.asarray(reader.row_scorer({mid: q[j]})(mid, None))
         ms.append((time.perf_counter() - t) * 1e3)
         out[j] = np.argsort(sign * s, kind="stable")[:k]
     return out, ms

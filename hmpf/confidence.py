@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hmpf.errors import HmpfError
-from hmpf.fusion import Spread, top_k
+from hmpf.fusion import Filled, Spread, top_k
 from hmpf.methods.base import GlobalMethod
 from hmpf.sequence import Estimate, RouteMap
 
@@ -121,6 +121,28 @@ def _best_of(scores: Mapping[str, np.ndarray], mid: str) -> int:
     return int(np.nanargmax(np.where(np.isfinite(s), s, np.nan)))
 
 
+def _filled_tier1(
+    mean: Filled, match: int, routes: RouteMap, window: int, out: dict[str, float]
+) -> bool:
+    """:func:`answer_features`' tier-1 features (rank, margin, z) of an approximate tier 1's
+    mean score from its entries and fill, without the whole array: the same rank and
+    margin; the mean and spread summed as entries plus fill times the rest (equal to the
+    whole array's to rounding). False (nothing set) unless every value is finite."""
+    v, fill, rest = mean.values, mean.fill, mean.rest
+    if not (math.isfinite(fill) and np.isfinite(v).all()):
+        return False
+    at = float(mean.at(np.array([match]))[0])
+    rank = int(np.count_nonzero(v > at)) + (rest if fill > at else 0)
+    out["tier1_rank"] = math.log1p(rank)
+    rival = _best_outside_all(mean, match, routes, window, finite=True)
+    out["tier1_margin"] = at - (0.0 if rival is None else rival)
+    n = mean.n
+    mu = (float(v.sum()) + fill * rest) / n
+    sd = math.sqrt((float(np.square(v - mu).sum()) + rest * (fill - mu) ** 2) / n) if n > 1 else 0.0
+    out["tier1_z"] = (at - mu) / sd if sd > 0 else 0.0
+    return True
+
+
 def _best_outside_all(
     values: np.ndarray,
     answer: int,
@@ -142,8 +164,9 @@ def _best_outside_all(
         top = top_k(values, look)
         far = routes.separation(top, answer) > window
         if far.any():
-            return float(values[top[np.argmax(far)]])
-    return _best_outside(values, np.arange(n), answer, routes, window)
+            best = top[np.argmax(far)]
+            return float(values.at(best[None])[0] if isinstance(values, Filled) else values[best])
+    return _best_outside(np.asarray(values), np.arange(n), answer, routes, window)
 
 
 def _best_outside(
@@ -252,8 +275,11 @@ def answer_features(
                 agree += bool(routes.separation(best, match) <= window)
     out["agreement"] = agree / len(final_methods) if final_methods else 0.0
     # Tier 1: the whole database.
-    if tiers and answered:
-        mean = np.asarray(tiers[0].mean_score(), dtype=np.float64)
+    whole = tiers[0].whole_mean() if tiers and answered else None
+    if isinstance(whole, Filled) and _filled_tier1(whole, match, routes, window, out):
+        pass
+    elif tiers and answered:
+        mean = np.asarray(whole, dtype=np.float64)
         at = float(mean[match])
         # Tier 1 covers the whole map: one pass over it per step below, and none where
         # every score is finite (the usual case) and a step only replaces what is not.
@@ -463,10 +489,12 @@ class ReferenceProfile:
         place a foreign image close to a reference)."""
         vals = []
         for i, mid in enumerate(self.methods):
-            r = raw.get(mid)
-            if r is None or not 0 <= ref < len(r):
+            r = raw.get(mid) if not isinstance(raw, Spread) else None
+            if mid not in raw or not 0 <= ref < (raw.n if r is None else len(r)):
                 continue
-            x, mu, sd = float(r[ref]), self.mean[i, ref], self.std[i, ref]
+            # A tier's Spread (entries, an approximate tier 1's fill): read there, no array.
+            x = float(raw.at(mid, np.array([ref]))[0] if r is None else r[ref])
+            mu, sd = self.mean[i, ref], self.std[i, ref]
             if math.isfinite(x) and math.isfinite(mu) and math.isfinite(sd) and sd > 0:
                 vals.append(self.sign[i] * (x - mu) / sd)
         return float(min(vals)) if vals else float("nan")

@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_WEIGHTS",
+    "Filled",
     "Spread",
     "combined_score",
     "default_weights",
@@ -58,6 +59,8 @@ def minmax_normalise(
     Returns:
         (n,) float64.
     """
+    if isinstance(raw, Filled):
+        return _minmax_filled(raw, higher_is_better, faithful=faithful)
     x = np.asarray(raw, dtype=np.float64)
     # fmin / fmax skip NaN without copying the non-NaN entries out (one pass each; a map of
     # a million references pays for every pass); NaN only when every entry is NaN.
@@ -69,15 +72,52 @@ def minmax_normalise(
     return (x - lo) / (hi - lo) if higher_is_better else (hi - x) / (hi - lo)
 
 
+def _minmax_filled(raw: Filled, higher_is_better: bool, *, faithful: bool) -> Filled | np.ndarray:
+    """:func:`minmax_normalise` of a :class:`Filled` vector from its entries and its fill:
+    the same bounds and, at every reference, the same number (each is the same float64
+    operation on the same value). A constant or empty vector: the whole array's result."""
+    v = raw.values
+    fill = np.float64(raw.fill) if raw.rest else np.float64(np.nan)
+    lo, hi = np.fmin.reduce(v, initial=fill), np.fmax.reduce(v, initial=fill)
+    if np.isnan(lo) or hi == lo:
+        return minmax_normalise(np.asarray(raw), higher_is_better, faithful=faithful)
+    if higher_is_better:
+        values, filled = (v - lo) / (hi - lo), (np.float64(raw.fill) - lo) / (hi - lo)
+    else:
+        values, filled = (hi - v) / (hi - lo), (hi - np.float64(raw.fill)) / (hi - lo)
+    return Filled(raw.n, raw.index, values, float(filled))
+
+
 def mean_of(arrays: Sequence[np.ndarray]) -> np.ndarray:
     """``np.mean(arrays, axis=0)`` in float64 to the last bit (the sum in the given order,
     then divided by the count) without stacking them: over a whole map of a million
-    references the stacked copy cost as much as the sum. At least one array."""
+    references the stacked copy cost as much as the sum. At least one array.
+
+    :class:`Filled` vectors only (an approximate tier 1's methods): a :class:`Filled` mean
+    over the union of their entries, the same numbers as the whole arrays' mean."""
+    if all(isinstance(x, Filled) for x in arrays):
+        return _mean_filled(arrays)  # type: ignore[arg-type]
     total = np.array(arrays[0], dtype=np.float64)
     for x in arrays[1:]:
         total += x
     total /= len(arrays)
     return total
+
+
+def _mean_filled(vectors: Sequence[Filled]) -> Filled:
+    first = vectors[0]
+    if any(x.n != first.n for x in vectors):
+        raise ValueError("vectors of different lengths")
+    same = all(x.index is first.index or np.array_equal(x.index, first.index) for x in vectors)
+    index = first.index if same else np.unique(np.concatenate([x.index for x in vectors]))
+    total = first.at(index)
+    fill = np.float64(first.fill)
+    for x in vectors[1:]:
+        total += x.at(index)
+        fill += np.float64(x.fill)
+    total /= len(vectors)
+    fill /= len(vectors)
+    return Filled(first.n, index, total, float(fill))
 
 
 def _kth_largest_bound(s: np.ndarray, k: int, blocks: int = 1024) -> float:
@@ -101,6 +141,13 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
     This is the original's repeated max-then-blank selection. Fewer than ``k`` non-NaN
     entries give a shorter list.
     """
+    if isinstance(scores, Filled) and k > 0:
+        f = scores
+        above = f.values > f.fill  # NaN: not above; nothing is above a NaN fill
+        if f.rest and np.count_nonzero(above) >= k:
+            # The k best are entries: every other reference holds the fill, below them.
+            idx, v = f.index[above], f.values[above]
+            return idx[np.lexsort((idx, -v))][:k].astype(np.int64)
     s = np.asarray(scores, dtype=np.float64)
     if k <= 0 or s.size == 0:
         return np.zeros(0, dtype=np.int64)
@@ -207,23 +254,107 @@ def flat_fusion(
     return np.mean(norm, axis=0)
 
 
+class Filled:
+    """An ``(n,)`` float64 score vector that holds one value, ``fill``, everywhere except at
+    ``index`` (ascending, unique), where it holds ``values``: an approximate tier 1's scores
+    over a map of a million references (the sample and FAISS's candidates scored exactly,
+    every other reference their worst). :func:`minmax_normalise`, :func:`top_k` and
+    :func:`mean_of` work on the entries and the fill, with the whole array's results;
+    ``np.asarray(filled)`` makes the whole array (a new one each time)."""
+
+    __slots__ = ("fill", "index", "n", "values")
+
+    def __init__(self, n: int, index: np.ndarray, values: np.ndarray, fill: float) -> None:
+        self.n = int(n)
+        self.index = np.asarray(index, dtype=np.int64)
+        self.values = np.asarray(values, dtype=np.float64)
+        self.fill = float(fill)
+        if self.index.shape != self.values.shape or self.index.ndim != 1:
+            raise ValueError("index and values must be (m,) arrays of one length")
+
+    @property
+    def rest(self) -> int:
+        """How many references hold the fill."""
+        return self.n - len(self.index)
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.n,)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.float64)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+        whole = np.full(self.n, self.fill)
+        whole[self.index] = self.values
+        return whole if dtype is None else whole.astype(dtype, copy=False)
+
+    def __getitem__(self, key: object) -> np.ndarray:
+        return np.asarray(self)[key]
+
+    def at(self, idx: np.ndarray) -> np.ndarray:
+        """``np.asarray(self)[idx]`` for an array of indices, read from the entries."""
+        return _entries_at(self.index, self.values, np.asarray(idx, dtype=np.int64), self.fill)
+
+
+def _entries_at(index: np.ndarray, values: np.ndarray, idx: np.ndarray, fill: float) -> np.ndarray:
+    """``values`` at ``idx`` where ``index`` (ascending) holds it, ``fill`` elsewhere."""
+    out = np.full(len(idx), fill)
+    if len(index):
+        pos = np.minimum(np.searchsorted(index, idx), len(index) - 1)
+        hit = index[pos] == idx
+        out[hit] = values[pos[hit]]
+    return out
+
+
 class Spread(Mapping[str, np.ndarray]):
-    """Per method, an ``(n,)`` array that is NaN except at ``index`` (ascending, unique),
-    where it holds ``entries[method]``: a later tier's scores, which cover a few candidates
-    of a database that may hold a million references. Reading a method (``spread[m]``)
-    makes its whole array once (the same values the tier always reported); :meth:`at` and
-    :meth:`best` read the entries without making it.
+    """Per method, an ``(n,)`` array that is NaN (or the method's ``fill``) except at
+    ``index`` (ascending, unique), where it holds ``entries[method]``: a later tier's
+    scores, which cover a few candidates of a database that may hold a million references,
+    or an approximate tier 1's (:class:`Filled`, :meth:`of_filled`). Reading a method
+    (``spread[m]``) makes its whole array once (the same values the tier always reported);
+    :meth:`at`, :meth:`best` and :meth:`filled` read the entries without making it.
     """
 
-    def __init__(self, n: int, index: np.ndarray, entries: Mapping[str, np.ndarray]) -> None:
+    def __init__(
+        self,
+        n: int,
+        index: np.ndarray,
+        entries: Mapping[str, np.ndarray],
+        fill: Mapping[str, float] | None = None,
+    ) -> None:
         self.n = int(n)
         self.index = np.asarray(index, dtype=np.int64)
         self.entries = {m: np.asarray(v, dtype=np.float64) for m, v in entries.items()}
+        #: per method, what it holds outside ``index`` (NaN where not given)
+        self.fill = {m: float((fill or {}).get(m, np.nan)) for m in self.entries}
         self._whole: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def of_filled(cls, n: int, vectors: Mapping[str, Filled]) -> Spread:
+        """The :class:`Filled` vectors of one tier's methods on the union of their entries."""
+        mids = list(vectors)
+        first = vectors[mids[0]].index if mids else np.zeros(0, np.int64)
+        same = all(np.array_equal(vectors[m].index, first) for m in mids)
+        index = first if same else np.unique(np.concatenate([vectors[m].index for m in mids]))
+        return cls(
+            n,
+            index,
+            {m: vectors[m].at(index) for m in mids},
+            {m: vectors[m].fill for m in mids},
+        )
+
+    def filled(self, mid: str) -> Filled:
+        """Method ``mid`` as a :class:`Filled` vector (its fill outside the entries)."""
+        return Filled(self.n, self.index, self.entries[mid], self.fill[mid])
 
     def __getitem__(self, mid: str) -> np.ndarray:
         if mid not in self._whole:
-            whole = np.full(self.n, np.nan)
+            whole = np.full(self.n, self.fill[mid])
             whole[self.index] = self.entries[mid]
             self._whole[mid] = whole
         return self._whole[mid]
@@ -237,17 +368,17 @@ class Spread(Mapping[str, np.ndarray]):
     def at(self, mid: str, idx: np.ndarray) -> np.ndarray:
         """``self[mid][idx]``, read from the entries."""
         idx = np.asarray(idx, dtype=np.int64)
-        pos = np.minimum(np.searchsorted(self.index, idx), max(len(self.index) - 1, 0))
-        out = np.full(len(idx), np.nan)
-        if len(self.index):
-            hit = self.index[pos] == idx
-            out[hit] = self.entries[mid][pos[hit]]
-        return out
+        return _entries_at(self.index, self.entries[mid], idx, self.fill[mid])
 
     def best(self, mid: str) -> int:
         """``nanargmax(self[mid])`` (the lowest index among equal bests), -1 without a
         finite entry."""
         v = self.entries[mid]
+        fill = self.fill[mid]
+        if not np.isnan(fill) and len(self.index) < self.n and not (v > fill).any():
+            whole = self[mid]  # the fill is the best, or ties with it: the whole array
+            fin = np.isfinite(whole)
+            return int(np.nanargmax(np.where(fin, whole, np.nan))) if fin.any() else -1
         finite = np.isfinite(v)
         if not finite.any():
             return -1

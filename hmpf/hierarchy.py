@@ -30,6 +30,7 @@ import numpy as np
 
 from hmpf.config import HierarchyConfig
 from hmpf.fusion import (
+    Filled,
     Spread,
     combined_score,
     mean_of,
@@ -115,6 +116,17 @@ class TierResult:
         (:func:`~hmpf.fusion.mean_of`)."""
         return mean_of([entries_at(self.scores, m, at) for m in self.methods])
 
+    def whole_mean(self) -> np.ndarray | Filled:
+        """:meth:`mean_score` over the whole database; for an approximate tier 1 a
+        :class:`~hmpf.fusion.Filled` vector of the same values (its entries and fill), so
+        that a pass over the map can be one over its entries."""
+        if (
+            isinstance(self.scores, Spread)
+            and not np.isnan([self.scores.fill[m] for m in self.methods]).any()
+        ):
+            return mean_of([self.scores.filled(m) for m in self.methods])
+        return self.mean_score()
+
     def max_score(self, at: np.ndarray | None = None) -> np.ndarray:
         """(N,) element-wise max over methods, NaN ignored (MATLAB ``max``); with ``at``,
         just those entries (the same values)."""
@@ -155,6 +167,17 @@ class HierarchyResult:
         return union([self.final_candidates[order]], faithful=False)
 
 
+def _tier_scores(
+    n_db: int, sel: np.ndarray | None, scores: dict[str, Any], filled: bool
+) -> Mapping[str, np.ndarray]:
+    """A tier's scores as :class:`TierResult` holds them: entries at the inputs of a later
+    tier, an approximate tier 1's entries and fills, whole arrays otherwise."""
+    if filled and scores:
+        return Spread.of_filled(n_db, scores)
+    scores = {m: np.asarray(x) if isinstance(x, Filled) else x for m, x in scores.items()}
+    return Spread(n_db, sel, scores) if sel is not None else scores
+
+
 class Hierarchy:
     """Runs a :class:`HierarchyConfig` over one query's scores."""
 
@@ -182,7 +205,12 @@ class Hierarchy:
             for mid in tier.methods:
                 method = self.methods[mid]
                 if inputs is None:
-                    raw = np.asarray(score_fn(mid, None), dtype=np.float64)
+                    # An approximate tier 1 (a Filled vector) stays entries and a fill, but
+                    # for the final tier (whole arrays: every reference enters the fusion) and
+                    # in faithful mode (the original's arrays).
+                    raw = score_fn(mid, None)
+                    if not isinstance(raw, Filled) or faithful or t == n_tiers - 1:
+                        raw = np.asarray(raw, dtype=np.float64)
                     scores[mid] = minmax_normalise(raw, method.higher_is_better, faithful=faithful)
                     raws[mid] = raw
                 else:
@@ -200,6 +228,7 @@ class Hierarchy:
             # selected: whole arrays, as the original.
             sel = None if inputs is None or faithful else uniq
             at = dict(scores) if inputs is None or not faithful else {}
+            filled = inputs is None and all(isinstance(x, Filled) for x in scores.values())
             if inputs is not None and faithful:
                 for mid in tier.methods:
                     at[mid] = np.full(n_db, off)
@@ -219,10 +248,10 @@ class Hierarchy:
                 TierResult(
                     list(tier.methods),
                     inputs,
-                    Spread(n_db, sel, scores) if sel is not None else scores,
+                    _tier_scores(n_db, sel, scores, filled),
                     cands,
                     (time.perf_counter() - start) * 1e3,
-                    Spread(n_db, sel, raws) if sel is not None else raws,
+                    _tier_scores(n_db, sel, raws, filled),
                 )
             )
             inputs = cands

@@ -66,6 +66,7 @@ from hmpf.confidence import ReferenceProfile, stored_map_prior
 from hmpf.config import HierarchyConfig, build_methods, parse_config, with_shipped_acceptance
 from hmpf.errors import ConfigError
 from hmpf.features import extract_query
+from hmpf.fusion import Filled
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
 from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
@@ -728,20 +729,20 @@ class IndexReader:
             return method.scores(q, self._globals[mid], None)
         return self._approx_scores(mid, q)
 
-    def _approx_scores(self, mid: str, q: Any) -> np.ndarray:
+    def _approx_scores(self, mid: str, q: Any) -> Filled:
         """Tier 1 of an approximate method: FAISS's candidates and the fixed sample scored
         exactly (the sample from its resident rows, the other candidates' rows read from
-        the stored matrix), every other row the worst of those scores."""
+        the stored matrix), every other row the worst of those scores: a
+        :class:`~hmpf.fusion.Filled` vector (``np.asarray`` of it: the whole array)."""
         method = self.methods[mid]
         ids, _ = self.search(mid, q, self.approx_k, rescore=False)
         extra = np.setdiff1d(ids, self._sample)
         sampled = method.scores(q, self._sample_rows[mid], None)
         exact = np.concatenate([sampled, method.scores(q, self._globals[mid], extra)])
         worst = float(np.min(exact) if method.higher_is_better else np.max(exact))
-        out = np.full(self.n_rows, worst)
-        out[self._sample] = sampled
-        out[extra] = exact[len(sampled) :]
-        return out
+        index = np.concatenate([self._sample, extra])
+        order = np.argsort(index, kind="stable")
+        return Filled(self.n_rows, index[order], np.asarray(exact, np.float64)[order], worst)
 
     def _subset_scores(self, mid: str, q: Any, subset: np.ndarray) -> np.ndarray:
         method = self.methods[mid]

@@ -35,21 +35,31 @@ from hmpf.index.layout import IndexCorruptError
 
 __all__ = ["DiskRows", "LruCache", "ReadStats", "disk_rows", "widen"]
 
-#: Elements from which :func:`widen` hands a float16 -> float32 conversion to torch.
-_WIDEN_BY_TORCH = 1 << 14
+#: Elements from which :func:`widen` converts float16 -> float32 its own way.
+_WIDEN_FAST = 1 << 14
+#: float16 elements :func:`widen` converts at a time through float64 (within a core's cache).
+_WIDEN_BLOCK = 1 << 15
 
 
 def widen(a: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """``a.astype(dtype, copy=False)``, the same numbers; a large float16 -> float32
-    conversion goes through torch's vectorised one when torch is already loaded (a CNN
-    method's process): numpy converts half floats one at a time (3.0 ms for 256 NetVLAD
-    rows of 6144 dimensions on an AMD EPYC core, torch 0.2 ms). Both are exact (every
-    float16 is a float32); torch is not imported for this alone."""
+    """``a.astype(dtype, copy=False)``, the same numbers, with a faster large float16 ->
+    float32 conversion: numpy converts half floats to single ones slowly (3.0 ms for 256
+    NetVLAD rows of 6144 dimensions on an AMD EPYC core; through float64, a block at a
+    time, 1.9 ms; torch's vectorised conversion, used when torch is already loaded (a
+    torch CNN's process; it is not imported for this), 0.2 ms). Every float16 is a float32
+    and a float64, so each way is exact."""
     dtype = np.dtype(dtype)
-    torch = sys.modules.get("torch")
-    if a.dtype != np.float16 or dtype != np.float32 or a.size < _WIDEN_BY_TORCH or torch is None:
+    if a.dtype != np.float16 or dtype != np.float32 or a.size < _WIDEN_FAST:
         return a.astype(dtype, copy=False)
-    return torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32).numpy()
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32).numpy()
+    flat = a.reshape(-1)
+    out = np.empty(flat.shape, dtype=np.float32)
+    with np.errstate(invalid="ignore"):  # NaN stays NaN
+        for lo in range(0, flat.size, _WIDEN_BLOCK):
+            out[lo : lo + _WIDEN_BLOCK] = flat[lo : lo + _WIDEN_BLOCK].astype(np.float64)
+    return out.reshape(a.shape)
 
 
 @dataclass

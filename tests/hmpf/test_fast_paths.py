@@ -1,7 +1,8 @@
 """Fast paths for maps of a million references against their brute-force definitions:
 top-k through block maxima, later tiers kept as entries (:class:`~hmpf.fusion.Spread`),
-tier 1's best rival from its highest scores. Each must give exactly what the whole-array
-computation gives."""
+tier 1's best rival from its highest scores, an approximate tier 1 kept as entries and a
+fill (:class:`~hmpf.fusion.Filled`). Each must give exactly what the whole-array
+computation gives (tier 1's z-score: to rounding, its mean summed another way)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from hmpf.confidence import _best_outside, _best_outside_all, answer_features
+from hmpf.confidence import ReferenceProfile, _best_outside, _best_outside_all, answer_features
 from hmpf.config import parse_config
-from hmpf.fusion import Spread, top_k
+from hmpf.fusion import Filled, Spread, mean_of, minmax_normalise, top_k
 from hmpf.hierarchy import Hierarchy, HierarchyResult, TierResult
 from hmpf.methods import create_method
 from hmpf.sequence import RouteMap
@@ -169,3 +170,122 @@ def test_tier1_features_equal_their_whole_array_definition(kind):
         got = answer_features(result, routes)
         for name, value in _tier1_definition(result, routes, 2).items():
             assert got[name] == value, (kind, trial, name)
+
+
+def _filled(rng: np.random.Generator, n: int, kind: str, hib: bool = True) -> Filled:
+    """An approximate tier 1's raw scores: a sample and candidates scored, the rest their
+    worst (the lowest similarity, the highest distance)."""
+    m = n if kind == "covers_all" else min(n, 1300)
+    index = np.sort(rng.choice(n, m, replace=False))
+    values = rng.random(m) + 0.5
+    if kind == "ties":
+        values = np.round(values * 10) / 10
+    worst = float(values.min() if hib else values.max())
+    if kind == "covers_all":  # a fill no reference holds: it must not count
+        worst += -1.0 if hib else 1.0
+    if kind == "few_above":  # fewer entries than k beat the fill: the fill decides ties
+        values = np.full(m, worst)
+        values[:5] = worst + 1.0 if hib else worst - 1.0
+    if kind == "nan":
+        values[rng.random(m) < 0.2] = np.nan
+    return Filled(n, index, values, worst)
+
+
+KINDS = ["approx", "ties", "few_above", "covers_all", "nan"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("n", [3000, 200_000])
+def test_a_filled_vector_normalises_selects_and_averages_as_its_whole_array(kind, n):
+    rng = np.random.default_rng(n + len(kind))
+    for hib in (True, False):
+        raw = _filled(rng, n, kind, hib)
+        whole = np.asarray(raw)
+        assert whole.shape == (n,) and len(raw) == n
+        assert np.array_equal(raw.at(np.arange(n)), whole, equal_nan=True)
+        for faithful in (False, True):
+            got = minmax_normalise(raw, hib, faithful=faithful)
+            want = minmax_normalise(whole, hib, faithful=faithful)
+            assert np.array_equal(np.asarray(got), want, equal_nan=True), (hib, faithful)
+        norm = minmax_normalise(raw, hib)
+        for k in (1, 10, 100, 255):
+            assert np.array_equal(top_k(norm, k), _top_k_definition(np.asarray(norm), k)), k
+        # Two or three methods, each with its own entries: their mean over the union.
+        others = [minmax_normalise(_filled(rng, n, kind), True) for _ in range(2)]
+        for vectors in ([norm, others[0]], [norm, *others]):
+            mean = mean_of(vectors)
+            stack = np.stack([np.asarray(v) for v in vectors])
+            assert np.array_equal(np.asarray(mean), np.mean(stack, axis=0), equal_nan=True)
+        spread = Spread.of_filled(n, {"a": norm, "b": others[0]})
+        probe = rng.integers(0, n, 500)
+        for mid, v in (("a", norm), ("b", others[0])):
+            dense = np.asarray(v)
+            assert np.array_equal(spread[mid], dense, equal_nan=True)
+            assert np.array_equal(spread.at(mid, probe), dense[probe], equal_nan=True)
+            assert np.array_equal(np.asarray(spread.filled(mid)), dense, equal_nan=True)
+            fin = np.isfinite(dense)
+            best = int(np.nanargmax(np.where(fin, dense, np.nan))) if fin.any() else -1
+            assert spread.best(mid) == best
+
+
+class _Fill:
+    """A score function whose whole-map scores are :class:`Filled` vectors (an approximate
+    tier 1), or their whole arrays."""
+
+    def __init__(self, vectors: dict[str, Filled], whole: bool) -> None:
+        self.vectors, self.whole = vectors, whole
+
+    def __call__(self, mid, subset):
+        v = self.vectors[mid]
+        if subset is None:
+            return np.asarray(v) if self.whole else v
+        return v.at(subset)
+
+
+@pytest.mark.parametrize("kind", ["approx", "ties", "covers_all"])
+def test_an_approximate_tier1_answers_as_its_whole_arrays(kind):
+    """The hierarchy on Filled tier-1 scores against the same scores as whole arrays: the
+    same answer, tiers, fusion and confidence features (tier 1's z to rounding) and the
+    same reference-profile z."""
+    config = parse_config(
+        {
+            "name": "filled",
+            "tiers": [{"methods": ["gist", "hog"], "k": 8}, {"methods": ["sad", "hog"], "k": 1}],
+        }
+    )
+    methods = {m: create_method(m) for m in ("gist", "hog", "sad")}
+    n = 60_000
+    routes = RouteMap.from_metadata(n, sequence=np.repeat(np.arange(60), 1000))
+    rng = np.random.default_rng(5)
+    for trial in range(4):
+        vectors = {
+            "gist": _filled(rng, n, kind, hib=methods["gist"].higher_is_better),
+            "hog": _filled(rng, n, kind, hib=methods["hog"].higher_is_better),
+        }
+        vectors["sad"] = Filled(n, np.arange(n), rng.random(n), 0.0)
+        hierarchy = Hierarchy(config, methods)
+        got = hierarchy.run(_Fill(vectors, whole=False), n)
+        want = hierarchy.run(_Fill(vectors, whole=True), n)
+        if kind != "covers_all":
+            assert isinstance(got.tiers[0].scores, Spread)
+        assert (got.match, got.quality) == (want.match, want.quality)
+        assert np.array_equal(got.combined, want.combined)
+        assert np.array_equal(got.final_candidates, want.final_candidates)
+        for a, b in zip(got.tiers, want.tiers, strict=True):
+            assert np.array_equal(a.candidates, b.candidates)
+            for m in a.methods:
+                assert np.array_equal(a.scores[m], b.scores[m], equal_nan=True)
+                assert np.array_equal(a.raw[m], b.raw[m], equal_nan=True)
+        assert np.array_equal(got.tiers[0].mean_score(), want.tiers[0].mean_score())
+        f_got, f_want = answer_features(got, routes), answer_features(want, routes)
+        assert f_got.keys() == f_want.keys()
+        for name in f_got:
+            if name == "tier1_z":
+                assert f_got[name] == pytest.approx(f_want[name], rel=1e-9, abs=1e-12)
+            else:
+                assert f_got[name] == f_want[name], (trial, name)
+        profile = ReferenceProfile(
+            ("gist", "hog"), (1.0, -1.0), rng.random((2, n)), rng.random((2, n)) + 0.1
+        )
+        for ref in (got.match, int(rng.integers(n)), int(vectors["hog"].index[0])):
+            assert profile.z(got.tiers[0].raw, ref) == profile.z(want.tiers[0].raw, ref)
