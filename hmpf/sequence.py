@@ -73,7 +73,7 @@ from typing import Any
 import numpy as np
 
 from hmpf.errors import HmpfError
-from hmpf.fusion import mean_of, top_k
+from hmpf.fusion import Filled, Spread, mean_of, top_k
 
 __all__ = [
     "OFF_LLR_CLIP",
@@ -536,7 +536,9 @@ class Evidence:
 
     Attributes:
         tier1: per tier-1 method, the (N,) score normalised over the database (best = 1;
-            NaN or missing: not scored, read as 0). Views of the hierarchy's arrays.
+            NaN or missing: not scored, read as 0). Views of the hierarchy's arrays, or
+            an approximate tier 1's :class:`~hmpf.fusion.Filled` vectors (read at
+            references by :meth:`tier1_at`, the same values).
         proposals: (K,) the best references by the mean tier-1 score.
         final: (F,) the final candidates; ``combined``: their Combined score min-max
             normalised to [0, 1].
@@ -553,7 +555,7 @@ class Evidence:
             skips this frame and the next).
     """
 
-    tier1: tuple[np.ndarray, ...]
+    tier1: tuple[np.ndarray | Filled, ...]
     proposals: np.ndarray
     final: np.ndarray
     combined: np.ndarray
@@ -588,10 +590,21 @@ class Evidence:
         if sketch is None:
             sketch = getattr(result, "sketch", None)
         tier = result.tiers[0]
-        arrays = [np.asarray(tier.scores[m], dtype=np.float64) for m in tier.methods]
-        mean = mean_of(arrays)
-        if not np.isfinite(mean).all():
-            mean = np.nan_to_num(mean, nan=0.0)
+        scores = tier.scores
+        filled = [scores.filled(m) for m in tier.methods] if isinstance(scores, Spread) else []
+        if (
+            allowed is None
+            and filled
+            and all(np.isfinite(f.fill) and np.isfinite(f.values).all() for f in filled)
+        ):
+            # An approximate tier 1: its entries and fills, not a million-entry array each.
+            arrays: list[Any] = filled
+            mean: Any = mean_of(filled)
+        else:
+            arrays = [np.asarray(scores[m], dtype=np.float64) for m in tier.methods]
+            mean = mean_of(arrays)
+            if not np.isfinite(mean).all():
+                mean = np.nan_to_num(mean, nan=0.0)
         k = min(proposals, len(mean))
         # The k best (ties to the lower index): block maxima, not a partition of the map.
         top = top_k(mean, k) if k < len(mean) else np.arange(len(mean))
@@ -623,7 +636,9 @@ class Evidence:
         """Mean tier-1 score at ``refs`` (NaN read as 0)."""
         if not self.tier1:
             return np.zeros(len(refs))
-        return np.nan_to_num(np.mean([a[refs] for a in self.tier1], axis=0), nan=0.0)
+        refs = np.asarray(refs, dtype=np.int64)
+        at = [a.at(refs) if isinstance(a, Filled) else a[refs] for a in self.tier1]
+        return np.nan_to_num(np.mean(at, axis=0), nan=0.0)
 
 
 @dataclass(frozen=True)

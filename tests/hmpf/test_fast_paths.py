@@ -16,7 +16,7 @@ from hmpf.config import parse_config
 from hmpf.fusion import Filled, Spread, mean_of, minmax_normalise, top_k
 from hmpf.hierarchy import Hierarchy, HierarchyResult, TierResult
 from hmpf.methods import create_method
-from hmpf.sequence import RouteMap
+from hmpf.sequence import Evidence, RouteMap
 
 
 def _top_k_definition(s: np.ndarray, k: int) -> np.ndarray:
@@ -289,3 +289,8 @@ def test_an_approximate_tier1_answers_as_its_whole_arrays(kind):
         )
         for ref in (got.match, int(rng.integers(n)), int(vectors["hog"].index[0])):
             assert profile.z(got.tiers[0].raw, ref) == profile.z(want.tiers[0].raw, ref)
+        # The sequence filter's evidence: the same proposals and tier-1 scores at any refs.
+        e_got, e_want = Evidence.from_result(got, n), Evidence.from_result(want, n)
+        assert np.array_equal(e_got.proposals, e_want.proposals)
+        refs = np.concatenate([rng.integers(0, n, 2000), vectors["gist"].index[:50]])
+        assert np.array_equal(e_got.tier1_at(refs), e_want.tier1_at(refs))
