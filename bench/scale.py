@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -754,13 +755,22 @@ def measure_recall(
         exact_s = time.perf_counter() - t
         info = reader.faiss_info(mid) or {}
         rows = []
-        for setting in search_settings(a):
+        stored_k = reader.approx_k
+        half = len(q) // 2
+        for depth, setting in itertools.product(a.approx_k or [stored_k], search_settings(a)):
+            reader.approx_k = depth
             if setting is not None:
                 set_search_params(reader.faiss_index(mid), setting)
             approx, ms = approx_top(reader, mid, q, 100)
             row = {
+                "approx_k": depth,
                 "params": setting or info.get("params"),
                 "recall_at_100": _overlap(approx, exact, 100),
+                # each half of the queries apart: a depth chosen on one, read on the other
+                "recall_at_100_halves": [
+                    _overlap(approx[:half], exact[:half], 100),
+                    _overlap(approx[half:], exact[half:], 100),
+                ],
                 "recall_at_10": _overlap(approx, exact, 10),
                 "right_in_exact_top10": _right(exact, gt, 10),
                 "right_in_approx_top10": _right(approx, gt, 10),
@@ -769,8 +779,10 @@ def measure_recall(
             }
             rows.append(row)
             print(
-                f"  {mid:8s} {info.get('factory')} {row['params']}: recall@100 "
-                f"{row['recall_at_100']:.4f}, @10 {row['recall_at_10']:.4f}; right place in "
+                f"  {mid:8s} {info.get('factory')} {row['params']}, {depth} re-scored: "
+                f"recall@100 {row['recall_at_100']:.4f} (halves "
+                f"{row['recall_at_100_halves'][0]:.4f} / {row['recall_at_100_halves'][1]:.4f}), "
+                f"@10 {row['recall_at_10']:.4f}; right place in "
                 f"top 10: exact {row['right_in_exact_top10']:.3f}, approximate "
                 f"{row['right_in_approx_top10']:.3f}; tier-1 {row['tier1_ms_p50']:.1f} ms "
                 f"(FAISS {row['faiss_ms_p50']:.2f} ms) p50",
@@ -778,10 +790,11 @@ def measure_recall(
             )
         if search_settings(a) != [None] and info.get("params"):  # back to the stored one
             set_search_params(reader.faiss_index(mid), str(info["params"]))
+        reader.approx_k = stored_k
         out[mid] = {
             "factory": info.get("factory"),
             "stored_params": info.get("params"),
-            "approx_k": reader.approx_k,
+            "approx_k": stored_k,
             "exact_search_s": exact_s,
             "settings": rows,
         }
@@ -1000,7 +1013,7 @@ def cmd_measure(a: argparse.Namespace) -> None:
     qdir = a.queries or Path(a.datasets) / QUERY_FOLDER
     out: dict[str, Any] = {}
     t = time.perf_counter()
-    reader = IndexReader(a.index, verify=False, approx_k=a.approx_k)
+    reader = IndexReader(a.index, verify=False, approx_k=a.approx_k[0] if a.approx_k else None)
     out["open_s"] = time.perf_counter() - t
     n = reader.n_rows
     config = reader.config
@@ -1155,7 +1168,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     m.add_argument("--no-recall", action="store_true")
     m.add_argument("--no-reload", action="store_true", help="skip the reload under queries")
     m.add_argument(
-        "--approx-k", type=int, default=None, help="recall: rows re-scored (default the reader's)"
+        "--approx-k",
+        type=int,
+        nargs="+",
+        default=None,
+        help="recall: rows re-scored, one or more depths (default the reader's)",
     )
     fa = sub.add_parser("factories", help="other FAISS types for one method of a version")
     fa.add_argument("--index", type=Path, required=True)

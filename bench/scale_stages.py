@@ -81,19 +81,23 @@ class _Clock:
         self.search = self.approx = 0.0
 
 
-def measure(index: Path, frames: Sequence[Path], rounds: int = 2) -> dict[str, Any]:
+def measure(
+    index: Path, frames: Sequence[Path], rounds: int = 2, approx_k: int | None = None
+) -> dict[str, Any]:
     """Median stage times (ms) of ``frames`` against ``index``; the last of ``rounds``
     rounds counts."""
     from hmpf.api import LocalizeParams
+    from hmpf.index.ann import faiss_module
     from hmpf.runtime import set_compute_threads
     from service.answer import localize_response
     from service.engine import Loaded, run_query
     from service.images import decode_upload
 
     set_compute_threads(1)
+    faiss_module().omp_set_num_threads(1)  # as hmpf-serve caps FAISS's OpenMP pool
     clock = _Clock()
     clock.install()
-    loaded = Loaded.open(index, None, verify="stamp")
+    loaded = Loaded.open(index, None, verify="stamp", approx_k=approx_k)
     try:
         images = [decode_upload(p.read_bytes(), max_pixels=1 << 30, source=p.name) for p in frames]
         params = LocalizeParams()
@@ -124,7 +128,7 @@ def measure(index: Path, frames: Sequence[Path], rounds: int = 2) -> dict[str, A
                         }
                     )
                     matches.append(-1 if answer.match is None else answer.match.reference_id)
-        n = loaded.reader.n
+        n, rescored = loaded.reader.n, loaded.reader.approx_k
         approximate = [
             m
             for m in loaded.reader.config.tiers[0].methods
@@ -137,6 +141,7 @@ def measure(index: Path, frames: Sequence[Path], rounds: int = 2) -> dict[str, A
         "index": str(index),
         "references": n,
         "approximate_tier1": approximate,
+        "approx_k": rescored,
         "frames": len(rows),
         "p50_ms": {s: float(np.median([row[s] for row in rows])) for s in STAGES},
         "matches": matches,
@@ -149,14 +154,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--queries", type=Path, default=None, help="default night_right")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--rounds", type=int, default=2, help="the last one counts")
+    p.add_argument("--approx-k", type=int, default=None, help="rows re-scored (hmpf-serve's)")
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args(argv)
-    if a.frames < 1 or a.rounds < 1:
-        p.error("--frames and --rounds must be >= 1")
+    if a.frames < 1 or a.rounds < 1 or (a.approx_k is not None and a.approx_k < 1):
+        p.error("--frames, --rounds and --approx-k must be >= 1")
     qdir = a.queries or dataset_root() / "gardens_point" / "night_right"
     frames = list_images(qdir)[: a.frames]
     print(machine(), f"(load {os.getloadavg()[0]:.2f})")
-    versions = [measure(index, frames, a.rounds) for index in a.index]
+    versions = [measure(index, frames, a.rounds, a.approx_k) for index in a.index]
     print("report: stage p50 in ms, one thread, in process (no HTTP)")
     print(f"{'references':>12} " + " ".join(f"{s:>12}" for s in STAGES))
     for v in versions:

@@ -144,7 +144,7 @@ def _filled_tier1(
 
 
 def _best_outside_all(
-    values: np.ndarray,
+    values: np.ndarray | Filled,
     answer: int,
     routes: RouteMap,
     window: int,
@@ -489,11 +489,16 @@ class ReferenceProfile:
         place a foreign image close to a reference)."""
         vals = []
         for i, mid in enumerate(self.methods):
-            r = raw.get(mid) if not isinstance(raw, Spread) else None
-            if mid not in raw or not 0 <= ref < (raw.n if r is None else len(r)):
-                continue
-            # A tier's Spread (entries, an approximate tier 1's fill): read there, no array.
-            x = float(raw.at(mid, np.array([ref]))[0] if r is None else r[ref])
+            if isinstance(raw, Spread):
+                # A tier's entries (an approximate tier 1's fill): read there, no array.
+                if mid not in raw or not 0 <= ref < raw.n:
+                    continue
+                x = float(raw.at(mid, np.array([ref]))[0])
+            else:
+                r = raw.get(mid)
+                if r is None or not 0 <= ref < len(r):
+                    continue
+                x = float(r[ref])
             mu, sd = self.mean[i, ref], self.std[i, ref]
             if math.isfinite(x) and math.isfinite(mu) and math.isfinite(sd) and sd > 0:
                 vals.append(self.sign[i] * (x - mu) / sd)

@@ -16,6 +16,7 @@ Two modes, selected with ``faithful``:
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
+from typing import Any, overload
 
 import numpy as np
 
@@ -46,9 +47,17 @@ def default_weights(n_tiers: int) -> tuple[float, ...]:
     return DEFAULT_WEIGHTS[len(DEFAULT_WEIGHTS) - n_tiers :]
 
 
+@overload
+def minmax_normalise(
+    raw: Filled, higher_is_better: bool = False, *, faithful: bool = False
+) -> Filled | np.ndarray: ...
+@overload
 def minmax_normalise(
     raw: np.ndarray, higher_is_better: bool = False, *, faithful: bool = False
-) -> np.ndarray:
+) -> np.ndarray: ...
+def minmax_normalise(
+    raw: np.ndarray | Filled, higher_is_better: bool = False, *, faithful: bool = False
+) -> np.ndarray | Filled:
     """Min-max normalise to best = 1, worst = 0 (NaN entries stay NaN and are ignored).
 
     Args:
@@ -88,7 +97,11 @@ def _minmax_filled(raw: Filled, higher_is_better: bool, *, faithful: bool) -> Fi
     return Filled(raw.n, raw.index, values, float(filled))
 
 
-def mean_of(arrays: Sequence[np.ndarray]) -> np.ndarray:
+@overload
+def mean_of(arrays: Sequence[Filled]) -> Filled: ...
+@overload
+def mean_of(arrays: Sequence[np.ndarray]) -> np.ndarray: ...
+def mean_of(arrays: Sequence[np.ndarray] | Sequence[Filled]) -> np.ndarray | Filled:
     """``np.mean(arrays, axis=0)`` in float64 to the last bit (the sum in the given order,
     then divided by the count) without stacking them: over a whole map of a million
     references the stacked copy cost as much as the sum. At least one array.
@@ -96,7 +109,7 @@ def mean_of(arrays: Sequence[np.ndarray]) -> np.ndarray:
     :class:`Filled` vectors only (an approximate tier 1's methods): a :class:`Filled` mean
     over the union of their entries, the same numbers as the whole arrays' mean."""
     if all(isinstance(x, Filled) for x in arrays):
-        return _mean_filled(arrays)  # type: ignore[arg-type]
+        return _mean_filled(arrays)  # type: ignore[arg-type]  # (all Filled: checked)
     total = np.array(arrays[0], dtype=np.float64)
     for x in arrays[1:]:
         total += x
@@ -135,7 +148,7 @@ def _kth_largest_bound(s: np.ndarray, k: int, blocks: int = 1024) -> float:
     return float(np.partition(s, n - k)[n - k])
 
 
-def top_k(scores: np.ndarray, k: int) -> np.ndarray:
+def top_k(scores: np.ndarray | Filled, k: int) -> np.ndarray:
     """Indices of the ``k`` highest scores, descending; ties -> lower index; NaN skipped.
 
     This is the original's repeated max-then-blank selection. Fewer than ``k`` non-NaN
@@ -288,12 +301,12 @@ class Filled:
     def __len__(self) -> int:
         return self.n
 
-    def __array__(self, dtype: object = None, copy: object = None) -> np.ndarray:
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
         whole = np.full(self.n, self.fill)
         whole[self.index] = self.values
         return whole if dtype is None else whole.astype(dtype, copy=False)
 
-    def __getitem__(self, key: object) -> np.ndarray:
+    def __getitem__(self, key: Any) -> np.ndarray:
         return np.asarray(self)[key]
 
     def at(self, idx: np.ndarray) -> np.ndarray:

@@ -45,8 +45,9 @@ from hmpf.methods import Method
 __all__ = ["Hierarchy", "HierarchyResult", "ScoreFn", "TierResult", "entries_at", "feature_scorer"]
 
 #: ``score_fn(method_id, subset)`` -> raw scores for ``subset`` (reference indices, in order),
-#: or for the whole database when ``subset`` is None.
-ScoreFn = Callable[[str, np.ndarray | None], np.ndarray]
+#: or for the whole database when ``subset`` is None (an approximate tier 1: a
+#: :class:`~hmpf.fusion.Filled` vector; ``np.asarray`` of it is the whole array).
+ScoreFn = Callable[[str, np.ndarray | None], np.ndarray | Filled]
 
 
 def feature_scorer(
@@ -198,8 +199,8 @@ class Hierarchy:
         n_tiers = len(cfg.tiers)
         for t, tier in enumerate(cfg.tiers):
             start = time.perf_counter()
-            scores: dict[str, np.ndarray] = {}
-            raws: dict[str, np.ndarray] = {}
+            scores: dict[str, np.ndarray | Filled] = {}
+            raws: dict[str, np.ndarray | Filled] = {}
             if inputs is not None:
                 uniq, inverse = np.unique(inputs, return_inverse=True)
             for mid in tier.methods:
@@ -219,9 +220,9 @@ class Hierarchy:
                     norm = minmax_normalise(
                         raw_u[inverse], method.higher_is_better, faithful=faithful
                     )
-                    scores[mid] = np.empty(len(uniq))
-                    scores[mid][inverse] = norm  # the same value at every duplicate
-                    raws[mid] = raw_u
+                    entries = np.empty(len(uniq))
+                    entries[inverse] = norm  # the same value at every duplicate
+                    scores[mid], raws[mid] = entries, raw_u
             # A later tier covers only its inputs: outside faithful mode the rest is NaN,
             # which selection skips, so its scores stay entries at the inputs (ascending:
             # ties still go to the lower index). Faithful mode's rest is 0, and can be
@@ -231,8 +232,9 @@ class Hierarchy:
             filled = inputs is None and all(isinstance(x, Filled) for x in scores.values())
             if inputs is not None and faithful:
                 for mid in tier.methods:
-                    at[mid] = np.full(n_db, off)
-                    at[mid][uniq] = scores[mid]
+                    spread = np.full(n_db, off)
+                    spread[uniq] = scores[mid]
+                    at[mid] = spread
                     whole = np.full(n_db, np.nan)
                     whole[uniq] = raws[mid]
                     raws[mid] = whole

@@ -268,8 +268,8 @@ def _relative(line: str, version_dir: Path) -> str:
 def restricted(score_fn: ScoreFn, allowed: np.ndarray) -> ScoreFn:
     """A score function over the sub-database ``allowed`` (local index -> place id)."""
 
-    def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
-        return score_fn(mid, allowed if subset is None else allowed[subset])
+    def fn(mid: str, subset: np.ndarray | None) -> np.ndarray:  # a subset: never Filled
+        return np.asarray(score_fn(mid, allowed if subset is None else allowed[subset]))
 
     return fn
 

@@ -707,9 +707,9 @@ class IndexReader:
         Mirrors :func:`hmpf.hierarchy.feature_scorer` (whole-database scores remembered and
         gathered for later tiers), so exact indexes give identical results.
         """
-        memo: dict[str, np.ndarray] = {}
+        memo: dict[str, np.ndarray | Filled] = {}
 
-        def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray:
+        def score_fn(mid: str, subset: np.ndarray | None) -> np.ndarray | Filled:
             if subset is None:
                 if mid not in memo:
                     memo[mid] = self._full_scores(mid, query[mid])
@@ -720,7 +720,7 @@ class IndexReader:
 
         return score_fn
 
-    def _full_scores(self, mid: str, q: Any) -> np.ndarray:
+    def _full_scores(self, mid: str, q: Any) -> np.ndarray | Filled:
         method = self.methods[mid]
         if method.kind == "local":
             refs = method.stack(self.local_features(mid, np.arange(self.n_rows)))

@@ -48,7 +48,7 @@ def test_stages_of_an_exact_and_an_approximate_tier_1(versions, tmp_path: Path) 
     out = tmp_path / "stages.json"
     scale_stages.main(
         ["--index", str(exact), str(approx), "--queries", str(queries), "--frames", "2"]
-        + ["--json", str(out)]
+        + ["--approx-k", "5", "--json", str(out)]
     )
     assert IndexReader.search is search and IndexReader._approx_scores is rescore
     rec = json.loads(out.read_text())
@@ -57,6 +57,7 @@ def test_stages_of_an_exact_and_an_approximate_tier_1(versions, tmp_path: Path) 
     assert set(by) == {"exact", "approx"}
     for v in by.values():
         assert v["references"] == 12 and v["frames"] == 2 and len(v["matches"]) == 2
+        assert v["approx_k"] == 5  # the reader re-scored as many rows as asked
         assert set(v["p50_ms"]) == set(scale_stages.STAGES)
         assert all(0 <= m < 12 for m in v["matches"])
         assert v["p50_ms"]["extract"] > 0 and v["p50_ms"]["hierarchy"] > 0
