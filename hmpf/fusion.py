@@ -121,8 +121,7 @@ def _mean_filled(vectors: Sequence[Filled]) -> Filled:
     first = vectors[0]
     if any(x.n != first.n for x in vectors):
         raise ValueError("vectors of different lengths")
-    same = all(x.index is first.index or np.array_equal(x.index, first.index) for x in vectors)
-    index = first.index if same else np.unique(np.concatenate([x.index for x in vectors]))
+    index = _union_index([x.index for x in vectors])
     total = first.at(index)
     fill = np.float64(first.fill)
     for x in vectors[1:]:
@@ -314,6 +313,17 @@ class Filled:
         return _entries_at(self.index, self.values, np.asarray(idx, dtype=np.int64), self.fill)
 
 
+def _union_index(indices: Sequence[np.ndarray]) -> np.ndarray:
+    """The ascending union of :class:`Filled` vectors' indices (the first one itself when
+    they are all equal, as an approximate tier 1's methods often are: no copy)."""
+    if not indices:
+        return np.zeros(0, np.int64)
+    first = indices[0]
+    if all(x is first or np.array_equal(x, first) for x in indices[1:]):
+        return first
+    return np.unique(np.concatenate(indices))
+
+
 def _entries_at(index: np.ndarray, values: np.ndarray, idx: np.ndarray, fill: float) -> np.ndarray:
     """``values`` at ``idx`` where ``index`` (ascending) holds it, ``fill`` elsewhere."""
     out = np.full(len(idx), fill)
@@ -351,9 +361,7 @@ class Spread(Mapping[str, np.ndarray]):
     def of_filled(cls, n: int, vectors: Mapping[str, Filled]) -> Spread:
         """The :class:`Filled` vectors of one tier's methods on the union of their entries."""
         mids = list(vectors)
-        first = vectors[mids[0]].index if mids else np.zeros(0, np.int64)
-        same = all(np.array_equal(vectors[m].index, first) for m in mids)
-        index = first if same else np.unique(np.concatenate([vectors[m].index for m in mids]))
+        index = _union_index([vectors[m].index for m in mids])
         return cls(
             n,
             index,
