@@ -72,7 +72,7 @@ from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.imageio import load_image
 from hmpf.index import layout
-from hmpf.index.ann import build_faiss, set_search_params
+from hmpf.index.ann import build_faiss, search_faiss, set_search_params
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import RowBlocks, open_h5
 from hmpf.index.tables import Ragged, RefTable
@@ -727,7 +727,7 @@ def faiss_ms(reader: IndexReader, mid: str, q: np.ndarray) -> float:
     runs = []
     for j in range(len(q)):
         t = time.perf_counter()
-        index.search(np.ascontiguousarray(q[j : j + 1], dtype=np.float32), reader.approx_k)
+        search_faiss(index, np.ascontiguousarray(q[j : j + 1], dtype=np.float32), reader.approx_k)
         runs.append((time.perf_counter() - t) * 1e3)
     return statistics.median(runs)
 
@@ -928,7 +928,7 @@ def cmd_factories(a: argparse.Namespace) -> None:
     qdir = a.queries or Path(a.datasets) / QUERY_FOLDER
     glob = [m for m, meth in reader.methods.items() if meth.kind == "global"]
     q = query_features(reader, qdir, a.cache_dir, glob, a.every)[mid]
-    approx_k = a.approx_k or reader.approx_k
+    depths = a.approx_k or [reader.approx_k]
     sample = np.unique(np.linspace(0, n - 1, min(n, SAMPLE_SIZE)).round().astype(np.int64))
     planted = planted_rows(reader)
     gt = [planted[max(0, i - TOLERANCE) : i + TOLERANCE + 1] for i in range(len(q))]
@@ -961,14 +961,16 @@ def cmd_factories(a: argparse.Namespace) -> None:
                 index.add(np.asarray(ds[lo : lo + 32768], dtype=np.float32))
             add_s = time.perf_counter() - t
             nbytes = faiss.serialize_index(index).size
-            for setting in search_settings(a):
+            threads = faiss.omp_get_max_threads()
+            faiss.omp_set_num_threads(1)  # searched as hmpf-serve searches
+            for setting, approx_k in itertools.product(search_settings(a), depths):
                 if setting is not None:
                     set_search_params(index, setting)
                 top = np.empty((len(q), 100), dtype=np.int64)
                 ms = []
                 for j in range(len(q)):
                     t = time.perf_counter()
-                    _, ids = index.search(q[j : j + 1].astype(np.float32), approx_k)
+                    _, ids = search_faiss(index, q[j : j + 1].astype(np.float32), approx_k)
                     ms.append((time.perf_counter() - t) * 1e3)
                     cand = np.union1d(ids[0][ids[0] >= 0], sample)
                     s = method.scores(q[j], rows, cand)
@@ -996,6 +998,7 @@ def cmd_factories(a: argparse.Namespace) -> None:
                     f"p50 (top {approx_k}); train {train_s:.0f} s, add {add_s:.0f} s",
                     flush=True,
                 )
+            faiss.omp_set_num_threads(threads)
             del index
     path = a.json or OUT / f"factories-{mid}-{size_label(n)}.json"
     results = {
@@ -1187,7 +1190,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         default=None,
         help="FAISS search settings to try (k_factor_rf=16)",
     )
-    fa.add_argument("--approx-k", type=int, default=None, help="default the reader's")
+    fa.add_argument(
+        "--approx-k", type=int, nargs="+", default=None, help="rows re-scored (the reader's)"
+    )
     fa.add_argument("--queries", type=Path, default=None, help="default night_right")
     fa.add_argument("--every", type=int, default=1, help="every N-th query frame")
     r = sub.add_parser("report", help="one table of measure records")

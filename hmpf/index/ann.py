@@ -16,6 +16,7 @@ always re-scored exactly by the method (see :mod:`hmpf.index.reader`).
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -34,6 +35,7 @@ __all__ = [
     "faiss_module",
     "is_exact_factory",
     "read_faiss",
+    "search_faiss",
     "to_raw",
 ]
 
@@ -81,10 +83,11 @@ def _faiss_metric(kind: MetricKind) -> int:
     }[kind]
 
 
-#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs][,k<F>]``: hmpf's own tier-1 type (see
-#: :func:`projected_scan`)
+#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: hmpf's own tier-1
+#: type (see :func:`projected_scan`)
 _PROJECTED = re.compile(
-    r"^PCA(\d+):(\d+),(SQfp16|SQ8)(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs)?(?:,k(\d+))?$"
+    r"^PCA(\d+):(\d+),(SQfp16|SQ8)"
+    r"(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs|,HNSW([1-9]\d*))?(?:,k(\d+))?$"
 )
 
 
@@ -98,6 +101,7 @@ class ProjectedSpec(NamedTuple):
     bits: int = 0  #: b: 0, or the sign bits of a binary scan in front of the short scan
     bit_factor: int = 0  #: G: the binary scan keeps G x F x k rows for the short scan
     pq: int = 0  #: M: 0, or the short scan reads 4-bit fast-scan PQ codes of M sub-quantizers
+    hnsw: int = 0  #: M: 0, or the short list comes from an HNSW graph of M links per row
 
 
 def projected_spec(factory: str) -> ProjectedSpec | None:
@@ -110,10 +114,11 @@ def projected_spec(factory: str) -> ProjectedSpec | None:
         int(m[1]),
         int(m[2]),
         m[3],
-        int(m[7] or PROJECTED_K_FACTOR),
+        int(m[8] or PROJECTED_K_FACTOR),
         bits,
         int(m[5] or PROJECTED_BIT_FACTOR) if bits else 0,
         int(m[6] or 0),
+        int(m[7] or 0),
     )
 
 
@@ -121,6 +126,8 @@ def projected_spec(factory: str) -> ProjectedSpec | None:
 PROJECTED_K_FACTOR = 8
 #: candidates of the binary scan per candidate of the short scan (its default)
 PROJECTED_BIT_FACTOR = 8
+#: the candidate list an HNSW short list is built with (FAISS's default)
+HNSW_EF_CONSTRUCTION = 40
 
 
 def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -144,14 +151,14 @@ def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
 def projected_scan(x: np.ndarray, factory: str) -> Any:
     """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
 
-    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs][,k<F>]``: rows projected on their top ``D``
-    principal directions (centred on their mean) and stored as ``codes`` (``SQfp16``: 2
-    bytes a dimension; ``SQ8``: 1); a search scans every row on the first ``d`` of those
-    dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all ``D`` (FAISS: a PCA
-    ``LinearTransform`` in front of an ``IndexRefine`` whose base sees the first ``d``
-    dimensions). No partition: every row is looked at, which keeps the neighbours that
-    IVF's lists lose where distances are concentrated (NetVLAD), at ``(D + d) x codes``
-    bytes per row. ``F`` is also the search parameter ``k_factor_rf``.
+    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: rows projected on
+    their top ``D`` principal directions (centred on their mean) and stored as ``codes``
+    (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans every row on the first
+    ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all
+    ``D`` (FAISS: a PCA ``LinearTransform`` in front of an ``IndexRefine`` whose base sees
+    the first ``d`` dimensions). No partition: every row is looked at, which keeps the
+    neighbours that IVF's lists lose where distances are concentrated (NetVLAD), at
+    ``(D + d) x codes`` bytes per row. ``F`` is also the search parameter ``k_factor_rf``.
 
     With ``B<b>``, the scan of every row reads ``b`` bits instead: the signs of the first
     ``b`` centred dimensions (``b <= D``) after an ITQ rotation (:func:`_sign_codes`),
@@ -165,11 +172,22 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     centroids each: ``M / 2`` bytes per row, compared by SIMD table look-ups, an order of
     magnitude faster than scanning scalar codes); its ``F`` x ``k`` nearest are re-ranked on
     all ``D`` as before. The scalar codes of the first ``d`` dimensions are then not stored.
+
+    With ``HNSW<M>``, no row is scanned: the short list is the ``F`` x ``k`` rows an HNSW
+    graph (Malkov & Yashunin, TPAMI 2020; FAISS's ``IndexHNSWSQ``, ``M`` links per row,
+    ``efConstruction`` 40) finds on the first ``d`` dimensions' ``codes``, searched with a
+    candidate list of ``max(efSearch, F x k)`` rows (``efSearch``: a search parameter, 16
+    by default, so the list is the short list's size unless set higher). A search then costs
+    about the logarithm of the map's size instead of its size; what the graph misses never
+    reaches the re-ranking, so its recall is measured on real descriptors like every other
+    type's. Search it through :func:`search_faiss`, which sets the candidate list for each
+    search (FAISS itself would search with ``efSearch`` only). The graph (about ``2 M`` x 4
+    bytes a row) is read into the process, not memory-mapped.
     """
     faiss = faiss_module()
     spec = projected_spec(factory)
     assert spec is not None
-    big, small, codes, k_factor, bits, bit_factor, pq = spec
+    big, small, codes, k_factor, bits, bit_factor, pq, hnsw = spec
     d = x.shape[1]
     if not small < big < d:
         raise IndexBuildError(
@@ -194,9 +212,13 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     faiss.copy_array_to_vector(np.eye(small, big, dtype=np.float32).ravel(), first.A)
     first.is_trained = True
     qtype = getattr(faiss.ScalarQuantizer, "QT_fp16" if codes == "SQfp16" else "QT_8bit")
-    codes_of_short = (
-        faiss.IndexPQFastScan(small, pq, 4) if pq else faiss.IndexScalarQuantizer(small, qtype)
-    )
+    if pq:
+        codes_of_short = faiss.IndexPQFastScan(small, pq, 4)
+    elif hnsw:
+        codes_of_short = faiss.IndexHNSWSQ(small, qtype, hnsw)
+        codes_of_short.hnsw.efConstruction = HNSW_EF_CONSTRUCTION
+    else:
+        codes_of_short = faiss.IndexScalarQuantizer(small, qtype)
     short = faiss.IndexPreTransform(first, codes_of_short)
     full = faiss.IndexScalarQuantizer(big, qtype)
     y = pca.apply(np.ascontiguousarray(x, dtype=np.float32))
@@ -318,6 +340,45 @@ def read_faiss(path: Path, params: str = "", *, mmap: bool = False) -> Any:
     if params:
         set_search_params(index, params)
     return index
+
+
+def search_faiss(index: Any, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``index.search(q, k)``, with what a projected scan's HNSW short list needs: a
+    candidate list (``efSearch``) of at least the short list's ``F`` x ``k`` rows for this
+    search (FAISS searches the graph with ``efSearch`` whatever ``k``, and would return
+    fewer good rows than asked for). Passed per search (FAISS's search parameters), so the
+    index is not changed and concurrent searches do not interfere."""
+    found = _hnsw_short_list(index)
+    if found is None:
+        return index.search(q, k)
+    faiss = faiss_module()
+    refine, graph = found
+    hnsw = faiss.SearchParametersHNSW()
+    hnsw.efSearch = max(int(graph.hnsw.efSearch), math.ceil(k * refine.k_factor))
+    short = faiss.SearchParametersPreTransform()
+    short.index_params = hnsw
+    ranked = faiss.IndexRefineSearchParameters()
+    ranked.k_factor = refine.k_factor
+    ranked.base_index_params = short
+    outer = faiss.SearchParametersPreTransform()
+    outer.index_params = ranked
+    return index.search(q, k, params=outer)
+
+
+def _hnsw_short_list(index: Any) -> tuple[Any, Any] | None:
+    """A projected scan's ``IndexRefine`` and HNSW graph (``HNSW<M>``), else None."""
+    faiss = faiss_module()
+    outer = faiss.downcast_index(index)
+    if not isinstance(outer, faiss.IndexPreTransform):
+        return None
+    refine = faiss.downcast_index(outer.index)
+    if not isinstance(refine, faiss.IndexRefine):
+        return None
+    base = faiss.downcast_index(refine.base_index)
+    if not isinstance(base, faiss.IndexPreTransform):
+        return None
+    graph = faiss.downcast_index(base.index)
+    return (refine, graph) if isinstance(graph, faiss.IndexHNSW) else None
 
 
 def to_raw(values: np.ndarray, metric: MetricSpec) -> np.ndarray:

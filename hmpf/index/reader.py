@@ -69,7 +69,7 @@ from hmpf.features import extract_query
 from hmpf.fusion import Filled
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
-from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, to_raw
+from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, search_faiss, to_raw
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
 from hmpf.index.models import attach_models, torch_needed
 from hmpf.index.places import (
@@ -677,7 +677,7 @@ class IndexReader:
             raise IndexCorruptError(f"{self.path}: method {mid!r} has no FAISS index")
         metric = MetricSpec(**self.faiss_info(mid)["metric"])  # type: ignore[index]
         q = np.ascontiguousarray(np.asarray(query, dtype=np.float32).reshape(1, -1))
-        values, ids = index.search(q, min(k, self.n_rows))
+        values, ids = search_faiss(index, q, min(k, self.n_rows))
         keep = ids[0] >= 0
         ids, raw = ids[0][keep].astype(np.int64), to_raw(values[0][keep], metric)
         if metric.proxy and rescore:

@@ -14,6 +14,7 @@ from hmpf.index.ann import (
     pca_rows,
     projected_spec,
     read_faiss,
+    search_faiss,
     set_search_params,
 )
 from hmpf.index.layout import IndexBuildError
@@ -35,12 +36,14 @@ def _brute(x: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
 
 
 def test_spec_parsing():
-    assert projected_spec("PCA1024:128,SQfp16") == (1024, 128, "SQfp16", 8, 0, 0, 0)
-    assert projected_spec("PCA 256:32, SQ8, k16") == (256, 32, "SQ8", 16, 0, 0, 0)
-    assert projected_spec("PCA1024:128,SQfp16,B256") == (1024, 128, "SQfp16", 8, 256, 8, 0)
-    assert projected_spec("PCA1024:128,SQ8,B64x16,k4") == (1024, 128, "SQ8", 4, 64, 16, 0)
-    assert projected_spec("PCA1024:128,SQfp16,PQ64x4fs") == (1024, 128, "SQfp16", 8, 0, 0, 64)
-    assert projected_spec("PCA256:64,SQfp16,PQ32x4fs,k2") == (256, 64, "SQfp16", 2, 0, 0, 32)
+    assert projected_spec("PCA1024:128,SQfp16") == (1024, 128, "SQfp16", 8, 0, 0, 0, 0)
+    assert projected_spec("PCA 256:32, SQ8, k16") == (256, 32, "SQ8", 16, 0, 0, 0, 0)
+    assert projected_spec("PCA1024:128,SQfp16,B256") == (1024, 128, "SQfp16", 8, 256, 8, 0, 0)
+    assert projected_spec("PCA1024:128,SQ8,B64x16,k4") == (1024, 128, "SQ8", 4, 64, 16, 0, 0)
+    assert projected_spec("PCA1024:128,SQfp16,PQ64x4fs") == (1024, 128, "SQfp16", 8, 0, 0, 64, 0)
+    assert projected_spec("PCA256:64,SQfp16,PQ32x4fs,k2") == (256, 64, "SQfp16", 2, 0, 0, 32, 0)
+    assert projected_spec("PCA1024:128,SQfp16,HNSW32") == (1024, 128, "SQfp16", 8, 0, 0, 0, 32)
+    assert projected_spec("PCA256:64,SQ8,HNSW16,k4") == (256, 64, "SQ8", 4, 0, 0, 0, 16)
     for other in (
         "Flat",
         "IVF64,PQ8",
@@ -56,6 +59,10 @@ def test_spec_parsing():
         "PCA256:32,SQfp16,PQ16x8fs",
         "PCA256:32,SQfp16,B64,PQ16x4fs",
         "PCA256:32,SQfp16,k8,PQ16x4fs",
+        "PCA256:32,SQfp16,HNSW",
+        "PCA256:32,SQfp16,HNSW0",
+        "PCA256:32,SQfp16,PQ16x4fs,HNSW32",
+        "PCA256:32,SQfp16,k8,HNSW32",
     ):
         assert projected_spec(other) is None
 
@@ -301,3 +308,75 @@ def test_fast_scan_changes_nothing_when_its_short_list_covers_the_map(tmp_path):
     faiss.write_index(fast, str(path))
     for a, b in zip(fast.search(q, 6), read_faiss(path, mmap=True).search(q, 6), strict=True):
         assert np.array_equal(a, b)
+
+
+def test_hnsw_short_list_is_the_nearest_codes_then_the_projected_ranking():
+    """``HNSW<M>``: brute force of each stage. The short list is (nearly: a graph search
+    may miss a row) the F x k rows nearest to the query by their fp16 codes on the first d
+    principal coordinates; the rows that come back are among it and ranked by the squared
+    distances of their fp16 codes on all D dimensions."""
+    faiss = faiss_module()
+    x = _rows(n=4000, noise=0.3)
+    q = _rows(n=15, noise=0.3, seed=7)
+    k = 10
+    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,HNSW16,k4")
+    dist, ids = search_faiss(index, q, k)
+    y, qy = _projected(x, q, 32)
+    refine = faiss.downcast_index(faiss.downcast_index(index).index)
+    short = faiss.downcast_index(refine.base_index)
+    graph = faiss.downcast_index(short.index)
+    assert isinstance(graph, faiss.IndexHNSWSQ) and graph.hnsw.efConstruction == 40
+    want = _brute(y[:, :16].astype(np.float16).astype(np.float32), qy[:, :16], 4 * k)
+    graph.hnsw.efSearch = 4 * k  # the list search_faiss asks for
+    _, got = short.search(qy, 4 * k)
+    overlap = np.mean([len(np.intersect1d(a, b)) / (4 * k) for a, b in zip(got, want, strict=True)])
+    assert overlap >= 0.95
+    for row, short_list in zip(ids, got, strict=True):
+        assert set(row) <= set(short_list)
+    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
+
+
+def test_hnsw_changes_nothing_when_its_list_covers_the_map(tmp_path):
+    """A candidate list of N rows (F x k = N) visits every row the graph reaches: the plain
+    scan's answers; the index survives a write and a memory-mapped read (the graph is
+    read, the codes mapped); search_faiss leaves the index's own parameters as they were."""
+    faiss = faiss_module()
+    x = _rows(n=400, noise=0.3)
+    q = _rows(n=12, noise=0.3, seed=8)
+    plain, _ = build_faiss(x, L2, "PCA32:8,SQfp16,k80")
+    graph, _ = build_faiss(x, L2, "PCA32:8,SQfp16,HNSW8,k80")
+    d0, i0 = search_faiss(plain, q, 5)
+    d1, i1 = search_faiss(graph, q, 5)
+    assert np.array_equal(i0, i1)
+    np.testing.assert_allclose(d0, d1, rtol=1e-5)
+    path = tmp_path / "t.faiss"
+    faiss.write_index(graph, str(path))
+    mapped = read_faiss(path, mmap=True)
+    for a, b in zip(search_faiss(graph, q, 5), search_faiss(mapped, q, 5), strict=True):
+        assert np.array_equal(a, b)
+    refine = faiss.downcast_index(faiss.downcast_index(mapped).index)
+    hnsw = faiss.downcast_index(faiss.downcast_index(refine.base_index).index)
+    assert (refine.k_factor, hnsw.hnsw.efSearch) == (80.0, 16)
+    # a short list of k rows, found with a candidate list of every row: the plain scan's
+    set_search_params(mapped, "k_factor_rf=1,efSearch=400")
+    set_search_params(plain, "k_factor_rf=1")
+    assert (refine.k_factor, hnsw.hnsw.efSearch) == (1.0, 400)
+    assert np.array_equal(search_faiss(mapped, q, 5)[1], search_faiss(plain, q, 5)[1])
+
+
+def test_hnsw_keeps_the_exact_neighbours_of_rows_of_lower_rank():
+    """Rank-24 rows: the graph's short list keeps at least 97 % of the exact top 10 of
+    4000 rows; without search_faiss's candidate list (FAISS's efSearch of 16 for a short
+    list of 80 rows) fewer are kept."""
+    x = _rows(n=4000, rank=24)
+    rng = np.random.default_rng(9)
+    q = x[::67] + 0.05 * rng.standard_normal((len(x[::67]), 64)).astype(np.float32)
+    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,HNSW16,k8")
+    want = _brute(x, q, 10)
+
+    def hits(ids: np.ndarray) -> float:
+        return np.mean([len(np.intersect1d(a, b)) / 10 for a, b in zip(ids, want, strict=True)])
+
+    kept = hits(search_faiss(index, q, 10)[1])
+    assert kept >= 0.97
+    assert hits(index.search(q, 10)[1]) < kept

@@ -49,9 +49,12 @@ def exact_index(gp, tmp_path_factory) -> Path:
     return index
 
 
-@pytest.fixture(scope="module", params=["IVF2,Flat|nprobe=1", "PCA8:2,SQfp16,k2|"])
+@pytest.fixture(
+    scope="module", params=["IVF2,Flat|nprobe=1", "PCA8:2,SQfp16,k2|", "PCA8:2,SQfp16,HNSW4,k2|"]
+)
 def approx_index(gp, tmp_path_factory, request) -> Path:
-    """The same references on an approximate tier 1: IVF, and the projected scan."""
+    """The same references on an approximate tier 1: IVF, and the projected scan (with a
+    scalar short scan and with an HNSW short list)."""
     factory, params = request.param.split("|")
     index = tmp_path_factory.mktemp("approx") / "map"
     opts = BuildOptions(workers=1, progress=False, faiss={"*": factory}, faiss_params={"*": params})
