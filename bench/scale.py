@@ -806,7 +806,9 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
     from bench.service_load import _free_port, _start
     from hmpf.client import Client
 
-    args = argparse.Namespace(workers=1, threads=1, queue=None)
+    # the server re-scores as many rows as the recall's first depth (its default without)
+    depth = a.approx_k[0] if a.approx_k else None
+    args = argparse.Namespace(workers=1, threads=1, queue=None, approx_k=depth)
     port = _free_port()
     out: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -814,6 +816,7 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
         t0 = time.monotonic()
         proc = _start(index, port, args, log)
         out["ready_s"] = time.monotonic() - t0
+        out["approx_k"] = depth  # None: hmpf-serve's default
         out["rss_ready_mib"] = rss_mib(proc.pid)
         try:
             with Client(f"http://127.0.0.1:{port}", timeout=600) as client:
@@ -1175,7 +1178,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         type=int,
         nargs="+",
         default=None,
-        help="recall: rows re-scored, one or more depths (default the reader's)",
+        help="rows re-scored: the recall's depths, the first also hmpf-serve's "
+        "(HMPF_APPROX_K; default the reader's)",
     )
     fa = sub.add_parser("factories", help="other FAISS types for one method of a version")
     fa.add_argument("--index", type=Path, required=True)

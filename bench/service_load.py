@@ -87,6 +87,8 @@ def _start(index: Path, port: int, args: argparse.Namespace, log: Path) -> subpr
         env["HMPF_QUEUE"] = str(args.queue)
     if getattr(args, "threads", None):
         env["HMPF_THREADS_PER_WORKER"] = str(args.threads)
+    if getattr(args, "approx_k", None):
+        env["HMPF_APPROX_K"] = str(args.approx_k)
     cmd = [str(ROOT / ".venv" / "bin" / "hmpf-serve"), "--index", str(index)]
     cmd += ["--port", str(port)]
     proc = subprocess.Popen(cmd, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT)
