@@ -182,7 +182,8 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     reaches the re-ranking, so its recall is measured on real descriptors like every other
     type's. Search it through :func:`search_faiss`, which sets the candidate list for each
     search (FAISS itself would search with ``efSearch`` only). The graph (about ``2 M`` x 4
-    bytes a row) is read into the process, not memory-mapped.
+    bytes a row) is read into the process, not memory-mapped. On the scale bench's million
+    references it keeps GeM's exact neighbours but loses NetVLAD's (docs/scale.md).
     """
     faiss = faiss_module()
     spec = projected_spec(factory)
