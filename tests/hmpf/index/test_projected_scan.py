@@ -208,6 +208,23 @@ def _assert_ranked_by_fp16_codes(
     assert (np.diff(dist, axis=1) >= 0).all()
 
 
+def _assert_short_list_then_ranked(
+    short, codes: np.ndarray, size: int, least: float, searched: tuple
+) -> None:
+    """The short list (``short`` searched for the ``size`` nearest) overlaps brute force
+    over the rows' ``codes`` on the first 16 coordinates by at least ``least``; the rows
+    that came back (``searched``: distances, ids, projected rows and queries) are among
+    it and ranked by their fp16 codes on all the projected dimensions."""
+    dist, ids, y, qy = searched
+    want = _brute(codes, qy[:, :16], size)
+    _, got = short.search(qy, size)
+    overlap = np.mean([len(np.intersect1d(a, b)) / size for a, b in zip(got, want, strict=True)])
+    assert overlap >= least
+    for row, short_list in zip(ids, got, strict=True):
+        assert set(row) <= set(short_list)
+    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
+
+
 def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(len(a), len(b)) Hamming distances between rows of booleans."""
     return (a[:, None, :] != b[None, :, :]).sum(-1)
@@ -283,13 +300,7 @@ def test_fast_scan_short_list_is_the_nearest_product_codes_then_the_projected_ra
     pq = faiss.downcast_index(short.index)
     assert isinstance(pq, faiss.IndexPQFastScan) and (pq.d, pq.M, pq.nbits) == (16, 8, 4)
     decoded = np.stack([pq.reconstruct(i) for i in range(pq.ntotal)])
-    want = _brute(decoded, qy[:, :16], 4 * k)
-    _, got = short.search(qy, 4 * k)
-    overlap = np.mean([len(np.intersect1d(a, b)) / (4 * k) for a, b in zip(got, want, strict=True)])
-    assert overlap >= 0.9
-    for row, short_list in zip(ids, got, strict=True):
-        assert set(row) <= set(short_list)
-    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
+    _assert_short_list_then_ranked(short, decoded, 4 * k, 0.9, (dist, ids, y, qy))
 
 
 def test_fast_scan_changes_nothing_when_its_short_list_covers_the_map(tmp_path):
@@ -326,14 +337,9 @@ def test_hnsw_short_list_is_the_nearest_codes_then_the_projected_ranking():
     short = faiss.downcast_index(refine.base_index)
     graph = faiss.downcast_index(short.index)
     assert isinstance(graph, faiss.IndexHNSWSQ) and graph.hnsw.efConstruction == 40
-    want = _brute(y[:, :16].astype(np.float16).astype(np.float32), qy[:, :16], 4 * k)
     graph.hnsw.efSearch = 4 * k  # the list search_faiss asks for
-    _, got = short.search(qy, 4 * k)
-    overlap = np.mean([len(np.intersect1d(a, b)) / (4 * k) for a, b in zip(got, want, strict=True)])
-    assert overlap >= 0.95
-    for row, short_list in zip(ids, got, strict=True):
-        assert set(row) <= set(short_list)
-    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
+    codes = y[:, :16].astype(np.float16).astype(np.float32)
+    _assert_short_list_then_ranked(short, codes, 4 * k, 0.95, (dist, ids, y, qy))
 
 
 def test_hnsw_changes_nothing_when_its_list_covers_the_map(tmp_path):
