@@ -83,11 +83,12 @@ def _faiss_metric(kind: MetricKind) -> int:
     }[kind]
 
 
-#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: hmpf's own tier-1
-#: type (see :func:`projected_scan`)
+#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``:
+#: hmpf's own tier-1 type (see :func:`projected_scan`)
 _PROJECTED = re.compile(
     r"^PCA(\d+):(\d+),(SQfp16|SQ8)"
-    r"(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs|,HNSW([1-9]\d*))?(?:,k(\d+))?$"
+    r"(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs|,HNSW([1-9]\d*)|,S([1-9]\d*)(?:x(\d+))?)?"
+    r"(?:,k(\d+))?$"
 )
 
 
@@ -102,6 +103,8 @@ class ProjectedSpec(NamedTuple):
     bit_factor: int = 0  #: G: the binary scan keeps G x F x k rows for the short scan
     pq: int = 0  #: M: 0, or the short scan reads 4-bit fast-scan PQ codes of M sub-quantizers
     hnsw: int = 0  #: M: 0, or the short list comes from an HNSW graph of M links per row
+    pre: int = 0  #: e: 0, or the 8-bit codes of the first e dimensions scanned in front
+    pre_factor: int = 0  #: G: the scan in front keeps G x F x k rows for the short scan
 
 
 def projected_spec(factory: str) -> ProjectedSpec | None:
@@ -110,15 +113,18 @@ def projected_spec(factory: str) -> ProjectedSpec | None:
     if m is None:
         return None
     bits = int(m[4] or 0)
+    pre = int(m[8] or 0)
     return ProjectedSpec(
         int(m[1]),
         int(m[2]),
         m[3],
-        int(m[8] or PROJECTED_K_FACTOR),
+        int(m[10] or PROJECTED_K_FACTOR),
         bits,
         int(m[5] or PROJECTED_BIT_FACTOR) if bits else 0,
         int(m[6] or 0),
         int(m[7] or 0),
+        pre,
+        int(m[9] or PROJECTED_PRE_FACTOR) if pre else 0,
     )
 
 
@@ -126,6 +132,8 @@ def projected_spec(factory: str) -> ProjectedSpec | None:
 PROJECTED_K_FACTOR = 8
 #: candidates of the binary scan per candidate of the short scan (its default)
 PROJECTED_BIT_FACTOR = 8
+#: candidates of the 8-bit scan in front per candidate of the short scan (its default)
+PROJECTED_PRE_FACTOR = 4
 #: the candidate list an HNSW short list is built with (FAISS's default)
 HNSW_EF_CONSTRUCTION = 40
 
@@ -151,7 +159,8 @@ def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
 def projected_scan(x: np.ndarray, factory: str) -> Any:
     """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
 
-    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: rows projected on
+    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: rows
+    projected on
     their top ``D`` principal directions (centred on their mean) and stored as ``codes``
     (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans every row on the first
     ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all
@@ -166,6 +175,15 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     default, fixed at build) go on to the short scan on ``d`` dimensions, which then
     compares only those. ``b / 8`` bytes more per row; the scan reads ``b / 8`` bytes of
     each row instead of ``d x codes``.
+
+    With ``S<e>``, the scan of every row reads the first ``e`` dimensions (``e < d``) as
+    8-bit scalar codes (FAISS's ``SQ8``: 256 even steps between each dimension's least and
+    greatest value in the training rows); the ``G`` x ``F`` x ``k`` nearest by them (``G``
+    4 by default, fixed at build) go on to the short scan on ``d`` dimensions, which then
+    compares only those. ``e`` bytes more per row; the scan reads ``e`` bytes of each row
+    instead of ``d x codes``. The leading principal directions hold most of a descriptor's
+    variance, so on the scale bench's million references the short scan's list comes out
+    nearly the same (docs/scale.md).
 
     With ``PQ<M>x4fs``, the short scan reads FAISS's 4-bit fast-scan product codes of the
     first ``d`` dimensions instead (``M`` sub-quantizers of ``d / M`` dimensions, 16
@@ -188,7 +206,7 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     faiss = faiss_module()
     spec = projected_spec(factory)
     assert spec is not None
-    big, small, codes, k_factor, bits, bit_factor, pq, hnsw = spec
+    big, small, codes, k_factor, bits, bit_factor, pq, hnsw, pre, pre_factor = spec
     d = x.shape[1]
     if not small < big < d:
         raise IndexBuildError(
@@ -197,6 +215,11 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     if bits and not (0 < bits <= big and bit_factor > 0):
         raise IndexBuildError(
             f"FAISS factory string {factory!r}: needs 0 < {bits} <= {big} sign bits and "
+            "a factor above 0"
+        )
+    if pre and not (pre < small and pre_factor > 0):
+        raise IndexBuildError(
+            f"FAISS factory string {factory!r}: needs {pre} < {small} dimensions in front and "
             "a factor above 0"
         )
     if pq and small % pq:
@@ -209,9 +232,6 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     faiss.copy_array_to_vector(comps.astype(np.float32).ravel(), pca.A)
     faiss.copy_array_to_vector((-(comps @ mean)).astype(np.float32), pca.b)
     pca.is_trained = True
-    first = faiss.LinearTransform(big, small, False)
-    faiss.copy_array_to_vector(np.eye(small, big, dtype=np.float32).ravel(), first.A)
-    first.is_trained = True
     qtype = getattr(faiss.ScalarQuantizer, "QT_fp16" if codes == "SQfp16" else "QT_8bit")
     if pq:
         codes_of_short = faiss.IndexPQFastScan(small, pq, 4)
@@ -220,7 +240,7 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
         codes_of_short.hnsw.efConstruction = HNSW_EF_CONSTRUCTION
     else:
         codes_of_short = faiss.IndexScalarQuantizer(small, qtype)
-    short = faiss.IndexPreTransform(first, codes_of_short)
+    short = faiss.IndexPreTransform(_leading(big, small), codes_of_short)
     full = faiss.IndexScalarQuantizer(big, qtype)
     y = pca.apply(np.ascontiguousarray(x, dtype=np.float32))
     full.train(y)
@@ -230,12 +250,29 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
         scan = faiss.IndexRefine(_sign_codes(y, bits), short)
         scan.k_factor = float(bit_factor)
         scan.is_trained = True
+    elif pre:
+        front = faiss.IndexPreTransform(
+            _leading(big, pre), faiss.IndexScalarQuantizer(pre, faiss.ScalarQuantizer.QT_8bit)
+        )
+        front.train(y)
+        scan = faiss.IndexRefine(front, short)
+        scan.k_factor = float(pre_factor)
+        scan.is_trained = True
     refine = faiss.IndexRefine(scan, full)
     refine.k_factor = float(k_factor)
     index = faiss.IndexPreTransform(pca, refine)
     refine.is_trained = True
     index.is_trained = True
     return index
+
+
+def _leading(big: int, dims: int) -> Any:
+    """A FAISS transform keeping the first ``dims`` of ``big`` coordinates."""
+    faiss = faiss_module()
+    keep = faiss.LinearTransform(big, dims, False)
+    faiss.copy_array_to_vector(np.eye(dims, big, dtype=np.float32).ravel(), keep.A)
+    keep.is_trained = True
+    return keep
 
 
 def _sign_codes(y: np.ndarray, bits: int) -> Any:
