@@ -1061,10 +1061,15 @@ def print_serve(s: Mapping[str, Any], n: int) -> None:
         return f"{r['VmRSS']:.0f} MiB (anonymous {r['RssAnon']:.0f}, file {r['RssFile']:.0f})"
 
     v = s.get("verification", {})
+
+    def secs(x: Any) -> str:
+        return "none" if x is None else f"{x:.1f} s"
+
     print(
         f"hmpf-serve (1 worker x 1 thread): ready {s['ready_s']:.1f} s, first answer "
-        f"{s['first_answer_s']:.1f} s after the start (verified by {v.get('state')}: "
-        f"hashing {v.get('seconds')} s before, background check {v.get('check_seconds')} s)"
+        f"{s['first_answer_s']:.1f} s after the start (verification {v.get('state')}; every "
+        f"byte hashed before answering: {secs(v.get('seconds'))}; background check: "
+        f"{secs(v.get('check_seconds'))})"
     )
     print(f"  resident after warm-up: {mem(s['rss_after_warmup_mib'])}")
     print(
