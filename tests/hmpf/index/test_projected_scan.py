@@ -240,6 +240,26 @@ def _assert_short_list_then_ranked(
     _assert_ranked_by_fp16_codes(dist, ids, y, qy)
 
 
+def _low_rank_hits(spec: str, tmp_path, seed: int) -> tuple:
+    """An index of ``spec`` over 4000 rows of rank 24, written to a file, and a function
+    giving the share of the exact top 10 an index of it returns for noisy copies of every
+    67th row: (index, path, hits)."""
+    faiss = faiss_module()
+    x = _rows(n=4000, rank=24)
+    rng = np.random.default_rng(seed)
+    q = x[::67] + 0.05 * rng.standard_normal((len(x[::67]), 64)).astype(np.float32)
+    index, _ = build_faiss(x, L2, spec)
+    want = _brute(x, q, 10)
+    path = tmp_path / "low-rank.faiss"
+    faiss.write_index(index, str(path))
+
+    def hits(searched) -> float:
+        _, got = searched.search(q, 10)
+        return np.mean([len(np.intersect1d(a, b)) / 10 for a, b in zip(got, want, strict=True)])
+
+    return index, path, hits
+
+
 def _hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(len(a), len(b)) Hamming distances between rows of booleans."""
     return (a[:, None, :] != b[None, :, :]).sum(-1)
@@ -282,20 +302,7 @@ def test_binary_scan_keeps_the_exact_neighbours_of_rows_of_lower_rank(tmp_path):
     least 97 % of the exact top 10 come back (with the plain signs of the principal
     coordinates, no rotation, 75 % did at 8 x 8 x k), also from a memory-mapped file, and
     more with a longer list (F is a search parameter)."""
-    faiss = faiss_module()
-    x = _rows(n=4000, rank=24)
-    q = x[::67] + 0.05 * np.random.default_rng(3).standard_normal((len(x[::67]), 64)).astype(
-        np.float32
-    )
-    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,B32x16,k8")
-    want = _brute(x, q, 10)
-    path = tmp_path / "b.faiss"
-    faiss.write_index(index, str(path))
-
-    def hits(searched) -> float:
-        _, ids = searched.search(q, 10)
-        return np.mean([len(np.intersect1d(a, b)) / 10 for a, b in zip(ids, want, strict=True)])
-
+    index, path, hits = _low_rank_hits("PCA32:16,SQfp16,B32x16,k8", tmp_path, 3)
     assert hits(index) >= 0.97
     assert hits(read_faiss(path, mmap=True)) == hits(index)
     assert hits(read_faiss(path, "k_factor_rf=1")) < hits(read_faiss(path, "k_factor_rf=16"))
@@ -461,19 +468,7 @@ def test_scan_in_front_keeps_the_exact_neighbours_of_rows_of_lower_rank(tmp_path
     """Rank-24 rows, the first 12 of 32 principal coordinates in front with a list of
     4 x 8 x k (320 of 4000 rows): at least 97 % of the exact top 10 come back, also from a
     memory-mapped file, and fewer with a shorter list (F is a search parameter)."""
-    faiss = faiss_module()
-    x = _rows(n=4000, rank=24)
-    rng = np.random.default_rng(12)
-    q = x[::67] + 0.05 * rng.standard_normal((len(x[::67]), 64)).astype(np.float32)
-    index, _ = build_faiss(x, L2, "PCA32:16,SQfp16,S12x4,k8")
-    want = _brute(x, q, 10)
-    path = tmp_path / "s.faiss"
-    faiss.write_index(index, str(path))
-
-    def hits(searched) -> float:
-        _, got = searched.search(q, 10)
-        return np.mean([len(np.intersect1d(a, b)) / 10 for a, b in zip(got, want, strict=True)])
-
+    index, path, hits = _low_rank_hits("PCA32:16,SQfp16,S12x4,k8", tmp_path, 12)
     assert hits(index) >= 0.97
     assert hits(read_faiss(path, mmap=True)) == hits(index)
     assert hits(read_faiss(path, "k_factor_rf=1")) < hits(index)
