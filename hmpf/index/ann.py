@@ -160,10 +160,9 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
 
     ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: rows
-    projected on
-    their top ``D`` principal directions (centred on their mean) and stored as ``codes``
-    (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans every row on the first
-    ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all
+    projected on their top ``D`` principal directions (centred on their mean) and stored as
+    ``codes`` (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans every row on the
+    first ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all
     ``D`` (FAISS: a PCA ``LinearTransform`` in front of an ``IndexRefine`` whose base sees
     the first ``d`` dimensions). No partition: every row is looked at, which keeps the
     neighbours that IVF's lists lose where distances are concentrated (NetVLAD), at
@@ -246,17 +245,18 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     full.train(y)
     short.train(y)
     scan = short
+    front = None  # a scan of every row in front of the short scan, and its factor
     if bits:
-        scan = faiss.IndexRefine(_sign_codes(y, bits), short)
-        scan.k_factor = float(bit_factor)
-        scan.is_trained = True
+        front, factor = _sign_codes(y, bits), bit_factor
     elif pre:
         front = faiss.IndexPreTransform(
             _leading(big, pre), faiss.IndexScalarQuantizer(pre, faiss.ScalarQuantizer.QT_8bit)
         )
         front.train(y)
+        factor = pre_factor
+    if front is not None:
         scan = faiss.IndexRefine(front, short)
-        scan.k_factor = float(pre_factor)
+        scan.k_factor = float(factor)
         scan.is_trained = True
     refine = faiss.IndexRefine(scan, full)
     refine.k_factor = float(k_factor)
