@@ -82,12 +82,17 @@ class _Clock:
 
 
 def measure(
-    index: Path, frames: Sequence[Path], rounds: int = 2, approx_k: int | None = None
+    index: Path,
+    frames: Sequence[Path],
+    rounds: int = 2,
+    approx_k: int | None = None,
+    params: str = "",
 ) -> dict[str, Any]:
     """Median stage times (ms) of ``frames`` against ``index``; the last of ``rounds``
-    rounds counts."""
+    rounds counts. ``params``: FAISS search parameters for every approximate tier-1
+    method (e.g. ``k_factor_front=2``), instead of the version's own."""
     from hmpf.api import LocalizeParams
-    from hmpf.index.ann import faiss_module
+    from hmpf.index.ann import faiss_module, set_search_params
     from hmpf.runtime import set_compute_threads
     from service.answer import localize_response
     from service.engine import Loaded, run_query
@@ -99,8 +104,16 @@ def measure(
     clock.install()
     loaded = Loaded.open(index, None, verify="stamp", approx_k=approx_k)
     try:
+        reader = loaded.reader
+        approximate = [
+            m
+            for m in reader.config.tiers[0].methods
+            if reader.methods[m].kind == "global" and not reader.is_exact(m)
+        ]
+        for mid in approximate if params else []:
+            set_search_params(reader.faiss_index(mid), params)
         images = [decode_upload(p.read_bytes(), max_pixels=1 << 30, source=p.name) for p in frames]
-        params = LocalizeParams()
+        localize = LocalizeParams()
         rows: list[dict[str, float]] = []
         matches: list[int] = []
         with ThreadPoolExecutor(1) as pool:
@@ -110,7 +123,7 @@ def measure(
                     timing: dict[str, Any] = {}
                     result, allowed = run_query(loaded, image, None, timing, pool)
                     t = time.perf_counter()
-                    answer = localize_response(loaded, result, allowed, params, timing)
+                    answer = localize_response(loaded, result, allowed, localize, timing)
                     answer_ms = (time.perf_counter() - t) * 1e3
                     if r < rounds - 1 or result is None:
                         continue
@@ -128,12 +141,7 @@ def measure(
                         }
                     )
                     matches.append(-1 if answer.match is None else answer.match.reference_id)
-        n, rescored = loaded.reader.n, loaded.reader.approx_k
-        approximate = [
-            m
-            for m in loaded.reader.config.tiers[0].methods
-            if loaded.reader.methods[m].kind == "global" and not loaded.reader.is_exact(m)
-        ]
+        n, rescored = reader.n, reader.approx_k
     finally:
         clock.uninstall()
         loaded.reader.close()
@@ -141,6 +149,7 @@ def measure(
         "index": str(index),
         "references": n,
         "approximate_tier1": approximate,
+        "faiss_params": params or None,
         "approx_k": rescored,
         "frames": len(rows),
         "p50_ms": {s: float(np.median([row[s] for row in rows])) for s in STAGES},
@@ -150,7 +159,14 @@ def measure(
 
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--index", type=Path, nargs="+", required=True, help="index folders")
+    p.add_argument(
+        "--index",
+        nargs="+",
+        required=True,
+        metavar="FOLDER[@PARAMS]",
+        help="index folders; @PARAMS: FAISS search parameters for its approximate tier-1 "
+        "methods (e.g. V1M@k_factor_front=2); a folder may come more than once",
+    )
     p.add_argument("--queries", type=Path, default=None, help="default night_right")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--rounds", type=int, default=2, help="the last one counts")
@@ -162,13 +178,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     qdir = a.queries or dataset_root() / "gardens_point" / "night_right"
     frames = list_images(qdir)[: a.frames]
     print(machine(), f"(load {os.getloadavg()[0]:.2f})")
-    versions = [measure(index, frames, a.rounds, a.approx_k) for index in a.index]
+    runs = [(Path(folder), params) for folder, _, params in (i.partition("@") for i in a.index)]
+    versions = [measure(index, frames, a.rounds, a.approx_k, params) for index, params in runs]
     print("report: stage p50 in ms, one thread, in process (no HTTP)")
-    print(f"{'references':>12} " + " ".join(f"{s:>12}" for s in STAGES))
+    print(f"{'references':>12} " + " ".join(f"{s:>12}" for s in STAGES) + "  FAISS params")
     for v in versions:
-        print(f"{v['references']:>12,} " + " ".join(f"{v['p50_ms'][s]:>12.2f}" for s in STAGES))
+        print(
+            f"{v['references']:>12,} "
+            + " ".join(f"{v['p50_ms'][s]:>12.2f}" for s in STAGES)
+            + f"  {v['faiss_params'] or '(stored)'}"
+        )
     if a.json:
-        with IndexReader(a.index[0], verify=False) as reader:
+        with IndexReader(runs[0][0], verify=False) as reader:
             config = reader.config
         write_json(a.json, {**provenance(config.name, config, a), "versions": versions})
         print(f"wrote {a.json}")

@@ -171,18 +171,19 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     With ``B<b>``, the scan of every row reads ``b`` bits instead: the signs of the first
     ``b`` centred dimensions (``b <= D``) after an ITQ rotation (:func:`_sign_codes`),
     compared by Hamming distance; the ``G`` x ``F`` x ``k`` nearest by it (``G`` 8 by
-    default, fixed at build) go on to the short scan on ``d`` dimensions, which then
-    compares only those. ``b / 8`` bytes more per row; the scan reads ``b / 8`` bytes of
-    each row instead of ``d x codes``.
+    default, set at build; the search parameter ``k_factor_front``) go on to the short scan
+    on ``d`` dimensions, which then compares only those. ``b / 8`` bytes more per row; the
+    scan reads ``b / 8`` bytes of each row instead of ``d x codes``.
 
     With ``S<e>``, the scan of every row reads the first ``e`` dimensions (``e < d``) as
     8-bit scalar codes (FAISS's ``SQ8``: 256 even steps between each dimension's least and
     greatest value in the training rows); the ``G`` x ``F`` x ``k`` nearest by them (``G``
-    4 by default, fixed at build) go on to the short scan on ``d`` dimensions, which then
-    compares only those. ``e`` bytes more per row; the scan reads ``e`` bytes of each row
-    instead of ``d x codes``. The leading principal directions hold most of a descriptor's
-    variance: on the scale bench's million references (``S32x4`` for GeM, ``S64x4`` for
-    NetVLAD) it keeps the plain scan's recall against exact search (docs/scale.md).
+    4 by default, set at build; the search parameter ``k_factor_front``) go on to the short
+    scan on ``d`` dimensions, which then compares only those. ``e`` bytes more per row; the
+    scan reads ``e`` bytes of each row instead of ``d x codes``. The leading principal
+    directions hold most of a descriptor's variance: on the scale bench's million
+    references (``S32x4`` for GeM, ``S64x4`` for NetVLAD) it keeps the plain scan's recall
+    against exact search (docs/scale.md).
 
     With ``PQ<M>x4fs``, the short scan reads FAISS's 4-bit fast-scan product codes of the
     first ``d`` dimensions instead (``M`` sub-quantizers of ``d / M`` dimensions, 16
@@ -350,13 +351,63 @@ def build_faiss(
     return index, metric
 
 
+#: the search parameter of a projected scan's ``G`` (the scan in front keeps ``G x F x k`` rows)
+FRONT_FACTOR = "k_factor_front"
+
+
 def set_search_params(index: Any, params: str) -> None:
-    """Apply a FAISS ParameterSpace string (e.g. ``"nprobe=16"``, ``"efSearch=64"``)."""
+    """Apply a FAISS ParameterSpace string (e.g. ``"nprobe=16"``, ``"efSearch=64"``).
+
+    Also ``k_factor_front=G``: a projected scan's factor ``G`` of its scan in front
+    (``S<e>`` or ``B<b>``), fixed at build but changeable here; FAISS's own names reach
+    the outer ``IndexRefine`` only (``k_factor_rf`` is ``F``).
+    """
     faiss = faiss_module()
+    rest = []
+    for item in filter(None, (part.strip() for part in params.split(","))):
+        name, _, value = item.partition("=")
+        if name.strip() == FRONT_FACTOR:
+            _set_front_factor(index, value.strip(), params)
+        else:
+            rest.append(item)
+    if not rest:
+        return
     try:
-        faiss.ParameterSpace().set_index_parameters(index, params)
+        faiss.ParameterSpace().set_index_parameters(index, ",".join(rest))
     except RuntimeError as exc:
         raise IndexBuildError(f"FAISS search parameters {params!r}: {_first_line(exc)}") from None
+
+
+def _set_front_factor(index: Any, value: str, params: str) -> None:
+    try:
+        factor = float(value)
+    except ValueError:
+        factor = math.nan
+    if not (math.isfinite(factor) and factor >= 1):
+        raise IndexBuildError(
+            f"FAISS search parameters {params!r}: {FRONT_FACTOR} needs a number >= 1, "
+            f"not {value!r}"
+        )
+    scan = _front_scan(index)
+    if scan is None:
+        raise IndexBuildError(
+            f"FAISS search parameters {params!r}: {FRONT_FACTOR} needs a projected scan with "
+            "a scan in front (S<e> or B<b>)"
+        )
+    scan.k_factor = factor
+
+
+def _front_scan(index: Any) -> Any | None:
+    """The ``IndexRefine`` of a projected scan's scan in front and short scan, else None."""
+    faiss = faiss_module()
+    outer = faiss.downcast_index(index)
+    if not isinstance(outer, faiss.IndexPreTransform):
+        return None
+    refine = faiss.downcast_index(outer.index)
+    if not isinstance(refine, faiss.IndexRefine):
+        return None
+    scan = faiss.downcast_index(refine.base_index)
+    return scan if isinstance(scan, faiss.IndexRefine) else None
 
 
 def read_faiss(path: Path, params: str = "", *, mmap: bool = False) -> Any:

@@ -66,6 +66,22 @@ def test_stages_of_an_exact_and_an_approximate_tier_1(versions, tmp_path: Path) 
     assert by["exact"]["approximate_tier1"] == []
     assert by["approx"]["p50_ms"]["faiss"] > 0 and by["approx"]["p50_ms"]["rescore"] > 0
     assert by["exact"]["p50_ms"]["faiss"] == 0 and by["exact"]["p50_ms"]["rescore"] == 0
+    assert by["approx"]["faiss_params"] is None
+
+
+def test_a_version_searched_with_other_faiss_parameters(versions, tmp_path: Path) -> None:
+    """``FOLDER@PARAMS``: the version's approximate methods are searched with them (a
+    parameter its FAISS type lacks is an error, not ignored); the record says which."""
+    from hmpf.index.layout import IndexBuildError
+
+    _, approx, queries = versions
+    out = tmp_path / "stages.json"
+    args = ["--queries", str(queries), "--frames", "1", "--rounds", "1", "--json", str(out)]
+    scale_stages.main(["--index", str(approx), f"{approx}@k_factor_rf=4", *args])
+    rec = json.loads(out.read_text())
+    assert [v["faiss_params"] for v in rec["versions"]] == [None, "k_factor_rf=4"]
+    with pytest.raises(IndexBuildError, match="a scan in front"):
+        scale_stages.main(["--index", f"{approx}@k_factor_front=2", *args])
 
 
 def test_frames_and_rounds_must_be_positive(tmp_path: Path) -> None:

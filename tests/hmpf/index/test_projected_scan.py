@@ -472,3 +472,48 @@ def test_scan_in_front_keeps_the_exact_neighbours_of_rows_of_lower_rank(tmp_path
     assert hits(index) >= 0.97
     assert hits(read_faiss(path, mmap=True)) == hits(index)
     assert hits(read_faiss(path, "k_factor_rf=1")) < hits(index)
+
+
+def test_front_factor_is_a_search_parameter(tmp_path):
+    """``k_factor_front=G`` sets the scan in front's G after the build: an index built with
+    G = 4 and searched with G = 2 answers exactly as one built with G = 2, also beside
+    FAISS's own names and from a read file; a smaller G keeps no more of the exact top 10."""
+    faiss = faiss_module()
+    x = _rows(n=3000, d=48, rank=20, noise=0.2, seed=5)
+    q = _rows(n=20, d=48, rank=20, noise=0.2, seed=6)
+    built4, _ = build_faiss(x, L2, "PCA32:16,SQfp16,S8x4,k4")
+    built2, _ = build_faiss(x, L2, "PCA32:16,SQfp16,S8x2,k2")
+    set_search_params(built4, "k_factor_rf=2, k_factor_front=2")
+    for a, b in zip(built4.search(q, 10), built2.search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    path = tmp_path / "s.faiss"
+    faiss.write_index(built2, str(path))
+    read = read_faiss(path, "k_factor_front=4,k_factor_rf=4", mmap=True)
+    set_search_params(built4, "k_factor_front=4,k_factor_rf=4")
+    for a, b in zip(read.search(q, 10), built4.search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    want = _brute(x, q, 10)
+
+    def hits(front: float) -> float:
+        set_search_params(built4, f"k_factor_front={front}")
+        got = built4.search(q, 10)[1]
+        return float(np.mean([len(np.intersect1d(a, b)) for a, b in zip(got, want, strict=True)]))
+
+    assert hits(1) <= hits(2) <= hits(8)
+    assert hits(1) < hits(8)
+
+
+@pytest.mark.parametrize(
+    ("factory", "params", "match"),
+    [
+        ("PCA32:8,SQfp16,k4", "k_factor_front=2", "a scan in front"),
+        ("PCA32:8,SQfp16,HNSW8", "k_factor_front=2", "a scan in front"),
+        ("PCA32:8,SQfp16,S4", "k_factor_front=0.5", "a number >= 1"),
+        ("PCA32:8,SQfp16,S4", "k_factor_front=two", "a number >= 1"),
+        ("PCA32:8,SQfp16,S4", "k_factor_front=2,no_such=3", "no_such"),
+    ],
+)
+def test_bad_front_factors_are_errors(factory, params, match):
+    index, _ = build_faiss(_rows(n=300, d=48), L2, factory)
+    with pytest.raises(IndexBuildError, match=match):
+        set_search_params(index, params)
