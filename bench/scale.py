@@ -72,7 +72,13 @@ from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import dataset_root, list_images
 from hmpf.imageio import load_image
 from hmpf.index import layout
-from hmpf.index.ann import build_faiss, search_faiss, set_search_params
+from hmpf.index.ann import (
+    FRONT_FACTOR,
+    build_faiss,
+    projected_spec,
+    search_faiss,
+    set_search_params,
+)
 from hmpf.index.reader import IndexReader
 from hmpf.index.storage import RowBlocks, open_h5
 from hmpf.index.tables import Ragged, RefTable
@@ -742,6 +748,16 @@ def _right(top: np.ndarray, gt: Sequence[np.ndarray], k: int) -> float:
     return float(np.mean([np.isin(top[j, :k], gt[j]).any() for j in range(len(gt))]))
 
 
+def stored_settings(info: Mapping[str, Any]) -> str:
+    """A version's FAISS search settings as written (``faiss_info``): a projected scan's
+    ``G`` as its factory string says (a setting tried may change it, and the stored
+    parameters need not name it), then the stored parameters, which win."""
+    spec = projected_spec(str(info.get("factory") or ""))
+    front = (spec.pre_factor or spec.bit_factor) if spec is not None else 0
+    parts = ([f"{FRONT_FACTOR}={front}"] if front else []) + [str(info.get("params") or "")]
+    return ",".join(p for p in parts if p)
+
+
 def measure_recall(
     reader: IndexReader, queries: Mapping[str, np.ndarray], gt: Sequence[np.ndarray], a: Any
 ) -> dict[str, Any]:
@@ -788,8 +804,8 @@ def measure_recall(
                 f"(FAISS {row['faiss_ms_p50']:.2f} ms) p50",
                 flush=True,
             )
-        if search_settings(a) != [None] and info.get("params"):  # back to the stored one
-            set_search_params(reader.faiss_index(mid), str(info["params"]))
+        if search_settings(a) != [None]:  # back to the stored settings
+            set_search_params(reader.faiss_index(mid), stored_settings(info))
         reader.approx_k = stored_k
         out[mid] = {
             "factory": info.get("factory"),

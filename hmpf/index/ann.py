@@ -385,8 +385,7 @@ def _set_front_factor(index: Any, value: str, params: str) -> None:
         factor = math.nan
     if not (math.isfinite(factor) and factor >= 1):
         raise IndexBuildError(
-            f"FAISS search parameters {params!r}: {FRONT_FACTOR} needs a number >= 1, "
-            f"not {value!r}"
+            f"FAISS search parameters {params!r}: {FRONT_FACTOR} needs a number >= 1, not {value!r}"
         )
     scan = _front_scan(index)
     if scan is None:

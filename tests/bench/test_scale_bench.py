@@ -114,3 +114,33 @@ def test_write_refuses_a_source_of_another_config(written, tmp_path) -> None:
             ["write", "--refs", "300", "--out", str(tmp_path / "v"), "--config", str(other)]
             + ["--source", str(source), "--cache-dir", str(cache)]
         )
+
+
+def test_stored_settings_bring_back_the_built_front_factor() -> None:
+    """What ``measure`` sets after trying other settings: the factory's ``G`` first, then
+    the stored parameters (which win); a search with them answers as the index did before
+    any setting was tried."""
+    from hmpf.index.ann import build_faiss, set_search_params
+    from hmpf.methods.base import MetricSpec
+
+    front = {"factory": "PCA32:16,SQfp16,S8x4,k4", "params": "k_factor_rf=4"}
+    assert scale.stored_settings(front) == "k_factor_front=4,k_factor_rf=4"
+    assert scale.stored_settings({**front, "params": "k_factor_front=2"}) == (
+        "k_factor_front=4,k_factor_front=2"
+    )
+    assert scale.stored_settings({"factory": "PCA32:16,SQfp16,B64", "params": None}) == (
+        "k_factor_front=8"
+    )
+    assert scale.stored_settings({"factory": "PCA256:64,SQfp16", "params": "k_factor_rf=8"}) == (
+        "k_factor_rf=8"
+    )
+    assert scale.stored_settings({"factory": "IVF63,PQ64np", "params": ""}) == ""
+    rng = np.random.default_rng(3)
+    x = (rng.standard_normal((2000, 20)) @ rng.standard_normal((20, 48))).astype(np.float32)
+    q = x[:15] + 0.3 * rng.standard_normal((15, 48)).astype(np.float32)
+    index, _ = build_faiss(x, MetricSpec("l2", 1.0), str(front["factory"]))
+    before = index.search(q, 10)
+    set_search_params(index, "k_factor_rf=1,k_factor_front=1")
+    assert not np.array_equal(index.search(q, 10)[1], before[1])
+    set_search_params(index, scale.stored_settings(front))
+    assert np.array_equal(index.search(q, 10)[1], before[1])

@@ -50,11 +50,18 @@ def exact_index(gp, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(
-    scope="module", params=["IVF2,Flat|nprobe=1", "PCA8:2,SQfp16,k2|", "PCA8:2,SQfp16,HNSW4,k2|"]
+    scope="module",
+    params=[
+        "IVF2,Flat|nprobe=1",
+        "PCA8:2,SQfp16,k2|",
+        "PCA8:2,SQfp16,HNSW4,k2|",
+        "PCA8:4,SQfp16,S2x4,k2|k_factor_front=2",
+    ],
 )
 def approx_index(gp, tmp_path_factory, request) -> Path:
     """The same references on an approximate tier 1: IVF, and the projected scan (with a
-    scalar short scan and with an HNSW short list)."""
+    scalar short scan, with an HNSW short list, and with a scan in front whose G the
+    build's search parameters change)."""
     factory, params = request.param.split("|")
     index = tmp_path_factory.mktemp("approx") / "map"
     opts = BuildOptions(workers=1, progress=False, faiss={"*": factory}, faiss_params={"*": params})
@@ -191,3 +198,23 @@ def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, monkeypat
     small = half[:2]  # below the size torch takes over, and other dtypes: numpy's astype
     assert np.array_equal(widen(small, np.float32), small.astype(np.float32), equal_nan=True)
     assert widen(want, np.float32) is want
+
+
+def test_a_versions_stored_search_parameters_reach_its_reader(approx_index):
+    """What ``--faiss-params`` stored is what the reader searches with: IVF's ``nprobe``,
+    and ``k_factor_front`` (a scan in front's G, not a FAISS name)."""
+    from hmpf.index.ann import faiss_module
+
+    faiss = faiss_module()
+    with IndexReader(approx_index) as r:
+        info = r.faiss_info("hog")
+        assert info is not None
+        index = r.faiss_index("hog")
+        if info["factory"].startswith("IVF"):
+            assert faiss.extract_index_ivf(index).nprobe == 1  # FAISS's default is 1 too
+            assert info["params"] == "nprobe=1"
+        elif ",S2x4" in info["factory"]:
+            outer = faiss.downcast_index(faiss.downcast_index(index).index)
+            assert faiss.downcast_index(outer.base_index).k_factor == 2.0  # built with 4
+        else:
+            assert info["params"] == ""
