@@ -824,7 +824,10 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
 
     # the server re-scores as many rows as the recall's first depth (its default without)
     depth = a.approx_k[0] if a.approx_k else None
-    args = argparse.Namespace(workers=1, threads=1, queue=None, approx_k=depth)
+    serve_params = getattr(a, "serve_params", None)
+    args = argparse.Namespace(
+        workers=1, threads=1, queue=None, approx_k=depth, faiss_params=serve_params
+    )
     port = _free_port()
     out: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -833,6 +836,7 @@ def measure_serve(index: Path, frames: list[bytes], gt: Sequence[np.ndarray], a:
         proc = _start(index, port, args, log)
         out["ready_s"] = time.monotonic() - t0
         out["approx_k"] = depth  # None: hmpf-serve's default
+        out["faiss_params"] = serve_params  # None: the version's stored ones
         out["rss_ready_mib"] = rss_mib(proc.pid)
         try:
             with Client(f"http://127.0.0.1:{port}", timeout=600) as client:
@@ -1189,6 +1193,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         nargs="*",
         default=None,
         help="FAISS search settings to try (k_factor_rf=16)",
+    )
+    m.add_argument(
+        "--serve-params",
+        default=None,
+        metavar="PARAMS",
+        help="FAISS search parameters hmpf-serve sets on every approximate tier-1 method "
+        "on top of the version's (HMPF_FAISS_PARAMS), e.g. k_factor_front=2",
     )
     m.add_argument("--warmup", type=int, default=5)
     m.add_argument("--no-serve", action="store_true")

@@ -92,7 +92,7 @@ def measure(
     rounds counts. ``params``: FAISS search parameters for every approximate tier-1
     method (e.g. ``k_factor_front=2``), instead of the version's own."""
     from hmpf.api import LocalizeParams
-    from hmpf.index.ann import faiss_module, set_search_params
+    from hmpf.index.ann import faiss_module
     from hmpf.runtime import set_compute_threads
     from service.answer import localize_response
     from service.engine import Loaded, run_query
@@ -105,13 +105,8 @@ def measure(
     loaded = Loaded.open(index, None, verify="stamp", approx_k=approx_k)
     try:
         reader = loaded.reader
-        approximate = [
-            m
-            for m in reader.config.tiers[0].methods
-            if reader.methods[m].kind == "global" and not reader.is_exact(m)
-        ]
-        for mid in approximate if params else []:
-            set_search_params(reader.faiss_index(mid), params)
+        approximate = reader.approximate_methods()
+        reader.set_faiss_params({"*": params})
         images = [decode_upload(p.read_bytes(), max_pixels=1 << 30, source=p.name) for p in frames]
         localize = LocalizeParams()
         rows: list[dict[str, float]] = []

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import http.client
+import json
 import os
 import socket
 import statistics
@@ -89,6 +90,8 @@ def _start(index: Path, port: int, args: argparse.Namespace, log: Path) -> subpr
         env["HMPF_THREADS_PER_WORKER"] = str(args.threads)
     if getattr(args, "approx_k", None):
         env["HMPF_APPROX_K"] = str(args.approx_k)
+    if getattr(args, "faiss_params", None):
+        env["HMPF_FAISS_PARAMS"] = json.dumps({"*": args.faiss_params})
     cmd = [str(ROOT / ".venv" / "bin" / "hmpf-serve"), "--index", str(index)]
     cmd += ["--port", str(port)]
     proc = subprocess.Popen(cmd, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT)

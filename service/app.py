@@ -63,6 +63,7 @@ def create_app(settings: Settings, engine: Engine | None = None) -> FastAPI:
         threads_per_worker=settings.thread_count,
         accept_threshold=settings.accept_threshold,
         approx_k=settings.approx_k,
+        faiss_params=settings.faiss_params,
     )
     metrics = Metrics()
     # versions the background check finds corrupt (service.engine), counted

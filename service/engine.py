@@ -43,7 +43,7 @@ import os
 import threading
 import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -162,14 +162,22 @@ class Loaded:
         threshold: float | None,
         verify: layout.VerifyMode = "stamp",
         approx_k: int | None = None,
+        faiss_params: Mapping[str, str] | None = None,
     ) -> Loaded:
         """Open the version ``CURRENT`` names, its files verified before anything is read
         from them (``verify``, :func:`hmpf.index.layout.verify_files`): by their
         verification stamp when it matches (:attr:`verification` ``checking``: the caller
         runs the full check), else every file against the manifest's sha256 (a corrupt
         version raises :class:`~hmpf.index.IndexCorruptError`: start exits 2, reload
-        answers 409)."""
+        answers 409). ``faiss_params``: tier 1's FAISS search parameters on top of the
+        version's own (:meth:`IndexReader.set_faiss_params`; bad ones raise as well)."""
         reader = IndexReader(root, verify=verify, approx_k=approx_k)
+        if faiss_params:
+            try:
+                reader.set_faiss_params(faiss_params)
+            except BaseException:
+                reader.close()
+                raise
         verification = "checking" if reader.verified_by == "stamp" else "full"
         return cls.over(reader, threshold, verification)
 
@@ -286,10 +294,13 @@ class Engine:
         threads_per_worker: int,
         accept_threshold: float | None = None,
         approx_k: int | None = None,
+        faiss_params: Mapping[str, str] | None = None,
     ) -> None:
         self.root = Path(root)
         #: rows an approximate tier-1 search re-scores (None: the reader's default)
         self.approx_k = approx_k
+        #: tier 1's FAISS search parameters on top of each version's own
+        self.faiss_params = dict(faiss_params or {})
         self.workers = workers
         self.capacity = workers + queue
         self.threads = threads_per_worker
@@ -343,7 +354,12 @@ class Engine:
 
     def _open(self) -> Loaded:
         """The index's current version, opened (what :meth:`load` makes current)."""
-        return Loaded.open(self.root, self.accept_threshold, approx_k=self.approx_k)
+        return Loaded.open(
+            self.root,
+            self.accept_threshold,
+            approx_k=self.approx_k,
+            faiss_params=self.faiss_params,
+        )
 
     def _log_loaded(self, loaded: Loaded) -> None:
         how = (

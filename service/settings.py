@@ -137,6 +137,13 @@ class Settings(BaseSettings):
         "candidates); None: max(256, 4 x tier-1 k). More keeps more of the exact top 100 at "
         "a large map's cost in reads and time (docs/scale.md)",
     )
+    faiss_params: dict[str, str] = Field(
+        default_factory=dict,
+        description="tier 1's FAISS search parameters on top of the version's own, per "
+        "method id or '*' for every approximate method, e.g. {'*': 'k_factor_front=2'} or "
+        "{'gem': 'nprobe=64'} (HMPF_FAISS_PARAMS as JSON); a method that is not approximate "
+        "or a parameter its type lacks stops the start (a reload keeps the old version)",
+    )
     # -- sequence mode ----------------------------------------------------------------------
     sequence_key: SecretStr | None = Field(
         None,

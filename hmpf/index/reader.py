@@ -69,7 +69,14 @@ from hmpf.features import extract_query
 from hmpf.fusion import Filled
 from hmpf.hierarchy import Hierarchy, ScoreFn
 from hmpf.index import layout
-from hmpf.index.ann import MetricSpec, faiss_module, read_faiss, search_faiss, to_raw
+from hmpf.index.ann import (
+    MetricSpec,
+    faiss_module,
+    read_faiss,
+    search_faiss,
+    set_search_params,
+    to_raw,
+)
 from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
 from hmpf.index.models import attach_models, torch_needed
 from hmpf.index.places import (
@@ -646,6 +653,34 @@ class IndexReader:
                 )
             self._faiss[mid] = index
         return self._faiss[mid]
+
+    def approximate_methods(self) -> list[str]:
+        """Tier 1's global methods searched through an approximate FAISS type."""
+        return [
+            m
+            for m in self.config.tiers[0].methods
+            if self.methods[m].kind == "global" and not self.is_exact(m)
+        ]
+
+    def set_faiss_params(self, params: Mapping[str, str]) -> None:
+        """Search tier 1's approximate FAISS indexes with ``params`` on top of the version's
+        stored search parameters (which these override where both name one): method id, or
+        ``"*"`` for every approximate method (none in an exact version), -> a FAISS search
+        parameter string (:func:`hmpf.index.ann.set_search_params`, e.g. ``nprobe=64`` or
+        ``k_factor_front=2``). A method that is not approximate is a
+        :class:`~hmpf.errors.ConfigError`, a parameter its type lacks an
+        :class:`~hmpf.index.layout.IndexBuildError`."""
+        approximate = self.approximate_methods()
+        unknown = sorted(set(params) - {"*", *approximate})
+        if unknown:
+            raise ConfigError(
+                f"faiss_params: {', '.join(map(repr, unknown))} not an approximate tier-1 "
+                f"method of {self.path} (those: {', '.join(approximate) or 'none'})"
+            )
+        for mid in approximate:
+            extra = params.get(mid, params.get("*", ""))
+            if extra:
+                set_search_params(self.faiss_index(mid), extra)
 
     def _flat(self, mid: str, metric: MetricSpec) -> Any:
         """An exact FAISS Flat index over the stored matrix (built in memory)."""

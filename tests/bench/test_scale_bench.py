@@ -86,7 +86,7 @@ def test_measure_recall_against_its_own_exact_search_and_a_real_serve(written, t
     record = tmp_path / "measure.json"
     scale.main(
         ["measure", "--index", str(out), "--approx-k", str(REFS), "16"]
-        + ["--no-reload", "--warmup", "2"]
+        + ["--no-reload", "--warmup", "2", "--serve-params", "k_factor_front=3"]
         + ["--datasets", str(dataset_root()), "--cache-dir", str(cache), "--json", str(record)]
     )
     rec = json.loads(record.read_text())
@@ -100,6 +100,7 @@ def test_measure_recall_against_its_own_exact_search_and_a_real_serve(written, t
     serve = rec["serve"]
     queries = len(list_images(dataset_root() / scale.QUERY_FOLDER))
     assert serve["queries"] == queries and serve["approx_k"] == REFS
+    assert serve["faiss_params"] == "k_factor_front=3"  # hmpf-serve took them (else: no start)
     assert 0.0 <= serve["recall_at_1"] <= 1.0 and 0 < serve["p50_ms"] <= serve["p99_ms"]
     assert serve["first_answer_s"] >= serve["ready_s"] > 0
     assert serve["verification"]["state"] == "passed"

@@ -185,3 +185,74 @@ def test_approx_k_reaches_the_reader(tmp_path: Path, monkeypatch: pytest.MonkeyP
             engine.close()
     with pytest.raises(ConfigError):
         load_settings(auth=False, approx_k=0)
+
+
+def test_faiss_params_reach_the_reader(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``faiss_params`` (environment as JSON, or file) is set on the version's FAISS indexes
+    on top of its stored parameters; a method or parameter the version cannot take stops
+    the start with a clear error (exit 2, no traceback) and leaves nothing open."""
+    from hmpf.config import parse_config
+    from hmpf.index.ann import faiss_module
+    from hmpf.index.layout import IndexBuildError
+    from indexer.build import BuildOptions, build
+    from service.engine import Engine
+    from tests.conftest import SERVICE_CONFIG, write_synthetic_images
+
+    refs = write_synthetic_images(tmp_path / "refs", 12)
+    opts = BuildOptions(workers=1, progress=False, faiss={"*": "PCA8:2,SQfp16,k2"})
+    build(parse_config(SERVICE_CONFIG), refs, tmp_path / "index", options=opts)
+    monkeypatch.setenv("HMPF_FAISS_PARAMS", '{"*": "k_factor_rf=5", "gist": "k_factor_rf=3"}')
+    s = load_settings(auth=False, index=tmp_path / "index")
+    assert s.faiss_params == {"*": "k_factor_rf=5", "gist": "k_factor_rf=3"}
+    faiss = faiss_module()
+    engine = Engine(s.index, workers=1, queue=1, threads_per_worker=1, faiss_params=s.faiss_params)
+    try:
+        reader = engine.load().reader
+        for mid, want in (("hog", 5.0), ("gist", 3.0)):
+            refine = faiss.downcast_index(faiss.downcast_index(reader.faiss_index(mid)).index)
+            assert refine.k_factor == want
+    finally:
+        engine.close()
+    for bad, error in (
+        ({"sad": "k_factor_rf=2"}, ConfigError),
+        ({"*": "nprobe=x"}, IndexBuildError),
+    ):
+        engine = Engine(s.index, workers=1, queue=1, threads_per_worker=1, faiss_params=bad)
+        try:
+            with pytest.raises(error):
+                engine.load()
+            assert not engine.ready
+        finally:
+            engine.close()
+    monkeypatch.setenv("HMPF_FAISS_PARAMS", '{"*": "k_factor_front=2"}')
+    monkeypatch.setenv("HMPF_AUTH", "false")
+
+    def serving(*_: object) -> int:  # a failure, not a server that never returns
+        raise AssertionError("hmpf-serve started with parameters its index cannot take")
+
+    monkeypatch.setattr("service.cli._run_server", serving)
+    rc = serve_main(["--index", str(tmp_path / "index")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "k_factor_front" in err and "a scan in front" in err
+    assert "Traceback" not in err
+    # A new version the parameters do not fit (an exact tier 1 has no "gist" to set): the
+    # reload fails and the loaded version stays.
+    engine = Engine(s.index, workers=1, queue=1, threads_per_worker=1, faiss_params=s.faiss_params)
+    try:
+        assert engine.load().version == "v0001"
+        build(
+            parse_config(SERVICE_CONFIG),
+            refs,
+            tmp_path / "index",
+            options=BuildOptions(workers=1, progress=False),
+        )
+        with pytest.raises(ConfigError, match="'gist' not an approximate"):
+            engine.load()
+        assert engine.current.version == "v0001"
+    finally:
+        engine.close()
+    monkeypatch.setenv("HMPF_FAISS_PARAMS", '["k_factor_rf=2"]')
+    with pytest.raises(ConfigError, match="faiss_params"):
+        load_settings(auth=False, index=tmp_path / "index")

@@ -218,3 +218,43 @@ def test_a_versions_stored_search_parameters_reach_its_reader(approx_index):
             assert faiss.downcast_index(outer.base_index).k_factor == 2.0  # built with 4
         else:
             assert info["params"] == ""
+
+
+def test_search_parameters_set_on_top_of_the_stored_ones(approx_index, exact_index):
+    """:meth:`IndexReader.set_faiss_params` (hmpf-serve's ``faiss_params``): per method or
+    ``"*"``, after the stored ones; a method that is not approximate is a ConfigError, a
+    parameter its FAISS type lacks an IndexBuildError; an exact version has nothing to set."""
+    from hmpf.errors import ConfigError
+    from hmpf.index.ann import faiss_module
+    from hmpf.index.layout import IndexBuildError
+
+    faiss = faiss_module()
+
+    def refine(index):
+        return faiss.downcast_index(faiss.downcast_index(index).index)
+
+    with IndexReader(approx_index) as r:
+        assert r.approximate_methods() == ["hog", "gist"]
+        factory = r.faiss_info("hog")["factory"]
+        with pytest.raises(ConfigError, match="'sad'.*those: hog, gist"):
+            r.set_faiss_params({"sad": "nprobe=2"})
+        if factory.startswith("IVF"):
+            r.set_faiss_params({"hog": "nprobe=2"})
+            assert faiss.extract_index_ivf(r.faiss_index("hog")).nprobe == 2
+            assert faiss.extract_index_ivf(r.faiss_index("gist")).nprobe == 1  # stored
+        elif ",S2x4" in factory:
+            r.set_faiss_params({"*": "k_factor_front=3", "gist": "k_factor_front=1"})
+            for mid, front in (("hog", 3.0), ("gist", 1.0)):
+                assert faiss.downcast_index(refine(r.faiss_index(mid)).base_index).k_factor == front
+        else:
+            r.set_faiss_params({"*": "k_factor_rf=3"})
+            assert refine(r.faiss_index("hog")).k_factor == 3.0
+            with pytest.raises(IndexBuildError, match="a scan in front"):
+                r.set_faiss_params({"gist": "k_factor_front=2"})
+        ids = r.search("hog", r.global_matrix("hog")[3], 5)[0]
+        assert len(ids) == 5 and 3 in ids
+    with IndexReader(exact_index) as r:
+        assert r.approximate_methods() == []
+        r.set_faiss_params({"*": "nprobe=2"})
+        with pytest.raises(ConfigError, match="those: none"):
+            r.set_faiss_params({"gist": "nprobe=2"})
