@@ -750,11 +750,16 @@ def _right(top: np.ndarray, gt: Sequence[np.ndarray], k: int) -> float:
 
 def stored_settings(info: Mapping[str, Any]) -> str:
     """A version's FAISS search settings as written (``faiss_info``): a projected scan's
-    ``G`` as its factory string says (a setting tried may change it, and the stored
-    parameters need not name it), then the stored parameters, which win."""
+    ``F`` and ``G`` as its factory string says (a setting tried may change them, and the
+    stored parameters need not name them), then the stored parameters, which win."""
     spec = projected_spec(str(info.get("factory") or ""))
-    front = (spec.pre_factor or spec.bit_factor) if spec is not None else 0
-    parts = ([f"{FRONT_FACTOR}={front}"] if front else []) + [str(info.get("params") or "")]
+    parts = []
+    if spec is not None:
+        parts.append(f"k_factor_rf={spec.k_factor}")
+        front = spec.pre_factor or spec.bit_factor
+        if front:
+            parts.append(f"{FRONT_FACTOR}={front}")
+    parts.append(str(info.get("params") or ""))
     return ",".join(p for p in parts if p)
 
 
@@ -775,8 +780,8 @@ def measure_recall(
         half = len(q) // 2
         for depth, setting in itertools.product(a.approx_k or [stored_k], search_settings(a)):
             reader.approx_k = depth
-            if setting is not None:
-                set_search_params(reader.faiss_index(mid), setting)
+            if setting is not None:  # each setting on top of the version's own, not the last
+                set_search_params(reader.faiss_index(mid), f"{stored_settings(info)},{setting}")
             approx, ms = approx_top(reader, mid, q, 100)
             row = {
                 "approx_k": depth,

@@ -90,7 +90,7 @@ def measure(
 ) -> dict[str, Any]:
     """Median stage times (ms) of ``frames`` against ``index``; the last of ``rounds``
     rounds counts. ``params``: FAISS search parameters for every approximate tier-1
-    method (e.g. ``k_factor_front=2``), instead of the version's own."""
+    method (e.g. ``k_factor_front=2``), on top of the version's own."""
     from hmpf.api import LocalizeParams
     from hmpf.index.ann import faiss_module
     from hmpf.runtime import set_compute_threads
@@ -173,7 +173,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     qdir = a.queries or dataset_root() / "gardens_point" / "night_right"
     frames = list_images(qdir)[: a.frames]
     print(machine(), f"(load {os.getloadavg()[0]:.2f})")
-    runs = [(Path(folder), params) for folder, _, params in (i.partition("@") for i in a.index)]
+    split = ((i, "", "") if "@" not in i else i.rpartition("@") for i in a.index)
+    runs = [(Path(folder), params) for folder, _, params in split]
     versions = [measure(index, frames, a.rounds, a.approx_k, params) for index, params in runs]
     print("report: stage p50 in ms, one thread, in process (no HTTP)")
     print(f"{'references':>12} " + " ".join(f"{s:>12}" for s in STAGES) + "  FAISS params")

@@ -310,23 +310,27 @@ def _make(factory: str, x: np.ndarray, kind: MetricKind) -> Any:
     try:
         index = faiss.index_factory(x.shape[1], factory, _faiss_metric(kind))
     except RuntimeError as exc:
-        raise IndexBuildError(f"FAISS factory string {factory!r}: {_first_line(exc)}") from None
+        raise IndexBuildError(f"FAISS factory string {factory!r}: {_reason(exc)}") from None
     if not index.is_trained:
         try:
             index.train(x)
         except RuntimeError as exc:
             raise IndexBuildError(
                 f"FAISS {factory!r} cannot be trained on {len(x)} references "
-                f"({_first_line(exc)}); use 'Flat' for small maps"
+                f"({_reason(exc)}); use 'Flat' for small maps"
             ) from None
     index.add(x)
     index.search(x[:1], 1)  # some types cannot search some metrics (PQ with L1)
     return index
 
 
-def _first_line(exc: BaseException) -> str:
+def _reason(exc: BaseException) -> str:
+    """What a FAISS error says, without the C++ location FAISS puts before it."""
     lines = [s for s in str(exc).splitlines() if s.strip()]
-    return lines[-1][:200] if lines else type(exc).__name__
+    if not lines:
+        return type(exc).__name__
+    said = re.search(r"\.(?:cpp|h):\d+: (.*)$", lines[-1])
+    return (said[1] if said else lines[-1])[:200]
 
 
 def build_faiss(
@@ -358,16 +362,18 @@ FRONT_FACTOR = "k_factor_front"
 def set_search_params(index: Any, params: str) -> None:
     """Apply a FAISS ParameterSpace string (e.g. ``"nprobe=16"``, ``"efSearch=64"``).
 
-    Also ``k_factor_front=G``: a projected scan's factor ``G`` of its scan in front
-    (``S<e>`` or ``B<b>``), fixed at build but changeable here; FAISS's own names reach
-    the outer ``IndexRefine`` only (``k_factor_rf`` is ``F``).
+    Items are separated by commas or spaces, as FAISS separates them. Also
+    ``k_factor_front=G``: a projected scan's factor ``G`` of its scan in front (``S<e>`` or
+    ``B<b>``), set at build and changeable here. FAISS's ``k_factor_rf`` sets the outer
+    ``IndexRefine``'s ``F`` only (its other names reach the indexes inside), so ``G``, the
+    inner ``IndexRefine``'s factor, has this name of its own.
     """
     faiss = faiss_module()
     rest = []
-    for item in filter(None, (part.strip() for part in params.split(","))):
+    for item in filter(None, re.split(r"[\s,]+", params)):
         name, _, value = item.partition("=")
-        if name.strip() == FRONT_FACTOR:
-            _set_front_factor(index, value.strip(), params)
+        if name == FRONT_FACTOR:
+            _set_front_factor(index, value, params)
         else:
             rest.append(item)
     if not rest:
@@ -375,7 +381,7 @@ def set_search_params(index: Any, params: str) -> None:
     try:
         faiss.ParameterSpace().set_index_parameters(index, ",".join(rest))
     except RuntimeError as exc:
-        raise IndexBuildError(f"FAISS search parameters {params!r}: {_first_line(exc)}") from None
+        raise IndexBuildError(f"FAISS search parameters {params!r}: {_reason(exc)}") from None
 
 
 def _set_front_factor(index: Any, value: str, params: str) -> None:
@@ -423,7 +429,7 @@ def read_faiss(path: Path, params: str = "", *, mmap: bool = False) -> Any:
         index = faiss.read_index(str(path), faiss.IO_FLAG_MMAP_IFC if mmap else 0)
     except RuntimeError as exc:
         raise IndexCorruptError(
-            f"{path}: unreadable FAISS index ({_first_line(exc)}); run `hmpf-index verify`"
+            f"{path}: unreadable FAISS index ({_reason(exc)}); run `hmpf-index verify`"
         ) from None
     if params:
         set_search_params(index, params)

@@ -77,7 +77,12 @@ from hmpf.index.ann import (
     set_search_params,
     to_raw,
 )
-from hmpf.index.layout import IndexCorruptError, IndexNotFoundError, IndexVersionError
+from hmpf.index.layout import (
+    IndexBuildError,
+    IndexCorruptError,
+    IndexNotFoundError,
+    IndexVersionError,
+)
 from hmpf.index.models import attach_models, torch_needed
 from hmpf.index.places import (
     Experience,
@@ -667,9 +672,10 @@ class IndexReader:
         stored search parameters (which these override where both name one): method id, or
         ``"*"`` for every approximate method (none in an exact version), -> a FAISS search
         parameter string (:func:`hmpf.index.ann.set_search_params`, e.g. ``nprobe=64`` or
-        ``k_factor_front=2``). A method that is not approximate is a
-        :class:`~hmpf.errors.ConfigError`, a parameter its type lacks an
-        :class:`~hmpf.index.layout.IndexBuildError`."""
+        ``k_factor_front=2``). A method's own entry replaces ``"*"`` for it (as in
+        ``hmpf-index build --faiss-params``; an empty one keeps the stored parameters). A
+        method that is not approximate is a :class:`~hmpf.errors.ConfigError`, a parameter
+        its type lacks an :class:`~hmpf.index.layout.IndexBuildError` naming the method."""
         approximate = self.approximate_methods()
         unknown = sorted(set(params) - {"*", *approximate})
         if unknown:
@@ -679,8 +685,12 @@ class IndexReader:
             )
         for mid in approximate:
             extra = params.get(mid, params.get("*", ""))
-            if extra:
+            if not extra:
+                continue
+            try:
                 set_search_params(self.faiss_index(mid), extra)
+            except IndexBuildError as exc:
+                raise IndexBuildError(f"faiss_params of method {mid!r}: {exc}") from None
 
     def _flat(self, mid: str, metric: MetricSpec) -> Any:
         """An exact FAISS Flat index over the stored matrix (built in memory)."""

@@ -215,6 +215,16 @@ def test_faiss_params_reach_the_reader(
             assert refine.k_factor == want
     finally:
         engine.close()
+    from hmpf.index.reader import IndexReader
+
+    closed: list[Path] = []
+    close = IndexReader.close
+
+    def counted(reader: IndexReader) -> None:
+        closed.append(reader.path)
+        close(reader)
+
+    monkeypatch.setattr(IndexReader, "close", counted)
     for bad, error in (
         ({"sad": "k_factor_rf=2"}, ConfigError),
         ({"*": "nprobe=x"}, IndexBuildError),
@@ -223,7 +233,8 @@ def test_faiss_params_reach_the_reader(
         try:
             with pytest.raises(error):
                 engine.load()
-            assert not engine.ready
+            assert not engine.ready and len(closed) == 1  # the reader it opened, closed
+            closed.clear()
         finally:
             engine.close()
     monkeypatch.setenv("HMPF_FAISS_PARAMS", '{"*": "k_factor_front=2"}')

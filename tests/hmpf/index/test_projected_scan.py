@@ -486,6 +486,11 @@ def test_front_factor_is_a_search_parameter(tmp_path):
     set_search_params(built4, "k_factor_rf=2, k_factor_front=2")
     for a, b in zip(built4.search(q, 10), built2.search(q, 10), strict=True):
         assert np.array_equal(a, b)
+    set_search_params(built2, "k_factor_front=4 k_factor_rf=4")  # spaces, as FAISS takes
+    set_search_params(built4, "k_factor_rf=4 k_factor_front=4")
+    for a, b in zip(built4.search(q, 10), built2.search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    set_search_params(built2, "k_factor_front=2,k_factor_rf=2")
     path = tmp_path / "s.faiss"
     faiss.write_index(built2, str(path))
     read = read_faiss(path, "k_factor_front=4,k_factor_rf=4", mmap=True)
@@ -510,7 +515,7 @@ def test_front_factor_is_a_search_parameter(tmp_path):
         ("PCA32:8,SQfp16,HNSW8", "k_factor_front=2", "a scan in front"),
         ("PCA32:8,SQfp16,S4", "k_factor_front=0.5", "a number >= 1"),
         ("PCA32:8,SQfp16,S4", "k_factor_front=two", "a number >= 1"),
-        ("PCA32:8,SQfp16,S4", "k_factor_front=2,no_such=3", "no_such"),
+        ("PCA32:8,SQfp16,S4", "k_factor_front=2,no_such=3", "could not set parameter no_such"),
     ],
 )
 def test_bad_front_factors_are_errors(factory, params, match):

@@ -243,13 +243,16 @@ def test_search_parameters_set_on_top_of_the_stored_ones(approx_index, exact_ind
             assert faiss.extract_index_ivf(r.faiss_index("hog")).nprobe == 2
             assert faiss.extract_index_ivf(r.faiss_index("gist")).nprobe == 1  # stored
         elif ",S2x4" in factory:
+            r.set_faiss_params({"*": "k_factor_rf=3"})  # on top: the stored G = 2 stays
+            assert refine(r.faiss_index("hog")).k_factor == 3.0
+            assert faiss.downcast_index(refine(r.faiss_index("hog")).base_index).k_factor == 2.0
             r.set_faiss_params({"*": "k_factor_front=3", "gist": "k_factor_front=1"})
             for mid, front in (("hog", 3.0), ("gist", 1.0)):
                 assert faiss.downcast_index(refine(r.faiss_index(mid)).base_index).k_factor == front
         else:
             r.set_faiss_params({"*": "k_factor_rf=3"})
             assert refine(r.faiss_index("hog")).k_factor == 3.0
-            with pytest.raises(IndexBuildError, match="a scan in front"):
+            with pytest.raises(IndexBuildError, match="method 'gist'.*a scan in front"):
                 r.set_faiss_params({"gist": "k_factor_front=2"})
         ids = r.search("hog", r.global_matrix("hog")[3], 5)[0]
         assert len(ids) == 5 and 3 in ids
