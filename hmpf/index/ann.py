@@ -402,8 +402,9 @@ def _set_front_factor(index: Any, value: str, params: str) -> None:
     scan.k_factor = factor
 
 
-def _front_scan(index: Any) -> Any | None:
-    """The ``IndexRefine`` of a projected scan's scan in front and short scan, else None."""
+def _projected_parts(index: Any) -> tuple[Any, Any] | None:
+    """A projected scan's outer ``IndexRefine`` (the re-ranking on ``D``) and what it
+    re-ranks (its base, downcast), else None."""
     faiss = faiss_module()
     outer = faiss.downcast_index(index)
     if not isinstance(outer, faiss.IndexPreTransform):
@@ -411,8 +412,14 @@ def _front_scan(index: Any) -> Any | None:
     refine = faiss.downcast_index(outer.index)
     if not isinstance(refine, faiss.IndexRefine):
         return None
-    scan = faiss.downcast_index(refine.base_index)
-    return scan if isinstance(scan, faiss.IndexRefine) else None
+    return refine, faiss.downcast_index(refine.base_index)
+
+
+def _front_scan(index: Any) -> Any | None:
+    """The ``IndexRefine`` of a projected scan's scan in front and short scan, else None."""
+    parts = _projected_parts(index)
+    scan = None if parts is None else parts[1]
+    return scan if isinstance(scan, faiss_module().IndexRefine) else None
 
 
 def read_faiss(path: Path, params: str = "", *, mmap: bool = False) -> Any:
@@ -462,13 +469,10 @@ def search_faiss(index: Any, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndar
 def _hnsw_short_list(index: Any) -> tuple[Any, Any] | None:
     """A projected scan's ``IndexRefine`` and HNSW graph (``HNSW<M>``), else None."""
     faiss = faiss_module()
-    outer = faiss.downcast_index(index)
-    if not isinstance(outer, faiss.IndexPreTransform):
+    parts = _projected_parts(index)
+    if parts is None:
         return None
-    refine = faiss.downcast_index(outer.index)
-    if not isinstance(refine, faiss.IndexRefine):
-        return None
-    base = faiss.downcast_index(refine.base_index)
+    refine, base = parts
     if not isinstance(base, faiss.IndexPreTransform):
         return None
     graph = faiss.downcast_index(base.index)
