@@ -992,8 +992,9 @@ def cmd_factories(a: argparse.Namespace) -> None:
             threads = faiss.omp_get_max_threads()
             faiss.omp_set_num_threads(1)  # searched as hmpf-serve searches
             for setting, approx_k in itertools.product(search_settings(a), depths):
-                if setting is not None:
-                    set_search_params(index, setting)
+                if setting is not None:  # on top of the type's own, as measure_recall does
+                    built = stored_settings({"factory": factory})
+                    set_search_params(index, f"{built},{setting}")
                 top = np.empty((len(q), 100), dtype=np.int64)
                 ms = []
                 for j in range(len(q)):
