@@ -633,15 +633,23 @@ def _ref_table(src: Source, lay: Layout, seed: int, route_len: int) -> RefTable:
     return RefTable(names, sha, {"sequence": np.array(seq, dtype=object)}, sources)
 
 
+def _reserve(need: float) -> float:
+    """Bytes that must stay free beside a version of ``need`` bytes: as much as the version
+    itself, between 1 GB (a test's small version on a small disk) and 8 GB (a million)."""
+    return min(8e9, max(1e9, need))
+
+
 def _check_disk(out: Path, n: int) -> None:
-    """Refuse to start when the version (about 31 KiB per reference) would leave under 8 GB."""
+    """Refuse to start when the version (about 31 KiB per reference) would leave less free
+    than :func:`_reserve` asks."""
     out.parent.mkdir(parents=True, exist_ok=True)
     free = shutil.disk_usage(out.parent).free
     need = n * 31 * 1024 + 100e6
-    if free - need < 8e9:
+    keep = _reserve(need)
+    if free - need < keep:
         raise SystemExit(
-            f"{free / 1e9:.1f} GB free, the version needs about {need / 1e9:.1f} GB and 8 GB "
-            "must stay free"
+            f"{free / 1e9:.1f} GB free, the version needs about {need / 1e9:.1f} GB and "
+            f"{keep / 1e9:.1f} GB must stay free"
         )
 
 

@@ -145,3 +145,11 @@ def test_stored_settings_bring_back_the_built_front_factor() -> None:
     assert not np.array_equal(index.search(q, 10)[1], before[1])
     set_search_params(index, scale.stored_settings({**front, "params": ""}))  # F from k4
     assert np.array_equal(index.search(q, 10)[1], before[1])
+
+
+def test_the_disk_reserve_scales_with_the_version() -> None:
+    # A test's small version may be written on a disk with a few GB free (CI's clean
+    # machine had 7.2 GB); a million references' 31 GB still keep 8 GB free.
+    assert scale._reserve(0.2e9) == 1e9
+    assert scale._reserve(3e9) == 3e9
+    assert scale._reserve(31e9) == 8e9
