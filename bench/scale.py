@@ -764,7 +764,7 @@ def stored_settings(info: Mapping[str, Any]) -> str:
     parts = []
     if spec is not None:
         parts.append(f"k_factor_rf={spec.k_factor}")
-        front = spec.pre_factor or spec.bit_factor
+        front = spec.pre_factor or spec.bit_factor or spec.fast_factor
         if front:
             parts.append(f"{FRONT_FACTOR}={front}")
     parts.append(str(info.get("params") or ""))

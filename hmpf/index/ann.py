@@ -83,11 +83,12 @@ def _faiss_metric(kind: MetricKind) -> int:
     }[kind]
 
 
-#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``:
+#: ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,FS<M>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``:
 #: hmpf's own tier-1 type (see :func:`projected_scan`)
 _PROJECTED = re.compile(
     r"^PCA(\d+):(\d+),(SQfp16|SQ8)"
-    r"(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs|,HNSW([1-9]\d*)|,S([1-9]\d*)(?:x(\d+))?)?"
+    r"(?:,B([1-9]\d*)(?:x(\d+))?|,PQ([1-9]\d*)x4fs|,HNSW([1-9]\d*)|,S([1-9]\d*)(?:x(\d+))?"
+    r"|,FS([1-9]\d*)(?:x(\d+))?)?"
     r"(?:,k(\d+))?$"
 )
 
@@ -105,6 +106,8 @@ class ProjectedSpec(NamedTuple):
     hnsw: int = 0  #: M: 0, or the short list comes from an HNSW graph of M links per row
     pre: int = 0  #: e: 0, or the 8-bit codes of the first e dimensions scanned in front
     pre_factor: int = 0  #: G: the scan in front keeps G x F x k rows for the short scan
+    fast: int = 0  #: M: 0, or 4-bit fast-scan PQ codes (M sub-quantizers) of the first d in front
+    fast_factor: int = 0  #: G: the fast scan in front keeps G x F x k rows for the short scan
 
 
 def projected_spec(factory: str) -> ProjectedSpec | None:
@@ -114,17 +117,20 @@ def projected_spec(factory: str) -> ProjectedSpec | None:
         return None
     bits = int(m[4] or 0)
     pre = int(m[8] or 0)
+    fast = int(m[10] or 0)
     return ProjectedSpec(
         int(m[1]),
         int(m[2]),
         m[3],
-        int(m[10] or PROJECTED_K_FACTOR),
+        int(m[12] or PROJECTED_K_FACTOR),
         bits,
         int(m[5] or PROJECTED_BIT_FACTOR) if bits else 0,
         int(m[6] or 0),
         int(m[7] or 0),
         pre,
         int(m[9] or PROJECTED_PRE_FACTOR) if pre else 0,
+        fast,
+        int(m[11] or PROJECTED_FAST_FACTOR) if fast else 0,
     )
 
 
@@ -134,6 +140,8 @@ PROJECTED_K_FACTOR = 8
 PROJECTED_BIT_FACTOR = 8
 #: candidates of the 8-bit scan in front per candidate of the short scan (its default)
 PROJECTED_PRE_FACTOR = 4
+#: candidates of the fast scan in front per candidate of the short scan (its default)
+PROJECTED_FAST_FACTOR = 8
 #: the candidate list an HNSW short list is built with (FAISS's default)
 HNSW_EF_CONSTRUCTION = 40
 
@@ -159,7 +167,8 @@ def pca_rows(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
 def projected_scan(x: np.ndarray, factory: str) -> Any:
     """A trained, empty projected-scan FAISS index for the (N, D) rows ``x`` (L2).
 
-    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>][,k<F>]``: rows
+    ``PCA<D>:<d>,<codes>[,B<b>[x<G>] | ,S<e>[x<G>] | ,FS<M>[x<G>] | ,PQ<M>x4fs | ,HNSW<M>]
+    [,k<F>]``: rows
     projected on their top ``D`` principal directions (centred on their mean) and stored as
     ``codes`` (``SQfp16``: 2 bytes a dimension; ``SQ8``: 1); a search scans every row on the
     first ``d`` of those dimensions, keeps the ``F`` x ``k`` nearest and re-ranks them on all
@@ -185,6 +194,16 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     references (``S32x4`` for GeM, ``S64x4`` for NetVLAD) it keeps the plain scan's recall
     against exact search (docs/scale.md).
 
+    With ``FS<M>``, the scan of every row in front reads FAISS's 4-bit fast-scan product
+    codes of the first ``d`` dimensions (``M`` sub-quantizers of ``d / M`` dimensions, 16
+    centroids each: ``M / 2`` bytes per row, compared by SIMD table look-ups); the ``G`` x
+    ``F`` x ``k`` nearest by them (``G`` 8 by default, set at build; the search parameter
+    ``k_factor_front``) go on to the short scan on ``d`` dimensions of the scalar codes,
+    which then compares only those. ``M / 2`` bytes more per row, read into the process (a
+    fast-scan table is not memory-mapped). Where the short scan's ``F`` x ``k`` from these
+    codes alone lost neighbours (``PQ<M>x4fs`` below), a list ``G`` times as long keeps them
+    for the scalar codes to sort out (docs/scale.md).
+
     With ``PQ<M>x4fs``, the short scan reads FAISS's 4-bit fast-scan product codes of the
     first ``d`` dimensions instead (``M`` sub-quantizers of ``d / M`` dimensions, 16
     centroids each: ``M / 2`` bytes per row, compared by SIMD table look-ups, an order of
@@ -206,7 +225,9 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     faiss = faiss_module()
     spec = projected_spec(factory)
     assert spec is not None
-    big, small, codes, k_factor, bits, bit_factor, pq, hnsw, pre, pre_factor = spec
+    big, small, codes, k_factor, bits, bit_factor, pq, hnsw, pre, pre_factor, fast, fast_factor = (
+        spec
+    )
     d = x.shape[1]
     if not small < big < d:
         raise IndexBuildError(
@@ -222,10 +243,15 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
             f"FAISS factory string {factory!r}: needs {pre} < {small} dimensions in front and "
             "a factor above 0"
         )
-    if pq and small % pq:
+    for m in (pq, fast):
+        if m and small % m:
+            raise IndexBuildError(
+                f"FAISS factory string {factory!r}: {m} sub-quantizers do not divide {small} "
+                "dimensions"
+            )
+    if fast and fast_factor < 1:
         raise IndexBuildError(
-            f"FAISS factory string {factory!r}: {pq} sub-quantizers do not divide {small} "
-            "dimensions"
+            f"FAISS factory string {factory!r}: needs a factor above 0 for the fast scan"
         )
     mean, comps = pca_rows(x, big)
     pca = faiss.LinearTransform(d, big, True)
@@ -255,6 +281,10 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
         )
         front.train(y)
         factor = pre_factor
+    elif fast:
+        front = faiss.IndexPreTransform(_leading(big, small), faiss.IndexPQFastScan(small, fast, 4))
+        front.train(y)
+        factor = fast_factor
     if front is not None:
         scan = faiss.IndexRefine(front, short)
         scan.k_factor = float(factor)
@@ -363,8 +393,8 @@ def set_search_params(index: Any, params: str) -> None:
     """Apply a FAISS ParameterSpace string (e.g. ``"nprobe=16"``, ``"efSearch=64"``).
 
     Items are separated by commas or spaces, as FAISS separates them. Also
-    ``k_factor_front=G``: a projected scan's factor ``G`` of its scan in front (``S<e>`` or
-    ``B<b>``), set at build and changeable here. FAISS's ``k_factor_rf`` sets the outer
+    ``k_factor_front=G``: a projected scan's factor ``G`` of its scan in front (``S<e>``,
+    ``FS<M>`` or ``B<b>``), set at build and changeable here. FAISS's ``k_factor_rf`` sets the outer
     ``IndexRefine``'s ``F`` only (its other names reach the indexes inside), so ``G``, the
     inner ``IndexRefine``'s factor, has this name of its own.
     """
@@ -397,7 +427,7 @@ def _set_front_factor(index: Any, value: str, params: str) -> None:
     if scan is None:
         raise IndexBuildError(
             f"FAISS search parameters {params!r}: {FRONT_FACTOR} needs a projected scan with "
-            "a scan in front (S<e> or B<b>)"
+            "a scan in front (S<e>, FS<M> or B<b>)"
         )
     scan.k_factor = factor
 

@@ -132,6 +132,9 @@ def test_stored_settings_bring_back_the_built_front_factor() -> None:
     assert scale.stored_settings({"factory": "PCA32:16,SQfp16,B64", "params": None}) == (
         "k_factor_rf=8,k_factor_front=8"
     )
+    assert scale.stored_settings({"factory": "PCA32:16,SQfp16,FS8x2", "params": ""}) == (
+        "k_factor_rf=8,k_factor_front=2"
+    )
     assert scale.stored_settings({"factory": "PCA256:64,SQfp16,k2", "params": ""}) == (
         "k_factor_rf=2"
     )

@@ -50,7 +50,15 @@ def test_spec_parsing():
         1024, 128, "SQfp16", 8, pre=64, pre_factor=4
     )
     assert projected_spec("PCA256:64,SQ8,S32x2,k4") == spec(256, 64, "SQ8", 4, pre=32, pre_factor=2)
-    assert tuple(projected_spec("PCA256:64,SQ8,S32x2,k4")) == (256, 64, "SQ8", 4, 0, 0, 0, 0, 32, 2)
+    assert tuple(projected_spec("PCA256:64,SQ8,S32x2,k4")) == (
+        (256, 64, "SQ8", 4, 0, 0, 0, 0, 32, 2, 0, 0)
+    )
+    assert projected_spec("PCA1024:128,SQfp16,FS64") == spec(
+        1024, 128, "SQfp16", 8, fast=64, fast_factor=8
+    )
+    assert projected_spec("PCA256:64,SQ8,FS32x4,k2") == spec(
+        256, 64, "SQ8", 2, fast=32, fast_factor=4
+    )
     for other in (
         "Flat",
         "IVF64,PQ8",
@@ -76,6 +84,11 @@ def test_spec_parsing():
         "PCA256:32,SQfp16,B64,S16",
         "PCA256:32,SQfp16,S16,HNSW32",
         "PCA256:32,SQfp16,k8,S16",
+        "PCA256:32,SQfp16,FS",
+        "PCA256:32,SQfp16,FS0",
+        "PCA256:32,SQfp16,FS16x",
+        "PCA256:32,SQfp16,S8,FS16",
+        "PCA256:32,SQfp16,k8,FS16",
     ):
         assert projected_spec(other) is None
 
@@ -166,6 +179,8 @@ def test_l1_methods_get_an_l2_proxy():
         ("PCA32:8,SQfp16,PQ3x4fs", "3 sub-quantizers do not divide 8"),
         ("PCA32:8,SQfp16,S8", "8 < 8 dimensions in front"),
         ("PCA32:8,SQfp16,S4x0", "factor above 0"),
+        ("PCA32:8,SQfp16,FS3", "3 sub-quantizers do not divide 8"),
+        ("PCA32:8,SQfp16,FS4x0", "factor above 0"),
     ],
 )
 def test_bad_sizes_are_build_errors(factory, match):
@@ -506,6 +521,58 @@ def test_front_factor_is_a_search_parameter(tmp_path):
 
     assert hits(1) <= hits(2) <= hits(8)
     assert hits(1) < hits(8)
+
+
+def test_fast_scan_in_front_is_the_nearest_product_codes_then_the_short_scan_then_the_ranking():
+    """``FS<M>x<G>``: brute force of each stage. The scan in front keeps the G x F x k rows
+    nearest to the query by their 4-bit product codes of the first d principal coordinates
+    (FAISS's fast scan rounds its look-up tables to 8 bits, so that list is compared by
+    overlap with brute force over the decoded codes); the short list is exactly the F x k of
+    those nearest by their fp16 codes on the first d; the rows that come back are among it
+    and ranked by their fp16 codes on all D dimensions."""
+    faiss = faiss_module()
+    x = _rows(n=3000, noise=0.3)
+    q = _rows(n=15, noise=0.3, seed=13)
+    k = 5
+    dist, ids, y, qy, scan, _index = _short_list_search("PCA32:16,SQfp16,FS8x3,k4", x, q, k)
+    front = faiss.downcast_index(scan.base_index)
+    pq = faiss.downcast_index(front.index)
+    assert isinstance(pq, faiss.IndexPQFastScan) and (pq.d, pq.M, pq.nbits) == (16, 8, 4)
+    decoded = np.stack([pq.reconstruct(i) for i in range(pq.ntotal)])
+    size = 3 * 4 * k
+    _, in_front = front.search(qy, size)
+    want = _brute(decoded, qy[:, :16], size)
+    shared = [len(np.intersect1d(a, b)) / size for a, b in zip(in_front, want, strict=True)]
+    assert np.mean(shared) >= 0.9
+    _, short_list = scan.search(qy, 4 * k)
+    y16 = y[:, :16].astype(np.float16).astype(np.float32)
+    for j in range(len(q)):
+        order = np.argsort(((y16[in_front[j]] - qy[j, :16]) ** 2).sum(1), kind="stable")
+        assert set(short_list[j]) == set(in_front[j][order[: 4 * k]])
+        assert set(ids[j]) <= set(short_list[j])
+    _assert_ranked_by_fp16_codes(dist, ids, y, qy)
+
+
+def test_fast_scan_in_front_changes_nothing_when_its_list_covers_the_map(tmp_path):
+    """With G x F x k >= N every row reaches the short scan: the plain scan's answers, also
+    after a write and a memory-mapped read; G is a search parameter, and with a list of 4 x
+    8 x 10 of 4000 rank-24 rows the fast scan keeps at least 97 % of the exact top 10, fewer
+    with G = 1."""
+    faiss = faiss_module()
+    x = _rows(n=400, noise=0.3)
+    q = _rows(n=12, noise=0.3, seed=14)
+    plain, _ = build_faiss(x, L2, "PCA24:6,SQfp16,k4")
+    front, _ = build_faiss(x, L2, "PCA24:6,SQfp16,FS3x100,k4")
+    for a, b in zip(plain.search(q, 10), front.search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    path = tmp_path / "fs.faiss"
+    faiss.write_index(front, str(path))
+    for a, b in zip(front.search(q, 10), read_faiss(path, mmap=True).search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    index, path, hits = _low_rank_hits("PCA32:16,SQfp16,FS8x4,k8", tmp_path, 15)
+    assert hits(index) >= 0.97
+    assert hits(read_faiss(path, mmap=True)) == hits(index)
+    assert hits(read_faiss(path, "k_factor_front=1")) < hits(index)
 
 
 @pytest.mark.parametrize(
