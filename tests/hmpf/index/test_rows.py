@@ -182,13 +182,17 @@ def test_lru_cache_stays_within_its_bound():
 @pytest.mark.parametrize("torch_loaded", [True, False])
 def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, monkeypatch):
     """Every float16 bit pattern (tiled past the size torch takes over) widens to numpy's
-    float32, bit for bit (NaN to NaN), with torch loaded and without."""
+    float32, bit for bit (NaN to NaN), with torch loaded and without (OpenCV, converting a
+    block at a time: a small block here, so the last one is a part)."""
     import sys
+
+    from hmpf.index import rows
 
     if torch_loaded:
         pytest.importorskip("torch")
     else:
         monkeypatch.delitem(sys.modules, "torch", raising=False)
+        monkeypatch.setattr(rows, "_WIDEN_BLOCK", 10_000)
     half = np.tile(np.arange(1 << 16, dtype=np.uint16), 2).view(np.float16).reshape(-1, 64)
     got, want = widen(half, np.float32), half.astype(np.float32)
     assert got.dtype == np.float32 and got.shape == want.shape
