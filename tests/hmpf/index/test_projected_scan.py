@@ -457,20 +457,28 @@ def test_scan_in_front_is_the_nearest_8bit_codes_then_the_short_scan_then_the_ra
     _assert_ranked_by_fp16_codes(dist, ids, y, qy)
 
 
+def _front_covering_the_map(front: str, seed: int, tmp_path) -> tuple:
+    """A projected scan with the scan in front ``front`` (its list covers the 400 rows)
+    answers as the plain scan, also after a write and a memory-mapped read: (rows, queries,
+    the plain scan, the written file)."""
+    faiss = faiss_module()
+    x = _rows(n=400, noise=0.3)
+    q = _rows(n=12, noise=0.3, seed=seed)
+    plain, _ = build_faiss(x, L2, "PCA24:6,SQfp16,k4")
+    index, _ = build_faiss(x, L2, f"PCA24:6,SQfp16,{front},k4")
+    for a, b in zip(plain.search(q, 10), index.search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    path = tmp_path / "front.faiss"
+    faiss.write_index(index, str(path))
+    for a, b in zip(index.search(q, 10), read_faiss(path, mmap=True).search(q, 10), strict=True):
+        assert np.array_equal(a, b)
+    return x, q, plain, path
+
+
 def test_scan_in_front_changes_nothing_when_its_list_covers_the_map(tmp_path):
     """With G x F x k >= N every row reaches the short scan: the plain scan's answers; the
     index survives a write and a memory-mapped read and refills block by block."""
-    faiss = faiss_module()
-    x = _rows(n=400, noise=0.3)
-    q = _rows(n=12, noise=0.3, seed=11)
-    plain, _ = build_faiss(x, L2, "PCA24:6,SQfp16,k4")
-    front, _ = build_faiss(x, L2, "PCA24:6,SQfp16,S3x100,k4")
-    for a, b in zip(plain.search(q, 10), front.search(q, 10), strict=True):
-        assert np.array_equal(a, b)
-    path = tmp_path / "s.faiss"
-    faiss.write_index(front, str(path))
-    for a, b in zip(front.search(q, 10), read_faiss(path, mmap=True).search(q, 10), strict=True):
-        assert np.array_equal(a, b)
+    x, q, plain, path = _front_covering_the_map("S3x100", 11, tmp_path)
     back = read_faiss(path)
     back.reset()
     for lo in range(0, len(x), 150):
@@ -558,17 +566,7 @@ def test_fast_scan_in_front_changes_nothing_when_its_list_covers_the_map(tmp_pat
     after a write and a memory-mapped read; G is a search parameter, and with a list of 4 x
     8 x 10 of 4000 rank-24 rows the fast scan keeps at least 97 % of the exact top 10, fewer
     with G = 1."""
-    faiss = faiss_module()
-    x = _rows(n=400, noise=0.3)
-    q = _rows(n=12, noise=0.3, seed=14)
-    plain, _ = build_faiss(x, L2, "PCA24:6,SQfp16,k4")
-    front, _ = build_faiss(x, L2, "PCA24:6,SQfp16,FS3x100,k4")
-    for a, b in zip(plain.search(q, 10), front.search(q, 10), strict=True):
-        assert np.array_equal(a, b)
-    path = tmp_path / "fs.faiss"
-    faiss.write_index(front, str(path))
-    for a, b in zip(front.search(q, 10), read_faiss(path, mmap=True).search(q, 10), strict=True):
-        assert np.array_equal(a, b)
+    _front_covering_the_map("FS3x100", 14, tmp_path)
     index, path, hits = _low_rank_hits("PCA32:16,SQfp16,FS8x4,k8", tmp_path, 15)
     assert hits(index) >= 0.97
     assert hits(read_faiss(path, mmap=True)) == hits(index)
