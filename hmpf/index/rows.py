@@ -55,7 +55,7 @@ def widen(a: np.ndarray, dtype: np.dtype) -> np.ndarray:
     torch = sys.modules.get("torch")
     if torch is not None:
         return torch.from_numpy(np.ascontiguousarray(a)).to(torch.float32).numpy()
-    import cv2
+    import cv2  # loaded on the first large half-float read only: index readers need no OpenCV
 
     flat = np.ascontiguousarray(a).reshape(-1).view(np.int16)
     out = np.empty(flat.shape, dtype=np.float32)
