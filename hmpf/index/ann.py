@@ -202,7 +202,9 @@ def projected_scan(x: np.ndarray, factory: str) -> Any:
     which then compares only those. ``M / 2`` bytes more per row, read into the process (a
     fast-scan table is not memory-mapped). Where the short scan's ``F`` x ``k`` from these
     codes alone lost neighbours (``PQ<M>x4fs`` below), a list ``G`` times as long keeps them
-    for the scalar codes to sort out (docs/scale.md).
+    for the scalar codes to sort out. On the scale bench's million references ``FS32x4``
+    (GeM, two dimensions a sub-quantizer) and ``FS128x8`` (NetVLAD, one) keep the exact top
+    100; NetVLAD with two dimensions a sub-quantizer (``FS64``) did not (docs/scale.md).
 
     With ``PQ<M>x4fs``, the short scan reads FAISS's 4-bit fast-scan product codes of the
     first ``d`` dimensions instead (``M`` sub-quantizers of ``d / M`` dimensions, 16
