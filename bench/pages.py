@@ -3422,7 +3422,8 @@ def scale_fast_scan_front(root: Path) -> str:
     )
     w = recs["write"]
     text = (
-        f"Written in {duration(w['total_s'])}, {kib1(w['bytes_per_reference'])} per reference "
+        f"The second version: written in {duration(w['total_s'])}, "
+        f"{kib1(w['bytes_per_reference'])} per reference "
         f"on disk, verified in {duration(w['checks']['verify']['seconds'])}. Against exact "
         "search (200 night_right frames, 512 rows re-scored, `F = 8`):\n\n"
         + recall
