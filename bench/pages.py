@@ -31,9 +31,10 @@ import statistics
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from hmpf.evaluation.experiments import NAMES as METHOD_TITLES
+from hmpf.index.ann import projected_spec
 from hmpf.runtime import vector_extensions
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -3171,12 +3172,12 @@ def container_measured(root: Path) -> str:
     )
 
 
-def _built_front(factory: str) -> str:
-    """The ``G`` a projected scan's factory string builds its scan in front with."""
-    m = re.search(r",F?S\d+x(\d+)", factory)
-    if m is None:
-        raise ValueError(f"{factory}: no scan in front with its G")
-    return m.group(1)
+def _front_factor(factory: str) -> int:
+    """The ``G`` a projected scan's fast scan in front is built with."""
+    spec = projected_spec(factory)
+    if spec is None or not spec.fast_factor:
+        raise ValueError(f"{factory}: no fast scan in front")
+    return spec.fast_factor
 
 
 @generator("readme.large_maps")
@@ -3185,22 +3186,15 @@ def readme_large_maps(root: Path) -> str:
     front at a million references (``bench.scale``'s records, as docs/scale.md reads them)."""
     serve = [load(root, p) for p in FRONT_1M_SERVE]
     recall = load(root, FRONT_1M["recall"])
-    small = [r for r in serve if r["references"] < 1_000_000]
-    big = [r for r in serve if r["references"] >= 1_000_000 and not r["serve"]["faiss_params"]]
-    ratio = statistics.median(r["serve"]["p50_ms"] for r in big) / statistics.median(
-        r["serve"]["p50_ms"] for r in small
-    )
-    own = slope(
-        small[0]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
-        big[0]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
-        small[0]["references"],
-        big[0]["references"],
-    )
+    runs = _front_runs(serve)
+    big = [r for r in serve if _front_name(r) == runs.fast]
+    small_refs = serve[0]["references"]
+    ratio, own = runs.ratio, runs.own
     r100 = min(
         s["recall_at_100"]
         for r in recall["recall"].values()
         for s in r["settings"]
-        if s["params"].endswith(f"k_factor_front={_built_front(r['factory'])}")
+        if s["params"].endswith(f"k_factor_front={_front_factor(r['factory'])}")
     )
     first = max(r["serve"]["first_answer_s"] for r in big)
     factories = load(root, FRONT_1M["write"])["faiss"]["factories"]
@@ -3213,7 +3207,7 @@ def readme_large_maps(root: Path) -> str:
         f"{kib1(own)} per reference of its own\n  memory, answers within {f1(first)} s after it "
         f"starts and keeps {r100:.3f} of tier 1's exact top 100; a\n  query takes "
         f"{ratio:.2f}x what it takes at "
-        f"{thousands(small[0]['references']).replace(',', ' ')} references (the median of "
+        f"{thousands(small_refs).replace(',', ' ')} references (the median of "
         f"{len(big)} interleaved runs each,\n  [the records](docs/scale.md#a-million-references-"
         "on-one-machine)). Past one machine, region shards\n  on Ray Serve (`hmpf-index shard`, "
         "`hmpf-serve shards`) answer bit for bit as the unsharded map:\n  "
@@ -3326,8 +3320,8 @@ FRONT_1M = {
     "write": f"{SCALE}/write-1M-fs128-sitting8.json",
     "recall_fs64": f"{SCALE}/recall-1M-fs64-sitting8.json",
     "recall": f"{SCALE}/recall-1M-fs128-sitting8.json",
-    "stages": tuple(f"{SCALE}/stages-sitting8-k512-fs-{run}.json" for run in "ab"),
 }
+FRONT_1M_STAGES = tuple(f"{SCALE}/stages-sitting8-k512-fs-{run}.json" for run in "ab")
 FRONT_1M_SERVE = tuple(
     f"{SCALE}/serve-{name}-k512-sitting8.json"
     for name in (
@@ -3346,13 +3340,43 @@ def _front_name(rec: dict[str, Any]) -> str:
     return "1,000,000, 8-bit scan in front, `G = 2`" if params else "1,000,000, fast scan in front"
 
 
+class _FrontRuns(NamedTuple):
+    """The fast-scan sitting's serve runs, by version (:func:`_front_name`)."""
+
+    small: str  #: the thousand-reference version (the first run)
+    fast: str  #: the million-reference one with the fast scan in front (the second run)
+    p50: dict[str, list[float]]  #: query p50s in the order run
+    server: dict[str, dict[str, list[float]]]  #: the server's stage p50s (hierarchy, extract)
+    ratio: float  #: the median p50 at a million over the median at a thousand
+    own: float  #: the replica's own memory per reference (bytes), first run against second
+
+
+def _front_runs(serve: list[dict[str, Any]]) -> _FrontRuns:
+    p50: dict[str, list[float]] = {}
+    server: dict[str, dict[str, list[float]]] = {}
+    for rec in serve:
+        name, s = _front_name(rec), rec["serve"]
+        p50.setdefault(name, []).append(s["p50_ms"])
+        for k in ("hierarchy", "extract"):
+            server.setdefault(name, {}).setdefault(k, []).append(s["server_timing_ms_p50"][k])
+    small, fast = _front_name(serve[0]), _front_name(serve[1])
+    own = slope(
+        serve[0]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
+        serve[1]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
+        serve[0]["references"],
+        serve[1]["references"],
+    )
+    ratio = statistics.median(p50[fast]) / statistics.median(p50[small])
+    return _FrontRuns(small, fast, p50, server, ratio, own)
+
+
 @generator("scale.fast_scan_front")
 def scale_fast_scan_front(root: Path) -> str:
     """``bench.scale`` and ``bench.scale_stages`` of the million-reference version with
     4-bit fast-scan codes in front (``FS<M>``), beside the 8-bit scan in front (``S<e>``,
     ``G = 2``) and the thousand-reference version, one sitting."""
-    recs = {k: load(root, v) for k, v in FRONT_1M.items() if k != "stages"}
-    stages = [load(root, p) for p in FRONT_1M["stages"]]
+    recs = {k: load(root, v) for k, v in FRONT_1M.items()}
+    stages = [load(root, p) for p in FRONT_1M_STAGES]
     serve = [load(root, p) for p in FRONT_1M_SERVE]
     rows = []
     for key, version in (("recall_fs64", "first"), ("recall", "second")):
@@ -3388,38 +3412,29 @@ def scale_fast_scan_front(root: Path) -> str:
         ["---", "---", "---:", "---:", "---:", "---:"],
     )
     vrows = []
-    p50: dict[str, list[float]] = {}
-    server: dict[str, dict[str, list[float]]] = {}
     for rec in serve:
-        s, name = rec["serve"], _front_name(rec)
-        p50.setdefault(name, []).append(s["p50_ms"])
-        ms = s["server_timing_ms_p50"]
-        for k in ("hierarchy", "extract"):
-            server.setdefault(name, {}).setdefault(k, []).append(ms[k])
-        vrows.append([name, f1(s["p50_ms"]), f1(ms["hierarchy"]), f1(ms["extract"])])
+        s, ms = rec["serve"], rec["serve"]["server_timing_ms_p50"]
+        vrows.append([_front_name(rec), f1(s["p50_ms"]), f1(ms["hierarchy"]), f1(ms["extract"])])
     serve_table = table(
         ["version (in the order run)", "query p50, ms", "server's hierarchy p50, ms",
          "server's extraction p50, ms"],
         vrows,
         ["---", "---:", "---:", "---:"],
     )  # fmt: skip
-    small, fast = _front_name(serve[0]), _front_name(serve[1])
+    runs = _front_runs(serve)
+    small, fast, p50, ratio = runs.small, runs.fast, runs.p50, runs.ratio
     med = {k: statistics.median(v) for k, v in p50.items()}
-    ratio = med[fast] / med[small]
     pairs = [
         f"{b / a:.2f}x" for a, b in zip(p50[small], p50[fast], strict=True)
     ]  # the runs of each version in the order they ran
     goal = SCALE_GOALS["p50_vs_1k"]
 
     def grew(stage: str) -> float:
-        return statistics.median(server[fast][stage]) - statistics.median(server[small][stage])
+        return statistics.median(runs.server[fast][stage]) - statistics.median(
+            runs.server[small][stage]
+        )
 
-    own = slope(
-        serve[0]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
-        serve[1]["serve"]["rss_after_queries_mib"]["RssAnon"] * MIB,
-        serve[0]["references"],
-        serve[1]["references"],
-    )
+    own = runs.own
     w = recs["write"]
     text = (
         f"The second version: written in {duration(w['total_s'])}, "
@@ -3443,8 +3458,8 @@ def scale_fast_scan_front(root: Path) -> str:
         f"* The replica's own memory: {kib2(own)} per reference (the fast-scan codes are read "
         "into the process).\n"
     )
-    sources = "".join(source(p, recs[k]) for k, p in FRONT_1M.items() if k != "stages")
-    sources += "".join(source(p, r) for p, r in zip(FRONT_1M["stages"], stages, strict=True))
+    sources = "".join(source(p, recs[k]) for k, p in FRONT_1M.items())
+    sources += "".join(source(p, r) for p, r in zip(FRONT_1M_STAGES, stages, strict=True))
     sources += "".join(source(p, r) for p, r in zip(FRONT_1M_SERVE, serve, strict=True))
     return text + sources
 
