@@ -320,8 +320,14 @@ def test_idle_connections_do_not_lock_anyone_out(tmp_path: Path) -> None:
     with LiveServer(tmp_path, max_idle_connections=limit, max_connections=8) as live:
         idle = [live.connect() for _ in range(200)]
         try:
-            time.sleep(0.3)
-            open_now = [s for s in idle if not _closed_by_server(s)]
+            # The kernel accepts all 200 at once; the server takes them from its backlog at
+            # its own pace (slower on a busy machine), so wait for it, within a bound.
+            deadline = time.monotonic() + 15
+            while True:
+                open_now = [s for s in idle if not _closed_by_server(s)]
+                if len(open_now) <= limit or time.monotonic() > deadline:
+                    break
+                time.sleep(0.1)
             assert len(open_now) <= limit, len(open_now)
             assert len(open_now) >= limit // 2  # the newest ones are kept, not all cut
             statuses = []
