@@ -282,9 +282,20 @@ def test_requests_beyond_the_limit_get_503_but_probes_are_answered(tmp_path: Pat
         try:
             for s in held:  # two uploads in progress
                 s.sendall(multipart_head("/v1/localize", 100_000) + part_head())
-            time.sleep(0.2)
-            r = httpx.post(live.url + "/v1/localize", content=b"x", timeout=5)
-            assert r.status_code == 503, r.text
+            # Until the server has begun reading both uploads, a request is answered (415);
+            # then it is refused. Wait for that, within a bound (a busy machine is slow).
+            early: list[int] = []
+
+            def refused() -> httpx.Response | None:
+                r = httpx.post(live.url + "/v1/localize", content=b"x", timeout=5)
+                if r.status_code == 503:
+                    return r
+                early.append(r.status_code)
+                return None
+
+            r = wait_for(refused, timeout=10)
+            assert r is not None and r.status_code == 503, early
+            assert set(early) <= {415}, early
             assert r.json()["error"]["code"] == "overloaded"
             assert r.headers["retry-after"] == "3"
             for probe in ("/healthz", "/readyz", "/metrics"):
