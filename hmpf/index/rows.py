@@ -58,6 +58,8 @@ def widen(a: np.ndarray, dtype: np.dtype) -> np.ndarray:
     import cv2  # loaded on the first large half-float read only: index readers need no OpenCV
 
     flat = np.ascontiguousarray(a).reshape(-1).view(np.int16)
+    if flat.size <= _WIDEN_BLOCK:  # one call, its own array: no second copy (a query's rows)
+        return cv2.convertFp16(flat[None, :]).reshape(a.shape)
     out = np.empty(flat.shape, dtype=np.float32)
     for lo in range(0, flat.size, _WIDEN_BLOCK):  # an OpenCV matrix counts in int32
         out[lo : lo + _WIDEN_BLOCK] = cv2.convertFp16(flat[None, lo : lo + _WIDEN_BLOCK])[0]

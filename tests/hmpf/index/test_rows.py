@@ -179,11 +179,11 @@ def test_lru_cache_stays_within_its_bound():
     assert cache.get("y", lambda: 5, lambda v: 10) == 5 and cache.lookup("y") == (True, 5)
 
 
-@pytest.mark.parametrize("torch_loaded", [True, False])
-def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, monkeypatch):
+@pytest.mark.parametrize("torch_loaded,block", [(True, None), (False, None), (False, 10_000)])
+def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, block, monkeypatch):
     """Every float16 bit pattern (tiled past the size torch takes over) widens to numpy's
-    float32, bit for bit (NaN to NaN), with torch loaded and without (OpenCV, converting a
-    block at a time: a small block here, so the last one is a part)."""
+    float32, bit for bit (NaN to NaN), with torch loaded and without (OpenCV: in one call,
+    and a block at a time with a small block, so the last one is a part)."""
     import sys
 
     from hmpf.index import rows
@@ -192,7 +192,8 @@ def test_widen_is_numpys_conversion_for_every_half_float(torch_loaded, monkeypat
         pytest.importorskip("torch")
     else:
         monkeypatch.delitem(sys.modules, "torch", raising=False)
-        monkeypatch.setattr(rows, "_WIDEN_BLOCK", 10_000)
+        if block is not None:
+            monkeypatch.setattr(rows, "_WIDEN_BLOCK", block)
     half = np.tile(np.arange(1 << 16, dtype=np.uint16), 2).view(np.float16).reshape(-1, 64)
     got, want = widen(half, np.float32), half.astype(np.float32)
     assert got.dtype == np.float32 and got.shape == want.shape
