@@ -111,7 +111,8 @@ def _parse(path: Path, data: object) -> list[ApiKey]:
 
 
 def add_key(path: Path, name: str, role: str) -> str:
-    """Create a key, store its hash in ``path`` (created 0600 if missing) and return the key."""
+    """Create a key, store its hash in ``path`` (created 0600 if missing) and return the key
+    (never one starting with ``-``, which a command line would take for an option)."""
     if role not in ROLES:
         raise ConfigError(f"role {role!r} is not one of {', '.join(ROLES)}")
     if not _NAME.match(name):
@@ -120,6 +121,8 @@ def add_key(path: Path, name: str, role: str) -> str:
     if any(k.name == name for k in keys):
         raise ConfigError(f"{path}: a key named {name!r} exists already")
     key = secrets.token_urlsafe(32)
+    while key.startswith("-"):  # one in 64 would read as an option: `hmpf-replay --key -X...`
+        key = secrets.token_urlsafe(32)
     keys.append(ApiKey(name, role, hash_key(key)))
     text = yaml.safe_dump({"keys": [k.__dict__ for k in keys]}, sort_keys=False)
     tmp = path.with_name(path.name + ".tmp")

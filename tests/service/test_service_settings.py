@@ -89,6 +89,18 @@ def test_keys_file_roundtrip_and_checks(tmp_path: Path) -> None:
         add_key(path, "x", "root")
 
 
+def test_a_key_never_reads_as_an_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A random key starting with ``-`` (one in 64) would be taken for an option by a command
+    line (``hmpf-replay --key -X...``): such a draw is replaced by the next one."""
+    import secrets
+
+    draws = iter(["-first", "--second", "third"])
+    monkeypatch.setattr(secrets, "token_urlsafe", lambda n: next(draws))
+    key = add_key(tmp_path / "keys.yaml", "car", "vehicle")
+    assert key == "third"
+    assert KeyStore.load(tmp_path / "keys.yaml").check("third").name == "car"
+
+
 @pytest.mark.parametrize(
     ("text", "needle"),
     [
