@@ -3492,6 +3492,8 @@ ROWS_1M_SERVE = tuple(
     for name in ("v1k-a", "v1M-fs-a", "v1M-fs-b", "v1k-b", "v1k-c", "v1M-fs-c", "v1M-fs-d", "v1k-d")
 )
 ROWS_1M_STAGES = tuple(f"{SCALE}/stages-sitting9-k512-fs-{run}.json" for run in "ab")
+#: a reload under queries of the same million-reference version, after those runs
+ROWS_1M_RELOAD = f"{SCALE}/reload-1M-fs-sitting9.json"
 
 
 @generator("scale.rows_in_cache_sized_blocks")
@@ -3504,8 +3506,11 @@ def scale_rows_in_cache_sized_blocks(root: Path) -> str:
     hier = {k: statistics.median(v["hierarchy"]) for k, v in runs.server.items()}
     extract = [x for v in runs.server.values() for x in v["extract"]]
     growth = hier[runs.fast] - hier[runs.small]
+    reload = load(root, ROWS_1M_RELOAD)
+    rl = reload["serve"]["reload"]
     sources = "".join(source(p, r) for p, r in zip(ROWS_1M_STAGES, stages, strict=True))
     sources += "".join(source(p, r) for p, r in zip(ROWS_1M_SERVE, serve, strict=True))
+    sources += source(ROWS_1M_RELOAD, reload)
     return (
         "In process, one thread, 100 frames, p50 in ms (the two versions in one order, then "
         "in the reverse one):\n\n"
@@ -3519,7 +3524,11 @@ def scale_rows_in_cache_sized_blocks(root: Path) -> str:
         f"it: the server's hierarchy grew by {f1(growth)} ms (the medians, "
         f"{f1(hier[runs.fast])} against {f1(hier[runs.small])} ms), "
         f"{_growth_ratio(runs):.2f}x the thousand-reference p50 of this sitting if "
-        "nothing else changed.\n" + sources
+        "nothing else changed.\n"
+        f"* A reload of the million-reference version under queries (one client, no retries; "
+        f"a run of its own, with {reload['arguments']['warmup']} frames of warm-up, whose "
+        f"latency is not compared): {f1(rl['reload_s'])} s, {rl['failed']} failed, "
+        f"{rl['answered_during_reload']} answered meanwhile.\n" + sources
     )
 
 
