@@ -49,7 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_version(ap)
     ap.add_argument("folder", type=Path, help="the frames, played in file order")
     ap.add_argument("--url", default="http://127.0.0.1:8000", help="the service's base URL")
-    ap.add_argument("--key", help="API key (default: HMPF_API_KEY)")
+    ap.add_argument(
+        "--key", help="API key (default: HMPF_API_KEY); one that starts with - as --key=KEY"
+    )
     ap.add_argument("--vehicle-id", default="replay", help="the vehicle's id (default: replay)")
     ap.add_argument("--start", type=int, default=0, metavar="N", help="first frame (0-based)")
     ap.add_argument("--limit", type=int, metavar="N", help="frames to send at most")

@@ -29,7 +29,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from hmpf.cli.replay import Vehicle, replay, select_frames
+from hmpf.cli.replay import Vehicle, build_parser, replay, select_frames
 from hmpf.cli.replay import main as replay_main
 from hmpf.errors import ConfigError
 from indexer.build import remove
@@ -485,6 +485,16 @@ def test_key_from_settings_and_a_key_that_cannot_be_made(
         assert "HMPF_SEQUENCE_KEY" in _error(r, 503, "sequence_unavailable")
         r = c.post("/v1/localize", files=files, headers=headers)  # single frames still work
         assert r.status_code == 200
+
+
+def test_replay_takes_a_key_that_starts_with_a_dash_written_with_equals(tmp_path: Path) -> None:
+    """Keys made before they stopped starting with ``-`` still work, as ``--key=KEY`` (what
+    the help says); ``--key -X...`` is an option to argparse, an error (exit 2)."""
+    args = build_parser().parse_args([str(tmp_path), "--key=-XIH0", "--limit", "1"])
+    assert args.key == "-XIH0"
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args([str(tmp_path), "--key", "-XIH0"])
+    assert exc.value.code == 2
 
 
 # -- end to end: a real server, restarted mid-drive, played by hmpf-replay -------------------------
