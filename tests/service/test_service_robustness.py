@@ -333,12 +333,11 @@ def test_idle_connections_do_not_lock_anyone_out(tmp_path: Path) -> None:
         try:
             # The kernel accepts all 200 at once; the server takes them from its backlog at
             # its own pace (slower on a busy machine), so wait for it, within a bound.
-            deadline = time.monotonic() + 15
-            while True:
-                open_now = [s for s in idle if not _closed_by_server(s)]
-                if len(open_now) <= limit or time.monotonic() > deadline:
-                    break
-                time.sleep(0.1)
+            def still_open() -> list[socket.socket]:
+                return [s for s in idle if not _closed_by_server(s)]
+
+            wait_for(lambda: len(still_open()) <= limit, timeout=15)
+            open_now = still_open()
             assert len(open_now) <= limit, len(open_now)
             assert len(open_now) >= limit // 2  # the newest ones are kept, not all cut
             statuses = []
