@@ -3187,7 +3187,7 @@ def readme_large_maps(root: Path) -> str:
     serve = [load(root, p) for p in ROWS_1M_SERVE]
     recall = load(root, FRONT_1M["recall"])
     runs = _front_runs(serve)
-    growth = _growth_ratio(runs)
+    growth = runs.growth_ratio()
     big = [r for r in serve if _front_name(r) == runs.fast]
     small_refs = serve[0]["references"]
     ratio, own = runs.ratio, runs.own
@@ -3351,6 +3351,20 @@ class _FrontRuns(NamedTuple):
     ratio: float  #: the median p50 at a million over the median at a thousand
     own: float  #: the replica's own memory per reference (bytes), first run against second
 
+    def median(self, version: str, stage: str) -> float:
+        """The median over a version's runs of the server's p50 of ``stage``."""
+        return statistics.median(self.server[version][stage])
+
+    def grew(self, stage: str) -> float:
+        """How much the server's median p50 of ``stage`` grew from a thousand references."""
+        return self.median(self.fast, stage) - self.median(self.small, stage)
+
+    def growth_ratio(self) -> float:
+        """The million-reference p50 over the thousand-reference one if only the hierarchy
+        had changed: (p50 + the hierarchy's growth) / p50, medians of the runs."""
+        small = statistics.median(self.p50[self.small])
+        return (small + self.grew("hierarchy")) / small
+
 
 def _front_runs(serve: list[dict[str, Any]]) -> _FrontRuns:
     p50: dict[str, list[float]] = {}
@@ -3410,31 +3424,17 @@ def _front_findings(runs: _FrontRuns) -> str:
         f"{b / a:.2f}x" for a, b in zip(p50[small], p50[fast], strict=True)
     ]  # the runs of each version in the order they ran
     goal = SCALE_GOALS["p50_vs_1k"]
-
-    def grew(stage: str) -> float:
-        return statistics.median(runs.server[fast][stage]) - statistics.median(
-            runs.server[small][stage]
-        )
-
     return (
         f"\n* **p50 at a million against a thousand references: {ratio:.2f}x** (the median "
         f"of each version's {len(p50[small])} runs, {f1(med[fast])} against {f1(med[small])} "
         f"ms; goal {goal:g}x: {'met' if ratio <= goal else 'not met'}). Run against run in "
         f"the order they ran: {', '.join(pairs)}: one run each could not have said it.\n"
         f"* What changed, in the servers' own medians: the hierarchy "
-        f"{grew('hierarchy'):+.1f} ms, and the extraction, the same work at both sizes, "
-        f"{grew('extract'):+.1f} ms.\n"
+        f"{runs.grew('hierarchy'):+.1f} ms, and the extraction, the same work at both sizes, "
+        f"{runs.grew('extract'):+.1f} ms.\n"
         f"* The replica's own memory: {kib2(runs.own)} per reference (the fast-scan codes are "
         "read into the process).\n"
     )
-
-
-def _growth_ratio(runs: _FrontRuns) -> float:
-    """The million-reference p50 over the thousand-reference one if only the hierarchy had
-    changed: (p50 + the growth of the servers' median hierarchy) / p50, medians of the runs."""
-    small = statistics.median(runs.p50[runs.small])
-    hier = {k: statistics.median(v["hierarchy"]) for k, v in runs.server.items()}
-    return (small + hier[runs.fast] - hier[runs.small]) / small
 
 
 @generator("scale.fast_scan_front")
@@ -3503,9 +3503,7 @@ def scale_rows_in_cache_sized_blocks(root: Path) -> str:
     stages = [load(root, p) for p in ROWS_1M_STAGES]
     serve = [load(root, p) for p in ROWS_1M_SERVE]
     runs = _front_runs(serve)
-    hier = {k: statistics.median(v["hierarchy"]) for k, v in runs.server.items()}
     extract = [x for v in runs.server.values() for x in v["extract"]]
-    growth = hier[runs.fast] - hier[runs.small]
     reload = load(root, ROWS_1M_RELOAD)
     rl = reload["serve"]["reload"]
     sources = "".join(source(p, r) for p, r in zip(ROWS_1M_STAGES, stages, strict=True))
@@ -3521,9 +3519,10 @@ def scale_rows_in_cache_sized_blocks(root: Path) -> str:
         + _front_findings(runs)
         + f"* The extraction, the same work at both sizes, ranged from {f1(min(extract))} to "
         f"{f1(max(extract))} ms over these runs: more than the map's size changed. Without "
-        f"it: the server's hierarchy grew by {f1(growth)} ms (the medians, "
-        f"{f1(hier[runs.fast])} against {f1(hier[runs.small])} ms), "
-        f"{_growth_ratio(runs):.2f}x the thousand-reference p50 of this sitting if "
+        f"it: the server's hierarchy grew by {f1(runs.grew('hierarchy'))} ms (the medians, "
+        f"{f1(runs.median(runs.fast, 'hierarchy'))} against "
+        f"{f1(runs.median(runs.small, 'hierarchy'))} ms), "
+        f"{runs.growth_ratio():.2f}x the thousand-reference p50 of this sitting if "
         "nothing else changed.\n"
         f"* A reload of the million-reference version under queries (one client, no retries; "
         f"a run of its own, with {reload['arguments']['warmup']} frames of warm-up, whose "
