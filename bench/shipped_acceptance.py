@@ -352,19 +352,25 @@ def fit(
     seqs: list[RoutePart],
     features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
     stay: float = STAY_P,
+    gate: tuple[str, ...] = (),
 ) -> tuple[Policy, dict[str, Any]]:
     """The pooled models of ``singles`` / ``seqs`` (on ``features``: single frame,
     sequence) and their thresholds, as a policy; ``stay``: the sequence stay threshold
-    (hysteresis), at most the entry threshold."""
+    (hysteresis), at most the entry threshold; ``gate``: the models (``single``,
+    ``sequence``) fitted with a gate (:meth:`ConfidenceModel.fit_gated`)."""
     single_features, sequence_features = features
-    model, thr, s_train = fit_pooled(singles, single_features, TARGET, outside_share=OFF_SHARE)
-    smodel, sthr, q_train = fit_pooled(seqs, sequence_features, TARGET, outside_share=OFF_SHARE)
+    model, thr, s_train = fit_pooled(
+        singles, single_features, TARGET, outside_share=OFF_SHARE, gate="single" in gate
+    )
+    smodel, sthr, q_train = fit_pooled(
+        seqs, sequence_features, TARGET, outside_share=OFF_SHARE, gate="sequence" in gate
+    )
     policy = Policy(
         model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
     )
     stay = min(stay, sthr)
     policy = replace(policy, sequence_stay_threshold=stay)
-    q_train["as_decided"] = as_decided(seqs, policy)
+    q_train["as_decided"] = as_decided(seqs, policy, gate="sequence" in gate)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
 
 
@@ -387,16 +393,17 @@ def _with_p(answers: Answers, p: np.ndarray) -> Answers:
 _IDENTITY = ConfidenceModel(("p_logit",), (0.0,), (1.0,), (1.0,), 0.0)
 
 
-def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
+def as_decided(seqs: list[RoutePart], policy: Policy, gate: bool = False) -> dict[str, Any]:
     """The sequence model's out-of-fold predictions on the training drives (five stretches
     of each route, as its threshold is chosen) decided as the service decides them
     (:func:`decide`: the stay threshold, the off-map state), and at the entry threshold
     alone (no stay). Per route: the in-map answers accepted and their precision, and the
     out-of-map ones accepted. The threshold is chosen frame by frame, without the stay;
-    this says what it gives once the stay carries an accepted estimate on."""
+    this says what it gives once the stay carries an accepted estimate on (``gate``: the
+    sequence model is a gated one)."""
     assert policy.sequence_model is not None
     pred, _, g, inside = route_out_of_fold(
-        seqs, policy.sequence_model.features, outside_share=OFF_SHARE, by="folds"
+        seqs, policy.sequence_model.features, outside_share=OFF_SHARE, by="folds", gate=gate
     )
     rules = {
         "with_stay": replace(policy, sequence_model=_IDENTITY),
@@ -424,13 +431,15 @@ def as_decided(seqs: list[RoutePart], policy: Policy) -> dict[str, Any]:
 
 
 class Recipe(NamedTuple):
-    """How the shipped models are fitted: each model's features and the sequence stay
-    threshold (at most the entry threshold). A recipe whose features include ``map_prior``
-    needs each route's prior (:func:`route_prior`)."""
+    """How the shipped models are fitted: each model's features, the sequence stay
+    threshold (at most the entry threshold) and the models fitted with a gate (``single``,
+    ``sequence``). A recipe whose features include ``map_prior`` needs each route's prior
+    (:func:`route_prior`)."""
 
     single: tuple[str, ...] = SINGLE_FEATURES
     sequence: tuple[str, ...] = SEQUENCE_FEATURES
     stay: float = STAY_P
+    gate: tuple[str, ...] = ()
 
     @property
     def features(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -441,13 +450,20 @@ class Recipe(NamedTuple):
         return "map_prior" in self.single + self.sequence
 
     @classmethod
-    def of(cls, map_prior: bool, stay: float = STAY_P) -> Recipe:
+    def of(cls, map_prior: bool, stay: float = STAY_P, gate: Iterable[str] = ()) -> Recipe:
         """The shipped features, with ``map_prior`` added to both models or not."""
         extra = ("map_prior",) if map_prior else ()
-        return cls(SINGLE_FEATURES + extra, SEQUENCE_FEATURES + extra, stay)
+        return cls(SINGLE_FEATURES + extra, SEQUENCE_FEATURES + extra, stay, tuple(gate))
 
     def describe(self) -> dict[str, Any]:
-        return {"single": list(self.single), "sequence": list(self.sequence), "stay": self.stay}
+        out: dict[str, Any] = {
+            "single": list(self.single),
+            "sequence": list(self.sequence),
+            "stay": self.stay,
+        }
+        if self.gate:
+            out["gate"] = list(self.gate)
+        return out
 
 
 #: What made the models shipped before recipes were recorded.
@@ -462,7 +478,9 @@ def shipped_recipe(preset: str) -> Recipe:
     r = doc.get("recipe")
     if not r:
         return DEFAULT_RECIPE
-    return Recipe(tuple(r["single"]), tuple(r["sequence"]), float(r["stay"]))
+    return Recipe(
+        tuple(r["single"]), tuple(r["sequence"]), float(r["stay"]), tuple(r.get("gate", ()))
+    )
 
 
 def route_priors(
@@ -510,7 +528,15 @@ def held_out(
     out = []
     for i in range(len(parts)):
         rest = [p for j, p in enumerate(parts) if j != i]
-        out.append(fit([p[0] for p in rest], [p[1] for p in rest], recipe.features, recipe.stay))
+        out.append(
+            fit(
+                [p[0] for p in rest],
+                [p[1] for p in rest],
+                recipe.features,
+                recipe.stay,
+                recipe.gate,
+            )
+        )
     return out
 
 
@@ -681,7 +707,9 @@ def shipped_report(
 ) -> tuple[Policy, dict[str, Any]]:
     """The shipped fit (every route's training part) and its figures on every test part
     and whole traverse."""
-    policy, train = fit([p[0] for p in parts], [p[1] for p in parts], recipe.features, recipe.stay)
+    policy, train = fit(
+        [p[0] for p in parts], [p[1] for p in parts], recipe.features, recipe.stay, recipe.gate
+    )
     report: dict[str, Any] = {"train": train, "thresholds": policy.describe()}
     for route in routes:
         report[route.name] = {
@@ -747,6 +775,15 @@ def with_filter(config: HierarchyConfig, settings: Sequence[str]) -> HierarchyCo
     return config.model_copy(update={"sequence": seq})
 
 
+def gate_models(text: str) -> tuple[str, ...]:
+    """``--gate``'s models: ``single``, ``sequence``, both, or none."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip() and n.strip() != "none")
+    bad = [n for n in names if n not in ("single", "sequence")]
+    if bad:
+        raise SystemExit(f"--gate: unknown models {bad} (single, sequence, none)")
+    return names
+
+
 def main() -> int:
     ap = parser(__doc__)
     add_route_arguments(ap)
@@ -764,6 +801,13 @@ def main() -> int:
         type=float,
         default=None,
         help=f"sequence stay threshold; default: the shipped models' (else {STAY_P})",
+    )
+    ap.add_argument(
+        "--gate",
+        default=None,
+        metavar="MODELS",
+        help="comma-separated models fitted with a gate, P(in map) x P(right | in map): "
+        "single, sequence, or none; default: as the preset's shipped models",
     )
     ap.add_argument(
         "--filter",
@@ -787,6 +831,7 @@ def main() -> int:
     recipe = Recipe.of(
         shipped.needs_prior if args.map_prior is None else args.map_prior,
         shipped.stay if args.stay is None else args.stay,
+        shipped.gate if args.gate is None else gate_models(args.gate),
     )
     routes, priors = recipe_routes(
         config, args.routes.split(","), cache, args.foreign, args.nordland_frames, recipe

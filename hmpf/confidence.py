@@ -84,9 +84,12 @@ ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES
 #: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
 LOGIT_CLIP = 20.0
 
-#: ``format`` and ``version`` of :meth:`ConfidenceModel.to_dict`.
+#: ``format`` and ``version`` of :meth:`ConfidenceModel.to_dict`: version 2 is a model with a
+#: :attr:`~ConfidenceModel.gate`; a model without one is still written as version 1, so that
+#: an hmpf that reads only version 1 reads it, and refuses (does not misread) a gated one.
 FORMAT = "hmpf-confidence"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_VERSIONS = (1, 2)
 
 #: Predictions are kept this far from 0 and 1: a model of a few coefficients is never
 #: certain, and a threshold of 1.0 then accepts nothing.
@@ -551,6 +554,13 @@ class ConfidenceModel:
         coef: per feature, the coefficient on the standardised feature.
         intercept: the intercept.
         l2: the regularisation strength it was fitted with.
+        gate: None, or a second model (over some of :attr:`features`) of the probability
+            that the query's place is in the map at all. Then this model is that of the
+            answer being right *given* an in-map query, and :meth:`predict` gives their
+            product, ``P(right) = P(in map) * P(right | in map)`` (a right answer is an
+            in-map one): each part is fitted on what tells it (:func:`fit_gated`), so a
+            frame of a place the map does not hold gets a low probability from the gate
+            however alike the map's own night frames look to the other part.
     """
 
     features: tuple[str, ...]
@@ -559,6 +569,15 @@ class ConfidenceModel:
     coef: tuple[float, ...]
     intercept: float
     l2: float = 1.0
+    gate: ConfidenceModel | None = None
+
+    def __post_init__(self) -> None:
+        if self.gate is not None:
+            if self.gate.gate is not None:
+                raise ModelError("a gate has no gate of its own")
+            extra = [n for n in self.gate.features if n not in self.features]
+            if extra:
+                raise ModelError(f"the gate reads features the model does not: {extra}")
 
     @classmethod
     def fit(
@@ -646,8 +665,56 @@ class ConfidenceModel:
             float(l2),
         )
 
+    @classmethod
+    def fit_gated(
+        cls,
+        X: np.ndarray,
+        y: np.ndarray,
+        feature_names: Sequence[str],
+        inside: np.ndarray,
+        *,
+        l2: float = 1.0,
+        sample_weight: np.ndarray | None = None,
+        offsets: Sequence[str] = (),
+    ) -> ConfidenceModel:
+        """A model with a :attr:`gate`: the gate fitted on every row, its label whether the
+        row's query is in the map (``inside``), over the features that are not
+        ``offsets`` (an offset says how often a map's in-map answers are right, not
+        whether a query is in it); the model itself on the in-map rows alone, with
+        ``offsets``. Weights and ``l2`` as :meth:`fit` (the gate's ``P(in map)`` is for a
+        stream where the off-map rows weigh their share of ``sample_weight``).
+
+        Raises:
+            ModelError: as :meth:`fit`; or ``inside`` not (n,) booleans, or all True or
+                all False (no gate can be fitted).
+        """
+        X = np.asarray(X, dtype=np.float64)
+        inside = np.asarray(inside)
+        if inside.dtype != bool or inside.shape != (X.shape[0],):
+            raise ModelError(f"inside must be ({X.shape[0]},) booleans")
+        if inside.all() or not inside.any():
+            raise ModelError("a gate needs in-map and off-map rows")
+        names = tuple(str(n) for n in feature_names)
+        sw = np.ones(len(inside)) if sample_weight is None else np.asarray(sample_weight)
+        kept = [i for i, n in enumerate(names) if n not in set(offsets)]
+        if not kept:
+            raise ModelError("a gate needs a feature that is not an offset")
+        gate = cls.fit(
+            X[:, kept], inside.astype(np.float64), [names[i] for i in kept], l2=l2, sample_weight=sw
+        )
+        main = cls.fit(
+            X[inside],
+            np.asarray(y)[inside],
+            names,
+            l2=l2,
+            sample_weight=sw[inside],
+            offsets=offsets,
+        )
+        return cls(main.features, main.mean, main.scale, main.coef, main.intercept, l2, gate)
+
     def logit(self, X: np.ndarray) -> np.ndarray:
-        """(n,) log-odds of (n, d) features (columns in :attr:`features` order)."""
+        """(n,) log-odds of (n, d) features (columns in :attr:`features` order): of the
+        product with the gate's probability where there is a gate."""
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
             X = X[None, :]
@@ -659,7 +726,11 @@ class ConfidenceModel:
         if not np.isfinite(X).all():
             raise ModelError("non-finite feature values: no probability can be given")
         Z = (X - np.asarray(self.mean)) / np.asarray(self.scale)
-        return np.asarray(Z @ np.asarray(self.coef) + self.intercept, dtype=np.float64)
+        t = np.asarray(Z @ np.asarray(self.coef) + self.intercept, dtype=np.float64)
+        if self.gate is None:
+            return t
+        cols = [self.features.index(n) for n in self.gate.features]
+        return _and_logit(t, self.gate.logit(X[:, cols]))
 
     def predict(self, x: Mapping[str, float] | np.ndarray) -> float | np.ndarray:
         """Probability that the answer is right, in [1e-12, 1 - 1e-12].
@@ -678,10 +749,10 @@ class ConfidenceModel:
         return np.clip(_sigmoid(self.logit(np.asarray(x))), _EPS, 1 - _EPS)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able numbers, with the format and its version."""
-        return {
+        """Plain JSON-able numbers, with the format and its version (1 without a gate)."""
+        out: dict[str, Any] = {
             "format": FORMAT,
-            "version": FORMAT_VERSION,
+            "version": 1 if self.gate is None else FORMAT_VERSION,
             "features": list(self.features),
             "mean": list(self.mean),
             "scale": list(self.scale),
@@ -689,6 +760,9 @@ class ConfidenceModel:
             "intercept": self.intercept,
             "l2": self.l2,
         }
+        if self.gate is not None:
+            out["gate"] = self.gate.to_dict()
+        return out
 
     @classmethod
     def from_dict(
@@ -710,11 +784,13 @@ class ConfidenceModel:
         if data.get("format") != FORMAT:
             raise ModelError(f"not a confidence model (format {data.get('format')!r})")
         version = data.get("version")
-        if version != FORMAT_VERSION:
+        if isinstance(version, bool) or version not in _VERSIONS:
             raise ModelError(
                 f"confidence model version {version!r} is not supported (this hmpf reads "
-                f"version {FORMAT_VERSION}); recalibrate"
+                f"versions {', '.join(map(str, _VERSIONS))}); recalibrate"
             )
+        if "gate" in data and version == 1:
+            raise ModelError("a version 1 confidence model has no gate")
         keys = ("features", "mean", "scale", "coef", "intercept")
         missing_keys = [k for k in keys if k not in data]
         if missing_keys:
@@ -748,7 +824,12 @@ class ConfidenceModel:
         if any(s <= 0 for s in scale):
             raise ModelError("'scale' must be positive")
         l2 = _number(data.get("l2", 1.0), "l2")
-        return cls(names, mean, scale, coef, _number(data["intercept"], "intercept"), l2)
+        gate = None
+        if data.get("gate") is not None:
+            gate = cls.from_dict(data["gate"])
+            if gate.gate is not None:
+                raise ModelError("a gate has no gate of its own")
+        return cls(names, mean, scale, coef, _number(data["intercept"], "intercept"), l2, gate)
 
 
 def _number(x: Any, key: str) -> float:
@@ -757,6 +838,20 @@ def _number(x: Any, key: str) -> float:
     if not math.isfinite(x):
         raise ModelError(f"'{key}' holds a non-finite number {x!r}")
     return float(x)
+
+
+def _log_sigmoid(t: np.ndarray) -> np.ndarray:
+    """``log(1 / (1 + exp(-t)))``, without overflow."""
+    return -np.logaddexp(0.0, -t)
+
+
+def _and_logit(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Log-odds of ``sigmoid(a) * sigmoid(b)`` (two probabilities given as log-odds),
+    finite and accurate at both ends."""
+    log_p = _log_sigmoid(a) + _log_sigmoid(b)
+    # log(1 - p): expm1 keeps it accurate where p is near 0, and p < 1 for finite a, b.
+    log_q = np.log(-np.expm1(np.minimum(log_p, -1e-300)))
+    return np.asarray(log_p - log_q, dtype=np.float64)
 
 
 def _sigmoid(t: np.ndarray) -> np.ndarray:

@@ -86,9 +86,21 @@ OUTSIDE_SHARE = 0.1
 OFFSET_FEATURES = frozenset({"map_prior"})
 
 
-def _fit(X: np.ndarray, y: np.ndarray, names: Sequence[str], w: np.ndarray) -> ConfidenceModel:
-    """The models' one fit: L2 :data:`L2`, weights ``w``, :data:`OFFSET_FEATURES` as offsets."""
+def _fit(
+    X: np.ndarray,
+    y: np.ndarray,
+    names: Sequence[str],
+    w: np.ndarray,
+    inside: np.ndarray | None = None,
+) -> ConfidenceModel:
+    """The models' one fit: L2 :data:`L2`, weights ``w``, :data:`OFFSET_FEATURES` as offsets;
+    with ``inside`` (which rows are in-map answers), a gated model
+    (:meth:`ConfidenceModel.fit_gated`) where there are rows of both kinds."""
     offsets = [n for n in names if n in OFFSET_FEATURES]
+    if inside is not None and inside.any() and not inside.all():
+        return ConfidenceModel.fit_gated(
+            X, y, names, inside, l2=L2, sample_weight=w, offsets=offsets
+        )
     return ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w, offsets=offsets)
 
 
@@ -264,9 +276,11 @@ def fit_acceptance(
     outside: Answers | None = None,
     *,
     outside_share: float = OUTSIDE_SHARE,
+    gate: bool = False,
 ) -> tuple[ConfidenceModel, float, dict[str, Any]]:
     """The model fitted on ``answers`` and its threshold for ``target`` precision, chosen on
-    out-of-fold predictions; with the training figures at that threshold.
+    out-of-fold predictions; with the training figures at that threshold. ``gate``: a gated
+    model (:meth:`ConfidenceModel.fit_gated`) where there are ``outside`` answers.
 
     With ``outside`` (answers to queries from places the map does not hold,
     :func:`outside_answers`): they join the fit as wrong answers weighing together
@@ -297,7 +311,8 @@ def fit_acceptance(
         query = np.concatenate([query, outside.query])
     else:
         n_out = 0
-    model = _fit(X, y, names, w)
+    inside = np.arange(len(y)) < n_in if gate else None
+    model = _fit(X, y, names, w, inside)
     groups = _folds(query)
     oof = np.empty(len(y))
     for g in np.unique(groups):
@@ -305,7 +320,7 @@ def fit_acceptance(
         if y[~hold].min() == y[~hold].max():  # a fold's complement with one class
             oof[hold] = model.predict(X[hold])
             continue
-        fold = _fit(X[~hold], y[~hold], names, w[~hold])
+        fold = _fit(X[~hold], y[~hold], names, w[~hold], None if inside is None else inside[~hold])
         oof[hold] = fold.predict(X[hold])
     floor = outside_floor(oof[n_in:], 1.0 - target) if n_out else 0.0
     threshold = threshold_for_precision(oof[:n_in], answers.correct, target, floor=floor)
@@ -469,6 +484,7 @@ def route_out_of_fold(
     *,
     outside_share: float = OUTSIDE_SHARE,
     by: str = "routes",
+    gate: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Out-of-fold predictions of every training answer. ``by="routes"``: each route's
     answers predicted by the model fitted on the other routes (leave one route out);
@@ -495,7 +511,7 @@ def route_out_of_fold(
         hold = groups == r
         if y[~hold].min() == y[~hold].max():
             raise ModelError("a fold's other routes hold only right or only wrong answers")
-        model = _fit(X[~hold], y[~hold], names, w[~hold])
+        model = _fit(X[~hold], y[~hold], names, w[~hold], inside[~hold] if gate else None)
         oof[hold] = model.predict(X[hold])
     return oof, y, g, inside
 
@@ -508,19 +524,22 @@ def fit_pooled(
     outside_share: float = OUTSIDE_SHARE,
     outside_floor_rate: float | None = None,
     oof: str = "folds",
+    gate: bool = False,
 ) -> tuple[ConfidenceModel, float, dict[str, Any]]:
     """One model over several routes' training answers (each route weighing alike), its
     threshold for ``target`` precision chosen on out-of-fold predictions (``oof``, see
     :func:`route_out_of_fold`: stretches of each route, or leave one route out), and, with
     ``outside_floor_rate``, bounded so that at most that share of the out-of-map
-    answers are accepted; with the training figures at that threshold."""
+    answers are accepted; with the training figures at that threshold. ``gate``: a gated
+    model (:meth:`~hmpf.confidence.ConfidenceModel.fit_gated`), the out-of-map answers
+    teaching its gate."""
     if len(parts) < 2:
         raise ModelError("a pooled fit needs at least two routes")
     X, y, w, _, inside = _pooled(parts, names, outside_share)
     if y.min() == y.max():
         raise ModelError("the training answers are all right or all wrong")
-    model = _fit(X, y, names, w)
-    pred, _, _, _ = route_out_of_fold(parts, names, outside_share=outside_share, by=oof)
+    model = _fit(X, y, names, w, inside if gate else None)
+    pred, _, _, _ = route_out_of_fold(parts, names, outside_share=outside_share, by=oof, gate=gate)
     bound = (~inside).any() and outside_floor_rate is not None
     floor = outside_floor(pred[~inside], float(outside_floor_rate or 0.0)) if bound else 0.0
     threshold = threshold_for_precision(pred[inside], y[inside].astype(bool), target, floor=floor)

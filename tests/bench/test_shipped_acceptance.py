@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from hmpf.confidence import ConfidenceModel
 from hmpf.config import AcceptanceSettings, load_config
 from hmpf.errors import HmpfError
 from hmpf.evaluation.acceptance import Answers, RoutePart
@@ -107,6 +108,43 @@ def test_a_recipe_with_the_prior_fits_it_as_an_offset_with_its_stay(sa, tmp_path
     assert sa.shipped_recipe("p") == recipe
     plain = sa.write_shipped("p", load_config("single-tier"), routes, policy, sa.DEFAULT_RECIPE)
     assert "map_prior_fallback" not in json.loads(plain.read_text())["acceptance"]
+
+
+def test_a_gated_recipe_fits_each_model_asked_with_its_gate(sa, tmp_path, monkeypatch):
+    from hmpf.evaluation.acceptance import _pooled  # the rows a pooled fit reads
+
+    rng = np.random.default_rng(4)
+    parts = []
+    for name, prior in (("a", 1.2), ("b", 1.1), ("c", -2.0)):
+        inside = _answers(sa, rng.random(200) < 0.7, rng, 1.5)
+        outside = _answers(sa, np.zeros(60, bool), rng, -0.5)
+        for f in inside.features + outside.features:
+            f["map_prior"] = prior
+        parts.append(RoutePart(name, inside, outside))
+    recipe = sa.Recipe.of(True, 0.9, gate=("single",))
+    assert recipe.describe()["gate"] == ["single"] and "gate" not in sa.Recipe.of(True).describe()
+    policy, _ = sa.fit(parts, parts, recipe.features, recipe.stay, recipe.gate)
+    assert policy.sequence_model is not None and policy.sequence_model.gate is None
+    model = policy.model
+    assert model is not None and model.gate is not None
+    assert "map_prior" not in model.gate.features  # the prior is not evidence of being in it
+    # the same as fitting the pooled rows' gate and in-map model by hand
+    X, y, w, _, inside = _pooled(parts, recipe.single, sa.OFF_SHARE)
+    want = ConfidenceModel.fit_gated(
+        X, y, recipe.single, inside, sample_weight=w, offsets=["map_prior"]
+    )
+    np.testing.assert_allclose(model.predict(X), want.predict(X), rtol=1e-12)
+    # the shipped file records the gate, and the folds are refitted with it
+    monkeypatch.setattr(sa, "ROOT", tmp_path)
+    folder = tmp_path / "hmpf" / "presets" / "acceptance"
+    folder.mkdir(parents=True)
+    (folder / "p.json").write_text(json.dumps({"recipe": recipe.describe()}))
+    assert sa.shipped_recipe("p") == recipe
+    assert all(f.model.gate is not None for f, _ in sa.held_out([(p, p) for p in parts], recipe))
+    assert sa.gate_models("single,sequence") == ("single", "sequence")
+    assert sa.gate_models("none") == ()
+    with pytest.raises(SystemExit, match="unknown"):
+        sa.gate_models("tier1")
 
 
 def test_filter_settings_are_tried_over_the_preset(sa):

@@ -290,7 +290,8 @@ def test_predict_is_a_probability() -> None:
 def test_round_trip_through_json() -> None:
     m = fitted()
     data = json.loads(json.dumps(m.to_dict()))
-    assert data["version"] == FORMAT_VERSION and data["features"] == list(m.features)
+    # without a gate a model is written as version 1, which every hmpf reads
+    assert data["version"] == 1 and data["features"] == list(m.features)
     back = ConfidenceModel.from_dict(data, expected=["agreement", "margin", "quality"])
     assert back == m
     X = np.random.default_rng(0).normal(size=(5, 3))
@@ -310,7 +311,9 @@ def _broken(**changes: object) -> dict[str, object]:
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        (_broken(version=2), "version 2"),
+        (_broken(version=3), "version 3"),
+        (_broken(version=True), "version True"),
+        (_broken(gate=fitted().to_dict()), "version 1 confidence model has no gate"),
         (_broken(version=KeyError), "version None"),
         (_broken(format="something else"), "not a confidence model"),
         (_broken(coef=KeyError), "lacks coef"),
@@ -551,3 +554,90 @@ def test_a_profile_that_knows_its_maps_prior_gives_every_answer_map_prior() -> N
         safe.with_map_prior(None)
     assert safe.describe()["map_prior_fallback"] == -2.5
     assert Policy(2.0, map_prior_fallback=-2.5).describe()["map_prior_fallback"] is None
+
+
+# -- the gated model: P(in map) x P(right | in map) ---------------------------------------------
+
+
+def gated_data(n: int = 600, seed: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows over (quality, ref_z, map_prior): in-map rows (ref_z high) right by quality,
+    off-map rows (ref_z low) all wrong, whatever their quality."""
+    rng = np.random.default_rng(seed)
+    inside = rng.random(n) < 0.8
+    quality = rng.normal(size=n)
+    ref_z = np.where(inside, 2.0, -1.0) + rng.normal(size=n)
+    prior = np.where(np.arange(n) % 2 == 0, 1.2, -2.3)
+    right = inside & (rng.random(n) < 1 / (1 + np.exp(-(2 * quality + prior))))
+    return np.column_stack([quality, ref_z, prior]), right, inside
+
+
+GATED = ["quality", "ref_z", "map_prior"]
+
+
+def test_a_gated_model_is_its_two_fits_multiplied() -> None:
+    X, y, inside = gated_data()
+    w = np.where(inside, 1.0, 0.5)
+    m = ConfidenceModel.fit_gated(
+        X, y, GATED, inside, l2=0.5, sample_weight=w, offsets=["map_prior"]
+    )
+    # the gate: every row, labelled in map or not, over the features that are not offsets
+    gate = ConfidenceModel.fit(X[:, :2], inside, GATED[:2], l2=0.5, sample_weight=w)
+    # the model: the in-map rows alone, with the offset
+    main = ConfidenceModel.fit(
+        X[inside], y[inside], GATED, l2=0.5, sample_weight=w[inside], offsets=["map_prior"]
+    )
+    assert m.gate is not None and m.gate.features == gate.features == ("quality", "ref_z")
+    for got, ref in ((m.gate, gate), (m, main)):
+        assert got.features == ref.features
+        for key in ("mean", "scale", "coef", "intercept"):
+            np.testing.assert_allclose(getattr(got, key), getattr(ref, key), rtol=1e-9)
+    want = gate.predict(X[:, :2]) * main.predict(X)
+    np.testing.assert_allclose(m.predict(X), want, rtol=1e-12)
+    one = dict(zip(GATED, X[0], strict=True))
+    assert m.predict(one) == pytest.approx(float(want[0]), rel=1e-12)
+    # off-map rows now get a low probability from the gate
+    assert float(np.mean(m.predict(X[~inside]))) < 0.5 * float(np.mean(main.predict(X[~inside])))
+
+
+def test_the_product_s_log_odds_stay_finite_and_exact() -> None:
+    from hmpf.confidence import _and_logit  # the helper under test
+
+    a = np.array([-800.0, -30.0, -2.0, 0.0, 1.5, 30.0, 800.0, 40.0])
+    b = np.array([3.0, 0.5, -1.0, 0.0, 2.5, 35.0, 800.0, -800.0])
+    t = _and_logit(a, b)
+    assert np.isfinite(t).all()
+    # where floats hold both probabilities, the log-odds are those of their product
+    mid = slice(1, 5)
+    p = 1 / (1 + np.exp(-a[mid])) / (1 + np.exp(-b[mid]))
+    np.testing.assert_allclose(t[mid], np.log(p / (1 - p)), rtol=1e-9)
+    # both near certain: log-odds of 1 - (e^-30 + e^-35) approx, not inf
+    assert t[5] == pytest.approx(-math.log(math.exp(-30) + math.exp(-35)), rel=1e-6)
+    assert t[6] > 500 and t[7] < -700 and t[0] < -700
+
+
+def test_a_gated_model_round_trips_as_version_2() -> None:
+    X, y, inside = gated_data()
+    m = ConfidenceModel.fit_gated(X, y, GATED, inside, offsets=["map_prior"])
+    data = json.loads(json.dumps(m.to_dict()))
+    assert data["version"] == FORMAT_VERSION == 2 and data["gate"]["features"] == GATED[:2]
+    back = ConfidenceModel.from_dict(data, expected=GATED)
+    assert back == m
+    np.testing.assert_array_equal(back.predict(X), m.predict(X))
+    # a gate with a gate, or one that reads what the model does not: refused
+    data["gate"] = data["gate"] | {"version": 2, "gate": data["gate"]}
+    with pytest.raises(ModelError, match="no gate of its own"):
+        ConfidenceModel.from_dict(data)
+    stray = m.to_dict()
+    stray["gate"]["features"] = ["quality", "margin"]
+    with pytest.raises(ModelError, match="the model does not"):
+        ConfidenceModel.from_dict(stray)
+
+
+def test_a_gate_needs_both_kinds_of_rows() -> None:
+    X, y, inside = gated_data()
+    with pytest.raises(ModelError, match="in-map and off-map"):
+        ConfidenceModel.fit_gated(X, y, GATED, np.ones(len(y), bool))
+    with pytest.raises(ModelError, match="booleans"):
+        ConfidenceModel.fit_gated(X, y, GATED, inside.astype(int))
+    with pytest.raises(ModelError, match="not an offset"):
+        ConfidenceModel.fit_gated(X[:, 2:], y, GATED[2:], inside, offsets=["map_prior"])
