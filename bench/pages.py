@@ -489,6 +489,46 @@ def confidence_shipped(root: Path) -> str:
     )
 
 
+GATED_SINGLE = "docs/experiments/acceptance/gated_single_not_shipped.json"
+GATED_BASE = "docs/experiments/acceptance/default_beside_gated.json"
+
+
+@generator("acceptance.gated_single")
+def acceptance_gated_single(root: Path) -> str:
+    """``python -m bench.shipped_acceptance --gate single --single-share 0.2 --single-extra
+    ref_z_low`` beside the shipped recipe, run on the same machine the same day: the
+    single-frame figures (the sequence model is fitted as before)."""
+    runs = (
+        ("shipped recipe", load(root, GATED_BASE)),
+        ("gated + ref_z_low", load(root, GATED_SINGLE)),
+    )
+    rows = []
+    for models, label in (("folds", "held out"), ("shipped", "shipped")):
+        for route in ROUTES:
+            for name, data in runs:
+                r = data[models][route]
+                s, w = r["single"], r["whole"]["single"]
+                rows.append(
+                    [
+                        f"{route} ({label})",
+                        name,
+                        accepted(s),
+                        f3(s["ece"]),
+                        f3(r["foreign"]["single_mean_p"]),
+                        accepted(w),
+                    ]
+                )
+    header = [
+        "route, test part (models)",
+        "single-frame model",
+        "accepted (precision)",
+        "ECE, in the map",
+        "another route's frames: mean p_correct",
+        "whole traverse: accepted (precision)",
+    ]
+    return table(header, rows) + source(GATED_BASE, runs[0][1]) + source(GATED_SINGLE, runs[1][1])
+
+
 @generator("sequence.test_parts")
 def sequence_test_parts(root: Path) -> str:
     data = load(root, SEQUENCE)

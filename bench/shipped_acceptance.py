@@ -59,7 +59,13 @@ import numpy as np
 
 from bench.harness import ROOT, Parser, add_json, parser, provenance, write_json, write_record
 from hmpf.acceptance import STAY_P, Policy
-from hmpf.confidence import ConfidenceModel, ReferenceProfile, expected_calibration_error
+from hmpf.confidence import (
+    FEATURES,
+    PROFILE_FEATURES,
+    ConfidenceModel,
+    ReferenceProfile,
+    expected_calibration_error,
+)
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -353,14 +359,17 @@ def fit(
     features: tuple[tuple[str, ...], tuple[str, ...]] = (SINGLE_FEATURES, SEQUENCE_FEATURES),
     stay: float = STAY_P,
     gate: tuple[str, ...] = (),
+    single_share: float = OFF_SHARE,
 ) -> tuple[Policy, dict[str, Any]]:
     """The pooled models of ``singles`` / ``seqs`` (on ``features``: single frame,
     sequence) and their thresholds, as a policy; ``stay``: the sequence stay threshold
     (hysteresis), at most the entry threshold; ``gate``: the models (``single``,
-    ``sequence``) fitted with a gate (:meth:`ConfidenceModel.fit_gated`)."""
+    ``sequence``) fitted with a gate (:meth:`ConfidenceModel.fit_gated`);
+    ``single_share``: the single-frame model's share of off-map answers (the sequence
+    model's is :data:`OFF_SHARE`)."""
     single_features, sequence_features = features
     model, thr, s_train = fit_pooled(
-        singles, single_features, TARGET, outside_share=OFF_SHARE, gate="single" in gate
+        singles, single_features, TARGET, outside_share=single_share, gate="single" in gate
     )
     smodel, sthr, q_train = fit_pooled(
         seqs, sequence_features, TARGET, outside_share=OFF_SHARE, gate="sequence" in gate
@@ -432,28 +441,43 @@ def as_decided(seqs: list[RoutePart], policy: Policy, gate: bool = False) -> dic
 
 class Recipe(NamedTuple):
     """How the shipped models are fitted: each model's features, the sequence stay
-    threshold (at most the entry threshold) and the models fitted with a gate (``single``,
-    ``sequence``). A recipe whose features include ``map_prior`` needs each route's prior
-    (:func:`route_prior`)."""
+    threshold (at most the entry threshold), the models fitted with a gate (``single``,
+    ``sequence``) and the single-frame model's share of off-map answers. A recipe whose
+    features include ``map_prior`` needs each route's prior (:func:`route_prior`)."""
 
     single: tuple[str, ...] = SINGLE_FEATURES
     sequence: tuple[str, ...] = SEQUENCE_FEATURES
     stay: float = STAY_P
     gate: tuple[str, ...] = ()
+    single_share: float = OFF_SHARE
 
     @property
     def features(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
         return self.single, self.sequence
 
     @property
+    def single_extra(self) -> tuple[str, ...]:
+        """The single-frame model's features beyond :data:`SINGLE_FEATURES` and the prior."""
+        return tuple(f for f in self.single if f not in SINGLE_FEATURES and f != "map_prior")
+
+    @property
     def needs_prior(self) -> bool:
         return "map_prior" in self.single + self.sequence
 
     @classmethod
-    def of(cls, map_prior: bool, stay: float = STAY_P, gate: Iterable[str] = ()) -> Recipe:
-        """The shipped features, with ``map_prior`` added to both models or not."""
+    def of(
+        cls,
+        map_prior: bool,
+        stay: float = STAY_P,
+        gate: Iterable[str] = (),
+        single_share: float = OFF_SHARE,
+        single_extra: Iterable[str] = (),
+    ) -> Recipe:
+        """The shipped features, with ``map_prior`` added to both models or not, and
+        ``single_extra`` to the single-frame model's."""
         extra = ("map_prior",) if map_prior else ()
-        return cls(SINGLE_FEATURES + extra, SEQUENCE_FEATURES + extra, stay, tuple(gate))
+        single = SINGLE_FEATURES + tuple(single_extra) + extra
+        return cls(single, SEQUENCE_FEATURES + extra, stay, tuple(gate), single_share)
 
     def describe(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -463,6 +487,8 @@ class Recipe(NamedTuple):
         }
         if self.gate:
             out["gate"] = list(self.gate)
+        if self.single_share != OFF_SHARE:
+            out["single_share"] = self.single_share
         return out
 
 
@@ -479,7 +505,11 @@ def shipped_recipe(preset: str) -> Recipe:
     if not r:
         return DEFAULT_RECIPE
     return Recipe(
-        tuple(r["single"]), tuple(r["sequence"]), float(r["stay"]), tuple(r.get("gate", ()))
+        tuple(r["single"]),
+        tuple(r["sequence"]),
+        float(r["stay"]),
+        tuple(r.get("gate", ())),
+        float(r.get("single_share", OFF_SHARE)),
     )
 
 
@@ -528,16 +558,23 @@ def held_out(
     out = []
     for i in range(len(parts)):
         rest = [p for j, p in enumerate(parts) if j != i]
-        out.append(
-            fit(
-                [p[0] for p in rest],
-                [p[1] for p in rest],
-                recipe.features,
-                recipe.stay,
-                recipe.gate,
-            )
-        )
+        out.append(fit_recipe(rest, recipe))
     return out
+
+
+def fit_recipe(
+    parts: Sequence[tuple[RoutePart, RoutePart]], recipe: Recipe
+) -> tuple[Policy, dict[str, Any]]:
+    """:func:`fit` of ``parts``' single-frame and sequence training answers, as ``recipe``
+    says."""
+    return fit(
+        [p[0] for p in parts],
+        [p[1] for p in parts],
+        recipe.features,
+        recipe.stay,
+        recipe.gate,
+        recipe.single_share,
+    )
 
 
 def out_of_the_box(preset: str) -> tuple[HierarchyConfig, HierarchyConfig, Policy]:
@@ -707,9 +744,7 @@ def shipped_report(
 ) -> tuple[Policy, dict[str, Any]]:
     """The shipped fit (every route's training part) and its figures on every test part
     and whole traverse."""
-    policy, train = fit(
-        [p[0] for p in parts], [p[1] for p in parts], recipe.features, recipe.stay, recipe.gate
-    )
+    policy, train = fit_recipe(parts, recipe)
     report: dict[str, Any] = {"train": train, "thresholds": policy.describe()}
     for route in routes:
         report[route.name] = {
@@ -784,6 +819,16 @@ def gate_models(text: str) -> tuple[str, ...]:
     return names
 
 
+def single_extra(text: str) -> tuple[str, ...]:
+    """``--single-extra``'s features: any a single-frame answer has, beyond the recipe's."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    known = (*FEATURES, *PROFILE_FEATURES)
+    bad = [n for n in names if n not in known or n in SINGLE_FEATURES or n.startswith("sequence")]
+    if bad:
+        raise SystemExit(f"--single-extra: not an extra single-frame feature: {bad}")
+    return names
+
+
 def main() -> int:
     ap = parser(__doc__)
     add_route_arguments(ap)
@@ -810,6 +855,20 @@ def main() -> int:
         "single, sequence, or none; default: as the preset's shipped models",
     )
     ap.add_argument(
+        "--single-share",
+        type=float,
+        default=None,
+        help=f"the single-frame model's share of off-map answers (default: as the preset's "
+        f"shipped models, else {OFF_SHARE})",
+    )
+    ap.add_argument(
+        "--single-extra",
+        default=None,
+        metavar="FEATURES",
+        help="comma-separated features added to the single-frame model's (e.g. ref_z_low); "
+        "default: as the preset's shipped models",
+    )
+    ap.add_argument(
         "--filter",
         action="append",
         default=[],
@@ -832,6 +891,8 @@ def main() -> int:
         shipped.needs_prior if args.map_prior is None else args.map_prior,
         shipped.stay if args.stay is None else args.stay,
         shipped.gate if args.gate is None else gate_models(args.gate),
+        shipped.single_share if args.single_share is None else args.single_share,
+        shipped.single_extra if args.single_extra is None else single_extra(args.single_extra),
     )
     routes, priors = recipe_routes(
         config, args.routes.split(","), cache, args.foreign, args.nordland_frames, recipe

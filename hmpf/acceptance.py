@@ -167,7 +167,7 @@ class Policy:
         model = settings.confidence_model()
         seq = settings.confidence_model(sequence=True)
         for name, m, known in (
-            ("model", model, (*FEATURES, "ref_z", *MAP_FEATURES)),
+            ("model", model, (*FEATURES, "ref_z", "ref_z_low", *MAP_FEATURES)),
             ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES),
         ):
             extra = [] if m is None else [f for f in m.features if f not in known]

@@ -75,7 +75,7 @@ FEATURES = (
 SEQUENCE_FEATURES = ("sequence_mass", "sequence_logit", "sequence_agrees")
 #: Absolute evidence, added when a :class:`ReferenceProfile` is given (``sequence_ref_z``
 #: with an estimate too).
-PROFILE_FEATURES = ("ref_z", "sequence_ref_z")
+PROFILE_FEATURES = ("ref_z", "ref_z_low", "sequence_ref_z")
 #: A property of the map, the same for every answer, added when the profile knows it
 #: (:attr:`ReferenceProfile.map_prior`, stored by ``hmpf-index build --map-prior``).
 MAP_FEATURES = ("map_prior",)
@@ -240,10 +240,13 @@ def answer_features(
     score at the answer compares with the scores the answer gets from unrelated references
     (:meth:`ReferenceProfile.z`; the only absolute evidence: every other feature compares
     the map's references with each other, so a query from a place the map does not hold
-    can look as good as a right one); with an estimate too, ``sequence_ref_z``, the same at
-    the estimate's reference. No raw score there (not scored, a result without raw
-    scores): 0, an unrelated reference's score. A profile that knows its map's prior
-    (:attr:`ReferenceProfile.map_prior`) adds ``map_prior``, the same for every answer.
+    can look as good as a right one); ``ref_z_low``, ``min(ref_z, 0)``: a hinge, so that a
+    linear model can weigh a score below what unrelated frames get (a frame of a place the
+    map does not hold) more steeply than it weighs how far above them a score lies; with an
+    estimate too, ``sequence_ref_z``, the same at the estimate's reference. No raw score
+    there (not scored, a result without raw scores): 0, an unrelated reference's score. A
+    profile that knows its map's prior (:attr:`ReferenceProfile.map_prior`) adds
+    ``map_prior``, the same for every answer.
 
     Without an answer (``match`` < 0, no candidates) every feature takes its "no evidence"
     value: 0, and ``tier1_rank`` the database's size (as log1p).
@@ -319,6 +322,7 @@ def answer_features(
     if profile is not None:
         raw = tiers[0].raw if tiers else {}
         out["ref_z"] = _finite(profile.z(raw, match), 0.0) if answered else 0.0
+        out["ref_z_low"] = min(out["ref_z"], 0.0)
         if estimate is not None:
             ref = int(estimate.ref)
             out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0

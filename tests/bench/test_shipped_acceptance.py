@@ -121,15 +121,20 @@ def test_a_gated_recipe_fits_each_model_asked_with_its_gate(sa, tmp_path, monkey
         for f in inside.features + outside.features:
             f["map_prior"] = prior
         parts.append(RoutePart(name, inside, outside))
-    recipe = sa.Recipe.of(True, 0.9, gate=("single",))
-    assert recipe.describe()["gate"] == ["single"] and "gate" not in sa.Recipe.of(True).describe()
-    policy, _ = sa.fit(parts, parts, recipe.features, recipe.stay, recipe.gate)
+    for f in (x for p in parts for a in (p.answers, p.outside) for x in a.features):
+        f["ref_z_low"] = min(f["ref_z"], 0.0)
+    recipe = sa.Recipe.of(True, 0.9, gate=("single",), single_share=0.2, single_extra=["ref_z_low"])
+    assert recipe.single == (*sa.SINGLE_FEATURES, "ref_z_low", "map_prior")
+    assert recipe.single_extra == ("ref_z_low",) and sa.Recipe.of(True).single_extra == ()
+    assert recipe.describe()["gate"] == ["single"] and recipe.describe()["single_share"] == 0.2
+    assert not {"gate", "single_share"} & set(sa.Recipe.of(True).describe())
+    policy, _ = sa.fit_recipe([(p, p) for p in parts], recipe)
     assert policy.sequence_model is not None and policy.sequence_model.gate is None
     model = policy.model
     assert model is not None and model.gate is not None
     assert "map_prior" not in model.gate.features  # the prior is not evidence of being in it
     # the same as fitting the pooled rows' gate and in-map model by hand
-    X, y, w, _, inside = _pooled(parts, recipe.single, sa.OFF_SHARE)
+    X, y, w, _, inside = _pooled(parts, recipe.single, 0.2)  # the recipe's share
     want = ConfidenceModel.fit_gated(
         X, y, recipe.single, inside, sample_weight=w, offsets=["map_prior"]
     )
@@ -145,6 +150,10 @@ def test_a_gated_recipe_fits_each_model_asked_with_its_gate(sa, tmp_path, monkey
     assert sa.gate_models("none") == ()
     with pytest.raises(SystemExit, match="unknown"):
         sa.gate_models("tier1")
+    assert sa.single_extra("ref_z_low, tier1_z") == ("ref_z_low", "tier1_z")
+    for bad in ("ref_z", "sequence_ref_z", "speed"):
+        with pytest.raises(SystemExit, match="not an extra"):
+            sa.single_extra(bad)
 
 
 def test_filter_settings_are_tried_over_the_preset(sa):

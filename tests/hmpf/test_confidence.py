@@ -496,7 +496,11 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     assert not set(PROFILE_FEATURES) & set(plain)
     f = answer_features(res, ROUTES, profile=prof)
     assert f["ref_z"] == pytest.approx((raw[3] - 0.1) / 0.2)
-    assert {k: v for k, v in f.items() if k != "ref_z"} == plain
+    assert f["ref_z_low"] == 0.0  # above what unrelated frames score: the hinge is flat
+    assert {k: v for k, v in f.items() if k not in ("ref_z", "ref_z_low")} == plain
+    low = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.5), np.full((1, 10), 0.2))
+    f_low = answer_features(res, ROUTES, profile=low)
+    assert f_low["ref_z_low"] == f_low["ref_z"] == pytest.approx((raw[3] - 0.5) / 0.2)
     est = Estimate(ref=7, mass=0.9, locked=True, speed=1.0, frames=3)
     g = answer_features(res, ROUTES, estimate=est, profile=prof)
     assert g["sequence_ref_z"] == pytest.approx((raw[7] - 0.1) / 0.2)
