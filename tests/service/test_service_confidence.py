@@ -597,3 +597,51 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
     assert np.log(p) - np.log1p(-p) == pytest.approx(logits[-2.0], abs=1e-9)
     rep = evaluate_frames(root, frames, list(TEST), TOLERANCE)
     assert rep["acceptance"]["single"]["p_correct"] == pytest.approx(p, rel=1e-9, abs=1e-12)
+
+
+# -- a gated model: P(in map) x P(right | in map) ---------------------------------------------
+
+
+def test_a_gated_model_is_served_as_the_product_of_its_parts(
+    service_index: Path, models: dict[str, Any], keys: dict[str, str], night: list[Path],
+    tmp_path: Path,
+) -> None:  # fmt: skip
+    """A version whose single-frame model has a gate (model format version 2, reading the
+    hinge ``ref_z_low`` the service computes): each answer's p_correct is the gate's
+    probability times the in-map part's, and hmpf-eval --index gives the same."""
+    plain = models["model"].to_dict()
+    inner = {
+        **plain,
+        "features": [*plain["features"], "ref_z_low"],
+        "mean": [*plain["mean"], 0.0],
+        "scale": [*plain["scale"], 1.0],
+        "coef": [*plain["coef"], 0.5],
+    }
+    gate = ConfidenceModel(("ref_z", "ref_z_low"), (0.5, -0.2), (1.5, 0.5), (0.8, 1.5), 0.3)
+    acc = _acceptance(models)
+    acc["model"] = {**inner, "version": 2, "gate": gate.to_dict()}
+    root = tmp_path / "index"
+    _build_version(service_index, root, acc)
+    frames = [night[i] for i in TEST]
+    reader = IndexReader(root)
+    try:
+        profile, routes = reader.reference_profile(), reader.route_map()
+        results = [
+            reader.hierarchy().run(reader.scorer(reader.extract_query(_rgb(f))), reader.n)
+            for f in frames
+        ]
+        feats = [answer_features(r, routes, profile=profile) for r in results]
+    finally:
+        reader.close()
+    part = ConfidenceModel.from_dict(inner)
+    want = [gate.predict(f) * part.predict(f) for f in feats]
+    assert all(f["ref_z_low"] == min(f["ref_z"], 0.0) for f in feats)
+    with _client(root, keys) as c:
+        served = [_post(c, keys, f)["match"] for f in frames]
+        info = c.get("/v1/index", headers={"X-API-Key": keys["vehicle"]}).json()
+    p = [m["p_correct"] for m in served]
+    assert p == pytest.approx(want, rel=1e-9, abs=1e-12)
+    assert [m["accepted"] for m in served] == [x >= models["threshold"] for x in p]
+    assert info["acceptance"]["model"]["features"] == inner["features"]
+    rep = evaluate_frames(root, frames, list(TEST), TOLERANCE)
+    assert rep["acceptance"]["single"]["p_correct"] == pytest.approx(p, rel=1e-9, abs=1e-12)
