@@ -2,7 +2,8 @@
 routes they never saw.
 
     python -m bench.shipped_acceptance [--config default] [--foreign 200] [--write]
-        [--[no-]map-prior] [--stay X] [--out results/shipped_acceptance_default.json]
+        [--[no-]map-prior] [--stay X] [--gate single,sequence|none] [--single-share S]
+        [--single-extra F,...] [--out results/shipped_acceptance_default.json]
 
 Each route (Gardens Point's three protocols, Nordland summer -> winter; all with the same
 preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames). On the
@@ -22,7 +23,10 @@ preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 fr
   the map's prior (``--map-prior``): by default the recipe the preset's shipped models were
   fitted with (:func:`shipped_recipe`; ``default``: the prior and 0.9, since 2026-11-29), so
   ``--write`` refits them as they are; a preset without shipped models:
-  :data:`hmpf.acceptance.STAY_P` and no prior.
+  :data:`hmpf.acceptance.STAY_P` and no prior. ``--gate``, ``--single-share`` and
+  ``--single-extra`` try other recipes (a gated model,
+  :meth:`~hmpf.confidence.ConfidenceModel.fit_gated`; the single-frame model's share of
+  off-map answers; features added to it), also recorded in the recipe.
 
 Then, per held-out route (**leave one route out**: the models fitted on the other routes
 only) and for the shipped fit (all routes), on the route's *test* part:
@@ -880,6 +884,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.filter and args.write:
         ap.error("--filter tries settings; change the preset's sequence: to ship them")
+    if args.single_share is not None and not 0.0 <= args.single_share < 1.0:
+        ap.error("--single-share must be in [0, 1)")
     t0 = time.perf_counter()
     config = with_filter(out_of_the_box(args.config)[1], args.filter)
     prov = provenance(args.config, config, args)

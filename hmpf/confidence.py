@@ -562,7 +562,7 @@ class ConfidenceModel:
             that the query's place is in the map at all. Then this model is that of the
             answer being right *given* an in-map query, and :meth:`predict` gives their
             product, ``P(right) = P(in map) * P(right | in map)`` (a right answer is an
-            in-map one): each part is fitted on what tells it (:func:`fit_gated`), so a
+            in-map one): each part is fitted on what tells it (:meth:`fit_gated`), so a
             frame of a place the map does not hold gets a low probability from the gate
             however alike the map's own night frames look to the other part.
     """
@@ -689,8 +689,8 @@ class ConfidenceModel:
         stream where the off-map rows weigh their share of ``sample_weight``).
 
         Raises:
-            ModelError: as :meth:`fit`; or ``inside`` not (n,) booleans, or all True or
-                all False (no gate can be fitted).
+            ModelError: as :meth:`fit`; or ``inside`` not (n,) booleans, all True or all
+                False (no gate can be fitted), or the in-map rows all right or all wrong.
         """
         X = np.asarray(X, dtype=np.float64)
         inside = np.asarray(inside)
@@ -698,6 +698,9 @@ class ConfidenceModel:
             raise ModelError(f"inside must be ({X.shape[0]},) booleans")
         if inside.all() or not inside.any():
             raise ModelError("a gate needs in-map and off-map rows")
+        y_in = np.asarray(y)[inside]
+        if y_in.min() == y_in.max():
+            raise ModelError("the in-map rows are all right or all wrong: nothing to learn")
         names = tuple(str(n) for n in feature_names)
         sw = np.ones(len(inside)) if sample_weight is None else np.asarray(sample_weight)
         kept = [i for i, n in enumerate(names) if n not in set(offsets)]
@@ -708,7 +711,7 @@ class ConfidenceModel:
         )
         main = cls.fit(
             X[inside],
-            np.asarray(y)[inside],
+            y_in,
             names,
             l2=l2,
             sample_weight=sw[inside],

@@ -643,5 +643,7 @@ def test_a_gate_needs_both_kinds_of_rows() -> None:
         ConfidenceModel.fit_gated(X, y, GATED, np.ones(len(y), bool))
     with pytest.raises(ModelError, match="booleans"):
         ConfidenceModel.fit_gated(X, y, GATED, inside.astype(int))
+    with pytest.raises(ModelError, match="all right or all wrong"):
+        ConfidenceModel.fit_gated(X, inside, GATED, inside)  # every in-map row right
     with pytest.raises(ModelError, match="not an offset"):
         ConfidenceModel.fit_gated(X[:, 2:], y, GATED[2:], inside, offsets=["map_prior"])
