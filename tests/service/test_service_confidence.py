@@ -344,7 +344,7 @@ def test_sequence_mode_uses_the_sequence_model(
 
 # -- models that cannot be used --------------------------------------------------------------
 def _another_version(acc: dict[str, Any]) -> None:
-    acc["model"]["version"] = 2
+    acc["model"]["version"] = 3
 
 
 def _corrupt(acc: dict[str, Any]) -> None:
@@ -360,17 +360,27 @@ def _no_threshold(acc: dict[str, Any]) -> None:
 
 
 BAD = {
-    "another_version": (_another_version, "version 2 is not supported"),
+    "another_version": (_another_version, "version 3 is not supported"),
     "corrupt": (_corrupt, "'coef' must hold"),
     "sequence_features_in_single_model": (_sequence_features_in_single_model, "sequence_mass"),
     "no_threshold": (_no_threshold, "needs its threshold"),
 }
 
 
+def _never_serve(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refusal that regresses fails the test instead of serving (and waiting) for ever."""
+
+    def serving(*_: Any) -> int:
+        raise AssertionError("hmpf-serve accepted the index and would have started serving")
+
+    monkeypatch.setattr("service.cli._run_server", serving)
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_serve_refuses_an_index_whose_model_cannot_be_used(
     case: str, model_index: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
 ) -> None:
+    _never_serve(monkeypatch)
     change, reason = BAD[case]
     root = tmp_path / "index"
     shutil.copytree(model_index, root)
@@ -392,7 +402,7 @@ def test_serve_subprocess_exits_2_with_the_reason(model_index: Path, tmp_path: P
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert done.returncode == 2, done.stderr
-    assert "confidence model version 2 is not supported" in done.stderr
+    assert "confidence model version 3 is not supported" in done.stderr
     assert "Traceback" not in done.stderr
 
 
@@ -549,6 +559,7 @@ def test_a_model_reading_the_map_prior_gets_the_versions_prior_or_refuses_it(
     root = tmp_path / "index"
     bare = _build_version(service_index, root, acc, with_map_prior=False)  # no prior stored
     monkeypatch.setenv("HMPF_AUTH", "false")
+    _never_serve(monkeypatch)
     assert serve_main(["--index", str(root), "--port", "1"]) == 2
     err = capsys.readouterr().err
     assert "map_prior" in err and "hmpf-index build --map-prior" in err and "Traceback" not in err
