@@ -62,14 +62,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bench.harness import ROOT, Parser, add_json, parser, provenance, write_json, write_record
-from hmpf.acceptance import STAY_P, Policy
-from hmpf.confidence import (
-    FEATURES,
-    PROFILE_FEATURES,
-    ConfidenceModel,
-    ReferenceProfile,
-    expected_calibration_error,
-)
+from hmpf.acceptance import SINGLE_MODEL_FEATURES, STAY_P, Policy
+from hmpf.confidence import ConfidenceModel, ReferenceProfile, expected_calibration_error
 from hmpf.config import AcceptanceSettings, HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.acceptance import (
@@ -826,8 +820,11 @@ def gate_models(text: str) -> tuple[str, ...]:
 def single_extra(text: str) -> tuple[str, ...]:
     """``--single-extra``'s features: any a single-frame answer has, beyond the recipe's."""
     names = tuple(n.strip() for n in text.split(",") if n.strip())
-    known = (*FEATURES, *PROFILE_FEATURES)
-    bad = [n for n in names if n not in known or n in SINGLE_FEATURES or n.startswith("sequence")]
+    bad = [
+        n
+        for n in names
+        if n not in SINGLE_MODEL_FEATURES or n in SINGLE_FEATURES or n == "map_prior"
+    ]
     if bad:
         raise SystemExit(f"--single-extra: not an extra single-frame feature: {bad}")
     return names

@@ -61,6 +61,7 @@ __all__ = [
     "DEFAULT_ACCEPT_THRESHOLD",
     "DEFAULT_UNLOCK_MASS",
     "OFF_MAP",
+    "SINGLE_MODEL_FEATURES",
     "STAY_P",
     "AcceptedBy",
     "Decision",
@@ -69,6 +70,9 @@ __all__ = [
 
 #: The rule that decided an answer.
 AcceptedBy = Literal["p_correct", "quality", "lock"]
+
+#: The features a single-frame answer has, so all a single-frame model may read.
+SINGLE_MODEL_FEATURES = (*FEATURES, "ref_z", "ref_z_low", *MAP_FEATURES)
 
 #: Combined quality (z-score over the final candidates) an answer needs when neither the
 #: settings nor the config give a threshold and there is no model. Measured with
@@ -167,7 +171,7 @@ class Policy:
         model = settings.confidence_model()
         seq = settings.confidence_model(sequence=True)
         for name, m, known in (
-            ("model", model, (*FEATURES, "ref_z", "ref_z_low", *MAP_FEATURES)),
+            ("model", model, SINGLE_MODEL_FEATURES),
             ("sequence_model", seq, FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES),
         ):
             extra = [] if m is None else [f for f in m.features if f not in known]

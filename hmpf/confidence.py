@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -709,15 +709,8 @@ class ConfidenceModel:
         gate = cls.fit(
             X[:, kept], inside.astype(np.float64), [names[i] for i in kept], l2=l2, sample_weight=sw
         )
-        main = cls.fit(
-            X[inside],
-            y_in,
-            names,
-            l2=l2,
-            sample_weight=sw[inside],
-            offsets=offsets,
-        )
-        return cls(main.features, main.mean, main.scale, main.coef, main.intercept, l2, gate)
+        main = cls.fit(X[inside], y_in, names, l2=l2, sample_weight=sw[inside], offsets=offsets)
+        return replace(main, gate=gate)
 
     def logit(self, X: np.ndarray) -> np.ndarray:
         """(n,) log-odds of (n, d) features (columns in :attr:`features` order): of the
@@ -831,11 +824,7 @@ class ConfidenceModel:
         if any(s <= 0 for s in scale):
             raise ModelError("'scale' must be positive")
         l2 = _number(data.get("l2", 1.0), "l2")
-        gate = None
-        if data.get("gate") is not None:
-            gate = cls.from_dict(data["gate"])
-            if gate.gate is not None:
-                raise ModelError("a gate has no gate of its own")
+        gate = None if data.get("gate") is None else cls.from_dict(data["gate"])
         return cls(names, mean, scale, coef, _number(data["intercept"], "intercept"), l2, gate)
 
 
