@@ -1,7 +1,7 @@
 """The sequence filter's motion cue: chosen on the training parts, measured on the test parts.
 
     python -m bench.motion_cue [--config default] [--nordland-frames 800]
-        [--grid motion|evidence|still] [--out docs/experiments/sequence/motion_cue.json]
+        [--grid motion|evidence|still|slow] [--out docs/experiments/sequence/motion_cue.json]
 
 The filter explains a stretch of frames that all resemble one reference by a vehicle that
 stopped there; a vehicle that drives on through look-alike places then falls behind. The
@@ -26,10 +26,11 @@ settings, the off-map state reading the part's own reference profile).
   dropped frames).
 
 ``--grid evidence`` chooses the weights of a frame's evidence (:data:`EVIDENCE_GRID`) and
-``--grid still`` the weight of a frame that did not move (:data:`STILL_GRID`) the same way,
-their score also counting re-locks after a jump. It reports; it changes no default. The
-acceptance models are not refitted here: the lock rule's accepted share (posterior mass >=
-``lock_mass``) is reported beside the recall.
+``--grid still`` the weight of a frame that did not move (:data:`STILL_GRID`) and ``--grid
+slow`` the half-speed hypotheses' weight after two whole steps in a row (:data:`SLOW_GRID`)
+the same way, their score also counting re-locks after a jump. It reports; it changes no
+default. The acceptance models are not refitted here: the lock rule's accepted share
+(posterior mass >= ``lock_mass``) is reported beside the recall.
 """
 
 from __future__ import annotations
@@ -81,7 +82,15 @@ EVIDENCE_GRID: dict[str, tuple[float, ...]] = {
 #: of the previous frame's): it shows what the previous frame showed. Scored like
 #: ``--grid evidence`` (a weight of the evidence: the re-lock counts).
 STILL_GRID: dict[str, tuple[float, ...]] = {"still_weight": (1.0, 0.5, 0.25, 0.1, 0.0)}
-GRIDS = {"motion": GRID, "evidence": EVIDENCE_GRID, "still": STILL_GRID}
+#: ``--grid slow``: the likelihood of the half-speed hypotheses when a frame and the one
+#: before it each moved ``fast_moved`` map steps or more (a vehicle at the mapping run's pace
+#: is not at half of it; a half-speed drive that sends each place twice never moves a whole
+#: step twice running). Scored like ``--grid evidence``.
+SLOW_GRID: dict[str, tuple[float, ...]] = {
+    "slow_factor": (1.0, 0.5, 0.2, 0.1),
+    "fast_moved": (0.8, 1.0),
+}
+GRIDS = {"motion": GRID, "evidence": EVIDENCE_GRID, "still": STILL_GRID, "slow": SLOW_GRID}
 #: Frames within which a jump must be re-locked (``--grid evidence``'s score).
 RELOCK_WITHIN = 10
 #: Jumps per training part (``--grid evidence``'s score).
@@ -91,6 +100,7 @@ OUTS = {
     "motion": "docs/experiments/sequence/motion_cue.json",
     "evidence": "docs/experiments/sequence/evidence_weights.json",
     "still": "docs/experiments/sequence/still_weight.json",
+    "slow": "docs/experiments/sequence/slow_factor.json",
 }
 #: Speed ratios of the drives (vehicle / mapping run).
 SPEEDS = (1.0, 0.5, 2.0)
@@ -201,7 +211,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="motion",
         help="motion: the motion cue against a preset without it; evidence: the weights of "
         "a frame's evidence against the preset's; still: the weight of a frame that did not "
-        "move against the preset's",
+        "move against the preset's; slow: the half-speed hypotheses' weight after two whole "
+        "steps in a row against the preset's",
     )
     add_json(ap, "--out", default=None, help="the record (default: the grid's own, OUTS)")
     ap.smoke(nordland_frames=100, routes="gp_dl_nr")
@@ -232,7 +243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             data = EvalData.frames(root / ref, root / qry, TOLERANCE)
             wholes[name] = Part(ScoreBank.build(config, data, cache=cache), config)
     print(f"whole traverses ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-    relock = args.grid in ("evidence", "still")
+    relock = args.grid in ("evidence", "still", "slow")
     chosen, rows = choose(train, preset, grid, relock)
     picked = {k: getattr(chosen, k) for k in grid}
     print(f"chosen: {picked}", flush=True)

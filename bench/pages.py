@@ -598,6 +598,7 @@ def sequence_whole(root: Path) -> str:
 MOTION_CUE = "docs/experiments/sequence/motion_cue.json"
 EVIDENCE_WEIGHTS = "docs/experiments/sequence/evidence_weights.json"
 STILL_WEIGHT = "docs/experiments/sequence/still_weight.json"
+SLOW_FACTOR = "docs/experiments/sequence/slow_factor.json"
 
 
 @generator("sequence.motion_cue")
@@ -619,6 +620,14 @@ def sequence_still_weight(root: Path) -> str:
     """``python -m bench.motion_cue --grid still``: the weight of a frame that did not move
     chosen on the training parts, then against the preset's as the motion cue above."""
     return _filter_choice(root, STILL_WEIGHT, "chosen")
+
+
+@generator("sequence.slow_factor")
+def sequence_slow_factor(root: Path) -> str:
+    """``python -m bench.motion_cue --grid slow``: the half-speed hypotheses' weight after
+    two whole steps in a row chosen on the training parts, then against the preset's as the
+    motion cue above."""
+    return _filter_choice(root, SLOW_FACTOR, "chosen")
 
 
 def _filter_choice(root: Path, rel: str, label: str) -> str:

@@ -41,6 +41,13 @@ a window):
   in the state, and when the frame differs from the previous one by ``moved`` steps or more
   the stopped hypotheses' likelihood is ``stop_factor`` (the vehicle moved). With
   ``stop_factor = 1`` (the default) nothing is sketched or weighed: the filter of the paper.
+  The same sketches tell a vehicle at the mapping run's pace from one at half of it (opt-in,
+  ``slow_factor`` < 1): when the frame and the one before it each moved ``fast_moved`` steps
+  or more, the half-speed hypotheses' likelihood is ``slow_factor``. Two frames in a row are
+  needed: a vehicle at half the pace whose camera sends each place twice moves 0, 1, 0, 1
+  steps, never a step twice running. Otherwise an aliased stretch (night frames that all
+  resemble the reference where it began) explains itself by a slower vehicle, and the
+  estimate falls behind the vehicle.
 
 The belief is sparse: at most ``hypotheses`` explicit references with their probabilities,
 and a *background* mass spread evenly over the rest. New hypotheses come from the frame's
@@ -359,6 +366,11 @@ class FilterParams:
             stopped vehicle, or frames that all look alike (snow, dark), grew an estimate
             ever more certain on one reference that was no more likely right. 1: every frame
             counts in full (the paper's filter).
+        slow_factor: likelihood of the half-speed hypotheses (half a reference per frame)
+            relative to the others when the frame and the one before it each moved
+            ``fast_moved`` steps or more (one frame apart each). 1: no such cue.
+        fast_moved: the sketch distance, in the map's median steps, from which a frame
+            counts as a whole step for ``slow_factor``.
     """
 
     max_steps: int = 4
@@ -382,6 +394,8 @@ class FilterParams:
     stop_factor: float = 1.0
     moved: float = 0.5
     still_weight: float = 1.0
+    slow_factor: float = 1.0
+    fast_moved: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -416,12 +430,14 @@ class FilterParams:
             raise HmpfError("stop_factor must be in (0, 1] and moved > 0")
         if not 0 <= self.still_weight <= 1:
             raise HmpfError("still_weight must be in [0, 1]")
+        if not (0 < self.slow_factor <= 1 and self.fast_moved > 0):
+            raise HmpfError("slow_factor must be in (0, 1] and fast_moved > 0")
 
     @property
     def motion(self) -> bool:
-        """Whether the filter weighs the frames' motion (``stop_factor`` < 1): callers then
-        give each frame's :attr:`Evidence.sketch`."""
-        return self.stop_factor < 1.0
+        """Whether the filter weighs the frames' motion (``stop_factor`` or ``slow_factor``
+        < 1): callers then give each frame's :attr:`Evidence.sketch`."""
+        return self.stop_factor < 1.0 or self.slow_factor < 1.0
 
     @property
     def off_prior(self) -> float:
@@ -664,6 +680,9 @@ class FilterState:
             (:meth:`SequenceFilter.hold`), handed on as :attr:`Estimate.held`.
         sketch: the previous frame's :class:`MotionSketch`, rounded to float16 as a packed
             state carries it (None: none; always None when the filter weighs no motion).
+        last_move: how far the previous frame moved from the one before it (their sketches'
+            distance, one frame apart; :attr:`FilterParams.slow_factor` reads it), rounded to
+            float16 as a packed state carries it; NaN: unknown.
     """
 
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -674,16 +693,17 @@ class FilterState:
     last_ref: int = -1
     held: bool = False
     sketch: np.ndarray | None = None
+    last_move: float = math.nan
 
-    # Format 4: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
-    # unknown), off (f32), last_ref (i32), held (u8), sketch length (u8, 0 = none), then the
-    # keys (u32), their log probabilities (f16) and the sketch (f16). Format 3 is format 4
-    # without the sketch (read, as a state without one); format 2 had no off / last_ref /
+    # Format 5: magic, frames (u32), background (f32), hypotheses (u16), speeds (u8, 0 =
+    # unknown), off (f32), last_ref (i32), held (u8), sketch length (u8, 0 = none),
+    # last_move (f16, NaN = unknown), then the keys (u32), their log probabilities (f16) and
+    # the sketch (f16). Format 4 is format 5 without last_move and format 3 without the
+    # sketch either (both read, as a state without them); format 2 had no off / last_ref /
     # held (refused: a track of it restarts); format 1 had no speeds byte either.
-    _MAGIC = b"HQS4"
-    _HEAD = "<IfHBfiBB"
-    _MAGIC_3 = b"HQS3"
-    _HEAD_3 = "<IfHBfiB"
+    _MAGIC = b"HQS5"
+    _HEAD = "<IfHBfiBBe"
+    _READ = {b"HQS5": "<IfHBfiBBe", b"HQS4": "<IfHBfiBB", b"HQS3": "<IfHBfiB"}
 
     def to_bytes(self, keep: int = 64, *, speeds: int = 0) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
@@ -708,6 +728,8 @@ class FilterState:
         sketch = np.zeros(0) if self.sketch is None else np.asarray(self.sketch).ravel()
         if len(sketch) > 0xFF or not np.isfinite(sketch).all():
             raise HmpfError("a packed state's sketch holds at most 255 finite values")
+        if not (math.isnan(self.last_move) or 0 <= self.last_move <= 65504):
+            raise HmpfError("a packed state's last_move is NaN or in [0, 65504]")
         off = float(self.off)
         background = max(0.0, 1.0 - float(prob.sum()) - off)
         head = self._MAGIC + struct.pack(
@@ -720,6 +742,7 @@ class FilterState:
             int(self.last_ref),
             int(bool(self.held)),
             len(sketch),
+            float(self.last_move),
         )
         logs = np.log(np.maximum(prob, 1e-300)).astype("<f2")
         tail = sketch.astype("<f2").tobytes()
@@ -731,19 +754,22 @@ class FilterState:
         is for (a key beyond it is refused, and so is a ``last_ref`` beyond its references
         when the speeds are known); ``speeds`` = its :attr:`FilterParams.speeds` (refused
         when the state says other speeds; 0, or a state that does not say: not checked).
-        :meth:`SequenceFilter.unpack` passes both. Format 3 reads as a state without a
-        sketch; an older format is refused."""
-        v3 = data.startswith(cls._MAGIC_3)
-        magic, head = (cls._MAGIC_3, cls._HEAD_3) if v3 else (cls._MAGIC, cls._HEAD)
+        :meth:`SequenceFilter.unpack` passes both. Formats 4 and 3 read as a state without
+        ``last_move`` (3: without a sketch either); an older format is refused."""
+        magic = bytes(data[:4])
+        head = cls._READ.get(magic, cls._HEAD)
         size = len(magic) + struct.calcsize(head)
-        if len(data) < size or not data.startswith(magic):
-            if data[:3] == cls._MAGIC[:3]:
+        if len(data) < size or magic not in cls._READ:
+            if magic[:3] == cls._MAGIC[:3] and magic < cls._MAGIC:
                 raise StateError("sequence state of an older format (start the track again)")
             raise StateError("not a sequence state")
         frames, background, h, packed_speeds, off, last_ref, held, *rest = struct.unpack(
             head, data[len(magic) : size]
         )
         n_sketch = int(rest[0]) if rest else 0
+        last_move = float(rest[1]) if len(rest) > 1 else math.nan
+        if not (math.isnan(last_move) or last_move >= 0):
+            raise StateError("sequence state has an invalid last move")
         if len(data) != size + 6 * h + 2 * n_sketch:
             raise StateError("sequence state has the wrong length")
         if speeds and packed_speeds and packed_speeds != speeds:
@@ -779,6 +805,7 @@ class FilterState:
             int(last_ref),
             bool(held),
             sketch,
+            last_move if math.isfinite(last_move) else math.nan,
         )
 
 
@@ -879,20 +906,26 @@ class SequenceFilter:
         """One frame: move the belief ``steps`` frames on (1: the next frame; more: frames
         were dropped; 0: the same instant again), weigh it with ``evidence``. The new state
         remembers the estimate (``last_ref``) and keeps ``held`` until :meth:`hold`."""
+        p = self.params
         predicted = self.predict(state, steps)
         weight = 1.0
-        if self.params.motion and steps >= 1:
+        move = math.nan  # how far this frame moved from the last, one frame apart
+        if p.motion and steps >= 1:
             dist = self.sketch_distance(state.sketch, evidence.sketch)
-            if dist is not None and dist >= self.params.moved:
-                predicted = self._stops_unlikely(predicted)
+            if dist is not None and dist >= p.moved:
+                predicted = self._speed_unlikely(predicted, 0, p.stop_factor)
             elif dist is not None:  # did not move (unknown is neither)
-                weight = self.params.still_weight
+                weight = p.still_weight
+            if dist is not None and steps == 1:
+                move = float(np.float16(min(dist, 65504.0)))
+                if move >= p.fast_moved and state.last_move >= p.fast_moved:
+                    predicted = self._speed_unlikely(predicted, 1, p.slow_factor)
         posterior = self.correct(predicted, evidence, weight)
         est = self.estimate(posterior, last_ref=predicted.last_ref, steps=steps)
         sketch = None
-        if self.params.motion and evidence.sketch is not None:
+        if p.motion and evidence.sketch is not None:
             sketch = np.asarray(evidence.sketch).astype(np.float16).astype(np.float32)
-        return replace(posterior, last_ref=est.ref, sketch=sketch), est
+        return replace(posterior, last_ref=est.ref, sketch=sketch, last_move=move), est
 
     @staticmethod
     def sketch_distance(before: np.ndarray | None, now: np.ndarray | None) -> float | None:
@@ -903,15 +936,18 @@ class SequenceFilter:
             return None
         return float(np.linalg.norm(np.asarray(now, np.float64) - np.asarray(before, np.float64)))
 
-    def _stops_unlikely(self, predicted: FilterState) -> FilterState:
-        """The predicted belief weighed by the frame's motion: the stopped hypotheses (speed
-        0, explicit and their share of the even background) by ``stop_factor``, the map's
-        total mass (against the off hypothesis) unchanged."""
+    def _speed_unlikely(self, predicted: FilterState, speed: int, factor: float) -> FilterState:
+        """The predicted belief weighed by the frame's motion: the hypotheses of one
+        ``speed`` (in half references per frame: 0 stopped, 1 half the mapping run's pace;
+        explicit and their share of the even background) by ``factor``, the map's total mass
+        (against the off hypothesis) unchanged."""
+        if factor == 1.0:
+            return predicted
         p = self.params
         on = float(predicted.prob.sum()) + predicted.background
-        stopped = self._split(predicted.keys)[2] == 0
-        prob = np.where(stopped, predicted.prob * p.stop_factor, predicted.prob)
-        background = predicted.background * (1.0 - (1.0 - p.stop_factor) / p.speeds)
+        slow = self._split(predicted.keys)[2] == speed
+        prob = np.where(slow, predicted.prob * factor, predicted.prob)
+        background = predicted.background * (1.0 - (1.0 - factor) / p.speeds)
         total = float(prob.sum()) + background
         if not total > 0:
             return predicted

@@ -253,7 +253,8 @@ class ShardedReader:
             return None
         if "motion_sketch" not in self.info:
             raise ShardError(
-                f"{self.folder}: the sequence filter weighs motion (sequence.stop_factor) and "
+                f"{self.folder}: the sequence filter weighs motion (sequence.stop_factor or "
+                "slow_factor) and "
                 "this split holds no motion sketch; split the version again"
             )
         entry = self.info["motion_sketch"]

@@ -193,8 +193,8 @@ class Loaded:
             if params.motion and sketch_of is None:
                 raise ConfigError(
                     f"{reader.path}: its sequence filter weighs motion (sequence.stop_factor "
-                    f"{params.stop_factor:g}), which this kind of map cannot sketch; serve "
-                    "the unsharded version or set stop_factor 1"
+                    f"{params.stop_factor:g}, slow_factor {params.slow_factor:g}), which this "
+                    "kind of map cannot sketch; serve the unsharded version or set both to 1"
                 )
             acceptance = Policy.of(
                 reader.config.acceptance,

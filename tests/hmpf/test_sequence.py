@@ -1143,7 +1143,7 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
     f, state = driven_state()
     data = f.pack(state)
     assert data == state.to_bytes(64, speeds=PARAMS.speeds) and data[14] == PARAMS.speeds
-    assert len(f.pack(state, keep=10)) == 25 + 60
+    assert len(f.pack(state, keep=10)) == 27 + 60
     back = f.unpack(data)
     ref = FilterState.from_bytes(data, f.n_keys)  # the old call: speeds not checked
     np.testing.assert_array_equal(back.keys, ref.keys)
@@ -1179,14 +1179,14 @@ def test_filter_pack_and_unpack_check_the_map() -> None:
 def test_state_bytes_size() -> None:
     _, state = driven_state()
     for keep in (0, 1, 10, 64, 200):
-        # magic, frames, background, hypotheses, speeds, off, last_ref, held, sketch length;
-        # 4 + 2 bytes a hypothesis
-        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 4 + 4 + 1 + 1 + 6 * keep
-        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 25 + 6 * keep
-    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 409
+        # magic, frames, background, hypotheses, speeds, off, last_ref, held, sketch length,
+        # last move; 4 + 2 bytes a hypothesis
+        assert len(state.to_bytes(keep=keep)) == 4 + 4 + 4 + 2 + 1 + 4 + 4 + 1 + 1 + 2 + 6 * keep
+        assert len(state.to_bytes(keep=keep, speeds=PARAMS.speeds)) == 27 + 6 * keep
+    assert len(state.to_bytes()) == len(state.to_bytes(keep=64)) == 411
     # a sketch adds 2 bytes a value
     sketched = replace(state, sketch=np.ones(SKETCH_DIM, np.float32))
-    assert len(sketched.to_bytes()) == 409 + 2 * SKETCH_DIM
+    assert len(sketched.to_bytes()) == 411 + 2 * SKETCH_DIM
     # keep < 0 is refused (it used to drop the least probable hypothesis: keys[:-1]); so are
     # states the format cannot hold (struct.error / silently wrapped uint32 keys before)
     with pytest.raises(HmpfError):
@@ -1195,7 +1195,7 @@ def test_state_bytes_size() -> None:
     with pytest.raises(HmpfError):
         big.to_bytes()
     many = FilterState(np.arange(70000), np.full(70000, 1e-5), 0.3, 1)
-    assert len(many.to_bytes(keep=65535)) == 25 + 6 * 65535
+    assert len(many.to_bytes(keep=65535)) == 27 + 6 * 65535
     with pytest.raises(HmpfError):
         many.to_bytes(keep=70000)
     with pytest.raises(HmpfError):
@@ -1250,7 +1250,7 @@ def pack_v2(keys: list[int], logs: list[float], background: float = 0.5) -> byte
         b"HQS1",
         b"garbage that is long enough to be read as a header",
         bytes(range(256)),
-        b"HQS5" + pack([1, 2], [-1, -2])[4:],  # wrong magic
+        b"HQS6" + pack([1, 2], [-1, -2])[4:],  # wrong magic
         pack_v2([1, 2], [-1, -2]),  # format 2 (no off, last_ref, held): refused
         pack_v2([], [], background=1.0),
         # format 1 (no speeds byte): refused, not misread
