@@ -754,6 +754,20 @@ SCENARIOS = {
 }
 
 
+#: The columns of :func:`_pass_rows`.
+PASS_HEADER = [
+    "pass",
+    "fleet frames",
+    "record at p_correct >=",
+    "recorded",
+    "merged",
+    "single-frame recall@1 (bare -> merged)",
+    "wins/losses",
+    "sequence recall@1",
+    "wins/losses",
+]
+
+
 def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
     """One fleet pass of ``bench.experiences``: a row per recording threshold."""
     rows = []
@@ -967,18 +981,7 @@ def experiences_summary(root: Path) -> str:
         passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
     if "nordland" in data:
         passes.append((f"Nordland proxy: {data['nordland']['proxy']}", data["nordland"]))
-    header = [
-        "pass",
-        "fleet frames",
-        "record at p_correct >=",
-        "recorded",
-        "merged",
-        "single-frame recall@1 (bare -> merged)",
-        "wins/losses",
-        "sequence recall@1",
-        "wins/losses",
-    ]
-    out = [table(header, [r for label, run in passes for r in _pass_rows(label, run)])]
+    out = [table(PASS_HEADER, [r for label, run in passes for r in _pass_rows(label, run)])]
     poison = data.get("poison")
     if poison:
         out.append(_poisoning(poison))
@@ -1024,6 +1027,18 @@ def experiences_summary(root: Path) -> str:
         )
     out.append(source(EXPERIENCES, data))
     return "\n".join(out)
+
+
+EXPERIENCES_SLOW = "docs/experiments/experiences/slow_factor_gp.json"
+
+
+@generator("experiences.slow_factor")
+def experiences_slow_factor(root: Path) -> str:
+    """``python -m bench.experiences --runs gp`` with the filter's ``slow_factor``: the
+    Gardens Point pass again, the same table as above."""
+    data = load(root, EXPERIENCES_SLOW)
+    label = "GP: map day_left; fleet day_right; test night_right"
+    return table(PASS_HEADER, _pass_rows(label, data["gp"])) + source(EXPERIENCES_SLOW, data)
 
 
 EXPERIENCES_PLACEMENT = "docs/experiments/experiences/placement.json"

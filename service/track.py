@@ -17,7 +17,7 @@ state        ...    :meth:`hmpf.sequence.SequenceFilter.pack` (at most 64 hypoth
 mac          32     HMAC-SHA256 of the payload with the service's sequence key
 ===========  =====  ========================================================================
 
-About 480 bytes, 640 characters (the state: format 3, with the "not in the map" mass, the
+About 480 bytes, 640 characters (the state: format 5, with the "not in the map" mass, the
 last estimate and the caller's last acceptance; a token of an older state format was made
 with other filter settings, so its binding differs and the track restarts, ``index_changed``).
 The key is a setting (``sequence_key``) or, by default, a random key in a file inside the
