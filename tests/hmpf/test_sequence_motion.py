@@ -418,13 +418,19 @@ def test_two_whole_steps_in_a_row_weigh_the_half_speed_hypotheses_by_the_factor(
     assert got.last_move == float(np.float16(1.3))
 
     stops_only = f.correct(f._speed_unlikely(f.predict(state, 1), 0, 0.1), ev)
-    for st, e, steps in (
-        (replace(state, last_move=0.9), ev, 1),  # the frame before moved less than a step
-        (replace(state, last_move=float("nan")), ev, 1),  # unknown
-        (state, sketched(ev, _step_sketch(pos + 0.5 - 1.2)), 1),  # this frame: 0.5 steps
+    for st, e in (
+        (replace(state, last_move=0.9), ev),  # the frame before moved less than a step
+        (replace(state, last_move=float("nan")), ev),  # unknown
     ):
-        got, _ = f.update(st, e, steps)
-        np.testing.assert_allclose(got.prob, stops_only.prob if steps else got.prob, rtol=1e-12)
+        got, _ = f.update(st, e)
+        assert np.array_equal(got.keys, stops_only.keys)
+        np.testing.assert_allclose(got.prob, stops_only.prob, rtol=1e-12)
+    # this frame moved 0.5 steps: moved (stop weighed), not a whole step (no slow weighing)
+    short = sketched(ev, _step_sketch(pos - 1.2 + 0.5))
+    got, _ = f.update(state, short)
+    want_short = f.correct(f._speed_unlikely(f.predict(state, 1), 0, 0.1), short)
+    np.testing.assert_allclose(got.prob, want_short.prob, rtol=1e-12)
+    assert got.last_move == float(np.float16(0.5))
     # frames dropped: the move spans several frames, not one; it is not kept either
     got, _ = f.update(state, ev, 2)
     want2 = f.correct(f._speed_unlikely(f.predict(state, 2), 0, 0.1), ev)
