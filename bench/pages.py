@@ -754,6 +754,8 @@ SCENARIOS = {
 }
 
 
+#: The Gardens Point fleet pass's row label.
+GP_PASS = "GP: map day_left; fleet day_right; test night_right"
 #: The columns of :func:`_pass_rows`.
 PASS_HEADER = [
     "pass",
@@ -975,7 +977,7 @@ def _poisoning(poison: dict[str, Any]) -> str:
 def experiences_summary(root: Path) -> str:
     """``python -m bench.experiences``: record, merge, test; poisoning; cost."""
     data = load(root, EXPERIENCES)
-    passes = [("GP: map day_left; fleet day_right; test night_right", data["gp"])]
+    passes = [(GP_PASS, data["gp"])]
     for name, run in data.get("gp_halves", {}).items():
         first, second = name.split("_then_")
         passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
@@ -1037,8 +1039,7 @@ def experiences_slow_factor(root: Path) -> str:
     """``python -m bench.experiences --runs gp`` with the filter's ``slow_factor``: the
     Gardens Point pass again, the same table as above."""
     data = load(root, EXPERIENCES_SLOW)
-    label = "GP: map day_left; fleet day_right; test night_right"
-    return table(PASS_HEADER, _pass_rows(label, data["gp"])) + source(EXPERIENCES_SLOW, data)
+    return table(PASS_HEADER, _pass_rows(GP_PASS, data["gp"])) + source(EXPERIENCES_SLOW, data)
 
 
 EXPERIENCES_PLACEMENT = "docs/experiments/experiences/placement.json"

@@ -701,9 +701,9 @@ class FilterState:
     # the sketch (f16). Format 4 is format 5 without last_move and format 3 without the
     # sketch either (both read, as a state without them); format 2 had no off / last_ref /
     # held (refused: a track of it restarts); format 1 had no speeds byte either.
-    _MAGIC = b"HQS5"
-    _HEAD = "<IfHBfiBBe"
     _READ = {b"HQS5": "<IfHBfiBBe", b"HQS4": "<IfHBfiBB", b"HQS3": "<IfHBfiB"}
+    _MAGIC = b"HQS5"
+    _HEAD = _READ[_MAGIC]
 
     def to_bytes(self, keep: int = 64, *, speeds: int = 0) -> bytes:
         """A compact form: the ``keep`` most probable hypotheses (the rest joins the
