@@ -139,13 +139,14 @@ CARRIED = "default"
 
 def combine(single: Policy, sequence: Policy) -> Policy:
     """``single``'s single-frame rules (z threshold, model and its threshold) with
-    ``sequence``'s sequence-mode rules (sequence model, its thresholds, the lock rule's
-    masses)."""
+    ``sequence``'s sequence-mode rules (sequence model, its thresholds, the stay rule's
+    evidence floor, the lock rule's masses)."""
     return replace(
         single,
         sequence_model=sequence.sequence_model,
         sequence_threshold=sequence.sequence_threshold,
         sequence_stay_threshold=sequence.sequence_stay_threshold,
+        sequence_stay_ref_z=sequence.sequence_stay_ref_z,
         lock_mass=sequence.lock_mass,
         unlock_mass=sequence.unlock_mass,
     )

@@ -493,6 +493,55 @@ GATED_SINGLE = "docs/experiments/acceptance/gated_single_not_shipped.json"
 GATED_BASE = "docs/experiments/acceptance/default_beside_gated.json"
 
 
+STAY_RULE = "docs/experiments/acceptance/stay_rule.json"
+
+
+@generator("acceptance.stay_rule")
+def acceptance_stay_rule(root: Path) -> str:
+    """``python -m bench.stay_rule``: the stay threshold's evidence floor on drives that
+    leave the map and come back, training parts (the choice) and test parts, pooled over
+    the routes, with the models fitted on all training parts and held out."""
+    data = load(root, STAY_RULE)
+    rows = []
+    for which, part in (("train", "training parts"), ("test", "test parts")):
+        for fit, models in (("shipped_fit", "all routes"), ("held_out", "held out")):
+            for r in data[which][fit]:
+                floor = r["floor"]
+                name = (
+                    floor if isinstance(floor, str) else ("none" if floor is None else f"{floor:g}")
+                )
+                if floor == data["chosen"]:
+                    name = f"**{name}**"
+                rows.append(
+                    [
+                        part,
+                        models,
+                        name,
+                        f"{r['away_accepted']} of {r['away']}",
+                        f"{r['first_away_accepted']} of {r['leaves']}",
+                        f3(r["in_map_accepted"]),
+                        "n/a" if r["precision"] is None else f"{r['precision']:.4f}",
+                        f1(r["flips_per_100"]),
+                    ]
+                )
+    header = [
+        "drives",
+        "models fitted on",
+        "floor",
+        "away accepted",
+        "first frame of a leave accepted",
+        "in-map accepted",
+        "precision",
+        "flips / 100",
+    ]
+    return table(header, rows) + source(
+        STAY_RULE,
+        data,
+        extra=f"{len(data['leaves'])} leaves of {data['block']} foreign frames per drive; "
+        "`entry only`: no stay threshold at all",
+    )
+
+
 @generator("acceptance.gated_single")
 def acceptance_gated_single(root: Path) -> str:
     """``python -m bench.shipped_acceptance --gate single --single-share 0.2 --single-extra

@@ -2,8 +2,8 @@
 routes they never saw.
 
     python -m bench.shipped_acceptance [--config default] [--foreign 200] [--write]
-        [--[no-]map-prior] [--stay X] [--gate single,sequence|none] [--single-share S]
-        [--single-extra F,...] [--out results/shipped_acceptance_default.json]
+        [--[no-]map-prior] [--stay X] [--stay-ref-z Z|none] [--gate single,sequence|none]
+        [--single-share S] [--single-extra F,...] [--out results/shipped_acceptance_default.json]
 
 Each route (Gardens Point's three protocols, Nordland summer -> winter; all with the same
 preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 frames). On the
@@ -23,8 +23,10 @@ preset) is split as ``hmpf-calibrate`` splits it (alternating stretches of 20 fr
   the map's prior (``--map-prior``): by default the recipe the preset's shipped models were
   fitted with (:func:`shipped_recipe`; ``default``: the prior and 0.9, since 2026-11-29), so
   ``--write`` refits them as they are; a preset without shipped models:
-  :data:`hmpf.acceptance.STAY_P` and no prior. ``--gate``, ``--single-share`` and
-  ``--single-extra`` try other recipes (a gated model,
+  :data:`hmpf.acceptance.STAY_P` and no prior. ``--stay-ref-z``: the stay threshold's
+  evidence floor (``sequence_stay_ref_z``; ``default`` since 2026-12-07:
+  :data:`hmpf.acceptance.STAY_REF_Z`, chosen by ``bench/stay_rule.py``). ``--gate``,
+  ``--single-share`` and ``--single-extra`` try other recipes (a gated model,
   :meth:`~hmpf.confidence.ConfidenceModel.fit_gated`; the single-frame model's share of
   off-map answers; features added to it), also recorded in the recipe.
 
@@ -358,10 +360,12 @@ def fit(
     stay: float = STAY_P,
     gate: tuple[str, ...] = (),
     single_share: float = OFF_SHARE,
+    stay_ref_z: float | None = None,
 ) -> tuple[Policy, dict[str, Any]]:
     """The pooled models of ``singles`` / ``seqs`` (on ``features``: single frame,
     sequence) and their thresholds, as a policy; ``stay``: the sequence stay threshold
-    (hysteresis), at most the entry threshold; ``gate``: the models (``single``,
+    (hysteresis), at most the entry threshold, with its evidence floor ``stay_ref_z``
+    (:attr:`Policy.sequence_stay_ref_z`); ``gate``: the models (``single``,
     ``sequence``) fitted with a gate (:meth:`ConfidenceModel.fit_gated`);
     ``single_share``: the single-frame model's share of off-map answers (the sequence
     model's is :data:`OFF_SHARE`)."""
@@ -376,17 +380,21 @@ def fit(
         model=model, model_threshold=thr, sequence_model=smodel, sequence_threshold=sthr
     )
     stay = min(stay, sthr)
-    policy = replace(policy, sequence_stay_threshold=stay)
+    policy = replace(policy, sequence_stay_threshold=stay, sequence_stay_ref_z=stay_ref_z)
     q_train["as_decided"] = as_decided(seqs, policy, gate="sequence" in gate)
     return policy, {"single": s_train, "sequence": q_train, "stay_threshold": stay}
 
 
 def _with_p(answers: Answers, p: np.ndarray) -> Answers:
-    """``answers`` whose only feature is ``p``'s log-odds (for :data:`_IDENTITY`)."""
+    """``answers`` whose features are ``p``'s log-odds (for :data:`_IDENTITY`) and the
+    answer's ``sequence_ref_z`` (what the stay rule's evidence floor reads)."""
     q = np.clip(np.asarray(p, dtype=np.float64), 1e-12, 1 - 1e-12)
     logit = np.log(q) - np.log1p(-q)
     return Answers(
-        [{"p_logit": float(x)} for x in logit],
+        [
+            {"p_logit": float(x), "sequence_ref_z": f.get("sequence_ref_z", float("nan"))}
+            for x, f in zip(logit, answers.features, strict=True)
+        ],
         answers.correct,
         answers.score,
         answers.query,
@@ -440,7 +448,8 @@ def as_decided(seqs: list[RoutePart], policy: Policy, gate: bool = False) -> dic
 class Recipe(NamedTuple):
     """How the shipped models are fitted: each model's features, the sequence stay
     threshold (at most the entry threshold), the models fitted with a gate (``single``,
-    ``sequence``) and the single-frame model's share of off-map answers. A recipe whose
+    ``sequence``), the single-frame model's share of off-map answers and the stay
+    threshold's evidence floor (None: none). A recipe whose
     features include ``map_prior`` needs each route's prior (:func:`route_prior`)."""
 
     single: tuple[str, ...] = SINGLE_FEATURES
@@ -448,6 +457,7 @@ class Recipe(NamedTuple):
     stay: float = STAY_P
     gate: tuple[str, ...] = ()
     single_share: float = OFF_SHARE
+    stay_ref_z: float | None = None
 
     @property
     def features(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -470,12 +480,13 @@ class Recipe(NamedTuple):
         gate: Iterable[str] = (),
         single_share: float = OFF_SHARE,
         single_extra: Iterable[str] = (),
+        stay_ref_z: float | None = None,
     ) -> Recipe:
         """The shipped features, with ``map_prior`` added to both models or not, and
         ``single_extra`` to the single-frame model's."""
         extra = ("map_prior",) if map_prior else ()
         single = SINGLE_FEATURES + tuple(single_extra) + extra
-        return cls(single, SEQUENCE_FEATURES + extra, stay, tuple(gate), single_share)
+        return cls(single, SEQUENCE_FEATURES + extra, stay, tuple(gate), single_share, stay_ref_z)
 
     def describe(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -487,6 +498,8 @@ class Recipe(NamedTuple):
             out["gate"] = list(self.gate)
         if self.single_share != OFF_SHARE:
             out["single_share"] = self.single_share
+        if self.stay_ref_z is not None:
+            out["stay_ref_z"] = self.stay_ref_z
         return out
 
 
@@ -508,6 +521,7 @@ def shipped_recipe(preset: str) -> Recipe:
         float(r["stay"]),
         tuple(r.get("gate", ())),
         float(r.get("single_share", OFF_SHARE)),
+        None if r.get("stay_ref_z") is None else float(r["stay_ref_z"]),
     )
 
 
@@ -572,6 +586,7 @@ def fit_recipe(
         recipe.stay,
         recipe.gate,
         recipe.single_share,
+        recipe.stay_ref_z,
     )
 
 
@@ -685,6 +700,7 @@ def settings_of(
         sequence_threshold=policy.sequence_threshold,
         sequence_stay_threshold=policy.sequence_stay_threshold,
         map_prior_fallback=map_prior_fallback,
+        sequence_stay_ref_z=policy.sequence_stay_ref_z,
     )
 
 
@@ -770,11 +786,16 @@ def write_shipped(
         if fallback is not None
         else ""
     )
+    floor = (
+        ""
+        if recipe.stay_ref_z is None
+        else f" while the frame's sequence_ref_z is at least {recipe.stay_ref_z:g}"
+    )
     note = (
         f"shipped with preset {preset!r}: fitted by bench/shipped_acceptance.py on "
         f"the training parts of {', '.join(r.name for r in routes)} (each route alike), "
         "thresholds for 99 % precision on out-of-fold predictions (stretches of each "
-        f"route); sequence stay threshold {recipe.stay:g} (hysteresis){prior}"
+        f"route); sequence stay threshold {recipe.stay:g} (hysteresis){floor}{prior}"
     )
     doc = {
         "preset": preset,
@@ -817,6 +838,19 @@ def gate_models(text: str) -> tuple[str, ...]:
     return names
 
 
+def stay_floor(text: str) -> float | None:
+    """``--stay-ref-z``: a finite number, or ``none``."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        z = float(text)
+    except ValueError:
+        z = float("nan")
+    if not np.isfinite(z):
+        raise ValueError(f"--stay-ref-z must be a finite number or none, not {text!r}")
+    return z
+
+
 def single_extra(text: str) -> tuple[str, ...]:
     """``--single-extra``'s features: any a single-frame answer has, beyond the recipe's."""
     names = tuple(n.strip() for n in text.split(",") if n.strip())
@@ -847,6 +881,13 @@ def main() -> int:
         type=float,
         default=None,
         help=f"sequence stay threshold; default: the shipped models' (else {STAY_P})",
+    )
+    ap.add_argument(
+        "--stay-ref-z",
+        default=None,
+        metavar="Z",
+        help="the stay threshold's evidence floor (sequence_ref_z), or none; default: the "
+        "shipped models'",
     )
     ap.add_argument(
         "--gate",
@@ -890,12 +931,19 @@ def main() -> int:
     cache = FeatureCache(default_cache_dir())
     # the shipped models' recipe unless told otherwise, so that --write refits them as they are
     shipped = shipped_recipe(args.config)
+    floor = shipped.stay_ref_z
+    if args.stay_ref_z is not None:
+        try:
+            floor = stay_floor(args.stay_ref_z)
+        except ValueError as exc:
+            ap.error(str(exc))
     recipe = Recipe.of(
         shipped.needs_prior if args.map_prior is None else args.map_prior,
         shipped.stay if args.stay is None else args.stay,
         shipped.gate if args.gate is None else gate_models(args.gate),
         shipped.single_share if args.single_share is None else args.single_share,
         shipped.single_extra if args.single_extra is None else single_extra(args.single_extra),
+        floor,
     )
     routes, priors = recipe_routes(
         config, args.routes.split(","), cache, args.foreign, args.nordland_frames, recipe

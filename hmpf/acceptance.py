@@ -24,8 +24,13 @@ The rules, in order:
   consistently with the motion model (:attr:`~hmpf.sequence.Estimate.continuous`) stays
   accepted while its value is at or above the lower *stay* threshold
   (``sequence_stay_threshold``; the lock rule: ``unlock_mass``), so an estimate that stays
-  right does not flicker. And an estimate the filter believes is **off the map**
-  (:attr:`~hmpf.sequence.Estimate.off_map` >= 0.5) is never accepted, and says so
+  right does not flicker. With ``sequence_stay_ref_z`` the stay threshold also needs the
+  frame itself to support the estimate: its score at the estimate's reference must be at
+  least that many standard deviations from what unrelated references get
+  (``sequence_ref_z``), so the first frame after the vehicle leaves the map, which the
+  filter still carries forward, must pass the entry threshold. And an estimate the filter
+  believes is **off the map** (:attr:`~hmpf.sequence.Estimate.off_map` >= 0.5) is never
+  accepted, and says so
   (:attr:`Decision.off_map`).
 
 The caller hands the decision back to the filter (:meth:`hmpf.sequence.SequenceFilter.hold`)
@@ -63,6 +68,7 @@ __all__ = [
     "OFF_MAP",
     "SINGLE_MODEL_FEATURES",
     "STAY_P",
+    "STAY_REF_Z",
     "AcceptedBy",
     "Decision",
     "Policy",
@@ -94,6 +100,14 @@ OFF_MAP = 0.5
 #: and the filter's motion cue keeps 0.9 from flickering
 #: (docs/experiments/acceptance/README.md).
 STAY_P = 0.5
+#: The stay rule's evidence floor of the ``default`` preset's shipped models
+#: (``sequence_stay_ref_z``): a held estimate keeps the lower stay threshold only while the
+#: frame scores the estimate's reference at least this far (in standard deviations) from
+#: what unrelated references get. Chosen on the training parts' drives that leave the map
+#: and come back (``python -m bench.stay_rule``): the least strict value of its grid at which
+#: no frame off the map was accepted through the stay
+#: (docs/experiments/acceptance/stay_rule.json).
+STAY_REF_Z = -0.5
 
 
 @dataclass(frozen=True)
@@ -132,6 +146,8 @@ class Policy:
         sequence_model, sequence_threshold: the sequence model and its threshold.
         sequence_stay_threshold: the sequence model's threshold for an estimate held and
             continuous since the last frame (None: no hysteresis, ``sequence_threshold``).
+        sequence_stay_ref_z: the stay threshold applies only to a frame whose
+            ``sequence_ref_z`` is at least this (None: to every held, continuous estimate).
         lock_mass, unlock_mass: the lock rule's thresholds (no sequence model).
         map_prior_fallback: the ``map_prior`` the models read for a map that stores none
             (None: such a map is refused, :meth:`with_map_prior`).
@@ -146,6 +162,7 @@ class Policy:
     lock_mass: float = 0.99
     unlock_mass: float = DEFAULT_UNLOCK_MASS
     map_prior_fallback: float | None = None
+    sequence_stay_ref_z: float | None = None
 
     @classmethod
     def of(
@@ -190,13 +207,15 @@ class Policy:
             lock_mass,
             unlock,
             settings.map_prior_fallback,
+            settings.sequence_stay_ref_z,
         )
 
     @property
     def needs_profile(self) -> bool:
-        """Whether a model reads absolute evidence or the map's prior (both come with the
-        references' profile)."""
-        return self._reads(PROFILE_FEATURES + MAP_FEATURES)
+        """Whether a model (or the stay rule's evidence floor) reads absolute evidence or the
+        map's prior (both come with the references' profile)."""
+        floor = self.sequence_stay_ref_z is not None and self.sequence_model is not None
+        return floor or self._reads(PROFILE_FEATURES + MAP_FEATURES)
 
     @property
     def needs_map_prior(self) -> bool:
@@ -317,6 +336,8 @@ class Policy:
         on = 1.0 - min(1.0, max(0.0, off)) if math.isfinite(off) else 1.0
         p = _probability(on * float(self.sequence_model.predict(features)))
         stay = self.sequence_stay_threshold
+        if held and stay is not None and self.sequence_stay_ref_z is not None:
+            held = _supports(features, self.sequence_stay_ref_z)
         bar = stay if held and stay is not None else self.sequence_threshold
         ok = p is not None and p >= bar and not off_map
         return Decision(ok, "p_correct", p, off_map, float("nan") if p is None else p)
@@ -332,6 +353,7 @@ class Policy:
         seq = model(self.sequence_model, self.sequence_threshold)
         if seq is not None:
             seq["stay_threshold"] = self.sequence_stay_threshold
+            seq["stay_ref_z"] = self.sequence_stay_ref_z
         return {
             "rule": self.single_rule,
             "sequence_rule": self.sequence_rule,
@@ -342,6 +364,17 @@ class Policy:
             "unlock_mass": self.unlock_mass,
             "map_prior_fallback": self.map_prior_fallback if self.needs_map_prior else None,
         }
+
+
+def _supports(features: Mapping[str, float], floor: float) -> bool:
+    """Whether the frame scores the estimate's reference at least ``floor`` (its
+    ``sequence_ref_z``; not finite: no support)."""
+    if "sequence_ref_z" not in features:
+        raise ModelError(
+            "the stay rule's evidence floor needs sequence_ref_z (the references' profile)"
+        )
+    z = float(features["sequence_ref_z"])
+    return math.isfinite(z) and z >= floor
 
 
 #: A frame without a result (a GPS prior that left no reference): no evidence.

@@ -347,6 +347,13 @@ class ModelInfo(BaseModel):
         description="sequence model: an estimate accepted on the previous frame that moved "
         "on consistently stays accepted while p_correct >= this (hysteresis)",
     )
+    stay_ref_z: float | None = Field(
+        None,
+        description="sequence model: the stay threshold applies only while the frame's score "
+        "at the estimate's reference is at least this many standard deviations from what "
+        "unrelated references get (`sequence_ref_z`); below it the entry threshold decides "
+        "(null: no such floor)",
+    )
 
 
 class AcceptanceInfo(BaseModel):

@@ -134,7 +134,9 @@ class AcceptanceSettings(BaseModel):
     model_threshold``; ``sequence_model`` / ``sequence_threshold`` do the same for the
     sequence filter's estimates (sequence features), and ``sequence_stay_threshold`` the
     lower bar of an estimate accepted on the previous frame that moved on consistently
-    (hysteresis, :mod:`hmpf.acceptance`). ``map_prior_fallback``: the ``map_prior`` a model
+    (hysteresis, :mod:`hmpf.acceptance`), applied only while the frame's score at the
+    estimate's reference is at least ``sequence_stay_ref_z`` standard deviations from what
+    unrelated references get (None: always). ``map_prior_fallback``: the ``map_prior`` a model
     that reads it uses for an index version that stores none (the shipped models: the lowest
     prior of the maps they were fitted on, so such a version is accepted conservatively;
     None: such a version is refused). Written by ``hmpf-calibrate`` (the
@@ -155,10 +157,13 @@ class AcceptanceSettings(BaseModel):
     sequence_threshold: float | None = Field(default=None, ge=0, le=1)
     sequence_stay_threshold: float | None = Field(default=None, ge=0, le=1)
     map_prior_fallback: float | None = Field(default=None, allow_inf_nan=False)
+    sequence_stay_ref_z: float | None = Field(default=None, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _models(self) -> AcceptanceSettings:
         stay = self.sequence_stay_threshold
+        if self.sequence_stay_ref_z is not None and stay is None:
+            raise ValueError("acceptance.sequence_stay_ref_z needs a sequence_stay_threshold")
         if stay is not None:
             if self.sequence_model is None or self.sequence_threshold is None:
                 raise ValueError("acceptance.sequence_stay_threshold needs a sequence_model")
@@ -186,7 +191,8 @@ class AcceptanceSettings(BaseModel):
         """Whether a model reads absolute evidence (:data:`hmpf.confidence.PROFILE_FEATURES`)
         or the map's prior (:data:`~hmpf.confidence.MAP_FEATURES`), so whoever applies it
         must build the references' profile."""
-        return any(f in PROFILE_FEATURES or f in MAP_FEATURES for f in self._features())
+        floor = self.sequence_stay_ref_z is not None
+        return floor or any(f in PROFILE_FEATURES or f in MAP_FEATURES for f in self._features())
 
     @property
     def reads_map_prior(self) -> bool:

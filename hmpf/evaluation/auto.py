@@ -857,6 +857,7 @@ def _kept_acceptance(
             "sequence_model": donor.sequence_model,
             "sequence_threshold": donor.sequence_threshold,
             "sequence_stay_threshold": donor.sequence_stay_threshold,
+            "sequence_stay_ref_z": donor.sequence_stay_ref_z,
         }
     )
     return (

@@ -171,3 +171,34 @@ def test_filter_settings_are_tried_over_the_preset(sa):
             sa.with_filter(config, bad)
     with pytest.raises(HmpfError, match="weights must be >= 0"):
         sa.with_filter(config, ["combined_weight=-1"])
+
+
+def test_a_recipes_stay_floor_reaches_the_policy_and_the_shipped_file(sa, tmp_path, monkeypatch):
+    rng = np.random.default_rng(5)
+    parts = [
+        RoutePart(
+            n,
+            _answers(sa, rng.random(200) < 0.7, rng, 1.5),
+            _answers(sa, np.zeros(60, bool), rng, -0.5),
+        )
+        for n in ("a", "b")
+    ]
+    recipe = sa.Recipe.of(False, 0.9, stay_ref_z=-0.75)
+    assert recipe.describe()["stay_ref_z"] == -0.75
+    assert "stay_ref_z" not in sa.Recipe.of(False, 0.9).describe()
+    policy, train = sa.fit_recipe([(p, p) for p in parts], recipe)
+    assert policy.sequence_stay_ref_z == -0.75
+    # the training drives decided with the floor (as_decided reads each answer's support)
+    assert set(train["sequence"]["as_decided"]) == {"a", "b"}
+    monkeypatch.setattr(sa, "ROOT", tmp_path)
+    (tmp_path / "hmpf" / "presets" / "acceptance").mkdir(parents=True)
+    routes = [SimpleNamespace(name=p.name, map_prior=None) for p in parts]
+    path = sa.write_shipped("p", load_config("single-tier"), routes, policy, recipe)
+    doc = json.loads(path.read_text())
+    settings = AcceptanceSettings(**doc["acceptance"])
+    assert settings.sequence_stay_ref_z == -0.75 and "at least -0.75" in settings.note
+    assert sa.shipped_recipe("p") == recipe
+    assert sa.stay_floor("none") is None and sa.stay_floor("-0.5") == -0.5
+    for bad in ("inf", "nan", "x"):
+        with pytest.raises(ValueError, match="stay-ref-z"):
+            sa.stay_floor(bad)

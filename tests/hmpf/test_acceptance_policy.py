@@ -155,6 +155,33 @@ def test_sequence_model_with_stay_threshold() -> None:
     )
 
 
+def test_the_stay_threshold_needs_the_frames_own_support_above_its_floor() -> None:
+    model = _model(("sequence_logit",), 0.25)
+    policy = Policy(
+        sequence_model=model,
+        sequence_threshold=0.9,
+        sequence_stay_threshold=0.6,
+        sequence_stay_ref_z=-0.75,
+    )
+    est = _estimate(continuous=True)
+    feats = {"sequence_logit": 4.0}  # p = 0.73: between the stay and the entry thresholds
+    for z, stays in ((0.3, True), (-0.75, True), (-0.76, False), (-3.0, False), (math.nan, False)):
+        got = policy.sequence_from({**feats, "sequence_ref_z": z}, est, held=True)
+        assert got.accepted is stays, z
+        assert got.p_correct == pytest.approx(1 / (1 + math.exp(-1)))
+    # below the floor the entry threshold still decides: a sure estimate stays accepted
+    sure = {"sequence_logit": 12.0, "sequence_ref_z": -3.0}  # p = 0.95
+    assert policy.sequence_from(sure, est, held=True).accepted
+    # no floor: as before; a floor without the feature is a clear error, never a guess
+    low = {**feats, "sequence_ref_z": -3.0}
+    assert replace(policy, sequence_stay_ref_z=None).sequence_from(low, est, held=True).accepted
+    with pytest.raises(ModelError, match="sequence_ref_z"):
+        policy.sequence_from(feats, est, held=True)
+    # an unheld frame never reads it (the entry threshold decides)
+    assert not policy.sequence_from(feats, est, held=False).accepted
+    assert policy.needs_profile and not replace(policy, sequence_stay_ref_z=None).needs_profile
+
+
 def test_decide_carries_the_decision_from_frame_to_frame_within_a_drive() -> None:
     policy = Policy.of(None)
     masses = [0.995, 0.95, 0.95, 0.95, 0.995, 0.95]
@@ -182,6 +209,17 @@ def test_stay_threshold_settings_are_validated() -> None:
         )
     with pytest.raises(ValueError, match="needs a sequence_model"):
         AcceptanceSettings(threshold=1.0, sequence_stay_threshold=0.5)
+    floor = ok.model_copy(update={"sequence_stay_ref_z": -0.75})
+    floor = AcceptanceSettings.model_validate(floor.model_dump())
+    assert floor.needs_profile and not ok.needs_profile
+    assert Policy.of(floor).sequence_stay_ref_z == -0.75
+    assert Policy.of(floor).describe()["sequence_model"]["stay_ref_z"] == -0.75
+    with pytest.raises(ValueError, match="needs a sequence_stay_threshold"):
+        AcceptanceSettings(
+            threshold=1.0, sequence_model=seq, sequence_threshold=0.9, sequence_stay_ref_z=-1.0
+        )
+    with pytest.raises(ValueError):
+        AcceptanceSettings.model_validate({**floor.model_dump(), "sequence_stay_ref_z": math.inf})
 
 
 # -- shipped models -----------------------------------------------------------------------------

@@ -239,11 +239,13 @@ def test_answers_carry_p_correct_and_the_model_decides(
             "features": list(SINGLE),
             "threshold": models["threshold"],
             "stay_threshold": None,
+            "stay_ref_z": None,
         },
         "sequence_model": {
             "features": list(SEQUENCE),
             "threshold": models["sequence_threshold"],
             "stay_threshold": None,
+            "stay_ref_z": None,
         },
         "lock_mass": 0.9,  # the version's sequence settings (see _build_version)
         "unlock_mass": 0.9,  # the lock rule's stay bar, never above lock_mass

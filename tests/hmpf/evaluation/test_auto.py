@@ -282,6 +282,7 @@ def test_a_preset_kept_as_it_ships_keeps_its_shipped_models() -> None:
     assert acc.sequence_model == shipped.sequence_model
     assert acc.sequence_threshold == shipped.sequence_threshold
     assert acc.sequence_stay_threshold == shipped.sequence_stay_threshold
+    assert acc.sequence_stay_ref_z == shipped.sequence_stay_ref_z is not None
     # no global method in tier 1: no reference profile for the sequence features
     local = derive_config(default, [(["olo"], 5), (["gist"], 1)], name="auto")
     config, source = _kept_acceptance(local, local.model_copy(update={"acceptance": pseudo}))
