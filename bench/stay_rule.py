@@ -116,17 +116,43 @@ def tally(
     before[np.r_[True, drive[1:] != drive[:-1]]] = False  # a drive's first step follows none
     first = away & ~before
     inside = ~away
-    n_flips = sum(flips(accepted[inside & (drive == d)]) for d in np.unique(drive))
     kept = accepted & inside
+    return _shares(
+        {
+            "away": int(away.sum()),
+            "away_accepted": int((accepted & away).sum()),
+            "first_away_accepted": int((accepted & first).sum()),
+            "leaves": int(first.sum()),
+            "in_map": int(inside.sum()),
+            "in_map_kept": int(kept.sum()),
+            "in_map_right": int((kept & correct).sum()),
+            "flips": sum(flips(accepted[inside & (drive == d)]) for d in np.unique(drive)),
+        }
+    )
+
+
+#: The counts :func:`tally` keeps (summed by :func:`pooled`); the shares derive from them.
+_COUNTS = (
+    "away",
+    "away_accepted",
+    "first_away_accepted",
+    "leaves",
+    "in_map",
+    "in_map_kept",
+    "in_map_right",
+    "flips",
+)
+
+
+def _shares(counts: dict[str, int]) -> dict[str, Any]:
+    """``counts`` with the in-map share accepted, its precision and flips per 100 in-map
+    frames."""
+    n, kept = max(counts["in_map"], 1), counts["in_map_kept"]
     return {
-        "away": int(away.sum()),
-        "away_accepted": int((accepted & away).sum()),
-        "first_away_accepted": int((accepted & first).sum()),
-        "leaves": int(first.sum()),
-        "in_map": int(inside.sum()),
-        "in_map_accepted": float(kept.sum() / max(int(inside.sum()), 1)),
-        "precision": float(correct[kept].mean()) if kept.any() else None,
-        "flips_per_100": 100.0 * n_flips / max(int(inside.sum()), 1),
+        **counts,
+        "in_map_accepted": kept / n,
+        "precision": counts["in_map_right"] / kept if kept else None,
+        "flips_per_100": 100.0 * counts["flips"] / n,
     }
 
 
@@ -160,19 +186,8 @@ class Leaves:
 
 
 def pooled(figs: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Routes' :func:`tally` figures pooled (counts summed, shares weighed by frames)."""
-    n = sum(f["in_map"] for f in figs)
-    kept = sum(f["in_map_accepted"] * f["in_map"] for f in figs)
-    right = sum((f["precision"] or 0.0) * f["in_map_accepted"] * f["in_map"] for f in figs)
-    return {
-        "away": sum(f["away"] for f in figs),
-        "away_accepted": sum(f["away_accepted"] for f in figs),
-        "first_away_accepted": sum(f["first_away_accepted"] for f in figs),
-        "leaves": sum(f["leaves"] for f in figs),
-        "in_map_accepted": kept / max(n, 1),
-        "precision": right / kept if kept else None,
-        "flips_per_100": sum(f["flips_per_100"] * f["in_map"] for f in figs) / max(n, 1),
-    }
+    """Routes' :func:`tally` figures pooled: their counts summed, the shares of the sums."""
+    return _shares({k: sum(f[k] for f in figs) for k in _COUNTS})
 
 
 def grid(parts: dict[str, Leaves], policies: dict[str, Policy]) -> list[dict[str, Any]]:
