@@ -542,6 +542,32 @@ def acceptance_stay_rule(root: Path) -> str:
     )
 
 
+SINGLE_CEILING = "docs/experiments/acceptance/single_ceiling.json"
+
+
+@generator("acceptance.single_ceiling")
+def acceptance_single_ceiling(root: Path) -> str:
+    """``python -m bench.single_ceiling``: per route, the largest share any threshold on a
+    score accepts at 99 % precision, chosen knowing the answers (single frame: the shipped
+    and held-out ``p_correct``, a verifier's inliers; sequence mode: ``p_correct``)."""
+    from bench.single_ceiling import sequence_table, table  # only for this page
+
+    data = load(root, SINGLE_CEILING)
+    return (
+        "Single frame:\n\n"
+        + table(data)
+        + "\n\nSequence mode (the same drive through the preset's filter):\n\n"
+        + sequence_table(data)
+        + "\n"
+        + source(
+            SINGLE_CEILING,
+            data,
+            extra="ceiling: the threshold chosen on the answers themselves (an upper bound); "
+            "Nordland: its first 800 frames",
+        )
+    )
+
+
 @generator("acceptance.gated_single")
 def acceptance_gated_single(root: Path) -> str:
     """``python -m bench.shipped_acceptance --gate single --single-share 0.2 --single-extra
