@@ -28,13 +28,16 @@ The rules, in order:
   frame itself to support the estimate: its score at the estimate's reference must be at
   least that many standard deviations from what unrelated references get
   (``sequence_ref_z``), so the first frame after the vehicle leaves the map, which the
-  filter still carries forward, must pass the entry threshold. And an estimate the filter
+  filter still carries forward, must pass the entry threshold. A frame held back by that
+  floor alone (its value reached the stay threshold) is not accepted but does not end the
+  lock (:attr:`Decision.kept`): the next frame is still held, so one dark frame costs one
+  frame, not the climb back to the entry threshold. And an estimate the filter
   believes is **off the map** (:attr:`~hmpf.sequence.Estimate.off_map` >= 0.5) is never
   accepted, and says so
   (:attr:`Decision.off_map`).
 
-The caller hands the decision back to the filter (:meth:`hmpf.sequence.SequenceFilter.hold`)
-so the next frame knows whether it was held.
+The caller hands the decision back to the filter (:meth:`hmpf.sequence.SequenceFilter.hold`
+of :attr:`Decision.holds`) so the next frame knows whether it was held.
 
 Pure and deterministic (numpy only).
 """
@@ -121,6 +124,10 @@ class Decision:
             or without a finite score).
         off_map: sequence mode: the filter believes the vehicle is not on a mapped route.
         value: the number the rule compared (``p_correct``, the quality or the mass).
+        kept: sequence mode: not accepted, but held back only by the stay threshold's
+            evidence floor (a held estimate whose ``p_correct`` reached the stay threshold
+            on a frame that does not support it): the lock survives the frame, so the next
+            frame is still held (:attr:`holds`).
     """
 
     accepted: bool
@@ -128,6 +135,13 @@ class Decision:
     p_correct: float | None = None
     off_map: bool = False
     value: float = float("nan")
+    kept: bool = False
+
+    @property
+    def holds(self) -> bool:
+        """What the filter carries to the next frame as *held*
+        (:meth:`hmpf.sequence.SequenceFilter.hold`): accepted, or :attr:`kept`."""
+        return self.accepted or self.kept
 
 
 def _probability(p: float | np.ndarray) -> float | None:
@@ -336,11 +350,15 @@ class Policy:
         on = 1.0 - min(1.0, max(0.0, off)) if math.isfinite(off) else 1.0
         p = _probability(on * float(self.sequence_model.predict(features)))
         stay = self.sequence_stay_threshold
+        supported = True
         if held and stay is not None and self.sequence_stay_ref_z is not None:
-            held = _supports(features, self.sequence_stay_ref_z)
-        bar = stay if held and stay is not None else self.sequence_threshold
+            supported = _supports(features, self.sequence_stay_ref_z)
+        bar = stay if held and supported and stay is not None else self.sequence_threshold
         ok = p is not None and p >= bar and not off_map
-        return Decision(ok, "p_correct", p, off_map, float("nan") if p is None else p)
+        # Held back by the floor alone: the frame is not accepted, the lock is not lost.
+        kept = not ok and not supported and p is not None and stay is not None and p >= stay
+        kept = kept and not off_map
+        return Decision(ok, "p_correct", p, off_map, float("nan") if p is None else p, kept)
 
     def describe(self) -> dict[str, Any]:
         """The rules as plain JSON (for ``/v1/index`` and reports)."""

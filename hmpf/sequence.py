@@ -954,8 +954,9 @@ class SequenceFilter:
         return replace(predicted, prob=prob * (on / total), background=background * (on / total))
 
     def hold(self, state: FilterState, accepted: bool) -> FilterState:
-        """``state`` with the caller's acceptance of its estimate, handed on to the next
-        frame's :attr:`Estimate.held` (for an acceptance rule with hysteresis)."""
+        """``state`` with the caller's acceptance of its estimate (or a lock the caller keeps
+        through the frame), handed on to the next frame's :attr:`Estimate.held` (for an
+        acceptance rule with hysteresis)."""
         return replace(state, held=bool(accepted))
 
     # -- the two halves ---------------------------------------------------------------------

@@ -327,10 +327,11 @@ def follow(
         now: the server's time (epoch seconds), stamped into the new track.
         max_age_s: a track issued longer ago than this restarts (``expired``).
         dropped: frames known to be lost since ``prev`` (failed images of a batch).
-        accept: the caller's acceptance of the new estimate (e.g. with hysteresis on
-            :attr:`~hmpf.sequence.Estimate.held` and ``continuous``); its decision is
-            packed into the track (:meth:`~hmpf.sequence.SequenceFilter.hold`). None: the
-            state's decision is left as it was (False from the start).
+        accept: whether the caller holds the new estimate (its acceptance, e.g. with
+            hysteresis on :attr:`~hmpf.sequence.Estimate.held` and ``continuous``, or a
+            lock kept through a frame: :attr:`hmpf.acceptance.Decision.holds`); its
+            decision is packed into the track (:meth:`~hmpf.sequence.SequenceFilter.hold`).
+            None: the state's decision is left as it was (False from the start).
     """
     ts = float("nan") if timestamp is None else float(timestamp)
     status: Status = "started" if prev is None else "tracking"

@@ -64,9 +64,11 @@ class VehicleRequest:
 
 
 class _Decider:
-    """The one policy's decision on a frame's estimate (:func:`sequence_decision`): recorded
-    in the vehicle's track (``follow``'s ``accept``, the hysteresis of the next frame) and
-    kept for the frame's answer, so both say the same."""
+    """The one policy's decision on a frame's estimate (:func:`sequence_decision`): whether
+    the next frame is held (:attr:`~hmpf.acceptance.Decision.holds`: accepted, or kept
+    through a frame the stay threshold's evidence floor held back) is recorded in the
+    vehicle's track (``follow``'s ``accept``, the hysteresis of the next frame), and the
+    decision is kept for the frame's answer, so both say the same."""
 
     def __init__(self, loaded: Loaded, query: ImageQuery) -> None:
         self.loaded, self.query = loaded, query
@@ -74,7 +76,7 @@ class _Decider:
 
     def __call__(self, estimate: Estimate) -> bool:
         self.decision = sequence_decision(self.loaded, estimate, self.query.result)
-        return self.decision.accepted
+        return self.decision.holds
 
 
 def _refused(exc: TrackRefused) -> ApiError:

@@ -363,8 +363,9 @@ def decide(policy: Policy, answers: Answers, *, sequence: bool = False) -> list[
     """The policy's decision on every answer (:mod:`hmpf.acceptance`, what the service runs).
 
     Sequence mode needs the answers' estimates (:func:`sequence_answers`); within a drive, a
-    frame is *held* when the previous frame's estimate was accepted (the service carries the
-    same bit in the vehicle's track)."""
+    frame is *held* when the previous frame's estimate was accepted or kept
+    (:attr:`~hmpf.acceptance.Decision.holds`; the service carries the same bit in the
+    vehicle's track)."""
     if not sequence:
         return [
             policy.single_from(f, q) for f, q in zip(answers.features, answers.score, strict=True)
@@ -378,7 +379,7 @@ def decide(policy: Policy, answers: Answers, *, sequence: bool = False) -> list[
             prev_drive, held = d, False
         dec = policy.sequence_from(f, est, held=held)
         out.append(dec)
-        held = dec.accepted
+        held = dec.holds
     return out
 
 

@@ -182,6 +182,59 @@ def test_the_stay_threshold_needs_the_frames_own_support_above_its_floor() -> No
     assert policy.needs_profile and not replace(policy, sequence_stay_ref_z=None).needs_profile
 
 
+def test_a_frame_held_back_by_the_floor_alone_keeps_the_lock() -> None:
+    model = _model(("sequence_logit",), 0.25)
+    policy = Policy(
+        sequence_model=model,
+        sequence_threshold=0.9,
+        sequence_stay_threshold=0.6,
+        sequence_stay_ref_z=-0.75,
+    )
+    est = _estimate(continuous=True)
+    weak = {"sequence_logit": 4.0, "sequence_ref_z": -3.0}  # p = 0.73, below the floor
+    d = policy.sequence_from(weak, est, held=True)
+    assert not d.accepted and d.kept and d.holds
+    # accepted frames hold without being "kept"; a supported frame is simply accepted
+    ok = policy.sequence_from({**weak, "sequence_ref_z": 0.0}, est, held=True)
+    assert ok.accepted and not ok.kept and ok.holds
+    # nothing is kept: below the stay threshold, unheld, not continuous, off the map,
+    # without a floor
+    low = {"sequence_logit": 0.0, "sequence_ref_z": -3.0}  # p = 0.44 < 0.6
+    assert not policy.sequence_from(low, est, held=True).holds
+    assert not policy.sequence_from(weak, est, held=False).holds
+    assert not policy.sequence_from(weak, replace(est, continuous=False), held=True).holds
+    off = policy.sequence_from(weak, replace(est, off_map=0.3), held=True)
+    assert not off.accepted and not off.holds and not off.off_map  # p 0.51 < 0.6
+    gone = policy.sequence_from(
+        {"sequence_logit": 40.0, "sequence_ref_z": -3.0}, replace(est, off_map=0.6), held=True
+    )
+    assert gone.off_map and not gone.holds
+    no_floor = replace(policy, sequence_stay_ref_z=None)
+    assert not no_floor.sequence_from(low, est, held=True).kept
+
+
+def test_decide_carries_a_kept_lock_to_the_next_frame() -> None:
+    model = _model(("sequence_logit",), 0.25)
+    policy = Policy(
+        sequence_model=model,
+        sequence_threshold=0.9,
+        sequence_stay_threshold=0.6,
+        sequence_stay_ref_z=-0.75,
+    )
+    sure = {"sequence_logit": 12.0, "sequence_ref_z": 1.0}  # p = 0.95: enters
+    weak = {"sequence_logit": 4.0, "sequence_ref_z": -3.0}  # p = 0.73, unsupported
+    mid = {"sequence_logit": 4.0, "sequence_ref_z": 1.0}  # p = 0.73, supported
+    feats = [sure, weak, mid, weak, weak, mid]
+    ests = [_estimate(continuous=True) for _ in feats]
+    answers = Answers(
+        feats, np.ones(6, bool), np.zeros(6), np.arange(6), ests, np.zeros(6, np.int64)
+    )
+    got = [d.accepted for d in decide(policy, answers, sequence=True)]
+    # the weak frames are not accepted, but the lock carries over them: the supported frame
+    # after them stays at the stay threshold instead of needing the entry threshold
+    assert got == [True, False, True, False, False, True]
+
+
 def test_decide_carries_the_decision_from_frame_to_frame_within_a_drive() -> None:
     policy = Policy.of(None)
     masses = [0.995, 0.95, 0.95, 0.95, 0.995, 0.95]
