@@ -1117,6 +1117,17 @@ def experiences_slow_factor(root: Path) -> str:
     return table(PASS_HEADER, _pass_rows(GP_PASS, data["gp"])) + source(EXPERIENCES_SLOW, data)
 
 
+EXPERIENCES_REFIT = "docs/experiments/experiences/refit_gp.json"
+
+
+@generator("experiences.refit_gp")
+def experiences_refit_gp(root: Path) -> str:
+    """``python -m bench.experiences --runs gp`` with the acceptance models refitted on
+    2026-12-07 (AMD EPYC) and the kept lock: the Gardens Point pass again, the same table."""
+    data = load(root, EXPERIENCES_REFIT)
+    return table(PASS_HEADER, _pass_rows(GP_PASS, data["gp"])) + source(EXPERIENCES_REFIT, data)
+
+
 EXPERIENCES_PLACEMENT = "docs/experiments/experiences/placement.json"
 
 
