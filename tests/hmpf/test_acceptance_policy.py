@@ -155,14 +155,18 @@ def test_sequence_model_with_stay_threshold() -> None:
     )
 
 
-def test_the_stay_threshold_needs_the_frames_own_support_above_its_floor() -> None:
-    model = _model(("sequence_logit",), 0.25)
-    policy = Policy(
-        sequence_model=model,
+def _floor_policy() -> Policy:
+    """A sequence model (``p = sigmoid(sequence_logit / 4)``), entry 0.9, stay 0.6, floor -0.75."""
+    return Policy(
+        sequence_model=_model(("sequence_logit",), 0.25),
         sequence_threshold=0.9,
         sequence_stay_threshold=0.6,
         sequence_stay_ref_z=-0.75,
     )
+
+
+def test_the_stay_threshold_needs_the_frames_own_support_above_its_floor() -> None:
+    policy = _floor_policy()
     est = _estimate(continuous=True)
     feats = {"sequence_logit": 4.0}  # p = 0.73: between the stay and the entry thresholds
     for z, stays in ((0.3, True), (-0.75, True), (-0.76, False), (-3.0, False), (math.nan, False)):
@@ -183,13 +187,7 @@ def test_the_stay_threshold_needs_the_frames_own_support_above_its_floor() -> No
 
 
 def test_a_frame_held_back_by_the_floor_alone_keeps_the_lock() -> None:
-    model = _model(("sequence_logit",), 0.25)
-    policy = Policy(
-        sequence_model=model,
-        sequence_threshold=0.9,
-        sequence_stay_threshold=0.6,
-        sequence_stay_ref_z=-0.75,
-    )
+    policy = _floor_policy()
     est = _estimate(continuous=True)
     weak = {"sequence_logit": 4.0, "sequence_ref_z": -3.0}  # p = 0.73, below the floor
     d = policy.sequence_from(weak, est, held=True)
@@ -214,13 +212,7 @@ def test_a_frame_held_back_by_the_floor_alone_keeps_the_lock() -> None:
 
 
 def test_decide_carries_a_kept_lock_to_the_next_frame() -> None:
-    model = _model(("sequence_logit",), 0.25)
-    policy = Policy(
-        sequence_model=model,
-        sequence_threshold=0.9,
-        sequence_stay_threshold=0.6,
-        sequence_stay_ref_z=-0.75,
-    )
+    policy = _floor_policy()
     sure = {"sequence_logit": 12.0, "sequence_ref_z": 1.0}  # p = 0.95: enters
     weak = {"sequence_logit": 4.0, "sequence_ref_z": -3.0}  # p = 0.73, unsupported
     mid = {"sequence_logit": 4.0, "sequence_ref_z": 1.0}  # p = 0.73, supported
