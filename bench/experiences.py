@@ -15,7 +15,10 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
 +-2 frames, as everywhere in hmpf):
 
 * ``gp``: map = day_left; the fleet drives day_right; test = night_right, single frame and
-  sequence mode, bare map against merged map (paired sign test on the same queries).
+  sequence mode, bare map against merged map (paired sign test on the same queries). Each
+  merge of a fleet pass is also made with every frame at its recorded place
+  (``--no-interpolate-places``), paired against the merge (``as_recorded``): what placing a
+  frame between its time neighbours does.
 * ``gp_halves``: map = day_left; the fleet drives the first half of night_right, merged;
   the second half is the test; and the reverse.
 * ``nordland``: a stated proxy. Map = summer, the first ``--nordland-places`` frames; the
@@ -38,6 +41,9 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
   other half tested, both ways: a night pass over half the route must not attract the other
   half's night frames); day_right map + all of day_left (night_right tested: images farther
   from the queries' view must cost nothing).
+* ``gp_reverse`` (not in the default runs): the ``gp`` pass with the traverses' roles
+  swapped: map = day_right; the fleet drives day_left; test = night_right (a pass the
+  placing of frames between their time neighbours was not found on).
 * ``merge_speed``: the merge's throughput with the features the service recorded with each
   frame (setting ``experience_features``, on by default) against the same log with them
   stripped (every frame extracted again): map = day_left, the fleet drives day_right
@@ -123,6 +129,9 @@ def main() -> int:
         out["placement"] = placement(map_dl, out["gp"], list_images(gp / "night_right"), ts)
     if "cost" in runs:
         out["cost"] = cost(map_dl, out["gp"], gp, list_images(gp / "night_right"), min(ts))
+    if "gp_reverse" in runs:
+        map_dr = build_map(args.work / "gp_dr_map", gp / "day_right", args.config, args.keep_maps)
+        out["gp_reverse"] = gp_pass(map_dr, gp, ts, fleet_traverse="day_left")
     if "merge_speed" in runs:
         out["merge_speed"] = merge_speed(map_dl, list_images(gp / "day_right"), min(ts))
     if "scenarios" in runs:
@@ -365,8 +374,32 @@ def fleet_pass(
             "single_test": paired_test(after["correct"], bare["correct"]),
             "sequence_test": paired_test(after["seq_correct"], bare["seq_correct"]),
         }
+        # the same merge with every frame at its recorded place: wins are the default merge's
+        _, kept_rows, kept = _merge_eval(
+            _copy(base, f"{name}_at_{t:g}_as_recorded"),
+            log,
+            ("--min-p-correct", str(t), "--no-interpolate-places"),
+            truth,
+            test,
+            gt,
+        )
+        out["merges"][f"{t:g}"]["as_recorded"] = {
+            "added": kept_rows,
+            "merged": _recall(kept),
+            "single_test": paired_test(after["correct"], kept["correct"]),
+            "sequence_test": paired_test(after["seq_correct"], kept["seq_correct"]),
+        }
     out["_log"] = str(log)
     return out
+
+
+def _merge_eval(
+    index: Path, log: Path, args: tuple[str, ...], truth: dict[str, int], test: list[Path], gt: Any
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """``log`` merged into ``index`` with ``args``: the merge, its audit against ``truth``, and
+    the ``test`` frames evaluated on it."""
+    merged = merge(index, [log], *args)
+    return merged, merged_rows(index, truth), evaluate(index, test, gt)
 
 
 def answer_shares(
@@ -398,11 +431,14 @@ def _recall(ev: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def gp_pass(base: Path, gp: Path, thresholds: list[float]) -> dict[str, Any]:
-    """Map day_left, the fleet drives day_right, night_right tested."""
-    fleet, test = list_images(gp / "day_right"), list_images(gp / "night_right")
+def gp_pass(
+    base: Path, gp: Path, thresholds: list[float], fleet_traverse: str = "day_right"
+) -> dict[str, Any]:
+    """Map ``base`` (day_left), the fleet drives ``fleet_traverse``, night_right tested."""
+    fleet, test = list_images(gp / fleet_traverse), list_images(gp / "night_right")
     gt = frame_ground_truth(len(test), _places(base), TOLERANCE)
-    return fleet_pass(base, "gp", fleet, truth_of(fleet), test, gt, thresholds)
+    name = "gp" if fleet_traverse == "day_right" else f"gp_{fleet_traverse}"
+    return fleet_pass(base, name, fleet, truth_of(fleet), test, gt, thresholds)
 
 
 def _places(index: Path) -> int:
@@ -534,11 +570,10 @@ def _gated_and_open(
     :func:`fleet_pass` merge)."""
     out: dict[str, dict[str, Any]] = {}
     for gate, args in (("gated", ("--min-p-correct", str(threshold))), ("open", ("--no-gates",))):
-        index = _copy(base, f"{name}_{gate}")
-        merged = merge(index, [log], *args)
-        counted = merged_rows(index, truth)
+        merged, counted, after = _merge_eval(
+            _copy(base, f"{name}_{gate}"), log, args, truth, test, gt
+        )
         print(f"{name} {gate}: {counted}", flush=True)
-        after = evaluate(index, test, gt)
         out[gate] = {
             "merge": merged,
             "added": counted,

@@ -1106,36 +1106,81 @@ def experiences_summary(root: Path) -> str:
     return "\n".join(out)
 
 
-EXPERIENCES_SLOW = "docs/experiments/experiences/slow_factor_gp.json"
+#: The columns of :func:`_interpolation_rows`.
+INTERPOLATION_HEADER = [
+    "pass",
+    "record at p_correct >=",
+    "frames moved",
+    "at the recorded places: merged",
+    "single / sequence recall@1",
+    "placed between neighbours (the default): merged",
+    "single-frame recall@1 (wins/losses)",
+    "sequence recall@1 (wins/losses)",
+]
 
 
-@generator("experiences.slow_factor")
-def experiences_slow_factor(root: Path) -> str:
-    """``python -m bench.experiences --runs gp`` with the filter's ``slow_factor``: the
-    Gardens Point pass again, the same table as above."""
-    data = load(root, EXPERIENCES_SLOW)
-    return table(PASS_HEADER, _pass_rows(GP_PASS, data["gp"])) + source(EXPERIENCES_SLOW, data)
+def _interpolation_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
+    """One fleet pass's merges (frames placed between their time neighbours) against the same
+    log merged with every frame at its recorded place, a row per recording threshold."""
+    rows = []
+    for t, m in run["merges"].items():
+        kept = m.get("as_recorded")
+        if kept is None:
+            continue
+        rows.append(
+            [
+                label,
+                t,
+                str(m["merge"]["report"].get("interpolated", 0)),
+                f"{kept['added']['experiences']} ({kept['added']['wrong']} wrong)",
+                f"{f3(kept['merged']['single'])} / {f3(kept['merged']['sequence'])}",
+                f"{m['added']['experiences']} ({m['added']['wrong']} wrong)",
+                f"{f3(m['merged']['single'])} ({_wins(kept['single_test'])})",
+                f"{f3(m['merged']['sequence'])} ({_wins(kept['sequence_test'])})",
+            ]
+        )
+    return rows
 
 
-EXPERIENCES_REFIT = "docs/experiments/experiences/refit_gp.json"
+@generator("experiences.interpolation")
+def experiences_interpolation(root: Path) -> str:
+    """``python -m bench.experiences``: each fleet pass's merge (frames placed between their
+    time neighbours, the default) against the same log merged with every frame at its
+    recorded place (``--no-interpolate-places``), paired on the same test frames."""
+    data = load(root, EXPERIENCES)
+    passes = [(GP_PASS, data["gp"])]
+    for name, run in data.get("gp_halves", {}).items():
+        first, second = name.split("_then_")
+        passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
+    rows = [r for label, run in passes for r in _interpolation_rows(label, run)]
+    return table(INTERPOLATION_HEADER, rows) + source(EXPERIENCES, data)
 
 
-@generator("experiences.refit_gp")
-def experiences_refit_gp(root: Path) -> str:
-    """``python -m bench.experiences --runs gp`` with the acceptance models refitted on
-    2026-12-07 (AMD EPYC) and the kept lock: the Gardens Point pass again, the same table."""
-    data = load(root, EXPERIENCES_REFIT)
-    return table(PASS_HEADER, _pass_rows(GP_PASS, data["gp"])) + source(EXPERIENCES_REFIT, data)
+EXPERIENCES_REVERSE = "docs/experiments/experiences/reverse.json"
+#: The swapped Gardens Point pass's row label.
+GP_REVERSE = "GP: map day_right; fleet day_left; test night_right"
 
 
-EXPERIENCES_PLACEMENT = "docs/experiments/experiences/placement.json"
+@generator("experiences.reverse")
+def experiences_reverse(root: Path) -> str:
+    """``python -m bench.experiences --runs gp_reverse``: the Gardens Point pass with the day
+    traverses swapped, what the merge added and the placing of frames between neighbours."""
+    data = load(root, EXPERIENCES_REVERSE)
+    run = data["gp_reverse"]
+    return (
+        table(PASS_HEADER, _pass_rows(GP_REVERSE, run))
+        + "\n"
+        + table(INTERPOLATION_HEADER, _interpolation_rows(GP_REVERSE, run))
+        + source(EXPERIENCES_REVERSE, data)
+    )
 
 
 @generator("experiences.placement")
 def experiences_placement(root: Path) -> str:
-    """``python -m bench.experiences --runs gp,placement``: the pass's records merged at the
-    places the service answered and at their true places, with and without the gates."""
-    data = load(root, EXPERIENCES_PLACEMENT)
+    """``python -m bench.experiences`` (its ``placement`` run): the pass's records as merged
+    (at the places the service answered, each placed between its time neighbours) and at
+    their true places, with and without the gates."""
+    data = load(root, EXPERIENCES)
     rows = []
     for t, row in data["placement"].items():
         rec = row["recorded_places"]
@@ -1151,15 +1196,15 @@ def experiences_placement(root: Path) -> str:
     header = [
         "record at p_correct >=",
         "records",
-        "at the answered places, gates on: single / sequence recall@1",
+        "as merged (answered places, placed between neighbours): single / sequence recall@1",
         "true places, gates on: merged",
-        "single-frame recall@1 (wins/losses vs answered)",
+        "single-frame recall@1 (wins/losses vs as merged)",
         "sequence recall@1 (wins/losses)",
         "true places, gates open: merged",
         "single-frame recall@1 (wins/losses)",
         "sequence recall@1 (wins/losses)",
     ]
-    return table(header, rows) + source(EXPERIENCES_PLACEMENT, data)
+    return table(header, rows) + source(EXPERIENCES, data)
 
 
 SCENARIOS_BEFORE = "docs/experiments/experiences/scenarios_before.json"

@@ -106,6 +106,14 @@ class ExperienceSettings(BaseModel):
             included; the frames kept are those that differ most (greedy farthest point on
             the tier-1 descriptor) from the images already there. A merge never drops a stored
             experience (``hmpf-index remove --experiences-from`` does). None: no cap.
+        interpolate_places: a frame is first placed between its time neighbours (the frames
+            just before and after it of the same log and vehicle, equally spaced in time, at
+            most :data:`indexer.experiences.MAX_NEIGHBOUR_GAP_S` apart) where they advanced an
+            even number of places along one route and the frame's recorded place is one place
+            off the place midway between them: the vehicle's constant pace is better evidence
+            of where it was than the frame's own answer, whose place jitters by one (two frames
+            answered at one place, the place after them left without an experience). Not a
+            gate: it moves no frame more than one place and is on with the gates open too.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -114,11 +122,12 @@ class ExperienceSettings(BaseModel):
     agreement_window: int | None = Field(default=3, ge=0)
     duplicate_similarity: float | None = Field(default=0.99, gt=0, le=1)
     max_per_place: int | None = Field(default=4, ge=1)
+    interpolate_places: bool = True
 
     @classmethod
     def open(cls) -> ExperienceSettings:
         """Every gate open: each readable frame of a known place is merged (what a
-        measurement of the gates compares with)."""
+        measurement of the gates compares with); ``interpolate_places`` as by default."""
         return cls(
             min_p_correct=0.0, agreement_window=None, duplicate_similarity=None, max_per_place=None
         )

@@ -241,6 +241,11 @@ def experience_lines(report: Mapping[str, Any]) -> list[str]:
         f"{report.get('features_recorded', 0)} "
         f"({report['frames_per_s']:.1f} frames/s, extraction, localisation and gates)",
     ]
+    if report.get("interpolated"):
+        lines.append(
+            f"placed between their time neighbours (one place from where recorded): "
+            f"{report['interpolated']}"
+        )
     lines += [f"  {line}" for line in report.get("rejected_agreement", [])]
     return lines
 

@@ -177,6 +177,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-per-place", type=int, metavar="N", help="images per place, original included"
     )
     merge.add_argument(
+        "--no-interpolate-places",
+        dest="interpolate_places",
+        action="store_const",
+        const=False,
+        help="keep every frame at its recorded place (do not place a frame between its time "
+        "neighbours)",
+    )
+    merge.add_argument(
         "--no-gates",
         action="store_true",
         help="open every gate: merge each readable frame of a known place (to measure them)",
@@ -356,16 +364,22 @@ def _verify(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
-_MERGE_KNOBS = ("min_p_correct", "agreement_window", "duplicate_similarity", "max_per_place")
+_MERGE_KNOBS = (
+    "min_p_correct",
+    "agreement_window",
+    "duplicate_similarity",
+    "max_per_place",
+    "interpolate_places",
+)
 
 
 def _images_only(args: argparse.Namespace) -> None:
     """Refuse the merge's options without --experiences (they would be silently ignored)."""
-    given = [
-        k for k in (*_MERGE_KNOBS, "dry_run", "no_gates") if getattr(args, k) not in (None, False)
-    ]
+    given = [k for k in _MERGE_KNOBS if getattr(args, k) is not None]
+    given += [k for k in ("dry_run", "no_gates") if getattr(args, k)]
     if given:
-        flags = ", ".join("--" + k.replace("_", "-") for k in given)
+        names = {"interpolate_places": "no_interpolate_places"}
+        flags = ", ".join("--" + names.get(k, k).replace("_", "-") for k in given)
         raise DatasetError(f"{flags}: only with --experiences")
 
 

@@ -23,6 +23,14 @@ passes, in order, through these gates; the first it fails is counted (``MergeRep
   reference included); the frames kept are chosen greedily, each the farthest (on that
   descriptor) from the images the place holds and those chosen before it.
 
+Before the gates that need features, a frame may be moved one place
+(``interpolate_places``, :func:`between_neighbours`): where the frames just before and after
+it from the same log and vehicle, equally spaced in time, advanced an even number of places
+along one route, and its recorded place is one place off the place midway between them, it
+is placed there. A recorder's answers jitter by a place (two consecutive frames answered at
+one place, the next place left without an experience); the vehicle's pace between its
+neighbours says where it was (``MergeReport.interpolated`` counts the frames moved).
+
 The knobs come from the hierarchy config's ``experiences:`` section
 (:class:`hmpf.config.ExperienceSettings`), command-line flags over them; a merge records the
 values it used, the logs and the counts in the manifest (``experiences``). A frame's features
@@ -38,6 +46,7 @@ extension, with the frame's sha256, no source folder, a thumbnail and their prov
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -90,6 +99,7 @@ from indexer.build import (
 
 __all__ = [
     "GATES",
+    "between_neighbours",
     "FrameRecord",
     "LogRecords",
     "MergeReport",
@@ -110,6 +120,13 @@ GATES = (
 )
 #: Frames named in the report as rejected by the agreement gate (the rest are counted).
 MAX_LISTED = 20
+#: The longest time (seconds) between a frame and each of its neighbours for
+#: :func:`between_neighbours` to place it by them (beyond it, the vehicle may have gone
+#: anywhere in between).
+MAX_NEIGHBOUR_GAP_S = 30.0
+#: How unequal the two time steps to a frame's neighbours may be, as a share of the longer
+#: (:func:`between_neighbours`): a constant pace needs about equal steps.
+NEIGHBOUR_STEP_TOLERANCE = 0.25
 _EXTENSIONS = {
     "image/jpeg": ".jpg",
     "image/png": ".png",
@@ -172,6 +189,8 @@ class MergeReport:
             need features, but for ``features_recorded``).
         features_recorded: frames reaching those gates whose features came from the log (the
             service recorded them with the frame, extracted by the same methods).
+        interpolated: frames placed between their time neighbours, one place from where
+            they were recorded (:func:`between_neighbours`).
         seconds: from the start to the end of the gates (publishing excluded).
         rejected_agreement: the first frames the agreement gate stopped, one line each.
         summary: the published version's :class:`~indexer.build.Summary` (None: nothing
@@ -193,6 +212,7 @@ class MergeReport:
     places: dict[str, int] = field(default_factory=dict)
     summary: Summary | None = None
     features_recorded: int = 0
+    interpolated: int = 0
 
     @property
     def frames_per_s(self) -> float:
@@ -210,6 +230,7 @@ class MergeReport:
             "added_per_place": {str(k): v for k, v in sorted(self.added_per_place.items())},
             "frames_extracted": self.frames_extracted,
             "features_recorded": self.features_recorded,
+            "interpolated": self.interpolated,
             "frames_per_s": round(self.frames_per_s, 2),
             "seconds": round(self.seconds, 3),
             "settings": dict(self.settings),
@@ -256,7 +277,7 @@ def resolve_settings(
 ) -> ExperienceSettings:
     """``base`` with the given (not None) ``overrides``, validated as the config is; without
     ``gates``, every gate open (:meth:`~hmpf.config.ExperienceSettings.open`, overrides
-    ignored).
+    ignored but ``interpolate_places``, which is not a gate).
 
     ``agreement_window`` may be overridden with a negative number to turn the gate off.
 
@@ -264,7 +285,10 @@ def resolve_settings(
         DatasetError: an override out of range.
     """
     if not gates:
-        return ExperienceSettings.open()
+        move = (overrides or {}).get("interpolate_places")
+        opened = ExperienceSettings.open()
+        keep = base.interpolate_places if move is None else bool(move)
+        return opened.model_copy(update={"interpolate_places": keep})
     data = base.model_dump()
     for key, value in (overrides or {}).items():
         if value is None:
@@ -518,6 +542,56 @@ def _place_routes(refs: RefTable, n_places: int) -> RouteMap:
     )
 
 
+def between_neighbours(
+    candidates: Sequence[_Candidate], routes: RouteMap
+) -> tuple[list[_Candidate], int]:
+    """The candidates, each placed between its time neighbours where they say where it was;
+    and how many were moved.
+
+    A frame's neighbours are the candidates just before and after it of the same log and
+    vehicle, by time (``_Candidate.time``; the record order breaks ties). When both steps to
+    them are at most :data:`MAX_NEIGHBOUR_GAP_S` seconds and about equal
+    (:data:`NEIGHBOUR_STEP_TOLERANCE`), the neighbours lie on one route ``2 m`` places apart
+    (``m >= 1``: the vehicle moved at a constant pace), and the frame's place is on that
+    route one place from the place midway between them, the frame is placed midway. The
+    places used are the recorded ones (a moved frame does not move its neighbours).
+
+    Why: a recorder's answers jitter by a place along a route (on Gardens Point, day_right's
+    frames against the day_left map answer the place before about a third of the time, so
+    two frames land on one place and the place after them holds no experience of the
+    drive); where the vehicle's pace is steady, the midpoint of its neighbours is the better
+    estimate. Frames of a vehicle standing still (neighbours at one place), of uneven steps,
+    or at a route's end are left where they were recorded.
+    """
+    out = list(candidates)
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, c in enumerate(candidates):
+        if math.isfinite(c.time):
+            groups.setdefault((c.log, c.vehicle), []).append(i)
+    moved = 0
+    for members in groups.values():
+        members.sort(key=lambda i: (candidates[i].time, candidates[i].seq))
+        for a, i, b in zip(members, members[1:], members[2:], strict=False):
+            before, here, after = candidates[a], candidates[i], candidates[b]
+            step1, step2 = here.time - before.time, after.time - here.time
+            longest = max(step1, step2)
+            if min(step1, step2) <= 0 or longest > MAX_NEIGHBOUR_GAP_S:
+                continue
+            if abs(step1 - step2) > NEIGHBOUR_STEP_TOLERANCE * longest:
+                continue
+            route = routes.route_of[before.place]
+            if routes.route_of[after.place] != route or routes.route_of[here.place] != route:
+                continue
+            ra, rb = int(routes.rank[before.place]), int(routes.rank[after.place])
+            if ra == rb or (rb - ra) % 2:
+                continue
+            mid = (ra + rb) // 2
+            if abs(int(routes.rank[here.place]) - mid) == 1:
+                out[i] = dataclasses.replace(here, place=int(routes.ordered[mid]))
+                moved += 1
+    return out, moved
+
+
 def _localise(
     parent: IndexReader,
     hierarchy: Hierarchy,
@@ -718,6 +792,10 @@ def _run(
     run)."""
     opt = _parent_options(parent, options or BuildOptions(progress=False))
     candidates, counts, n_records, logs, digest = _screen(parent, records, settings)
+    moved = 0
+    if settings.interpolate_places:
+        routes = _place_routes(parent.refs, place_count(parent.refs))
+        candidates, moved = between_neighbours(candidates, routes)
     if publish is None:
         work.path.mkdir(parents=True)
     else:
@@ -749,6 +827,7 @@ def _run(
         added=len(kept),
         frames_extracted=len(candidates) - n_recorded,
         features_recorded=n_recorded,
+        interpolated=moved,
         seconds=time.perf_counter() - started,
         settings=settings.model_dump(),
         dry_run=publish is None,

@@ -34,3 +34,22 @@ def test_truth_log_merges_every_frame_at_its_place(
     # the audit counts a frame merged 3 places away as wrong
     shifted = {k: v + 3 for k, v in truth_of(frames).items()}
     assert merged_rows(index, shifted) == {"experiences": 6, "wrong": 6}
+
+
+def test_merge_places_a_jittered_frame_between_its_neighbours(
+    service_index: Path, gardens_point: Path, tmp_path: Path
+) -> None:
+    """A log whose second frame was recorded a place early (a recorder's jitter): the merge
+    places it between its time neighbours unless told not to (the bench's ``as_recorded``)."""
+    frames = sorted((gardens_point / "night_right").iterdir())[:6]
+    places = [0, 0, 2, 3, 4, 5]
+    for extra, moved, where in (((), 1, 1), (("--no-interpolate-places",), 0, 0)):
+        index = tmp_path / f"index{moved}"
+        shutil.copytree(service_index, index)
+        log = truth_log(index, tmp_path / f"jitter{moved}.log", frames, places)
+        done = merge(index, [log], "--no-gates", *extra)
+        assert done["report"]["interpolated"] == moved
+        with IndexReader(index) as reader:
+            rows = range(reader.places.n, reader.places.n_rows)
+            got = [int(reader.places.place_of[r]) for r in rows]
+        assert got == [0, where, 2, 3, 4, 5]

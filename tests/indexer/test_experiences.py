@@ -1,6 +1,7 @@
 """Merging fleet experiences into a new index version and removing them by provenance, on a
 real index of Gardens Point day_left (30 places) with real day_right / night_right frames:
 rows, provenance and manifest of a merge, the dry run, each gate (and all of them open),
+frames placed between their time neighbours (against a brute-force reading of the rule),
 removal by vehicle / log / time, add and remove of places on a version with experiences
 (global and ragged local features, thumbnails), a merge of a real log killed with SIGKILL and
 resumed, the Ray extraction path, the parent's FAISS type kept, ``use`` rolling back, and the
@@ -29,9 +30,10 @@ from hmpf.experience_log import ExperienceLog, Record
 from hmpf.features import pack_features, unpack_features
 from hmpf.imageio import decode_image, load_image
 from hmpf.index import IndexBuildError, IndexReader
+from hmpf.sequence import RouteMap
 from indexer.build import BuildOptions, add, build, place_count, remove
 from indexer.cli import main
-from indexer.experiences import merge, remove_experiences
+from indexer.experiences import _Candidate, between_neighbours, merge, remove_experiences
 from indexer.maintenance import verify, verify_all
 from tests.conftest import SMALL_INDEX_CONFIG, write_synthetic_images
 
@@ -325,6 +327,98 @@ def test_info_shows_places_and_use_rolls_back(index: Path, gardens_point: Path, 
         assert len(r.refs) == N_PLACES + 7
 
 
+# -- frames placed between their time neighbours ------------------------------------------------
+def _cand(place: int, t: float, seq: int, vehicle: str = "car1", log: str = LOG_A) -> _Candidate:
+    return _Candidate(log, seq, "0" * 64, place, f"f{seq}.jpg", 0.995, vehicle, "v0001", t)
+
+
+def _moved(places: list[int], times: list[float], routes: RouteMap) -> list[int]:
+    cands = [_cand(p, t, i) for i, (p, t) in enumerate(zip(places, times, strict=True))]
+    out, n = between_neighbours(cands, routes)
+    assert n == sum(a.place != b.place for a, b in zip(out, cands, strict=True))
+    assert [(c.log, c.seq, c.time) for c in out] == [(c.log, c.seq, c.time) for c in cands]
+    return [c.place for c in out]
+
+
+def test_between_neighbours_moves_a_frame_one_place_to_its_neighbours_midpoint() -> None:
+    one = RouteMap.from_metadata(20)
+    t = [0.0, 1.0, 2.0]
+    assert _moved([5, 5, 7], t, one) == [5, 6, 7]  # two frames at one place, the next empty
+    assert _moved([5, 7, 7], t, one) == [5, 6, 7]
+    assert _moved([7, 7, 5], t, one) == [7, 6, 5]  # driven the other way
+    assert _moved([5, 6, 9], t, one) == [5, 7, 9]  # a faster pace: 2 places per step
+    assert _moved([5, 6, 7], t, one) == [5, 6, 7]  # already midway
+    assert _moved([5, 5, 5], t, one) == [5, 5, 5]  # standing still
+    assert _moved([5, 8, 7], t, one) == [5, 8, 7]  # two places off: left as recorded
+    assert _moved([5, 5, 6], t, one) == [5, 5, 6]  # neighbours an odd number apart
+    assert _moved([5, 5, 7], [0.0, 1.0, 5.0], one) == [5, 5, 7]  # uneven steps
+    assert _moved([5, 5, 7], [0.0, 40.0, 80.0], one) == [5, 5, 7]  # too long between
+    assert _moved([5, 5, 7], [0.0, float("nan"), 2.0], one) == [5, 5, 7]  # no time
+    # a run of frames: each frame is judged by its recorded neighbours, not by moved ones
+    # (order-free: the same whichever end is read first)
+    assert _moved([1, 1, 3, 3, 5], [0, 1, 2, 3, 4], one) == [1, 2, 2, 4, 5]
+    assert _moved([5, 3, 3, 1, 1], [0, 1, 2, 3, 4], one) == [5, 4, 2, 2, 1]
+    # the record order breaks a tie in time; the input order does not matter
+    cands = [_cand(7, 2.0, 2), _cand(5, 0.0, 0), _cand(5, 1.0, 1)]
+    out, n = between_neighbours(cands, one)
+    assert n == 1 and [c.place for c in out] == [7, 5, 6]
+
+
+def test_between_neighbours_keeps_to_one_vehicle_log_and_route() -> None:
+    one = RouteMap.from_metadata(20)
+    cands = [_cand(5, 0.0, 0), _cand(5, 1.0, 1, vehicle="car2"), _cand(7, 2.0, 2)]
+    assert [c.place for c in between_neighbours(cands, one)[0]] == [5, 5, 7]
+    cands = [_cand(5, 0.0, 0), _cand(5, 1.0, 1, log=LOG_B), _cand(7, 2.0, 2)]
+    assert [c.place for c in between_neighbours(cands, one)[0]] == [5, 5, 7]
+    # two routes of 10 places, each in index order: places 9 and 10 are not neighbours
+    two = RouteMap.from_metadata(20, sequence=["a"] * 10 + ["b"] * 10)
+    assert _moved([8, 8, 10], [0, 1, 2], two) == [8, 8, 10]
+    assert _moved([9, 9, 11], [0, 1, 2], two) == [9, 9, 11]
+    assert _moved([10, 10, 12], [0, 1, 2], two) == [10, 11, 12]
+
+
+def _brute_force(places: list[int], times: list[float]) -> list[int]:
+    """The rule read literally, on a one-route map in index order."""
+    out = list(places)
+    for i in range(1, len(places) - 1):
+        d1, d2 = times[i] - times[i - 1], times[i + 1] - times[i]
+        if min(d1, d2) <= 0 or max(d1, d2) > 30 or abs(d1 - d2) > 0.25 * max(d1, d2):
+            continue
+        span = places[i + 1] - places[i - 1]
+        if span and span % 2 == 0 and abs(places[i] - (places[i - 1] + span // 2)) == 1:
+            out[i] = places[i - 1] + span // 2
+    return out
+
+
+def test_between_neighbours_against_brute_force() -> None:
+    one = RouteMap.from_metadata(60)
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        n = int(rng.integers(3, 12))
+        places = (np.cumsum(rng.integers(0, 3, n)) + rng.integers(-1, 2, n) + 5).tolist()
+        times = np.cumsum(rng.choice([1.0, 1.0, 1.1, 2.0, 35.0], n)).tolist()
+        assert _moved(places, times, one) == _brute_force(places, times)
+
+
+def test_merge_places_a_frame_between_its_neighbours(index: Path, gardens_point: Path) -> None:
+    # day_right frames 4, 5, 6, the middle one recorded a place early (a recorder's jitter)
+    recs = [record(frame(gardens_point, "day_right", i), p, i) for i, p in ((4, 4), (5, 4), (6, 6))]
+    kept = merge(index, recs, settings={"interpolate_places": False}, dry_run=True)
+    assert kept.interpolated == 0 and kept.settings["interpolate_places"] is False
+    report = merge(index, recs, options=OPTS)
+    assert report.interpolated == 1 and report.added == 3
+    with IndexReader(index) as r:
+        places = [int(r.refs.meta["place"][row]) for row in experience_rows(r)]
+        assert places == [4, 5, 6]
+        entry = r.manifest["experiences"]
+        assert entry["interpolated"] == 1 and entry["settings"]["interpolate_places"] is True
+    # with every gate open the frames are still placed (not a gate), unless asked not to
+    opened = merge(index, recs, gates=False, dry_run=True)
+    assert opened.settings["interpolate_places"] is True
+    off = merge(index, recs, settings={"interpolate_places": False}, gates=False, dry_run=True)
+    assert off.settings["interpolate_places"] is False and off.interpolated == 0
+
+
 def test_cli_rejects_mixed_options(index: Path, tmp_path: Path, capsys) -> None:
     args = ["add", "--index", str(index), "--images", str(tmp_path), "--dry-run"]
     assert main(args) == 2
@@ -336,6 +430,9 @@ def test_cli_rejects_mixed_options(index: Path, tmp_path: Path, capsys) -> None:
         == 2
     )
     assert "max_per_place: Input should be greater than or equal to 1" in capsys.readouterr().err
+    args = ["add", "--index", str(index), "--images", str(tmp_path), "--no-interpolate-places"]
+    assert main(args) == 2
+    assert "--no-interpolate-places: only with --experiences" in capsys.readouterr().err
     assert main(["remove", "--index", str(index)]) == 2
     assert "give --experiences-from" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # --images and --experiences are exclusive
