@@ -1916,10 +1916,6 @@ JSON_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 #: decimal figures in prose that are settings, versions or documented constants, not
 #: measurements: {page: {figure: what it is}}
 PROSE_NOT_MEASURED: dict[str, dict[str, str]] = {
-    "docs/results/experiences.md": {
-        "0.377": "the Nordland proxy's sequence recall in the fleet bench's record of 2026-12-05, "
-        "replaced since (git show 041fa91:docs/experiments/experiences/default.json)",
-    },
     "README.md": {"3.11": "Python's version"},
     "docs/client.md": {
         "30.0": "the client's timeout default",
