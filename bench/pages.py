@@ -845,6 +845,15 @@ PASS_HEADER = [
 ]
 
 
+def _gp_passes(data: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """``bench.experiences``' Gardens Point fleet passes in a record, each with its label."""
+    passes = [(GP_PASS, data["gp"])]
+    for name, run in data.get("gp_halves", {}).items():
+        first, second = name.split("_then_")
+        passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
+    return passes
+
+
 def _pass_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
     """One fleet pass of ``bench.experiences``: a row per recording threshold."""
     rows = []
@@ -1052,10 +1061,7 @@ def _poisoning(poison: dict[str, Any]) -> str:
 def experiences_summary(root: Path) -> str:
     """``python -m bench.experiences``: record, merge, test; poisoning; cost."""
     data = load(root, EXPERIENCES)
-    passes = [(GP_PASS, data["gp"])]
-    for name, run in data.get("gp_halves", {}).items():
-        first, second = name.split("_then_")
-        passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
+    passes = _gp_passes(data)
     if "nordland" in data:
         passes.append((f"Nordland proxy: {data['nordland']['proxy']}", data["nordland"]))
     out = [table(PASS_HEADER, [r for label, run in passes for r in _pass_rows(label, run)])]
@@ -1148,11 +1154,7 @@ def experiences_interpolation(root: Path) -> str:
     time neighbours, the default) against the same log merged with every frame at its
     recorded place (``--no-interpolate-places``), paired on the same test frames."""
     data = load(root, EXPERIENCES)
-    passes = [(GP_PASS, data["gp"])]
-    for name, run in data.get("gp_halves", {}).items():
-        first, second = name.split("_then_")
-        passes.append((f"GP: map day_left; fleet night_right {first} half; test {second}", run))
-    rows = [r for label, run in passes for r in _interpolation_rows(label, run)]
+    rows = [r for label, run in _gp_passes(data) for r in _interpolation_rows(label, run)]
     return table(INTERPOLATION_HEADER, rows) + source(EXPERIENCES, data)
 
 

@@ -170,6 +170,13 @@ def _accepted(m: dict[str, Any]) -> str:
     return f"{_pct(m['accepted'])} ({'n/a' if prec is None else f'{prec:.3f}'})"
 
 
+def _model_cells(m: dict[str, Any]) -> str:
+    """The shipped and held-out models' cells: accepted (precision) and ceiling, each."""
+    return " | ".join(
+        f"{_accepted(m[k])} | {_pct(m[k]['ceiling'])}" for k in ("shipped", "held_out")
+    )
+
+
 def table(report: dict[str, Any]) -> str:
     """Markdown: single frame, a row per route and part."""
     lines = [
@@ -185,10 +192,8 @@ def table(report: dict[str, Any]) -> str:
             inl = f["inliers"]
             med = "n/a" if inl["median_wrong"] is None else f"{inl['median_wrong']:g}"
             lines.append(
-                f"| {name} | {which} ({f['n']}) | {f['right']:.3f} | {_accepted(m['shipped'])} | "
-                f"{_pct(m['shipped']['ceiling'])} | {_accepted(m['held_out'])} | "
-                f"{_pct(m['held_out']['ceiling'])} | {_pct(inl['ceiling'])} | "
-                f"{inl['median_right']:g} / {med} |"
+                f"| {name} | {which} ({f['n']}) | {f['right']:.3f} | {_model_cells(m)} | "
+                f"{_pct(inl['ceiling'])} | {inl['median_right']:g} / {med} |"
             )
     return "\n".join(lines)
 
@@ -206,9 +211,7 @@ def sequence_table(report: dict[str, Any]) -> str:
             f = r[which]["sequence"]
             m = f["models"]
             lines.append(
-                f"| {name} | {which} ({r[which]['n']}) | {f['right']:.3f} | "
-                f"{_accepted(m['shipped'])} | {_pct(m['shipped']['ceiling'])} | "
-                f"{_accepted(m['held_out'])} | {_pct(m['held_out']['ceiling'])} |"
+                f"| {name} | {which} ({r[which]['n']}) | {f['right']:.3f} | {_model_cells(m)} |"
             )
     return "\n".join(lines)
 

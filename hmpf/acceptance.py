@@ -356,8 +356,7 @@ class Policy:
         bar = stay if held and supported and stay is not None else self.sequence_threshold
         ok = p is not None and p >= bar and not off_map
         # Held back by the floor alone: the frame is not accepted, the lock is not lost.
-        kept = not ok and not supported and p is not None and stay is not None and p >= stay
-        kept = kept and not off_map
+        kept = not (ok or supported or off_map) and p is not None and stay is not None and p >= stay
         return Decision(ok, "p_correct", p, off_map, float("nan") if p is None else p, kept)
 
     def describe(self) -> dict[str, Any]:
