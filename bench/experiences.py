@@ -16,9 +16,11 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
 
 * ``gp``: map = day_left; the fleet drives day_right; test = night_right, single frame and
   sequence mode, bare map against merged map (paired sign test on the same queries). Each
-  merge of a fleet pass is also made with every frame at its recorded place
-  (``--no-interpolate-places``), paired against the merge (``as_recorded``): what placing a
-  frame between its time neighbours does.
+  fleet pass is driven once per recording threshold (the service recording at it: its lock
+  lead-ins depend on it), and each merge is also made with every frame at its recorded place
+  (``--no-interpolate-places``, ``as_recorded``) and without the lead frames
+  (``--no-place-leads``, ``without_leads``), each paired against the merge: what placing a
+  frame between its time neighbours, and what recording a lock's lead-in, do.
 * ``gp_halves``: map = day_left; the fleet drives the first half of night_right, merged;
   the second half is the test; and the reverse.
 * ``nordland``: a stated proxy. Map = summer, the first ``--nordland-places`` frames; the
@@ -44,6 +46,11 @@ Runs (Gardens Point frames are aligned across traverses; a frame's place is righ
 * ``gp_reverse`` (not in the default runs): the ``gp`` pass with the traverses' roles
   swapped: map = day_right; the fleet drives day_left; test = night_right (a pass the
   placing of frames between their time neighbours was not found on).
+* ``gp_join``: the defence of lead-ins against a vehicle joining the route from off the map:
+  map = day_left; one drive of ``JOIN_FRAMES`` Nordland frames (another country), day_right
+  0-99, ``JOIN_FRAMES`` more Nordland frames, day_right 100-199, recorded at each threshold
+  and merged: how many lead frames were recorded and merged, and how many merged frames are
+  wrong (a Nordland frame merged is wrong wherever it goes).
 * ``merge_speed``: the merge's throughput with the features the service recorded with each
   frame (setting ``experience_features``, on by default) against the same log with them
   stripped (every frame extracted again): map = day_left, the fleet drives day_right
@@ -58,6 +65,7 @@ frame's true place is more than 2 frames from the place it was merged into.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -89,6 +97,8 @@ BIN = Path(sys.executable).parent
 TOLERANCE = 2
 POISON_SHARE = 0.05
 POISON_SHIFT = 50
+#: Off-map frames before each half of the ``gp_join`` drive.
+JOIN_FRAMES = 8
 
 
 def main() -> int:
@@ -96,12 +106,14 @@ def main() -> int:
     ap.add_argument("--config", default="default", help="preset or YAML of the map")
     ap.add_argument("--work", type=Path, default=ROOT / "results" / "experiences")
     ap.add_argument("--nordland-places", type=int, default=600)
-    ap.add_argument("--runs", default="gp,gp_halves,nordland,poison,placement,cost,scenarios")
+    ap.add_argument(
+        "--runs", default="gp,gp_halves,gp_join,nordland,poison,placement,cost,scenarios"
+    )
     ap.add_argument(
         "--thresholds",
         default="0.99,0.9",
-        help="p_correct thresholds to record at (the first is the default's, 0.99); the "
-        "drive records at the lowest, each merge keeps the frames at or above its own",
+        help="p_correct thresholds to record at (the first is the default's, 0.99); each "
+        "fleet pass is driven once per threshold, recording at it",
     )
     ap.add_argument(
         "--keep-maps",
@@ -132,6 +144,8 @@ def main() -> int:
     if "gp_reverse" in runs:
         map_dr = build_map(args.work / "gp_dr_map", gp / "day_right", args.config, args.keep_maps)
         out["gp_reverse"] = gp_pass(map_dr, gp, ts, fleet_traverse="day_left")
+    if "gp_join" in runs:
+        out["gp_join"] = joining(map_dl, gp, ts)
     if "merge_speed" in runs:
         out["merge_speed"] = merge_speed(map_dl, list_images(gp / "day_right"), min(ts))
     if "scenarios" in runs:
@@ -291,31 +305,52 @@ def evaluate(index: Path, queries: list[Path], gt: np.ndarray, version: str | No
 
 def audit(log: Path, truth: dict[str, int]) -> dict[str, Any]:
     """The log's records against the ground truth: ``truth`` maps a frame's sha256 to its
-    true place; wrong = more than ``TOLERANCE`` frames from the recorded place."""
-    records = list(read_log(log))
+    true place; wrong = more than ``TOLERANCE`` frames from the recorded place (a frame not
+    in ``truth`` is wrong). Lead frames (a lock's lead-in, placed by the merge) are counted
+    apart (``leads``), not audited: their recorded place is their own unsure answer."""
+    everything = list(read_log(log))
+    records = [r for r in everything if r.mode != "lead"]
     wrong = [
-        r for r in records if abs(truth[hashlib.sha256(r.image).hexdigest()] - r.place) > TOLERANCE
+        r
+        for r in records
+        if abs(truth.get(hashlib.sha256(r.image).hexdigest(), -(10**9)) - r.place) > TOLERANCE
     ]
     p = [r.p_correct for r in records]
     return {
         "recorded": len(records),
         "wrong": len(wrong),
         "p_correct_min": min(p) if p else None,
+        "leads": len(everything) - len(records),
     }
 
 
-def merged_rows(index: Path, truth: dict[str, int]) -> dict[str, Any]:
-    """What the current version holds beyond its places: count, and wrong experiences."""
+def merged_rows(
+    index: Path, truth: dict[str, int], leads: set[str] | None = None
+) -> dict[str, Any]:
+    """What the current version holds beyond its places: count, and wrong experiences; with
+    ``leads`` (the sha256 of a log's lead frames), how many of them and how many wrong."""
     with IndexReader(index) as reader:
         place = reader.refs.meta.get("place")
         if place is None:
-            return {"experiences": 0, "wrong": 0}
-        rows = np.flatnonzero(~np.isnan(place))
-        wrong = sum(
-            abs(truth.get(reader.refs.sha256[i], -(10**9)) - int(place[i])) > TOLERANCE
+            rows = np.zeros(0, dtype=np.int64)
+        else:
+            rows = np.flatnonzero(~np.isnan(place))
+        bad = {
+            int(i)
             for i in rows
-        )
-    return {"experiences": int(len(rows)), "wrong": int(wrong)}
+            if abs(truth.get(reader.refs.sha256[i], -(10**9)) - int(place[i])) > TOLERANCE
+        }
+        lead_rows = [int(i) for i in rows if reader.refs.sha256[i] in (leads or set())]
+    out = {"experiences": int(len(rows)), "wrong": len(bad)}
+    if leads is not None:
+        out["leads"] = len(lead_rows)
+        out["leads_wrong"] = sum(i in bad for i in lead_rows)
+    return out
+
+
+def lead_digests(log: Path) -> set[str]:
+    """The sha256 of the log's lead frames."""
+    return {hashlib.sha256(r.image).hexdigest() for r in read_log(log) if r.mode == "lead"}
 
 
 def truth_of(frames: list[Path], offset: int = 0) -> dict[str, int]:
@@ -341,32 +376,34 @@ def fleet_pass(
     gt: np.ndarray,
     thresholds: list[float],
 ) -> dict[str, Any]:
-    """One fleet pass: ``fleet`` driven against (a copy of) ``base`` with recording on at the
-    lowest of ``thresholds``; then, per threshold, a copy of ``base`` merged with the frames
-    at or above it (``--min-p-correct``: what recording at that threshold would have kept)
-    and ``test`` evaluated on it, against the bare map (paired sign tests)."""
+    """One fleet pass: per threshold, ``fleet`` driven against (a copy of) ``base`` with
+    recording on at that threshold, a copy of ``base`` merged with its log and ``test``
+    evaluated on it, against the bare map (paired sign tests); and the same log merged with
+    every frame at its recorded place (``as_recorded``) and without its lead frames
+    (``without_leads``), each paired against the merge."""
     bare = evaluate(base, test, gt)
-    log = base.parent / f"{name}.log"
-    drove = drive(_copy(base, f"{name}_served"), fleet, log, min(thresholds))
-    recorded = audit(log, truth)
-    print(f"{name}: recorded {recorded}", flush=True)
-    out: dict[str, Any] = {
-        "fleet_frames": len(fleet),
-        "drive_s": drove["seconds"],
-        "answers": answer_shares(drove["answers"], [truth[digest(p)] for p in fleet], thresholds),
-        "recorded": recorded,
-        "bare": _recall(bare),
-        "merges": {},
-    }
+    out: dict[str, Any] = {"fleet_frames": len(fleet), "bare": _recall(bare), "merges": {}}
     for t in sorted(thresholds, reverse=True):
+        log = base.parent / f"{name}_{t:g}.log"
+        drove = drive(_copy(base, f"{name}_served_{t:g}"), fleet, log, t)
+        recorded = audit(log, truth)
+        print(f"{name} at {t:g}: recorded {recorded}", flush=True)
+        # the answers do not depend on the threshold: the lowest's drive is the one kept
+        out["drive_s"] = drove["seconds"]
+        places = [truth[digest(p)] for p in fleet]
+        out["answers"] = answer_shares(drove["answers"], places, thresholds)
+        out["recorded"] = recorded
+        leads = lead_digests(log)
         index = _copy(base, f"{name}_at_{t:g}")
         merged = merge(index, [log], "--min-p-correct", str(t))
-        rows = merged_rows(index, truth)
+        rows = merged_rows(index, truth, leads)
         print(f"{name} at {t:g}: merged in {merged['seconds']:.0f} s: {rows}", flush=True)
         after = evaluate(index, test, gt)
-        out["merges"][f"{t:g}"] = {
+        run: dict[str, Any] = {
             "_correct": after["correct"],  # for the poisoning's paired tests (not recorded)
             "_seq_correct": after["seq_correct"],
+            "_log": str(log),
+            "recorded": recorded,
             "index": str(index),
             "merge": merged,
             "added": rows,
@@ -374,32 +411,44 @@ def fleet_pass(
             "single_test": paired_test(after["correct"], bare["correct"]),
             "sequence_test": paired_test(after["seq_correct"], bare["seq_correct"]),
         }
-        # the same merge with every frame at its recorded place: wins are the default merge's
-        _, kept_rows, kept = _merge_eval(
-            _copy(base, f"{name}_at_{t:g}_as_recorded"),
-            log,
-            ("--min-p-correct", str(t), "--no-interpolate-places"),
-            truth,
-            test,
-            gt,
-        )
-        out["merges"][f"{t:g}"]["as_recorded"] = {
-            "added": kept_rows,
-            "merged": _recall(kept),
-            "single_test": paired_test(after["correct"], kept["correct"]),
-            "sequence_test": paired_test(after["seq_correct"], kept["seq_correct"]),
-        }
-    out["_log"] = str(log)
+        # the same log merged otherwise: wins are the default merge's
+        for key, flag in (
+            ("as_recorded", "--no-interpolate-places"),
+            ("without_leads", "--no-place-leads"),
+        ):
+            _, kept_rows, kept = _merge_eval(
+                _copy(base, f"{name}_at_{t:g}_{key}"),
+                log,
+                (flag, "--min-p-correct", str(t)),
+                truth,
+                test,
+                gt,
+                leads,
+            )
+            run[key] = {
+                "added": kept_rows,
+                "merged": _recall(kept),
+                "single_test": paired_test(after["correct"], kept["correct"]),
+                "sequence_test": paired_test(after["seq_correct"], kept["seq_correct"]),
+            }
+        out["merges"][f"{t:g}"] = run
+        out["_log"] = str(log)  # the lowest threshold's (the poisoning's)
     return out
 
 
 def _merge_eval(
-    index: Path, log: Path, args: tuple[str, ...], truth: dict[str, int], test: list[Path], gt: Any
+    index: Path,
+    log: Path,
+    args: tuple[str, ...],
+    truth: dict[str, int],
+    test: list[Path],
+    gt: Any,
+    leads: set[str] | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-    """``log`` merged into ``index`` with ``args``: the merge, its audit against ``truth``, and
-    the ``test`` frames evaluated on it."""
+    """``log`` merged into ``index`` with ``args``: the merge, its audit against ``truth`` (and
+    its ``leads``), and the ``test`` frames evaluated on it."""
     merged = merge(index, [log], *args)
-    return merged, merged_rows(index, truth), evaluate(index, test, gt)
+    return merged, merged_rows(index, truth, leads), evaluate(index, test, gt)
 
 
 def answer_shares(
@@ -462,6 +511,38 @@ def halves(base: Path, night: list[Path], thresholds: list[float]) -> dict[str, 
     }
 
 
+def joining(base: Path, gp: Path, thresholds: list[float]) -> dict[str, Any]:
+    """A vehicle that joins the route from off the map, twice (at its start and half way):
+    ``JOIN_FRAMES`` Nordland frames before each half of day_right, recorded at each threshold
+    and merged into a copy of ``base``; the lead frames recorded and merged, and the merged
+    frames that are wrong (a Nordland frame is wrong at any place)."""
+    day = list_images(gp / "day_right")
+    away = list_images(dataset_root() / "nordland_64x32" / "summer")[1000:]
+    h = len(day) // 2
+    fleet = away[:JOIN_FRAMES] + day[:h] + away[JOIN_FRAMES : 2 * JOIN_FRAMES] + day[h:]
+    truth = truth_of(day)
+    foreign = {digest(p) for p in away[: 2 * JOIN_FRAMES]}
+    out: dict[str, Any] = {"fleet_frames": len(fleet), "off_map_frames": len(foreign)}
+    for t in sorted(thresholds, reverse=True):
+        log = base.parent / f"gp_join_{t:g}.log"
+        drive(_copy(base, f"gp_join_served_{t:g}"), fleet, log, t)
+        leads = lead_digests(log)
+        index = _copy(base, f"gp_join_at_{t:g}")
+        merged = merge(index, [log], "--min-p-correct", str(t))
+        with IndexReader(index) as reader:
+            held = set(reader.refs.sha256[reader.n :])
+        out[f"{t:g}"] = {
+            "recorded": audit(log, truth),
+            "off_map_leads": len(leads & foreign),
+            "added": merged_rows(index, truth, leads),
+            "off_map_merged": len(held & foreign),
+            "leads_placed": merged["report"].get("leads_placed", 0),
+            "gates": merged["report"].get("gates", {}),
+        }
+        print(f"gp_join at {t:g}: {out[f'{t:g}']}", flush=True)
+    return out
+
+
 def nordland(
     work: Path, config: str, places: int, thresholds: list[float], keep: bool = False
 ) -> dict[str, Any]:
@@ -491,14 +572,15 @@ def poison(base: Path, gp: dict[str, Any], test: list[Path], threshold: float) -
     * ``added``: copies of as many records, ``POISON_SHIFT`` places away, added to the clean
       log so that they are ``POISON_SHARE`` of it (wrong experiences on top of the right
       ones: what the wrong ones alone cost)."""
-    records = [r for r in read_log(gp["_log"]) if r.p_correct >= threshold]
+    records = [r for r in read_log(gp["_log"]) if r.mode == "lead" or r.p_correct >= threshold]
+    locked = [i for i, r in enumerate(records) if r.mode != "lead"]  # leads stay as recorded
     rng = np.random.default_rng(0)
-    n_bad = max(1, round(POISON_SHARE * len(records)))
-    bad = {int(i) for i in rng.choice(len(records), n_bad, replace=False)}
+    n_bad = max(1, round(POISON_SHARE * len(locked)))
+    bad = {int(i) for i in rng.choice(locked, n_bad, replace=False)}
     with IndexReader(base) as reader:
         names, n_map = list(reader.place_names), reader.n
     n_added = max(1, round(POISON_SHARE * len(records) / (1.0 - POISON_SHARE)))
-    added = sorted(int(i) for i in rng.choice(len(records), n_added, replace=False))
+    added = sorted(int(i) for i in rng.choice(locked, n_added, replace=False))
     # (record, place it is written at, by the poisoner?)
     moved = [
         (r, (r.place + POISON_SHIFT) % n_map if i in bad else r.place, i in bad)
@@ -537,14 +619,19 @@ def placement(
     (within ``TOLERANCE``) but carry the drive's own localisation error (day_right's frames
     answered one place early about half the time), which a night query's error adds to; the
     perfect recorder of the scenarios also has every frame, not only the accepted ones."""
-    records = list(read_log(gp["_log"]))
     truth = truth_of(list_images(dataset_root() / "gardens_point" / "day_right"))
     with IndexReader(base) as reader:
         names, n_map = list(reader.place_names), reader.n
     gt = frame_ground_truth(len(test), n_map, TOLERANCE)
     out: dict[str, Any] = {}
     for t in sorted(thresholds, reverse=True):
-        kept = [r for r in records if r.p_correct >= t]
+        # that threshold's log; a lead frame at its true place as if recorded for its answer
+        kept = [
+            dataclasses.replace(r, mode="sequence", p_correct=max(r.p_correct, t))
+            if r.mode == "lead"
+            else r
+            for r in read_log(gp["merges"][f"{t:g}"]["_log"])
+        ]
         at_truth = [(r, truth[hashlib.sha256(r.image).hexdigest()], False) for r in kept]
         log = base.parent / f"placement_{t:g}.log"
         _write_log(log, at_truth, names)
@@ -615,12 +702,13 @@ def cost(
         extra = reader.n_rows - reader.n
         merged_bytes = reader.manifest["summary"]["bytes_total"]
     report = at["merge"]["report"]
+    frames = at["recorded"]["recorded"] + at["recorded"]["leads"]  # the log's records
     out: dict[str, Any] = {
         "bytes_per_experience": (merged_bytes - bare_bytes) / extra if extra else None,
         "merge": {
-            "frames": gp["recorded"]["recorded"],
+            "frames": frames,
             "seconds": at["merge"]["seconds"],
-            "frames_per_s": gp["recorded"]["recorded"] / at["merge"]["seconds"],
+            "frames_per_s": frames / at["merge"]["seconds"],
             "frames_extracted": report.get("frames_extracted"),
             "features_recorded": report.get("features_recorded", 0),
             "note": "the whole hmpf-index add --experiences run: reading the log, extracting "

@@ -114,6 +114,12 @@ class ExperienceSettings(BaseModel):
             of where it was than the frame's own answer, whose place jitters by one (two frames
             answered at one place, the place after them left without an experience). Not a
             gate: it moves no frame more than one place and is on with the gates open too.
+        place_leads: a ``lead`` frame (a lock's lead-in: the service recorded it just before
+            a recorded frame of the same vehicle, setting ``experience_lead_frames``) is
+            placed back along the route from the frames kept after it, at its vehicle's pace
+            (:func:`indexer.experiences.place_leads`), then meets the gates after
+            ``below_p_correct`` like any frame; False leaves every lead frame out. On with
+            the gates open too (without it a lead frame has no place).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -123,11 +129,13 @@ class ExperienceSettings(BaseModel):
     duplicate_similarity: float | None = Field(default=0.99, gt=0, le=1)
     max_per_place: int | None = Field(default=4, ge=1)
     interpolate_places: bool = True
+    place_leads: bool = True
 
     @classmethod
     def open(cls) -> ExperienceSettings:
         """Every gate open: each readable frame of a known place is merged (what a
-        measurement of the gates compares with); ``interpolate_places`` as by default."""
+        measurement of the gates compares with); ``interpolate_places`` and ``place_leads``
+        as by default."""
         return cls(
             min_p_correct=0.0, agreement_window=None, duplicate_similarity=None, max_per_place=None
         )

@@ -69,8 +69,11 @@ __all__ = [
     "read_log",
 ]
 
-#: What a record's ``mode`` may be: the answer came from the sequence filter or from one frame.
-MODES = ("sequence", "single")
+#: What a record's ``mode`` may be: the answer came from the sequence filter or from one frame;
+#: ``lead``: a frame a vehicle sent just before a recorded sequence-mode frame, not itself
+#: confident (a lock's lead-in: its ``place`` and ``p_correct`` are its own answer's, and a
+#: merge places it from the recorded frames after it, :func:`indexer.experiences.place_leads`).
+MODES = ("sequence", "single", "lead")
 DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB: about 6,000 frames of a 50 KB JPEG + 110 KB of features
 DEFAULT_SEGMENT_BYTES = 64 << 20
 DEFAULT_SYNC_EVERY = 32
@@ -113,7 +116,8 @@ class Record:
         vehicle: the vehicle's id; ``""`` when the request named none.
         timestamp: when the frame was taken: the request's timestamp as sent, else when it
             was received (seconds since the epoch).
-        mode: ``"sequence"`` or ``"single"`` (where the answer came from).
+        mode: ``"sequence"`` or ``"single"`` (where the answer came from), or ``"lead"``
+            (a lock's lead-in, :data:`MODES`).
         log: the log's id (stable, unique per log folder).
         seq: the record's number in the log (unique with ``log``; grows with time).
         received: when the service received the frame (seconds since the epoch): the clock

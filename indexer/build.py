@@ -246,6 +246,8 @@ def experience_lines(report: Mapping[str, Any]) -> list[str]:
             f"placed between their time neighbours (one place from where recorded): "
             f"{report['interpolated']}"
         )
+    if report.get("leads_placed"):
+        lines.append(f"lead frames placed from the frames after them: {report['leads_placed']}")
     lines += [f"  {line}" for line in report.get("rejected_agreement", [])]
     return lines
 

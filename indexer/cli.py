@@ -185,6 +185,14 @@ def build_parser() -> argparse.ArgumentParser:
         "neighbours)",
     )
     merge.add_argument(
+        "--no-place-leads",
+        dest="place_leads",
+        action="store_const",
+        const=False,
+        help="leave out the lead frames (a lock's lead-in the service recorded before a "
+        "vehicle's recorded frame) instead of placing them from the frames after them",
+    )
+    merge.add_argument(
         "--no-gates",
         action="store_true",
         help="open every gate: merge each readable frame of a known place (to measure them)",
@@ -370,6 +378,7 @@ _MERGE_KNOBS = (
     "duplicate_similarity",
     "max_per_place",
     "interpolate_places",
+    "place_leads",
 )
 
 
@@ -378,7 +387,7 @@ def _images_only(args: argparse.Namespace) -> None:
     given = [k for k in _MERGE_KNOBS if getattr(args, k) is not None]
     given += [k for k in ("dry_run", "no_gates") if getattr(args, k)]
     if given:
-        names = {"interpolate_places": "no_interpolate_places"}
+        names = {"interpolate_places": "no_interpolate_places", "place_leads": "no_place_leads"}
         flags = ", ".join("--" + names.get(k, k).replace("_", "-") for k in given)
         raise DatasetError(f"{flags}: only with --experiences")
 

@@ -10,9 +10,14 @@ passes, in order, through these gates; the first it fails is counted (``MergeRep
 
 * ``already_merged``: the same frame of the same log is in the version, or the input repeats a
   record (merging a log twice adds nothing);
-* ``below_p_correct``: its recorded ``p_correct`` is below ``min_p_correct``;
+* ``below_p_correct``: its recorded ``p_correct`` is below ``min_p_correct`` (not asked of a
+  ``lead`` frame: the frames after it vouch for it, next);
 * ``unknown_place``: the place it was recorded at (by name) is not a place of the version;
 * ``unreadable``: the bytes do not decode;
+* ``unplaced``: a ``lead`` frame (a lock's lead-in, recorded before a frame of the same
+  vehicle) that :func:`place_leads` cannot place: no two frames of its vehicle kept by the
+  gates above follow it closely enough to give the vehicle's pace, or its place would lie
+  before the route's start (or past its end); every lead frame with ``place_leads`` off;
 * ``disagreeing``: localised on its own against the version (one frame, the whole hierarchy,
   over places) it lands more than ``agreement_window`` places from its recorded place along
   that place's route: the defence against wrong frames (a poisoned log, a wrong lock);
@@ -23,7 +28,9 @@ passes, in order, through these gates; the first it fails is counted (``MergeRep
   reference included); the frames kept are chosen greedily, each the farthest (on that
   descriptor) from the images the place holds and those chosen before it.
 
-Before the gates that need features, a frame may be moved one place
+Before the gates that need features, a lead frame is placed from the frames after it
+(``place_leads``, :func:`place_leads`): by the pace of its vehicle over the next frames kept,
+back from the first of them; and a frame may be moved one place
 (``interpolate_places``, :func:`between_neighbours`): where the frames just before and after
 it from the same log and vehicle, equally spaced in time, advanced an even number of places
 along one route, and its recorded place is one place off the place midway between them, it
@@ -100,6 +107,7 @@ from indexer.build import (
 __all__ = [
     "GATES",
     "between_neighbours",
+    "place_leads",
     "FrameRecord",
     "LogRecords",
     "MergeReport",
@@ -114,6 +122,7 @@ GATES = (
     "below_p_correct",
     "unknown_place",
     "unreadable",
+    "unplaced",
     "disagreeing",
     "duplicate",
     "over_cap",
@@ -127,6 +136,9 @@ MAX_NEIGHBOUR_GAP_S = 30.0
 #: How unequal the two time steps to a frame's neighbours may be, as a share of the longer
 #: (:func:`between_neighbours`): a constant pace needs about equal steps.
 NEIGHBOUR_STEP_TOLERANCE = 0.25
+#: How many of the frames kept after a lead frame give its vehicle's pace
+#: (:func:`place_leads`): the first and the last of them, over the time between.
+LEAD_PACE_FRAMES = 5
 _EXTENSIONS = {
     "image/jpeg": ".jpg",
     "image/png": ".png",
@@ -159,6 +171,8 @@ class FrameRecord(Protocol):
     def seq(self) -> int: ...
     @property
     def features(self) -> bytes | None: ...
+    @property
+    def mode(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -174,6 +188,7 @@ class _Candidate:
     vehicle: str
     version: str
     time: float
+    lead: bool = False
 
 
 @dataclass
@@ -191,6 +206,8 @@ class MergeReport:
             service recorded them with the frame, extracted by the same methods).
         interpolated: frames placed between their time neighbours, one place from where
             they were recorded (:func:`between_neighbours`).
+        leads_placed: lead frames placed from the frames after them (:func:`place_leads`;
+            the ones it could not place are the ``unplaced`` gate's).
         seconds: from the start to the end of the gates (publishing excluded).
         rejected_agreement: the first frames the agreement gate stopped, one line each.
         summary: the published version's :class:`~indexer.build.Summary` (None: nothing
@@ -213,6 +230,7 @@ class MergeReport:
     summary: Summary | None = None
     features_recorded: int = 0
     interpolated: int = 0
+    leads_placed: int = 0
 
     @property
     def frames_per_s(self) -> float:
@@ -231,6 +249,7 @@ class MergeReport:
             "frames_extracted": self.frames_extracted,
             "features_recorded": self.features_recorded,
             "interpolated": self.interpolated,
+            "leads_placed": self.leads_placed,
             "frames_per_s": round(self.frames_per_s, 2),
             "seconds": round(self.seconds, 3),
             "settings": dict(self.settings),
@@ -277,7 +296,7 @@ def resolve_settings(
 ) -> ExperienceSettings:
     """``base`` with the given (not None) ``overrides``, validated as the config is; without
     ``gates``, every gate open (:meth:`~hmpf.config.ExperienceSettings.open`, overrides
-    ignored but ``interpolate_places``, which is not a gate).
+    ignored but ``interpolate_places`` and ``place_leads``, which are not gates).
 
     ``agreement_window`` may be overridden with a negative number to turn the gate off.
 
@@ -285,10 +304,12 @@ def resolve_settings(
         DatasetError: an override out of range.
     """
     if not gates:
-        move = (overrides or {}).get("interpolate_places")
-        opened = ExperienceSettings.open()
-        keep = base.interpolate_places if move is None else bool(move)
-        return opened.model_copy(update={"interpolate_places": keep})
+        given = overrides or {}
+        kept = {}
+        for key in ("interpolate_places", "place_leads"):
+            value = given.get(key)
+            kept[key] = getattr(base, key) if value is None else bool(value)
+        return ExperienceSettings.open().model_copy(update=kept)
     data = base.model_dump()
     for key, value in (overrides or {}).items():
         if value is None:
@@ -362,7 +383,8 @@ def _screen(
             gates["already_merged"] += 1
             continue
         seen.add(key)
-        if not rec.p_correct >= settings.min_p_correct:  # NaN fails too
+        lead = rec.mode == "lead"
+        if not lead and not rec.p_correct >= settings.min_p_correct:  # NaN fails too
             gates["below_p_correct"] += 1
             continue
         place = place_index.get(rec.place_name)
@@ -390,6 +412,7 @@ def _screen(
                 rec.vehicle,
                 rec.index_version,
                 float(rec.timestamp),
+                lead,
             )
         )
     return out, gates, n, list(logs), job.hexdigest()
@@ -566,7 +589,7 @@ def between_neighbours(
     out = list(candidates)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, c in enumerate(candidates):
-        if math.isfinite(c.time):
+        if math.isfinite(c.time) and not c.lead:  # a lead frame's place is a guess
             groups.setdefault((c.log, c.vehicle), []).append(i)
     moved = 0
     for members in groups.values():
@@ -590,6 +613,70 @@ def between_neighbours(
                 out[i] = dataclasses.replace(here, place=int(routes.ordered[mid]))
                 moved += 1
     return out, moved
+
+
+def place_leads(
+    candidates: Sequence[_Candidate], routes: RouteMap
+) -> tuple[list[_Candidate], int, int]:
+    """The candidates with each lead frame placed from the frames after it, those it cannot
+    place left out; (candidates, leads placed, leads left out).
+
+    A lead frame (``_Candidate.lead``: recorded by the service just before a frame of the
+    same vehicle that it recorded for its answer) carries its own answer's place, which the
+    filter was not sure of. Its vehicle's frames that are not leads (same log and vehicle)
+    after it in time give its place: the first of them, at most :data:`MAX_NEIGHBOUR_GAP_S`
+    seconds after it, and up to :data:`LEAD_PACE_FRAMES` in all that follow each other within
+    that gap on the first one's route (at least two) give the pace (places per second, from
+    the first to the last); the lead frame is placed that pace times its time before the
+    first one back along the route, rounded. It is left out when there are not two such
+    frames, when the time from the first to the last is zero, or when the place would lie
+    outside the route (a vehicle that joined the route at its start from off the map). The
+    gates after this (agreement first) judge it like any frame.
+    """
+    follows: dict[tuple[str, str], list[_Candidate]] = {}
+    for c in candidates:
+        if not c.lead and math.isfinite(c.time):
+            follows.setdefault((c.log, c.vehicle), []).append(c)
+    for group in follows.values():
+        group.sort(key=lambda c: (c.time, c.seq))
+    out: list[_Candidate] = []
+    placed = left = 0
+    for c in candidates:
+        if not c.lead:
+            out.append(c)
+            continue
+        place = _lead_place(c, follows.get((c.log, c.vehicle), []), routes)
+        if place is None:
+            left += 1
+            continue
+        out.append(dataclasses.replace(c, place=place))
+        placed += 1
+    return out, placed, left
+
+
+def _lead_place(lead: _Candidate, group: Sequence[_Candidate], routes: RouteMap) -> int | None:
+    """Where ``lead`` was by the frames of ``group`` (its vehicle's, by time) after it."""
+    if not math.isfinite(lead.time):
+        return None
+    after = [c for c in group if c.time > lead.time]
+    if not after or after[0].time - lead.time > MAX_NEIGHBOUR_GAP_S:
+        return None
+    first = after[0]
+    route = int(routes.route_of[first.place])
+    run = [first]
+    for c in after[1:LEAD_PACE_FRAMES]:
+        if c.time - run[-1].time > MAX_NEIGHBOUR_GAP_S or routes.route_of[c.place] != route:
+            break
+        run.append(c)
+    span = run[-1].time - first.time
+    if len(run) < 2 or span <= 0:
+        return None
+    start = int(routes.rank[first.place])
+    pace = (int(routes.rank[run[-1].place]) - start) / span
+    rank = start - int(round(pace * (first.time - lead.time)))
+    if not routes.route_start[route] <= rank < routes.route_end[route]:
+        return None
+    return int(routes.ordered[rank])
 
 
 def _localise(
@@ -792,10 +879,15 @@ def _run(
     run)."""
     opt = _parent_options(parent, options or BuildOptions(progress=False))
     candidates, counts, n_records, logs, digest = _screen(parent, records, settings)
-    moved = 0
+    routes = _place_routes(parent.refs, place_count(parent.refs))
+    moved = placed = 0
     if settings.interpolate_places:
-        routes = _place_routes(parent.refs, place_count(parent.refs))
         candidates, moved = between_neighbours(candidates, routes)
+    if settings.place_leads:
+        candidates, placed, counts["unplaced"] = place_leads(candidates, routes)
+    else:
+        counts["unplaced"] = sum(c.lead for c in candidates)
+        candidates = [c for c in candidates if not c.lead]
     if publish is None:
         work.path.mkdir(parents=True)
     else:
@@ -828,6 +920,7 @@ def _run(
         frames_extracted=len(candidates) - n_recorded,
         features_recorded=n_recorded,
         interpolated=moved,
+        leads_placed=placed,
         seconds=time.perf_counter() - started,
         settings=settings.model_dump(),
         dry_run=publish is None,

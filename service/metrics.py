@@ -28,8 +28,9 @@
   ``hmpf_experience_dropped_total{reason}`` (``queue_full``: the recorder's queue was full;
   ``error``: the log could not be opened or written, e.g. a full disk; ``bound``: recorded
   frames deleted with the oldest segments to keep the log within its size),
-  ``hmpf_experience_queue`` (frames waiting for the disk) and ``hmpf_experience_bytes`` (the
-  log's size on disk)
+  ``hmpf_experience_queue`` (frames waiting for the disk), ``hmpf_experience_bytes`` (the
+  log's size on disk) and ``hmpf_experience_lead_bytes`` (the lead-in frames held in memory,
+  setting ``experience_lead_frames``)
 
 Every label value comes from a fixed set in the code, never from a request.
 """
@@ -174,6 +175,11 @@ class Metrics:
         )
         self.experience_bytes = Gauge(
             "hmpf_experience_bytes", "the experience log's size on disk", registry=self.registry
+        )
+        self.experience_lead_bytes = Gauge(
+            "hmpf_experience_lead_bytes",
+            "images held in memory as the vehicles' lead-in frames",
+            registry=self.registry,
         )
         # Every series from the start (at 0), so that rates and alerts need no special case.
         for reason in DROP_REASONS:

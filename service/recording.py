@@ -13,6 +13,18 @@ index version that answered and the mode (:class:`hmpf.experience_log.Record`), 
 extracted them to answer it (:func:`hmpf.features.pack_features`, packed on the recorder's
 thread), which a merge into the same version reads instead of extracting them again.
 
+A lock's lead-in (``experience_lead_frames``, 2 by default; 0: off): in sequence mode the
+recorder keeps each vehicle's last frames that were not recorded (in memory, bounded per
+vehicle and by ``experience_lead_bytes`` overall: :class:`Leads`). When the vehicle's next
+frame is recorded, those taken at most :data:`LEAD_MAX_GAP_S` before it by the same index
+version are recorded first, as ``lead`` frames (their own answer's place and ``p_correct``,
+no features); a merge places them from the recorded frames after them
+(:func:`indexer.experiences.place_leads`). A frame whose answer says the vehicle is off the
+map forgets the vehicle's frames (what came before it is no lead-in). The places a vehicle
+passes before the filter is sure, the same places on every drive that starts at one depot,
+get experiences too. Replicas keep their own: a vehicle whose frames reach several loses
+some lead-ins, nothing else.
+
 The request only puts the frame on a bounded queue: :meth:`Recorder.offer` never waits and
 never raises. One background thread appends to the log (:class:`~hmpf.experience_log.
 ExperienceLog`: fsynced in batches, bounded in size). When the queue is full (a slow or
@@ -31,8 +43,9 @@ import math
 import queue
 import threading
 import time
+from collections import OrderedDict, deque
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from hmpf.experience_log import ExperienceLog, ExperienceLogError
@@ -42,7 +55,7 @@ from service.metrics import Metrics
 from service.schemas import LocalizeResponse
 from service.settings import Settings
 
-__all__ = ["Frame", "Recorder", "recorded_mode"]
+__all__ = ["LEAD_MAX_GAP_S", "Frame", "Leads", "Recorder", "recorded_mode"]
 
 log = logging.getLogger("hmpf.service")
 #: Seconds between tries to open a log that could not be opened.
@@ -51,6 +64,11 @@ REOPEN_S = 5.0
 WARN_EVERY_S = 60.0
 #: What tells the thread to finish (after the frames queued before it).
 _STOP: Any = object()
+#: The longest time (seconds, by the frames' timestamps) from a lead-in frame to the recorded
+#: frame it leads into (the merge's own bound between time neighbours).
+LEAD_MAX_GAP_S = 30.0
+#: What a held frame counts for beyond its image's bytes (its fields, the vehicle's entry).
+_HELD_OVERHEAD = 1024
 
 
 @dataclass(frozen=True)
@@ -82,6 +100,64 @@ def recorded_mode(answer: LocalizeResponse, settings: Settings) -> str | None:
     return mode if mode in settings.experience_modes else None
 
 
+class Leads:
+    """Each vehicle's last frames that were not recorded (a lock's lead-in candidates).
+
+    At most ``frames`` per vehicle (the newest) and ``max_bytes`` in all (each frame's image
+    plus a kilobyte): over it, the vehicle heard from longest ago loses its frames.
+    Thread-safe; every call is a few dictionary operations (it runs on the request's path).
+    """
+
+    def __init__(self, frames: int, max_bytes: int) -> None:
+        self.frames, self.max_bytes = frames, max_bytes
+        self._held: OrderedDict[str, deque[Frame]] = OrderedDict()
+        self._lock = threading.Lock()
+        self.bytes = 0
+
+    def keep(self, frame: Frame) -> None:
+        """Hold ``frame`` (mode ``lead``) as its vehicle's newest."""
+        if self.frames == 0 or _held_size(frame) > self.max_bytes:
+            self.forget(frame.vehicle)
+            return
+        with self._lock:
+            held = self._held.pop(frame.vehicle, None) or deque()
+            held.append(frame)
+            self.bytes += _held_size(frame)
+            while len(held) > self.frames:
+                self.bytes -= _held_size(held.popleft())
+            self._held[frame.vehicle] = held  # the most recently heard from last
+            while self.bytes > self.max_bytes:
+                _, old = self._held.popitem(last=False)
+                self.bytes -= sum(map(_held_size, old))
+
+    def forget(self, vehicle: str) -> None:
+        """Drop ``vehicle``'s frames."""
+        with self._lock:
+            self._drop(vehicle)
+
+    def take(self, frame: Frame) -> list[Frame]:
+        """The held frames of ``frame``'s vehicle that lead into it (the same index version,
+        taken before it, at most :data:`LEAD_MAX_GAP_S` earlier), oldest first; the vehicle's
+        frames are dropped."""
+        with self._lock:
+            held = self._drop(frame.vehicle)
+        return [
+            f
+            for f in held
+            if f.index_version == frame.index_version
+            and 0.0 < frame.timestamp - f.timestamp <= LEAD_MAX_GAP_S
+        ]
+
+    def _drop(self, vehicle: str) -> deque[Frame]:
+        held = self._held.pop(vehicle, None) or deque()
+        self.bytes -= sum(map(_held_size, held))
+        return held
+
+
+def _held_size(frame: Frame) -> int:
+    return len(frame.image) + _HELD_OVERHEAD
+
+
 class Recorder:
     """The app's experience recorder: a bounded queue and the thread that writes the log.
 
@@ -101,6 +177,7 @@ class Recorder:
         self._open_at = 0.0  # monotonic time of the next try to open the log
         self._warned: dict[str, float] = {}
         self._bound_seen = 0
+        self.leads = Leads(settings.experience_lead_frames, settings.experience_lead_bytes)
 
     @classmethod
     def for_settings(cls, settings: Settings, metrics: Metrics) -> Recorder | None:
@@ -138,24 +215,30 @@ class Recorder:
         """
         try:
             mode = recorded_mode(answer, self.settings)
-            if mode is None:
-                return False
             match = answer.match
-            assert match is not None and match.p_correct is not None  # recorded_mode checked
+            if match is None:
+                if vehicle_id is not None:
+                    self.leads.forget(vehicle_id)
+                return False
             frame = Frame(
                 image=image,
                 content_type=content_type,
                 place=match.reference_id,
                 place_name=match.name,
                 index_version=answer.index_version,
-                p_correct=match.p_correct,
+                p_correct=0.0 if match.p_correct is None else match.p_correct,
                 vehicle=vehicle_id or "",
                 timestamp=received if timestamp is None else timestamp,
-                mode=mode,
+                mode=mode or "lead",
                 received=received,
                 features=features if methods is not None else None,
                 methods=methods,
             )
+            if mode is None:
+                self._hold(answer, frame, vehicle_id)
+                return False
+            if vehicle_id is not None and mode == "sequence":
+                self._queue_leads(frame)
             self._queue.put_nowait(frame)
         except queue.Full:
             self.metrics.experience_dropped.labels("queue_full").inc()
@@ -167,6 +250,26 @@ class Recorder:
             return False
         self.metrics.experience_queue.set(self._queue.qsize())
         return True
+
+    def _queue_leads(self, frame: Frame) -> None:
+        """Queue the lead-in frames of ``frame``'s vehicle (a full queue drops them, counted)."""
+        for lead in self.leads.take(frame):
+            try:
+                self._queue.put_nowait(lead)
+            except queue.Full:
+                self.metrics.experience_dropped.labels("queue_full").inc()
+        self.metrics.experience_lead_bytes.set(self.leads.bytes)
+
+    def _hold(self, answer: LocalizeResponse, frame: Frame, vehicle_id: str | None) -> None:
+        """Keep a sequence-mode frame that was not recorded as a possible lead-in (without its
+        features); one the filter places off the map forgets the vehicle's frames."""
+        if vehicle_id is None or answer.sequence is None:
+            return
+        if answer.sequence.off_map:
+            self.leads.forget(frame.vehicle)
+        else:
+            self.leads.keep(replace(frame, features=None, methods=None))
+        self.metrics.experience_lead_bytes.set(self.leads.bytes)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Write the frames queued so far, flush and close the log; waits ``timeout_s`` at

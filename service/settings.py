@@ -194,6 +194,22 @@ class Settings(BaseSettings):
         "methods extracted them: about 110 KB per frame with the default preset), so that "
         "`hmpf-index add --experiences` into that version need not extract them again",
     )
+    experience_lead_frames: int = Field(
+        2,
+        ge=0,
+        le=16,
+        description="a lock's lead-in: per vehicle in sequence mode, the last frames not "
+        "recorded are kept in memory, and when the vehicle's next frame is recorded (within "
+        "30 s) they are recorded before it as `lead` frames, which a merge places from the "
+        "recorded frames after them (the places a vehicle passed before the filter was sure "
+        "get experiences too); 0: off",
+    )
+    experience_lead_bytes: int = Field(
+        32 << 20,
+        ge=0,
+        description="memory for the lead-in frames of every vehicle together (images as "
+        "uploaded); over it the vehicle heard from longest ago loses its frames",
+    )
     experience_queue: int = Field(
         64, ge=1, description="frames waiting for the disk; one more is dropped (counted)"
     )

@@ -33,7 +33,13 @@ from hmpf.index import IndexBuildError, IndexReader
 from hmpf.sequence import RouteMap
 from indexer.build import BuildOptions, add, build, place_count, remove
 from indexer.cli import main
-from indexer.experiences import _Candidate, between_neighbours, merge, remove_experiences
+from indexer.experiences import (
+    _Candidate,
+    between_neighbours,
+    merge,
+    place_leads,
+    remove_experiences,
+)
 from indexer.maintenance import verify, verify_all
 from tests.conftest import SMALL_INDEX_CONFIG, write_synthetic_images
 
@@ -80,6 +86,7 @@ def record(
     p_correct: float = 0.995,
     timestamp: float = 1.7e9,
     place_name: str | None = None,
+    mode: str = "sequence",
 ) -> Record:
     return Record(
         image=image,
@@ -90,7 +97,7 @@ def record(
         p_correct=p_correct,
         vehicle=vehicle,
         timestamp=timestamp + seq,
-        mode="sequence",
+        mode=mode,
         log=log,
         seq=seq,
     )
@@ -169,6 +176,7 @@ def test_gates_each_stop_what_they_should(index: Path, gardens_point: Path) -> N
         record(b"\xff\xd8 not a jpeg", 8, 6),  # unreadable
         record(frame(gardens_point, day, 16), 2, 7),  # injected wrong place: disagreeing
         record(frame(gardens_point, day, 3), 3, 1),  # the input repeats a record
+        record(frame(gardens_point, day, 9), 9, 8, p_correct=0.2, mode="lead"),  # unplaced
     ]
     with IndexReader(index) as r:  # the injected frame lands far from its recorded place
         assert abs(localised_place(r, recs[6].image) - 2) > 3
@@ -179,6 +187,7 @@ def test_gates_each_stop_what_they_should(index: Path, gardens_point: Path) -> N
         "below_p_correct": 1,
         "unknown_place": 1,
         "unreadable": 1,
+        "unplaced": 1,
         "disagreeing": 1,
         "duplicate": 2,
         "over_cap": 0,
@@ -419,6 +428,89 @@ def test_merge_places_a_frame_between_its_neighbours(index: Path, gardens_point:
     assert off.settings["interpolate_places"] is False and off.interpolated == 0
 
 
+# -- a lock's lead-in placed from the frames after it ---------------------------------------------
+def _lead(place: int, t: float, seq: int, vehicle: str = "car1") -> _Candidate:
+    return dataclasses.replace(_cand(place, t, seq, vehicle), lead=True)
+
+
+def _leads_placed(
+    leads: list[float], places: list[int], times: list[float], routes: RouteMap
+) -> list[int | None]:
+    """Where leads at ``leads`` (times) go, followed by frames at ``places`` / ``times``."""
+    cands = [_cand(p, t, 10 + i) for i, (p, t) in enumerate(zip(places, times, strict=True))]
+    cands += [_lead(0, t, i) for i, t in enumerate(leads)]
+    out, placed, left = place_leads(cands, routes)
+    assert out[: len(places)] == cands[: len(places)]  # the others untouched, in order
+    got = {c.seq: c.place for c in out if c.lead}
+    assert (placed, left) == (len(got), len(leads) - len(got))
+    return [got.get(i) for i in range(len(leads))]
+
+
+def test_place_leads_goes_back_along_the_route_at_the_pace_after_it() -> None:
+    one = RouteMap.from_metadata(20)
+    t = [10.0, 11.0, 12.0]
+    assert _leads_placed([8.0, 9.0], [5, 6, 7], t, one) == [3, 4]
+    assert _leads_placed([8.0], [7, 6, 5], t, one) == [9]  # driven the other way
+    assert _leads_placed([8.0], [5, 5, 5], t, one) == [5]  # standing still
+    assert _leads_placed([9.0], [5, 7, 9], t, one) == [3]  # 2 places a second
+    # the pace from the first to the fifth frame after it (a jittery second frame)
+    assert _leads_placed([9.0], [5, 5, 7, 8, 9, 15], [10, 11, 12, 13, 14, 15], one) == [4]
+    # ... from the frames that follow each other within 30 s
+    assert _leads_placed([9.0], [5, 6, 15], [10, 11, 60], one) == [4]
+    # not placed: one frame after it, too long before it, none after it, before the start
+    assert _leads_placed([9.0], [5], [10.0], one) == [None]
+    assert _leads_placed([9.0], [5, 6], [40.0, 41.0], one) == [None]
+    assert _leads_placed([13.0], [5, 6, 7], t, one) == [None]
+    assert _leads_placed([6.0], [1, 2, 3], t, one) == [None]
+    assert _leads_placed([9.0], [5, 6], [10.0, 10.0], one) == [None]  # no time between
+    # two routes of 10 places: back from the second route's start is not the first route
+    two = RouteMap.from_metadata(20, sequence=["a"] * 10 + ["b"] * 10)
+    assert _leads_placed([8.0], [10, 11, 12], t, two) == [None]
+    assert _leads_placed([8.0], [12, 13, 14], t, two) == [10]
+    assert _leads_placed([8.0], [8, 10, 11], t, two) == [None]  # the next frames change route
+    # another vehicle's frames, or other leads, never give the pace
+    cands = [_lead(0, 8.0, 0), _cand(5, 10.0, 1, "car2"), _cand(6, 11.0, 2, "car2")]
+    assert place_leads(cands, one)[1:] == (0, 1)
+    cands = [_lead(0, 8.0, 0), _lead(5, 10.0, 1), _lead(6, 11.0, 2), _cand(6, 12.0, 3)]
+    assert place_leads(cands, one)[1:] == (0, 3)
+
+
+def test_between_neighbours_neither_moves_a_lead_nor_reads_it() -> None:
+    one = RouteMap.from_metadata(20)
+    cands = [_cand(5, 0.0, 0), _lead(5, 1.0, 1), _cand(7, 2.0, 2)]
+    assert between_neighbours(cands, one) == (cands, 0)
+    cands = [_cand(5, 0.0, 0), _cand(5, 1.0, 1), _lead(9, 1.5, 3), _cand(7, 2.0, 2)]
+    out, n = between_neighbours(cands, one)
+    assert n == 1 and [c.place for c in out] == [5, 6, 9, 7]
+
+
+def test_merge_places_lead_frames_from_the_frames_after_them(
+    index: Path, gardens_point: Path
+) -> None:
+    # day_right frames 2, 3 recorded as a lock's lead-in (unsure answers at a wrong place),
+    # then 4..7 recorded at their places: the leads go to places 2 and 3
+    day = [frame(gardens_point, "day_right", i) for i in range(2, 8)]
+    recs = [
+        record(day[0], 9, 2, p_correct=0.3, mode="lead"),
+        record(day[1], 9, 3, p_correct=0.0, mode="lead"),
+    ] + [record(day[i - 2], i, i) for i in range(4, 8)]
+    off = merge(index, recs, settings={"place_leads": False}, dry_run=True)
+    assert off.gates["unplaced"] == 2 and off.added == 4 and off.leads_placed == 0
+    # with every gate open they are still placed (no place otherwise), unless asked not to
+    opened = merge(index, recs, gates=False, dry_run=True)
+    assert opened.settings["place_leads"] is True and opened.leads_placed == 2
+    off = merge(index, recs, settings={"place_leads": False}, gates=False, dry_run=True)
+    assert off.settings["place_leads"] is False and off.gates["unplaced"] == 2
+    report = merge(index, recs, options=OPTS)
+    assert report.leads_placed == 2 and report.gates["below_p_correct"] == 0
+    assert report.added == 6, report.gates
+    with IndexReader(index) as r:
+        places = [int(r.refs.meta["place"][row]) for row in experience_rows(r)]
+        assert places == [2, 3, 4, 5, 6, 7]
+        entry = r.manifest["experiences"]
+        assert entry["leads_placed"] == 2 and entry["settings"]["place_leads"] is True
+
+
 def test_cli_rejects_mixed_options(index: Path, tmp_path: Path, capsys) -> None:
     args = ["add", "--index", str(index), "--images", str(tmp_path), "--dry-run"]
     assert main(args) == 2
@@ -433,6 +525,9 @@ def test_cli_rejects_mixed_options(index: Path, tmp_path: Path, capsys) -> None:
     args = ["add", "--index", str(index), "--images", str(tmp_path), "--no-interpolate-places"]
     assert main(args) == 2
     assert "--no-interpolate-places: only with --experiences" in capsys.readouterr().err
+    args = ["add", "--index", str(index), "--images", str(tmp_path), "--no-place-leads"]
+    assert main(args) == 2
+    assert "--no-place-leads: only with --experiences" in capsys.readouterr().err
     assert main(["remove", "--index", str(index)]) == 2
     assert "give --experiences-from" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # --images and --experiences are exclusive

@@ -4,7 +4,8 @@ Gardens Point day_left, driven by day_right frames in sequence mode (the fleet p
 experience loop: the other side of the road).
 
 * the recorded frames are exactly the answers accepted with p_correct >= the threshold in an
-  enabled mode, with their place, p_correct, vehicle, timestamp, version and bytes;
+  enabled mode, with their place, p_correct, vehicle, timestamp, version and bytes, each
+  after its lead-in (the vehicle's last frames not recorded, at most 2, within 30 s);
 * recording off records nothing;
 * a stuck log (its lock held, as by a long prune) and a log folder that cannot be created
   never fail or hold up an answer: the frames are dropped and counted;
@@ -39,8 +40,8 @@ from hmpf.imageio import decode_image
 from hmpf.index import IndexReader
 from indexer.build import build
 from service.metrics import Metrics
-from service.recording import Recorder, recorded_mode
-from service.schemas import LocalizeResponse
+from service.recording import Frame, Recorder, recorded_mode
+from service.schemas import LocalizeResponse, SequenceReport
 from service.settings import load_settings
 from tests.conftest import copy_gp
 from tests.service_helpers import BUILD_OPTIONS, Server
@@ -87,7 +88,7 @@ def recording(index: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
         tmp,
         experience_segment_bytes=str(64 * 1024),
         experience_max_bytes=str(64 << 20),
-        experience_queue="2",
+        experience_queue="4",  # a lock's frame and its lead-in (3) fit
         experience_sync_every="4",
     )
     srv.experiences = tmp / "experiences"  # type: ignore[attr-defined]
@@ -180,6 +181,33 @@ def _to_record(body: dict[str, Any]) -> bool:
     )
 
 
+LEADS = 2  # the default experience_lead_frames
+
+
+def _with_leads(sent: list[tuple[int, dict[str, Any], bytes, float | None]]) -> list[Any]:
+    """What one vehicle's answers put in the log, in order (the rule read independently):
+    each recorded frame after its lead-in, the last :data:`LEADS` frames not recorded since
+    the vehicle's last recorded frame or off-map answer, taken at most 30 s before it. A
+    batch's frames (``ts`` None) share one received time: none leads into another."""
+    out: list[Any] = []
+    pending: list[Any] = []
+    for item in sent:
+        _, body, _, ts = item
+        if _to_record(body):
+            out += [
+                (lead, "lead")
+                for lead in pending[-LEADS:]
+                if ts is not None and lead[3] is not None and 0 < ts - lead[3] <= 30
+            ]
+            out.append((item, "sequence"))
+            pending = []
+        elif body["match"] is None or body["sequence"]["off_map"]:
+            pending = []
+        else:
+            pending.append(item)
+    return out
+
+
 def _read(log: Path) -> tuple[list[Record], LogStats]:
     stats = LogStats()
     return list(read_log(log, stats=stats)), stats
@@ -261,6 +289,87 @@ def test_the_recorder_counts_what_the_bound_drops_and_closes_on_stop(
     ExperienceLog(log).close()  # released
 
 
+def _in_sequence(answer: LocalizeResponse, off_map: bool = False) -> LocalizeResponse:
+    """``answer`` as a sequence-mode answer (its report: what the lead-in rule reads)."""
+    report = {
+        "status": "tracking",
+        "match": answer.match.model_dump() if answer.match is not None else None,
+        "mass": 0.5,
+        "locked": False,
+        "off_map": off_map,
+        "off_map_probability": 0.9 if off_map else 0.0,
+        "frames": 3,
+        "track": "t",
+    }
+    return answer.model_copy(update={"sequence": SequenceReport.model_validate(report)})
+
+
+def test_the_lead_in_is_recorded_before_the_lock_and_held_within_its_bounds(
+    frames: list[Path], tmp_path: Path
+) -> None:
+    """The recorder on its own: a vehicle's last 2 frames not recorded go into the log as
+    ``lead`` frames just before its next recorded frame (those within 30 s before it); an
+    off-map answer forgets them; another vehicle's and single-mode frames are never a lead;
+    what is held stays within its byte bound (the vehicle heard from longest ago goes)."""
+    log = tmp_path / "experiences"
+    data = frames[0].read_bytes()
+    size = len(data) + 1024  # what a held frame counts for
+    s = load_settings(
+        auth=False,
+        experience_log=log,
+        experience_min_p_correct=THRESHOLD,
+        experience_lead_bytes=3 * size,
+    )
+    m = Metrics()
+    rec = Recorder(s, m)
+    rec.start()
+
+    def offer(p: float, place: int, vehicle: str | None, t: float, off: bool = False) -> bool:
+        answer = _answer(p, p >= THRESHOLD, "sequence", place)
+        if vehicle is not None:
+            answer = _in_sequence(answer, off)
+        return rec.offer(answer, data, "image/jpeg", vehicle, t, t + 0.5)
+
+    for place, t in ((1, 100.0), (2, 101.0), (3, 102.0)):  # three unsure frames: 2 kept
+        assert not offer(0.5, place, "car", t)
+    assert not offer(0.5, 9, None, 102.5)  # single mode: no vehicle, not held
+    held = m.registry.get_sample_value("hmpf_experience_lead_bytes")
+    assert held == rec.leads.bytes == 2 * size
+    assert offer(0.95, 4, "car", 103.0)  # the lock: its lead-in first
+    assert rec.leads.bytes == 0
+    assert not offer(0.5, 5, "car", 104.0)
+    assert not offer(0.5, 6, "car", 105.0, off=True)  # off the map: forgotten
+    assert offer(0.95, 7, "car", 106.0)
+    assert not offer(0.5, 8, "car", 107.0)  # 40 s before the next recorded frame: too old
+    assert offer(0.95, 9, "car", 147.0)
+    # the byte bound: 3 frames in all; a 4th pushes out the vehicle heard from longest ago
+    assert not offer(0.5, 10, "a", 200.0)
+    assert not offer(0.5, 11, "b", 200.0)
+    assert not offer(0.5, 12, "b", 201.0)
+    assert not offer(0.5, 13, "c", 201.0)
+    assert rec.leads.bytes == 3 * size
+    assert rec.leads.take(rec_frame("a", 202.0)) == []
+    assert [f.place for f in rec.leads.take(rec_frame("b", 202.0))] == [11, 12]
+    assert [f.place for f in rec.leads.take(rec_frame("c", 202.0, "v0002"))] == []  # version
+    assert rec.leads.bytes == 0
+    rec.stop()
+    got, _ = _read(log)
+    assert [(r.place, r.mode) for r in got] == [
+        (2, "lead"),
+        (3, "lead"),
+        (4, "sequence"),
+        (7, "sequence"),
+        (9, "sequence"),
+    ]
+    assert [r.p_correct for r in got[:2]] == [0.5, 0.5] and got[0].features is None
+    assert [r.timestamp for r in got[:3]] == [101.0, 102.0, 103.0]
+
+
+def rec_frame(vehicle: str, t: float, version: str = "v0001") -> Frame:
+    """A recorded frame of ``vehicle`` at time ``t`` (what :meth:`Leads.take` reads)."""
+    return Frame(b"x", None, 0, "", version, 0.99, vehicle, t, "sequence", t)
+
+
 def test_features_that_cannot_be_packed_leave_the_frame_recorded_without_them(
     frames: list[Path], tmp_path: Path, index: Path
 ) -> None:
@@ -306,8 +415,10 @@ def test_a_sequence_drive_records_its_accepted_answers(
     for item, i in zip(r.json()["results"], (20, 21), strict=True):
         car.sent.append((i, item["result"], frames[i].read_bytes(), None))
 
-    expected = [sent for sent in car.sent if _to_record(sent[1])]
-    assert 5 <= len(expected) < len(car.sent), "some answers recorded, not all"
+    recorded = [sent for sent in car.sent if _to_record(sent[1])]
+    assert 5 <= len(recorded) < len(car.sent), "some answers recorded, not all"
+    expected = _with_leads(car.sent)
+    assert any(mode == "lead" for _, mode in expected), "the drive has a lead-in to record"
     m = _wait_recorded(url, len(expected))
     assert m["hmpf_experience_recorded_total"] == len(expected)
     for reason in ("queue_full", "error", "bound"):
@@ -316,12 +427,15 @@ def test_a_sequence_drive_records_its_accepted_answers(
     assert stats.damaged == 0 and stats.torn == 0
     assert len(got) == len(expected)
     assert m["hmpf_experience_bytes"] == sum(s.stat().st_size for s in log.glob("*.seg"))
-    for rec, (_, body, data, ts) in zip(got, expected, strict=True):
+    for rec, ((_, body, data, ts), mode) in zip(got, expected, strict=True):
         match = body["match"]
         assert rec.image == data and rec.content_type == "image/jpeg"
         assert (rec.place, rec.place_name) == (match["reference_id"], match["name"])
+        assert rec.vehicle == "car-7" and rec.mode == mode
+        if mode == "lead":  # its own answer's p_correct (0 without one), no features
+            assert rec.p_correct == (match["p_correct"] or 0.0) and rec.features is None
+            continue
         assert rec.p_correct == match["p_correct"] >= RECORD_AT
-        assert rec.vehicle == "car-7" and rec.mode == "sequence"
         assert rec.index_version == body["index_version"] == "v0001"
         if ts is None:  # the batch: when it was received
             assert before - 1 <= rec.timestamp <= time.time()
@@ -332,7 +446,7 @@ def test_a_sequence_drive_records_its_accepted_answers(
     # Each record carries the features the service answered it with (setting
     # experience_features, on by default), packed for the answering version's methods.
     with IndexReader(index) as reader:
-        for rec in got[:3]:
+        for rec in [r for r in got if r.mode == "sequence"][:3]:
             assert rec.features is not None
             feats = unpack_features(reader.methods, rec.features)
             assert feats is not None
@@ -345,13 +459,13 @@ def test_a_sequence_drive_records_its_accepted_answers(
                     # round to the neighbouring float16 (one step is at most 2**-10 relative).
                     np.testing.assert_allclose(have[k], want[k], rtol=2**-10, atol=1e-5)
     # What the log holds is (nearly always) the right place: frame i shows place i.
-    right = sum(abs(rec.place - i) <= 2 for rec, (i, *_) in zip(got, expected, strict=True))
+    right = sum(abs(rec.place - i) <= 2 for rec, ((i, *_), _) in zip(got, expected, strict=True))
     assert right >= 0.9 * len(got), f"{right}/{len(got)} recorded at the right place"
 
 
 def test_a_stuck_log_never_holds_up_an_answer(recording: Server, frames) -> None:
     """The log's lock held (as a long prune holds it): the writer waits at its next segment,
-    the queue (2 frames) fills, later frames are dropped and counted; every answer comes
+    the queue (4 frames) fills, later frames are dropped and counted; every answer comes
     back as fast as ever. Released, the writer goes on and the log is whole."""
     url, log = recording.url, recording.experiences  # type: ignore[attr-defined]
     start = metrics(url)
@@ -365,10 +479,10 @@ def test_a_stuck_log_never_holds_up_an_answer(recording: Server, frames) -> None
         m = metrics(url)
     finally:
         os.close(fd)
-    wanted = sum(_to_record(b) for _, b, _, _ in car.sent)
+    wanted = len(_with_leads(car.sent))
     assert wanted > 4
     dropped = _dropped(m, "queue_full") - _dropped(start, "queue_full")
-    assert dropped >= wanted - 3  # the queue holds 2, the writer 1 in hand
+    assert dropped >= wanted - 5  # the queue holds 4, the writer 1 in hand
     assert seconds < 14 * 5, "the answers did not wait for the disk"
     end = _settled(url)
     recorded = end["hmpf_experience_recorded_total"] - start["hmpf_experience_recorded_total"]
@@ -407,7 +521,7 @@ def test_a_log_that_cannot_be_created_never_fails_an_answer(
     try:
         car = Car(srv.url, "car-4", frames)
         car.drive(range(0, 8))
-        wanted = sum(_to_record(b) for _, b, _, _ in car.sent)
+        wanted = len(_with_leads(car.sent))
         deadline = time.monotonic() + 20
         while _dropped(m := metrics(srv.url), "error") < wanted and time.monotonic() < deadline:
             time.sleep(0.1)
