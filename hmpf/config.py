@@ -116,8 +116,9 @@ class ExperienceSettings(BaseModel):
             gate: it moves no frame more than one place and is on with the gates open too.
         place_leads: a ``lead`` frame (a lock's lead-in: the service recorded it just before
             a recorded frame of the same vehicle, setting ``experience_lead_frames``) is
-            placed back along the route from the frames kept after it, at its vehicle's pace
-            (:func:`indexer.experiences.place_leads`), then meets the gates after
+            placed back along the route from the frames kept after it, at its vehicle's pace,
+            where its own answer agrees within a place (:func:`indexer.experiences.
+            place_leads`; else it is left out), then meets the gates after
             ``below_p_correct`` like any frame; False leaves every lead frame out. On with
             the gates open too (without it a lead frame has no place).
     """

@@ -139,6 +139,9 @@ NEIGHBOUR_STEP_TOLERANCE = 0.25
 #: How many of the frames kept after a lead frame give its vehicle's pace
 #: (:func:`place_leads`): the first and the last of them, over the time between.
 LEAD_PACE_FRAMES = 5
+#: How far (places along the route) a lead frame's own answer may be from where the frames
+#: after it place it (:func:`place_leads`): two estimates of one place must agree.
+LEAD_AGREEMENT = 1
 _EXTENSIONS = {
     "image/jpeg": ".jpg",
     "image/png": ".png",
@@ -629,9 +632,13 @@ def place_leads(
     that gap on the first one's route (at least two) give the pace (places per second, from
     the first to the last); the lead frame is placed that pace times its time before the
     first one back along the route, rounded. It is left out when there are not two such
-    frames, when the time from the first to the last is zero, or when the place would lie
-    outside the route (a vehicle that joined the route at its start from off the map). The
-    gates after this (agreement first) judge it like any frame.
+    frames, when the time from the first to the last is zero, when the place would lie
+    outside the route (a vehicle that joined the route at its start from off the map), or
+    when the frame's own answer (its recorded place, which the service gave it then) is not
+    on that route within :data:`LEAD_AGREEMENT` places of it: the pace and the frame's own
+    evidence must agree (a recorded frame a place or two off, or a slow apparent pace, would
+    otherwise carry its error back to the lead). The gates after this (agreement first) judge
+    it like any frame.
     """
     follows: dict[tuple[str, str], list[_Candidate]] = {}
     for c in candidates:
@@ -676,7 +683,10 @@ def _lead_place(lead: _Candidate, group: Sequence[_Candidate], routes: RouteMap)
     rank = start - int(round(pace * (first.time - lead.time)))
     if not routes.route_start[route] <= rank < routes.route_end[route]:
         return None
-    return int(routes.ordered[rank])
+    place = int(routes.ordered[rank])
+    if float(routes.separation(place, lead.place)) > LEAD_AGREEMENT:
+        return None
+    return place
 
 
 def _localise(

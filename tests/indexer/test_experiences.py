@@ -434,16 +434,39 @@ def _lead(place: int, t: float, seq: int, vehicle: str = "car1") -> _Candidate:
 
 
 def _leads_placed(
-    leads: list[float], places: list[int], times: list[float], routes: RouteMap
+    leads: list[float],
+    places: list[int],
+    times: list[float],
+    routes: RouteMap,
+    own: list[int] | None = None,
 ) -> list[int | None]:
-    """Where leads at ``leads`` (times) go, followed by frames at ``places`` / ``times``."""
+    """Where leads at ``leads`` (times; their own answers at ``own``, else at the place the
+    frames after them give, read from the tests' expectations) go, followed by frames at
+    ``places`` / ``times``."""
     cands = [_cand(p, t, 10 + i) for i, (p, t) in enumerate(zip(places, times, strict=True))]
-    cands += [_lead(0, t, i) for i, t in enumerate(leads)]
+    answers = own if own is not None else [_expected(t, places, times) for t in leads]
+    cands += [_lead(a, t, i) for i, (a, t) in enumerate(zip(answers, leads, strict=True))]
     out, placed, left = place_leads(cands, routes)
     assert out[: len(places)] == cands[: len(places)]  # the others untouched, in order
     got = {c.seq: c.place for c in out if c.lead}
     assert (placed, left) == (len(got), len(leads) - len(got))
     return [got.get(i) for i in range(len(leads))]
+
+
+def _expected(lead: float, places: list[int], times: list[float]) -> int:
+    """The rule's place, read literally on a one-route map (the first frame after the lead,
+    the pace to the last of the first five after it within 30 s of each other), clipped to
+    the map: the lead's own answer where the tests need one that agrees."""
+    after = [(t, p) for t, p in zip(times, places, strict=True) if t > lead]
+    run = after[:1]
+    for t, p in after[1:5]:
+        if t - run[-1][0] > 30:
+            break
+        run.append((t, p))
+    if len(run) < 2 or run[-1][0] == run[0][0]:
+        return 0
+    pace = (run[-1][1] - run[0][1]) / (run[-1][0] - run[0][0])
+    return max(0, run[0][1] - int(round(pace * (run[0][0] - lead))))
 
 
 def test_place_leads_goes_back_along_the_route_at_the_pace_after_it() -> None:
@@ -468,6 +491,12 @@ def test_place_leads_goes_back_along_the_route_at_the_pace_after_it() -> None:
     assert _leads_placed([8.0], [10, 11, 12], t, two) == [None]
     assert _leads_placed([8.0], [12, 13, 14], t, two) == [10]
     assert _leads_placed([8.0], [8, 10, 11], t, two) == [None]  # the next frames change route
+    # the lead's own answer must agree with the pace within a place
+    assert _leads_placed([8.0], [5, 6, 7], t, one, own=[4]) == [3]
+    assert _leads_placed([8.0], [5, 6, 7], t, one, own=[2]) == [3]
+    assert _leads_placed([8.0], [5, 6, 7], t, one, own=[5]) == [None]
+    assert _leads_placed([8.0], [5, 6, 7], t, one, own=[1]) == [None]
+    assert _leads_placed([8.0], [12, 13, 14], t, two, own=[9]) == [None]  # another route
     # another vehicle's frames, or other leads, never give the pace
     cands = [_lead(0, 8.0, 0), _cand(5, 10.0, 1, "car2"), _cand(6, 11.0, 2, "car2")]
     assert place_leads(cands, one)[1:] == (0, 1)
@@ -487,13 +516,16 @@ def test_between_neighbours_neither_moves_a_lead_nor_reads_it() -> None:
 def test_merge_places_lead_frames_from_the_frames_after_them(
     index: Path, gardens_point: Path
 ) -> None:
-    # day_right frames 2, 3 recorded as a lock's lead-in (unsure answers at a wrong place),
-    # then 4..7 recorded at their places: the leads go to places 2 and 3
+    # day_right frames 2, 3 recorded as a lock's lead-in (unsure answers, the first a place
+    # off), then 4..7 recorded at their places: the leads go to places 2 and 3
     day = [frame(gardens_point, "day_right", i) for i in range(2, 8)]
     recs = [
-        record(day[0], 9, 2, p_correct=0.3, mode="lead"),
-        record(day[1], 9, 3, p_correct=0.0, mode="lead"),
+        record(day[0], 3, 2, p_correct=0.3, mode="lead"),
+        record(day[1], 3, 3, p_correct=0.0, mode="lead"),
     ] + [record(day[i - 2], i, i) for i in range(4, 8)]
+    # a lead whose own answer is 2 places from where the pace puts it is left out
+    far = [dataclasses.replace(recs[0], place=4, place_name="Image004.jpg"), *recs[1:]]
+    assert merge(index, far, dry_run=True).gates["unplaced"] == 1
     off = merge(index, recs, settings={"place_leads": False}, dry_run=True)
     assert off.gates["unplaced"] == 2 and off.added == 4 and off.leads_placed == 0
     # with every gate open they are still placed (no place otherwise), unless asked not to
