@@ -1158,6 +1158,85 @@ def experiences_interpolation(root: Path) -> str:
     return table(INTERPOLATION_HEADER, rows) + source(EXPERIENCES, data)
 
 
+#: The columns of :func:`_lead_rows`.
+LEADS_HEADER = [
+    "pass",
+    "record at p_correct >=",
+    "lead frames recorded",
+    "placed",
+    "merged (wrong)",
+    "without them: single / sequence recall@1",
+    "with them (the default): single-frame recall@1 (wins/losses)",
+    "sequence recall@1 (wins/losses)",
+]
+
+
+def _lead_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
+    """One fleet pass's merges against the same log merged without its lead frames
+    (``--no-place-leads``), a row per recording threshold."""
+    rows = []
+    for t, m in run["merges"].items():
+        without = m.get("without_leads")
+        if without is None:
+            continue
+        rows.append(
+            [
+                label,
+                t,
+                str(m["recorded"]["leads"]),
+                str(m["merge"]["report"].get("leads_placed", 0)),
+                f"{m['added']['leads']} ({m['added']['leads_wrong']} wrong)",
+                f"{f3(without['merged']['single'])} / {f3(without['merged']['sequence'])}",
+                f"{f3(m['merged']['single'])} ({_wins(without['single_test'])})",
+                f"{f3(m['merged']['sequence'])} ({_wins(without['sequence_test'])})",
+            ]
+        )
+    return rows
+
+
+@generator("experiences.leads")
+def experiences_leads(root: Path) -> str:
+    """``python -m bench.experiences``: each fleet pass's merge (its lock lead-ins placed, the
+    default) against the same log merged without them, paired on the same test frames; and
+    the drive that joins the route from off the map (``gp_join``)."""
+    data = load(root, EXPERIENCES)
+    rows = [r for label, run in _gp_passes(data) for r in _lead_rows(label, run)]
+    out = table(LEADS_HEADER, rows)
+    join = data.get("gp_join")
+    if join:
+        jrows = [
+            [
+                t,
+                f"{join['fleet_frames']} ({join['off_map_frames']} off the map)",
+                f"{row['recorded']['leads']} ({row['off_map_leads']} off the map)",
+                str(row["leads_placed"]),
+                f"{row['added']['leads']} ({row['added']['leads_wrong']} wrong)",
+                f"{row['added']['experiences']} ({row['added']['wrong']} wrong)",
+                str(row["off_map_merged"]),
+            ]
+            for t, row in join.items()
+            if isinstance(row, dict)
+        ]
+        out += (
+            "\nA vehicle joining the route from off the map (map day_left; one drive of "
+            f"{join['off_map_frames'] // 2} Nordland frames, day_right's first half, "
+            f"{join['off_map_frames'] // 2} more Nordland frames, its second half):\n\n"
+            + table(
+                [
+                    "record at p_correct >=",
+                    "frames driven",
+                    "lead frames recorded",
+                    "placed",
+                    "lead frames merged",
+                    "experiences merged",
+                    "off-map frames merged",
+                ],
+                jrows,
+            )
+        )
+    return out + source(EXPERIENCES, data)
+
+
 EXPERIENCES_REVERSE = "docs/experiments/experiences/reverse.json"
 #: The swapped Gardens Point pass's row label.
 GP_REVERSE = "GP: map day_right; fleet day_left; test night_right"
@@ -1173,6 +1252,7 @@ def experiences_reverse(root: Path) -> str:
         table(PASS_HEADER, _pass_rows(GP_REVERSE, run))
         + "\n"
         + table(INTERPOLATION_HEADER, _interpolation_rows(GP_REVERSE, run))
+        + ("\n" + table(LEADS_HEADER, rows) if (rows := _lead_rows(GP_REVERSE, run)) else "")
         + source(EXPERIENCES_REVERSE, data)
     )
 

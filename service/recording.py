@@ -14,16 +14,16 @@ extracted them to answer it (:func:`hmpf.features.pack_features`, packed on the 
 thread), which a merge into the same version reads instead of extracting them again.
 
 A lock's lead-in (``experience_lead_frames``, 2 by default; 0: off): in sequence mode the
-recorder keeps each vehicle's last frames that were not recorded (in memory, bounded per
-vehicle and by ``experience_lead_bytes`` overall: :class:`Leads`). When the vehicle's next
-frame is recorded, those taken at most :data:`LEAD_MAX_GAP_S` before it by the same index
-version are recorded first, as ``lead`` frames (their own answer's place and ``p_correct``,
-no features); a merge places them from the recorded frames after them
-(:func:`indexer.experiences.place_leads`). A frame whose answer says the vehicle is off the
-map forgets the vehicle's frames (what came before it is no lead-in). The places a vehicle
-passes before the filter is sure, the same places on every drive that starts at one depot,
-get experiences too. Replicas keep their own: a vehicle whose frames reach several loses
-some lead-ins, nothing else.
+recorder keeps each vehicle's last frames that were not recorded since its track started or
+it was last answered off the map (in memory, bounded per vehicle and by
+``experience_lead_bytes`` overall: :class:`Leads`). When the vehicle's next frame is
+recorded, those taken at most :data:`LEAD_MAX_GAP_S` before it by the same index version are
+recorded first, as ``lead`` frames (their own answer's place and ``p_correct``, no
+features); a merge places them from the recorded frames after them
+(:func:`indexer.experiences.place_leads`). The places a vehicle passes before the filter is
+sure, the same places on every drive that starts at one depot, get experiences too; a lock
+lost and found again on the map records no lead-in. Replicas keep their own: a vehicle
+whose frames reach several loses some lead-ins, nothing else.
 
 The request only puts the frame on a bounded queue: :meth:`Recorder.offer` never waits and
 never raises. One background thread appends to the log (:class:`~hmpf.experience_log.
@@ -101,46 +101,62 @@ def recorded_mode(answer: LocalizeResponse, settings: Settings) -> str | None:
 
 
 class Leads:
-    """Each vehicle's last frames that were not recorded (a lock's lead-in candidates).
+    """Each vehicle's lead-in: its last frames not recorded while it is *open*.
+
+    A vehicle is open from its track's start (a frame sent without a track, or a track
+    reset) and from an answer that puts it off the map, until its next recorded frame, which
+    takes the frames held (:meth:`take`) and closes it. So the frames before a lock are kept
+    where the filter starts from nothing (a drive's start, a vehicle joining the route), and
+    not where a lock is lost and found again on the map (those are the frames the filter
+    found hardest, of places a lock covers on other drives). A vehicle this service has not
+    seen start is closed.
 
     At most ``frames`` per vehicle (the newest) and ``max_bytes`` in all (each frame's image
-    plus a kilobyte): over it, the vehicle heard from longest ago loses its frames.
-    Thread-safe; every call is a few dictionary operations (it runs on the request's path).
+    plus a kilobyte, each open vehicle a kilobyte): over it, the vehicle heard from longest
+    ago is closed and loses its frames. Thread-safe; every call is a few dictionary
+    operations (it runs on the request's path).
     """
 
     def __init__(self, frames: int, max_bytes: int) -> None:
         self.frames, self.max_bytes = frames, max_bytes
-        self._held: OrderedDict[str, deque[Frame]] = OrderedDict()
+        self._open: OrderedDict[str, deque[Frame]] = OrderedDict()
         self._lock = threading.Lock()
         self.bytes = 0
 
-    def keep(self, frame: Frame) -> None:
-        """Hold ``frame`` (mode ``lead``) as its vehicle's newest."""
-        if self.frames == 0 or _held_size(frame) > self.max_bytes:
-            self.forget(frame.vehicle)
+    def open(self, vehicle: str) -> None:
+        """Open ``vehicle`` (its track starts, or it is off the map): its frames held so far
+        are dropped."""
+        if self.frames == 0:
             return
         with self._lock:
-            held = self._held.pop(frame.vehicle, None) or deque()
+            self._close(vehicle)
+            self._open[vehicle] = deque()
+            self.bytes += _HELD_OVERHEAD
+            self._bound()
+
+    def keep(self, frame: Frame) -> None:
+        """Hold ``frame`` (mode ``lead``) as its vehicle's newest, if the vehicle is open."""
+        if _held_size(frame) > self.max_bytes:
+            with self._lock:
+                self._close(frame.vehicle)
+            return
+        with self._lock:
+            held = self._open.pop(frame.vehicle, None)
+            if held is None:
+                return
+            self._open[frame.vehicle] = held  # the most recently heard from last
             held.append(frame)
             self.bytes += _held_size(frame)
             while len(held) > self.frames:
                 self.bytes -= _held_size(held.popleft())
-            self._held[frame.vehicle] = held  # the most recently heard from last
-            while self.bytes > self.max_bytes:
-                _, old = self._held.popitem(last=False)
-                self.bytes -= sum(map(_held_size, old))
-
-    def forget(self, vehicle: str) -> None:
-        """Drop ``vehicle``'s frames."""
-        with self._lock:
-            self._drop(vehicle)
+            self._bound()
 
     def take(self, frame: Frame) -> list[Frame]:
         """The held frames of ``frame``'s vehicle that lead into it (the same index version,
-        taken before it, at most :data:`LEAD_MAX_GAP_S` earlier), oldest first; the vehicle's
-        frames are dropped."""
+        taken before it, at most :data:`LEAD_MAX_GAP_S` earlier), oldest first; the vehicle
+        is closed."""
         with self._lock:
-            held = self._drop(frame.vehicle)
+            held = self._close(frame.vehicle)
         return [
             f
             for f in held
@@ -148,9 +164,15 @@ class Leads:
             and 0.0 < frame.timestamp - f.timestamp <= LEAD_MAX_GAP_S
         ]
 
-    def _drop(self, vehicle: str) -> deque[Frame]:
-        held = self._held.pop(vehicle, None) or deque()
-        self.bytes -= sum(map(_held_size, held))
+    def _bound(self) -> None:
+        while self.bytes > self.max_bytes and self._open:
+            self._close(next(iter(self._open)))
+
+    def _close(self, vehicle: str) -> deque[Frame]:
+        held = self._open.pop(vehicle, None)
+        if held is None:
+            return deque()
+        self.bytes -= _HELD_OVERHEAD + sum(map(_held_size, held))
         return held
 
 
@@ -217,8 +239,6 @@ class Recorder:
             mode = recorded_mode(answer, self.settings)
             match = answer.match
             if match is None:
-                if vehicle_id is not None:
-                    self.leads.forget(vehicle_id)
                 return False
             frame = Frame(
                 image=image,
@@ -262,12 +282,16 @@ class Recorder:
 
     def _hold(self, answer: LocalizeResponse, frame: Frame, vehicle_id: str | None) -> None:
         """Keep a sequence-mode frame that was not recorded as a possible lead-in (without its
-        features); one the filter places off the map forgets the vehicle's frames."""
-        if vehicle_id is None or answer.sequence is None:
+        features, :class:`Leads`): a track's start opens the vehicle, and so does an answer
+        off the map (which is no lead-in itself)."""
+        report = answer.sequence
+        if vehicle_id is None or report is None:
             return
-        if answer.sequence.off_map:
-            self.leads.forget(frame.vehicle)
+        if report.off_map:
+            self.leads.open(frame.vehicle)
         else:
+            if report.status in ("started", "reset"):
+                self.leads.open(frame.vehicle)
             self.leads.keep(replace(frame, features=None, methods=None))
         self.metrics.experience_lead_bytes.set(self.leads.bytes)
 

@@ -198,11 +198,11 @@ class Settings(BaseSettings):
         2,
         ge=0,
         le=16,
-        description="a lock's lead-in: per vehicle in sequence mode, the last frames not "
-        "recorded are kept in memory, and when the vehicle's next frame is recorded (within "
-        "30 s) they are recorded before it as `lead` frames, which a merge places from the "
-        "recorded frames after them (the places a vehicle passed before the filter was sure "
-        "get experiences too); 0: off",
+        description="a lock's lead-in: per vehicle in sequence mode, from its track's start "
+        "or an off-map answer until its next recorded frame, the last frames not recorded "
+        "are kept in memory, and those within 30 s before that frame are recorded before it "
+        "as `lead` frames, which a merge places from the recorded frames after them (the "
+        "places a vehicle passed before the filter was sure get experiences too); 0: off",
     )
     experience_lead_bytes: int = Field(
         32 << 20,

@@ -186,13 +186,16 @@ LEADS = 2  # the default experience_lead_frames
 
 def _with_leads(sent: list[tuple[int, dict[str, Any], bytes, float | None]]) -> list[Any]:
     """What one vehicle's answers put in the log, in order (the rule read independently):
-    each recorded frame after its lead-in, the last :data:`LEADS` frames not recorded since
-    the vehicle's last recorded frame or off-map answer, taken at most 30 s before it. A
-    batch's frames (``ts`` None) share one received time: none leads into another."""
+    each recorded frame after its lead-in: the last :data:`LEADS` frames not recorded since
+    the vehicle's track started or its last off-map answer, if no frame was recorded since,
+    taken at most 30 s before it. A batch's frames (``ts`` None) share one received time:
+    none leads into another."""
     out: list[Any] = []
     pending: list[Any] = []
+    opened = False
     for item in sent:
         _, body, _, ts = item
+        report = body["sequence"]
         if _to_record(body):
             out += [
                 (lead, "lead")
@@ -200,11 +203,16 @@ def _with_leads(sent: list[tuple[int, dict[str, Any], bytes, float | None]]) -> 
                 if ts is not None and lead[3] is not None and 0 < ts - lead[3] <= 30
             ]
             out.append((item, "sequence"))
-            pending = []
-        elif body["match"] is None or body["sequence"]["off_map"]:
-            pending = []
+            pending, opened = [], False
+        elif body["match"] is None:
+            continue
+        elif report["off_map"]:
+            pending, opened = [], True
         else:
-            pending.append(item)
+            if report["status"] in ("started", "reset"):
+                pending, opened = [], True
+            if opened:
+                pending.append(item)
     return out
 
 
@@ -289,10 +297,12 @@ def test_the_recorder_counts_what_the_bound_drops_and_closes_on_stop(
     ExperienceLog(log).close()  # released
 
 
-def _in_sequence(answer: LocalizeResponse, off_map: bool = False) -> LocalizeResponse:
+def _in_sequence(
+    answer: LocalizeResponse, off_map: bool = False, status: str = "tracking"
+) -> LocalizeResponse:
     """``answer`` as a sequence-mode answer (its report: what the lead-in rule reads)."""
     report = {
-        "status": "tracking",
+        "status": status,
         "match": answer.match.model_dump() if answer.match is not None else None,
         "mass": 0.5,
         "locked": False,
@@ -307,47 +317,55 @@ def _in_sequence(answer: LocalizeResponse, off_map: bool = False) -> LocalizeRes
 def test_the_lead_in_is_recorded_before_the_lock_and_held_within_its_bounds(
     frames: list[Path], tmp_path: Path
 ) -> None:
-    """The recorder on its own: a vehicle's last 2 frames not recorded go into the log as
-    ``lead`` frames just before its next recorded frame (those within 30 s before it); an
-    off-map answer forgets them; another vehicle's and single-mode frames are never a lead;
-    what is held stays within its byte bound (the vehicle heard from longest ago goes)."""
+    """The recorder on its own: from a track's start, or an off-map answer, a vehicle's last 2
+    frames not recorded go into the log as ``lead`` frames just before its next recorded
+    frame (those within 30 s before it); a lock lost and found again on the map has none;
+    single-mode frames are never a lead; what is held stays within its byte bound (the
+    vehicle heard from longest ago goes)."""
     log = tmp_path / "experiences"
     data = frames[0].read_bytes()
-    size = len(data) + 1024  # what a held frame counts for
+    size = len(data) + 1024  # what a held frame counts for; an open vehicle 1024 more
     s = load_settings(
         auth=False,
         experience_log=log,
         experience_min_p_correct=THRESHOLD,
-        experience_lead_bytes=3 * size,
+        experience_lead_bytes=3 * size + 2 * 1024,
     )
     m = Metrics()
     rec = Recorder(s, m)
     rec.start()
 
-    def offer(p: float, place: int, vehicle: str | None, t: float, off: bool = False) -> bool:
+    def offer(
+        p: float, place: int, vehicle: str | None, t: float, off: bool = False, status: str = ""
+    ) -> bool:
         answer = _answer(p, p >= THRESHOLD, "sequence", place)
         if vehicle is not None:
-            answer = _in_sequence(answer, off)
+            answer = _in_sequence(answer, off, status or "tracking")
         return rec.offer(answer, data, "image/jpeg", vehicle, t, t + 0.5)
 
-    for place, t in ((1, 100.0), (2, 101.0), (3, 102.0)):  # three unsure frames: 2 kept
-        assert not offer(0.5, place, "car", t)
-    assert not offer(0.5, 9, None, 102.5)  # single mode: no vehicle, not held
+    assert not offer(0.5, 1, "car", 100.0, status="started")  # the track starts: open
+    assert not offer(0.5, 2, "car", 101.0)
+    assert not offer(0.5, 3, "car", 102.0)  # three unsure frames: the last 2 kept
+    assert not offer(0.5, 9, None, 102.5)  # single mode: not held
     held = m.registry.get_sample_value("hmpf_experience_lead_bytes")
-    assert held == rec.leads.bytes == 2 * size
+    assert held == rec.leads.bytes == 2 * size + 1024
     assert offer(0.95, 4, "car", 103.0)  # the lock: its lead-in first
     assert rec.leads.bytes == 0
-    assert not offer(0.5, 5, "car", 104.0)
-    assert not offer(0.5, 6, "car", 105.0, off=True)  # off the map: forgotten
-    assert offer(0.95, 7, "car", 106.0)
-    assert not offer(0.5, 8, "car", 107.0)  # 40 s before the next recorded frame: too old
-    assert offer(0.95, 9, "car", 147.0)
-    # the byte bound: 3 frames in all; a 4th pushes out the vehicle heard from longest ago
-    assert not offer(0.5, 10, "a", 200.0)
-    assert not offer(0.5, 11, "b", 200.0)
+    assert not offer(0.5, 5, "car", 104.0)  # the lock lost on the map: no lead-in
+    assert offer(0.95, 6, "car", 105.0)
+    assert not offer(0.5, 7, "car", 106.0, off=True)  # off the map: open again
+    assert not offer(0.5, 8, "car", 107.0)
+    assert not offer(0.5, 9, "car", 108.0)
+    assert offer(0.95, 10, "car", 109.0)  # back on the map: its lead-in
+    assert not offer(0.5, 11, "car", 110.0, off=True)
+    assert not offer(0.5, 12, "car", 111.0)  # 40 s before the next recorded frame: too old
+    assert offer(0.95, 13, "car", 151.0)
+    # the byte bound: a 3rd open vehicle pushes out the vehicle heard from longest ago
+    assert not offer(0.5, 10, "a", 200.0, status="started")
+    assert not offer(0.5, 11, "b", 200.0, status="reset")
     assert not offer(0.5, 12, "b", 201.0)
-    assert not offer(0.5, 13, "c", 201.0)
-    assert rec.leads.bytes == 3 * size
+    assert not offer(0.5, 13, "c", 201.0, status="started")
+    assert rec.leads.bytes == 3 * size + 2 * 1024
     assert rec.leads.take(rec_frame("a", 202.0)) == []
     assert [f.place for f in rec.leads.take(rec_frame("b", 202.0))] == [11, 12]
     assert [f.place for f in rec.leads.take(rec_frame("c", 202.0, "v0002"))] == []  # version
@@ -358,8 +376,11 @@ def test_the_lead_in_is_recorded_before_the_lock_and_held_within_its_bounds(
         (2, "lead"),
         (3, "lead"),
         (4, "sequence"),
-        (7, "sequence"),
-        (9, "sequence"),
+        (6, "sequence"),
+        (8, "lead"),
+        (9, "lead"),
+        (10, "sequence"),
+        (13, "sequence"),
     ]
     assert [r.p_correct for r in got[:2]] == [0.5, 0.5] and got[0].features is None
     assert [r.timestamp for r in got[:3]] == [101.0, 102.0, 103.0]
