@@ -16,8 +16,9 @@ passes, in order, through these gates; the first it fails is counted (``MergeRep
 * ``unreadable``: the bytes do not decode;
 * ``unplaced``: a ``lead`` frame (a lock's lead-in, recorded before a frame of the same
   vehicle) that :func:`place_leads` cannot place: no two frames of its vehicle kept by the
-  gates above follow it closely enough to give the vehicle's pace, or its place would lie
-  before the route's start (or past its end); every lead frame with ``place_leads`` off;
+  gates above follow it closely enough to give the vehicle's pace, its place would lie
+  before the route's start (or past its end), or its own answer is more than a place from
+  there; every lead frame with ``place_leads`` off;
 * ``disagreeing``: localised on its own against the version (one frame, the whole hierarchy,
   over places) it lands more than ``agreement_window`` places from its recorded place along
   that place's route: the defence against wrong frames (a poisoned log, a wrong lock);
@@ -631,14 +632,14 @@ def place_leads(
     seconds after it, and up to :data:`LEAD_PACE_FRAMES` in all that follow each other within
     that gap on the first one's route (at least two) give the pace (places per second, from
     the first to the last); the lead frame is placed that pace times its time before the
-    first one back along the route, rounded. It is left out when there are not two such
-    frames, when the time from the first to the last is zero, when the place would lie
-    outside the route (a vehicle that joined the route at its start from off the map), or
-    when the frame's own answer (its recorded place, which the service gave it then) is not
-    on that route within :data:`LEAD_AGREEMENT` places of it: the pace and the frame's own
-    evidence must agree (a recorded frame a place or two off, or a slow apparent pace, would
-    otherwise carry its error back to the lead). The gates after this (agreement first) judge
-    it like any frame.
+    first one back along the route, rounded half away from zero. It is left out when there
+    are not two such frames, when the time from the first to the last is zero, when the
+    place would lie outside the route (a vehicle that joined the route at its start from off
+    the map), or when the frame's own answer (its recorded place, which the service gave it
+    then) is not on that route within :data:`LEAD_AGREEMENT` places of it: the pace and the
+    frame's own evidence must agree (a recorded frame a place or two off, or a slow apparent
+    pace, would otherwise carry its error back to the lead). The gates after this (agreement
+    first) judge it like any frame.
     """
     follows: dict[tuple[str, str], list[_Candidate]] = {}
     for c in candidates:
@@ -680,7 +681,8 @@ def _lead_place(lead: _Candidate, group: Sequence[_Candidate], routes: RouteMap)
         return None
     start = int(routes.rank[first.place])
     pace = (int(routes.rank[run[-1].place]) - start) / span
-    rank = start - int(round(pace * (first.time - lead.time)))
+    back = pace * (first.time - lead.time)
+    rank = start - int(math.copysign(math.floor(abs(back) + 0.5), back))  # half away from 0
     if not routes.route_start[route] <= rank < routes.route_end[route]:
         return None
     place = int(routes.ordered[rank])

@@ -19,11 +19,15 @@ it was last answered off the map (in memory, bounded per vehicle and by
 ``experience_lead_bytes`` overall: :class:`Leads`). When the vehicle's next frame is
 recorded, those taken at most :data:`LEAD_MAX_GAP_S` before it by the same index version are
 recorded first, as ``lead`` frames (their own answer's place and ``p_correct``, no
-features); a merge places them from the recorded frames after them
-(:func:`indexer.experiences.place_leads`). The places a vehicle passes before the filter is
-sure, the same places on every drive that starts at one depot, get experiences too; a lock
-lost and found again on the map records no lead-in. Replicas keep their own: a vehicle
-whose frames reach several loses some lead-ins, nothing else.
+features; only when the queue has room for them and the frame), into ``sequence`` records
+only (any recorded frame closes the vehicle); a merge places them from the recorded frames
+after them (:func:`indexer.experiences.place_leads`). The places a vehicle passes before
+the filter is sure, the same places on every drive that starts at one depot, get
+experiences too; a lock lost and found again on the map records no lead-in. Replicas keep
+their own: a vehicle whose frames reach several loses some lead-ins, nothing else. A
+frame's time is the
+request's timestamp, else when it was received: a vehicle should send timestamps always or
+never (a batch's frames share one received time, so none leads into another).
 
 The request only puts the frame on a bounded queue: :meth:`Recorder.offer` never waits and
 never raises. One background thread appends to the log (:class:`~hmpf.experience_log.
@@ -136,7 +140,7 @@ class Leads:
 
     def keep(self, frame: Frame) -> None:
         """Hold ``frame`` (mode ``lead``) as its vehicle's newest, if the vehicle is open."""
-        if _held_size(frame) > self.max_bytes:
+        if _held_size(frame) + _HELD_OVERHEAD > self.max_bytes:  # with its vehicle's entry
             with self._lock:
                 self._close(frame.vehicle)
             return
@@ -176,6 +180,11 @@ class Leads:
         return held
 
 
+def _starts(answer: LocalizeResponse) -> bool:
+    """Whether ``answer`` starts its vehicle's track (its first frame, or a reset)."""
+    return answer.sequence is not None and answer.sequence.status in ("started", "reset")
+
+
 def _held_size(frame: Frame) -> int:
     return len(frame.image) + _HELD_OVERHEAD
 
@@ -200,6 +209,9 @@ class Recorder:
         self._warned: dict[str, float] = {}
         self._bound_seen = 0
         self.leads = Leads(settings.experience_lead_frames, settings.experience_lead_bytes)
+        # lead-ins lead into sequence-mode records only
+        self._leads_recorded = "sequence" in settings.experience_modes
+        metrics.experience_lead_bytes.set_function(lambda: self.leads.bytes)
 
     @classmethod
     def for_settings(cls, settings: Settings, metrics: Metrics) -> Recorder | None:
@@ -238,7 +250,9 @@ class Recorder:
         try:
             mode = recorded_mode(answer, self.settings)
             match = answer.match
-            if match is None:
+            if match is None:  # nothing to record or hold; a track's start still opens
+                if vehicle_id is not None and _starts(answer):
+                    self.leads.open(vehicle_id)
                 return False
             frame = Frame(
                 image=image,
@@ -257,8 +271,10 @@ class Recorder:
             if mode is None:
                 self._hold(answer, frame, vehicle_id)
                 return False
-            if vehicle_id is not None and mode == "sequence":
-                self._queue_leads(frame)
+            if vehicle_id is not None:  # any recorded frame closes the vehicle
+                leads = self.leads.take(frame)
+                if mode == "sequence":
+                    self._queue_leads(leads)
             self._queue.put_nowait(frame)
         except queue.Full:
             self.metrics.experience_dropped.labels("queue_full").inc()
@@ -271,29 +287,32 @@ class Recorder:
         self.metrics.experience_queue.set(self._queue.qsize())
         return True
 
-    def _queue_leads(self, frame: Frame) -> None:
-        """Queue the lead-in frames of ``frame``'s vehicle (a full queue drops them, counted)."""
-        for lead in self.leads.take(frame):
+    def _queue_leads(self, leads: list[Frame]) -> None:
+        """Queue a recorded frame's lead-in frames, before it, when the queue has room for
+        them and the frame (else they are dropped, counted: the recorded frame comes
+        first)."""
+        if self._queue.maxsize - self._queue.qsize() <= len(leads):
+            self.metrics.experience_dropped.labels("queue_full").inc(len(leads))
+            return
+        for lead in leads:
             try:
                 self._queue.put_nowait(lead)
-            except queue.Full:
+            except queue.Full:  # another request took the room meanwhile
                 self.metrics.experience_dropped.labels("queue_full").inc()
-        self.metrics.experience_lead_bytes.set(self.leads.bytes)
 
     def _hold(self, answer: LocalizeResponse, frame: Frame, vehicle_id: str | None) -> None:
         """Keep a sequence-mode frame that was not recorded as a possible lead-in (without its
         features, :class:`Leads`): a track's start opens the vehicle, and so does an answer
         off the map (which is no lead-in itself)."""
         report = answer.sequence
-        if vehicle_id is None or report is None:
+        if vehicle_id is None or report is None or not self._leads_recorded:
             return
         if report.off_map:
             self.leads.open(frame.vehicle)
         else:
-            if report.status in ("started", "reset"):
+            if _starts(answer):
                 self.leads.open(frame.vehicle)
             self.leads.keep(replace(frame, features=None, methods=None))
-        self.metrics.experience_lead_bytes.set(self.leads.bytes)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Write the frames queued so far, flush and close the log; waits ``timeout_s`` at

@@ -466,7 +466,8 @@ def _expected(lead: float, places: list[int], times: list[float]) -> int:
     if len(run) < 2 or run[-1][0] == run[0][0]:
         return 0
     pace = (run[-1][1] - run[0][1]) / (run[-1][0] - run[0][0])
-    return max(0, run[0][1] - int(round(pace * (run[0][0] - lead))))
+    back = pace * (run[0][0] - lead)
+    return max(0, run[0][1] - int(np.sign(back) * np.floor(abs(back) + 0.5)))
 
 
 def test_place_leads_goes_back_along_the_route_at_the_pace_after_it() -> None:
@@ -476,6 +477,9 @@ def test_place_leads_goes_back_along_the_route_at_the_pace_after_it() -> None:
     assert _leads_placed([8.0], [7, 6, 5], t, one) == [9]  # driven the other way
     assert _leads_placed([8.0], [5, 5, 5], t, one) == [5]  # standing still
     assert _leads_placed([9.0], [5, 7, 9], t, one) == [3]  # 2 places a second
+    # half a place back rounds away from the first frame (either way along the route)
+    assert _leads_placed([9.0, 7.0], [5, 6, 7], [10, 12, 14], one) == [4, 3]
+    assert _leads_placed([9.0], [7, 6, 5], [10, 12, 14], one) == [8]
     # the pace from the first to the fifth frame after it (a jittery second frame)
     assert _leads_placed([9.0], [5, 5, 7, 8, 9, 15], [10, 11, 12, 13, 14, 15], one) == [4]
     # ... from the frames that follow each other within 30 s

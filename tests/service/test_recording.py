@@ -386,6 +386,48 @@ def test_the_lead_in_is_recorded_before_the_lock_and_held_within_its_bounds(
     assert [r.timestamp for r in got[:3]] == [101.0, 102.0, 103.0]
 
 
+def test_the_lead_in_never_takes_the_recorded_frames_place(
+    frames: list[Path], tmp_path: Path
+) -> None:
+    """A lead-in goes on the queue only when it and its recorded frame fit (the frame comes
+    first); a track's start without a match still opens the vehicle; any recorded frame
+    closes it; without sequence records nothing is held."""
+    data = frames[0].read_bytes()
+
+    def answer(p: float | None, place: int, status: str = "tracking") -> LocalizeResponse:
+        a = _answer(p, p is not None and p >= THRESHOLD, "sequence", place)
+        if p is None:
+            a = a.model_copy(update={"match": None})
+        return _in_sequence(a, status=status)
+
+    s = load_settings(auth=False, experience_log=tmp_path / "a", experience_queue=2)
+    m = Metrics()
+    rec = Recorder(s, m)  # not started: the queue fills
+    assert not rec.offer(answer(None, 0, "started"), data, None, "car", 1.0, 1.0)
+    assert not rec.offer(answer(0.5, 1), data, None, "car", 2.0, 2.0)
+    assert not rec.offer(answer(0.5, 2), data, None, "car", 3.0, 3.0)
+    assert len(rec.leads.take(rec_frame("car", 4.0))) == 2  # opened without a match
+    assert not rec.offer(answer(0.5, 1, "started"), data, None, "car", 5.0, 5.0)
+    assert not rec.offer(answer(0.5, 2), data, None, "car", 6.0, 6.0)
+    assert rec.offer(answer(0.995, 3), data, None, "car", 7.0, 7.0)  # 2 leads + 1 > 2 slots
+    dropped = m.registry.get_sample_value("hmpf_experience_dropped_total", {"reason": "queue_full"})
+    assert rec._queue.qsize() == 1 and dropped == 2
+    # a recorded single-mode answer closes the vehicle too
+    both = load_settings(
+        auth=False, experience_log=tmp_path / "b", experience_modes="sequence,single"
+    )
+    rec = Recorder(both, Metrics())
+    assert not rec.offer(answer(0.5, 1, "started"), data, None, "car", 1.0, 1.0)
+    single = _answer(0.995, True, "single", 2)
+    assert rec.offer(_in_sequence(single), data, None, "car", 2.0, 2.0)
+    assert rec.leads.bytes == 0 and rec._queue.qsize() == 1  # no lead before a single record
+    # recording single answers only: nothing is held
+    only = load_settings(auth=False, experience_log=tmp_path / "c", experience_modes="single")
+    rec = Recorder(only, Metrics())
+    assert not rec.offer(answer(0.5, 1, "started"), data, None, "car", 1.0, 1.0)
+    assert rec.leads.bytes == 0
+
+
 def rec_frame(vehicle: str, t: float, version: str = "v0001") -> Frame:
     """A recorded frame of ``vehicle`` at time ``t`` (what :meth:`Leads.take` reads)."""
     return Frame(b"x", None, 0, "", version, 0.99, vehicle, t, "sequence", t)
