@@ -1125,27 +1125,48 @@ INTERPOLATION_HEADER = [
 ]
 
 
+def _against_rows(
+    label: str,
+    run: dict[str, Any],
+    key: str,
+    cells: Callable[[dict[str, Any], dict[str, Any]], list[str]],
+) -> list[list[str]]:
+    """One fleet pass's merges, each against the same log merged otherwise (``key``: its
+    entry in the merge), a row per recording threshold: the label, the threshold, then
+    ``cells(merge, other)``."""
+    return [
+        [label, t, *cells(m, m[key])] for t, m in run["merges"].items() if m.get(key) is not None
+    ]
+
+
 def _interpolation_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
     """One fleet pass's merges (frames placed between their time neighbours) against the same
     log merged with every frame at its recorded place, a row per recording threshold."""
-    rows = []
-    for t, m in run["merges"].items():
-        kept = m.get("as_recorded")
-        if kept is None:
-            continue
-        rows.append(
-            [
-                label,
-                t,
-                str(m["merge"]["report"].get("interpolated", 0)),
-                f"{kept['added']['experiences']} ({kept['added']['wrong']} wrong)",
-                f"{f3(kept['merged']['single'])} / {f3(kept['merged']['sequence'])}",
-                f"{m['added']['experiences']} ({m['added']['wrong']} wrong)",
-                f"{f3(m['merged']['single'])} ({_wins(kept['single_test'])})",
-                f"{f3(m['merged']['sequence'])} ({_wins(kept['sequence_test'])})",
-            ]
-        )
-    return rows
+
+    def cells(m: dict[str, Any], kept: dict[str, Any]) -> list[str]:
+        return [
+            str(m["merge"]["report"].get("interpolated", 0)),
+            f"{kept['added']['experiences']} ({kept['added']['wrong']} wrong)",
+            _both(kept),
+            f"{m['added']['experiences']} ({m['added']['wrong']} wrong)",
+            *_paired(m, kept),
+        ]
+
+    return _against_rows(label, run, "as_recorded", cells)
+
+
+def _both(run: dict[str, Any]) -> str:
+    """A merge's ``single / sequence`` recall@1."""
+    return f"{f3(run['merged']['single'])} / {f3(run['merged']['sequence'])}"
+
+
+def _paired(m: dict[str, Any], other: dict[str, Any]) -> list[str]:
+    """A merge's single-frame and sequence recall@1, each with its paired sign test against
+    ``other`` (the same log merged otherwise: its tests are the merge's wins)."""
+    return [
+        f"{f3(m['merged']['single'])} ({_wins(other['single_test'])})",
+        f"{f3(m['merged']['sequence'])} ({_wins(other['sequence_test'])})",
+    ]
 
 
 @generator("experiences.interpolation")
@@ -1174,24 +1195,17 @@ LEADS_HEADER = [
 def _lead_rows(label: str, run: dict[str, Any]) -> list[list[str]]:
     """One fleet pass's merges against the same log merged without its lead frames
     (``--no-place-leads``), a row per recording threshold."""
-    rows = []
-    for t, m in run["merges"].items():
-        without = m.get("without_leads")
-        if without is None:
-            continue
-        rows.append(
-            [
-                label,
-                t,
-                str(m["recorded"]["leads"]),
-                str(m["merge"]["report"].get("leads_placed", 0)),
-                f"{m['added']['leads']} ({m['added']['leads_wrong']} wrong)",
-                f"{f3(without['merged']['single'])} / {f3(without['merged']['sequence'])}",
-                f"{f3(m['merged']['single'])} ({_wins(without['single_test'])})",
-                f"{f3(m['merged']['sequence'])} ({_wins(without['sequence_test'])})",
-            ]
-        )
-    return rows
+
+    def cells(m: dict[str, Any], without: dict[str, Any]) -> list[str]:
+        return [
+            str(m["recorded"]["leads"]),
+            str(m["merge"]["report"].get("leads_placed", 0)),
+            f"{m['added']['leads']} ({m['added']['leads_wrong']} wrong)",
+            _both(without),
+            *_paired(m, without),
+        ]
+
+    return _against_rows(label, run, "without_leads", cells)
 
 
 @generator("experiences.leads")
