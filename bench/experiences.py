@@ -383,6 +383,7 @@ def fleet_pass(
     (``without_leads``), each paired against the merge."""
     bare = evaluate(base, test, gt)
     out: dict[str, Any] = {"fleet_frames": len(fleet), "bare": _recall(bare), "merges": {}}
+    places = [truth[digest(p)] for p in fleet]
     for t in sorted(thresholds, reverse=True):
         log = base.parent / f"{name}_{t:g}.log"
         drove = drive(_copy(base, f"{name}_served_{t:g}"), fleet, log, t)
@@ -390,7 +391,6 @@ def fleet_pass(
         print(f"{name} at {t:g}: recorded {recorded}", flush=True)
         # the answers do not depend on the threshold: the lowest's drive is the one kept
         out["drive_s"] = drove["seconds"]
-        places = [truth[digest(p)] for p in fleet]
         out["answers"] = answer_shares(drove["answers"], places, thresholds)
         out["recorded"] = recorded
         leads = lead_digests(log)

@@ -58,6 +58,7 @@ __all__ = [
     "DEFAULT_SEGMENT_BYTES",
     "DEFAULT_SYNC_EVERY",
     "DEFAULT_SYNC_INTERVAL_S",
+    "MAX_GAP_S",
     "MODES",
     "ExperienceLog",
     "ExperienceLogError",
@@ -74,6 +75,11 @@ __all__ = [
 #: confident (a lock's lead-in: its ``place`` and ``p_correct`` are its own answer's, and a
 #: merge places it from the recorded frames after it, :func:`indexer.experiences.place_leads`).
 MODES = ("sequence", "single", "lead")
+#: The longest time (seconds, by the records' timestamps) between two frames of one vehicle
+#: that still belong to one stretch of its drive: the recorder's bound from a lead-in frame
+#: to the frame it leads into, and the merge's between time neighbours (beyond it, the
+#: vehicle may have gone anywhere in between).
+MAX_GAP_S = 30.0
 DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB: about 6,000 frames of a 50 KB JPEG + 110 KB of features
 DEFAULT_SEGMENT_BYTES = 64 << 20
 DEFAULT_SYNC_EVERY = 32

@@ -73,7 +73,7 @@ from pydantic import ValidationError
 
 from hmpf.config import ExperienceSettings
 from hmpf.errors import DatasetError
-from hmpf.experience_log import read_log
+from hmpf.experience_log import MAX_GAP_S, read_log
 from hmpf.features import unpack_features
 from hmpf.hierarchy import Hierarchy
 from hmpf.imageio import probe_image
@@ -131,9 +131,9 @@ GATES = (
 #: Frames named in the report as rejected by the agreement gate (the rest are counted).
 MAX_LISTED = 20
 #: The longest time (seconds) between a frame and each of its neighbours for
-#: :func:`between_neighbours` to place it by them (beyond it, the vehicle may have gone
-#: anywhere in between).
-MAX_NEIGHBOUR_GAP_S = 30.0
+#: :func:`between_neighbours` to place it by them, and between a lead frame and the frames
+#: after it for :func:`place_leads` (the log's own bound, shared with the recorder).
+MAX_NEIGHBOUR_GAP_S = MAX_GAP_S
 #: How unequal the two time steps to a frame's neighbours may be, as a share of the longer
 #: (:func:`between_neighbours`): a constant pace needs about equal steps.
 NEIGHBOUR_STEP_TOLERANCE = 0.25

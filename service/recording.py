@@ -25,9 +25,9 @@ after them (:func:`indexer.experiences.place_leads`). The places a vehicle passe
 the filter is sure, the same places on every drive that starts at one depot, get
 experiences too; a lock lost and found again on the map records no lead-in. Replicas keep
 their own: a vehicle whose frames reach several loses some lead-ins, nothing else. A
-frame's time is the
-request's timestamp, else when it was received: a vehicle should send timestamps always or
-never (a batch's frames share one received time, so none leads into another).
+frame's time is the request's timestamp, else when it was received: a vehicle should send
+timestamps always or never (a batch's frames share one received time, so none leads into
+another).
 
 The request only puts the frame on a bounded queue: :meth:`Recorder.offer` never waits and
 never raises. One background thread appends to the log (:class:`~hmpf.experience_log.
@@ -49,10 +49,10 @@ import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
-from hmpf.experience_log import ExperienceLog, ExperienceLogError
+from hmpf.experience_log import MAX_GAP_S, ExperienceLog, ExperienceLogError
 from hmpf.features import pack_features
 from hmpf.methods import Method
 from service.metrics import Metrics
@@ -69,8 +69,8 @@ WARN_EVERY_S = 60.0
 #: What tells the thread to finish (after the frames queued before it).
 _STOP: Any = object()
 #: The longest time (seconds, by the frames' timestamps) from a lead-in frame to the recorded
-#: frame it leads into (the merge's own bound between time neighbours).
-LEAD_MAX_GAP_S = 30.0
+#: frame it leads into (the log's bound, which the merge reads its frames by too).
+LEAD_MAX_GAP_S = MAX_GAP_S
 #: What a held frame counts for beyond its image's bytes (its fields, the vehicle's entry).
 _HELD_OVERHEAD = 1024
 
@@ -180,6 +180,37 @@ class Leads:
         return held
 
 
+def _frame(
+    answer: LocalizeResponse,
+    mode: str,
+    image: bytes,
+    content_type: str | None,
+    stamp: tuple[str, float, float],
+    features: Mapping[str, Any] | None,
+    methods: Mapping[str, Method] | None,
+) -> Frame:
+    """The frame of an answer with a match, recorded under ``mode`` (``stamp``: its vehicle,
+    ``""`` without one, its time and when it was received; a lead frame's ``p_correct`` is
+    its own answer's, 0 without one)."""
+    match = answer.match
+    assert match is not None  # recorded answers and lead frames have one
+    vehicle, timestamp, received = stamp
+    return Frame(
+        image=image,
+        content_type=content_type,
+        place=match.reference_id,
+        place_name=match.name,
+        index_version=answer.index_version,
+        p_correct=0.0 if match.p_correct is None else match.p_correct,
+        vehicle=vehicle,
+        timestamp=timestamp,
+        mode=mode,
+        received=received,
+        features=features,
+        methods=methods,
+    )
+
+
 def _starts(answer: LocalizeResponse) -> bool:
     """Whether ``answer`` starts its vehicle's track (its first frame, or a reset)."""
     return answer.sequence is not None and answer.sequence.status in ("started", "reset")
@@ -249,28 +280,13 @@ class Recorder:
         """
         try:
             mode = recorded_mode(answer, self.settings)
-            match = answer.match
-            if match is None:  # nothing to record or hold; a track's start still opens
-                if vehicle_id is not None and _starts(answer):
-                    self.leads.open(vehicle_id)
-                return False
-            frame = Frame(
-                image=image,
-                content_type=content_type,
-                place=match.reference_id,
-                place_name=match.name,
-                index_version=answer.index_version,
-                p_correct=0.0 if match.p_correct is None else match.p_correct,
-                vehicle=vehicle_id or "",
-                timestamp=received if timestamp is None else timestamp,
-                mode=mode or "lead",
-                received=received,
-                features=features if methods is not None else None,
-                methods=methods,
-            )
+            stamp = (vehicle_id or "", received if timestamp is None else timestamp, received)
             if mode is None:
-                self._hold(answer, frame, vehicle_id)
+                if vehicle_id is not None and self._leads_recorded:
+                    self._hold(answer, image, content_type, stamp)
                 return False
+            kept = features if methods is not None else None
+            frame = _frame(answer, mode, image, content_type, stamp, kept, methods)
             if vehicle_id is not None:  # any recorded frame closes the vehicle
                 leads = self.leads.take(frame)
                 if mode == "sequence":
@@ -300,19 +316,23 @@ class Recorder:
             except queue.Full:  # another request took the room meanwhile
                 self.metrics.experience_dropped.labels("queue_full").inc()
 
-    def _hold(self, answer: LocalizeResponse, frame: Frame, vehicle_id: str | None) -> None:
+    def _hold(
+        self,
+        answer: LocalizeResponse,
+        image: bytes,
+        content_type: str | None,
+        stamp: tuple[str, float, float],
+    ) -> None:
         """Keep a sequence-mode frame that was not recorded as a possible lead-in (without its
         features, :class:`Leads`): a track's start opens the vehicle, and so does an answer
-        off the map (which is no lead-in itself)."""
+        off the map (which is no lead-in itself, nor is an answer without a match)."""
         report = answer.sequence
-        if vehicle_id is None or report is None or not self._leads_recorded:
+        if report is None:
             return
-        if report.off_map:
-            self.leads.open(frame.vehicle)
-        else:
-            if _starts(answer):
-                self.leads.open(frame.vehicle)
-            self.leads.keep(replace(frame, features=None, methods=None))
+        if report.off_map or _starts(answer):
+            self.leads.open(stamp[0])
+        if not report.off_map and answer.match is not None:
+            self.leads.keep(_frame(answer, "lead", image, content_type, stamp, None, None))
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Write the frames queued so far, flush and close the log; waits ``timeout_s`` at
