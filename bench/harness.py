@@ -45,7 +45,7 @@ from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.study import split_data
-from hmpf.runtime import default_cache_dir, machine_description
+from hmpf.runtime import cnn_runtime, default_cache_dir, machine_description
 
 __all__ = [
     "NORDLAND",
@@ -253,10 +253,12 @@ def _version(package: str) -> str | None:
 
 
 def machine_details() -> dict[str, Any]:
-    """The machine as fields: CPU model, cores, load, Python, OS and package versions."""
+    """The machine as fields: CPU model, cores, load, Python, OS, package versions and the
+    CNN runtime the process runs by default (``auto`` chooses it by CPU)."""
     cpu = machine_description().rsplit(", ", 2)[0]
     return {
         "cpu": cpu,
+        "cnn_runtime": cnn_runtime(),
         "cores": os.cpu_count(),
         "load_1min": os.getloadavg()[0],
         "python": platform.python_version(),

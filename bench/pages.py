@@ -2753,12 +2753,24 @@ def confidence_profile(root: Path) -> str:
 
 
 SPEED_TABLE = f"{SPEED}/speed_table.json"
+SPEED_TABLE_AVX512 = f"{SPEED}/speed_table_avx512.json"
 
 
 @generator("speed.cpu_per_query")
 def speed_cpu_per_query(root: Path) -> str:
     """``python -m bench.speed_table --json``: one run of every row."""
-    data = load(root, SPEED_TABLE)
+    return _speed_table(root, SPEED_TABLE)
+
+
+@generator("speed.cpu_per_query_avx512")
+def speed_cpu_per_query_avx512(root: Path) -> str:
+    """``python -m bench.speed_table --rows after openvino --json`` on a CPU with AVX-512:
+    what the ``auto`` CNN runtime chooses there."""
+    return _speed_table(root, SPEED_TABLE_AVX512)
+
+
+def _speed_table(root: Path, rel: str) -> str:
+    data = load(root, rel)
     names = " / ".join(PROTOCOL_TITLES[p].removeprefix("GP ") for p in GP)
     rows = []
     for row, r in data["rows"].items():
@@ -2790,9 +2802,9 @@ def speed_cpu_per_query(root: Path) -> str:
     ]
     a = data["arguments"]
     return table(header, rows) + source(
-        SPEED_TABLE,
+        rel,
         data,
-        preset="default, fast",
+        preset=", ".join(dict.fromkeys(r["config"] for r in data["rows"].values())),
         digest_text="config digests in the rows",
         extra=f"one run of every row; queries: median of {a['images']} night_right frames "
         f"against the 200 day_right references; HTTP: {a['duration']:g} s per phase",

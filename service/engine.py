@@ -58,7 +58,7 @@ from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index import layout
 from hmpf.index.reader import IndexReader
-from hmpf.runtime import set_compute_threads
+from hmpf.runtime import cnn_runtime, set_compute_threads
 from hmpf.sequence import MotionSketch, SequenceFilter
 from service.track import binding_digest
 
@@ -368,12 +368,13 @@ class Engine:
             else f"files verified in {loaded.reader.verify_seconds or 0.0:.2f} s"
         )
         log.info(
-            "index %s version %s loaded (%d references, %d experiences; %s)",
+            "index %s version %s loaded (%d references, %d experiences; %s; CNN runtime %s)",
             self.root,
             loaded.version,
             loaded.reader.n,
             loaded.reader.n_rows - loaded.reader.n,
             how,
+            cnn_runtime(),
         )
 
     def _sound_fallback(self, old: Loaded | None) -> Loaded | None:

@@ -16,6 +16,7 @@ and the cache of exported models.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -193,14 +194,46 @@ def test_runtime_setting_and_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("HMPF_CNN_RUNTIME", "Torch")
     assert runtime.cnn_runtime() == "torch"
     monkeypatch.delenv("HMPF_CNN_RUNTIME")
-    assert runtime.cnn_runtime() == "onnx"  # the default
+    assert runtime.cnn_runtime() == runtime.auto_cnn_runtime()  # the default: auto
+    monkeypatch.setenv("HMPF_CNN_RUNTIME", " Auto ")
+    assert runtime.cnn_runtime() == runtime.auto_cnn_runtime()
     monkeypatch.setenv("HMPF_CNN_RUNTIME", "tensorrt")
     with pytest.raises(
-        ConfigError, match="HMPF_CNN_RUNTIME must be one of onnx, openvino, openvino-bf16, torch"
+        ConfigError,
+        match="HMPF_CNN_RUNTIME must be one of auto, onnx, openvino, openvino-bf16, torch",
     ):
         runtime.cnn_runtime()
     with pytest.raises(ConfigError, match="one of"):
         runtime.set_cnn_runtime("jax")
+
+
+def test_auto_runs_openvino_only_with_avx512_and_the_package() -> None:
+    """``auto`` (the default runtime): OpenVINO float32 where it is installed and the CPU has
+    AVX-512 (AMX CPUs list avx512f too), ONNX Runtime elsewhere (AVX2 only: no faster)."""
+    avx2 = {"sse4_2", "avx", "avx2", "fma"}
+    avx512 = avx2 | {"avx512f", "avx512bw", "avx512_vnni"}
+    amx = avx512 | {"avx512_bf16", "amx_bf16", "amx_tile"}
+    assert runtime.choose_cnn_runtime(avx512, openvino_installed=True) == "openvino"
+    assert runtime.choose_cnn_runtime(amx, openvino_installed=True) == "openvino"
+    assert runtime.choose_cnn_runtime(avx2, openvino_installed=True) == "onnx"
+    assert runtime.choose_cnn_runtime(set(), openvino_installed=True) == "onnx"  # no cpuinfo
+    for flags in (avx2, avx512, amx):
+        assert runtime.choose_cnn_runtime(flags, openvino_installed=False) == "onnx"
+    # this machine: what its own flags and packages choose, read once
+    here = runtime.choose_cnn_runtime(runtime.cpu_flags(), find_spec("openvino") is not None)
+    assert runtime.auto_cnn_runtime() == here
+    assert ("avx512f" in runtime.cpu_flags()) == (
+        "AVX-512" in runtime.machine_description() or "AMX" in runtime.machine_description()
+    )
+
+
+def test_set_cnn_runtime_auto_passes_the_chosen_runtime_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``set_cnn_runtime("auto")`` sets the runtime it chose, for the processes it starts."""
+    monkeypatch.setattr(runtime, "_cnn_runtime", None)
+    monkeypatch.setenv("HMPF_CNN_RUNTIME", "auto")  # restored after the test
+    runtime.set_cnn_runtime("auto")
+    assert runtime.cnn_runtime() == runtime.auto_cnn_runtime() != "auto"
+    assert os.environ["HMPF_CNN_RUNTIME"] == runtime.auto_cnn_runtime()
 
 
 def test_shared_forward_pass_per_group_onnx(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -332,6 +365,7 @@ def test_session_threads_follow_compute_threads(
     cache_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     net = load_backbone("efficientnet_lite0")
+    monkeypatch.setattr(runtime, "_cnn_runtime", "onnx")  # ONNX Runtime's session options
     monkeypatch.setattr(runtime, "_threads", 1)
     one = ox.onnx_maps(net, ["s4"], SIZE)
     monkeypatch.setattr(runtime, "_threads", 2)
