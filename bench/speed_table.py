@@ -10,7 +10,14 @@ Rows (the same machine, images and run):
 * ``after``: the same in ONNX Runtime, the default runtime;
 * ``fast``: the ``fast`` preset in ONNX Runtime (one shared 224 x 384 pass);
 * ``openvino``: the default hierarchy in OpenVINO (``HMPF_CNN_RUNTIME=openvino``, float32:
-  the same answers as ONNX Runtime; needs the ``openvino`` extra).
+  the same answers as ONNX Runtime; needs the ``openvino`` extra);
+* the levers measured and not adopted, each a config of ``bench/cpu_levers/`` in the default
+  runtime (``auto``: OpenVINO on a CPU with AVX-512, ONNX Runtime elsewhere): ``olo_288``
+  (OLO's pass at 288 x 288), ``netvlad_256`` (NetVLAD's at 256 x 448), ``lite0_320`` (GeM and
+  OLO share one Lite0 pass at 320 x 320), ``gem_on_olo`` (GeM reads OLO's pass),
+  ``one_pass_lite1`` (every method reads one Lite1 pass), ``bf16_gem_olo`` (GeM and OLO in
+  bfloat16 through OpenVINO). The default rows are ``after``, ``openvino``, ``fast`` and
+  ``default_auto`` (the default hierarchy in the default runtime: the levers' baseline).
 
 Columns:
 
@@ -22,7 +29,9 @@ Columns:
   answers/s with 8 clients, and the errors of both phases;
 * index build of Gardens Point day_right (200 images, no feature cache, every core):
   images/s end to end;
-* recall@1 of the hierarchy on the three Gardens Point protocols (+-2 frames).
+* recall@1 of the hierarchy on the three Gardens Point protocols (+-2 frames) and on
+  Nordland summer -> winter's first ``--nordland-frames`` frames, with every query's outcome
+  (the record's ``correct``) for paired sign tests against another row.
 
 The runtime is chosen by ``HMPF_CNN_RUNTIME`` (set for the service's process too).
 """
@@ -34,27 +43,52 @@ import os
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
-from bench.harness import ROOT, add_cache_dir, add_json, machine, parser, write_record
+from bench.harness import (
+    ROOT,
+    add_cache_dir,
+    add_json,
+    machine,
+    parser,
+    protocol_data,
+    write_record,
+)
 from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root, list_images
 from hmpf.evaluation.evaluate import EvalData, evaluate
 from hmpf.evaluation.study import ScoreBank, measure_query_ms
 from hmpf.features import FeatureCache
-from hmpf.runtime import set_cnn_runtime
+from hmpf.runtime import cnn_runtime, set_cnn_runtime
 from indexer.build import BuildOptions, build
 
-#: row -> (CNN runtime, preset).
+LEVERS = ROOT / "bench" / "cpu_levers"
+#: row -> (CNN runtime, preset or config file); ``auto``: the default runtime.
 ROWS = {
     "before": ("torch", "default"),
     "after": ("onnx", "default"),
     "fast": ("onnx", "fast"),
     "openvino": ("openvino", "default"),
+    "default_auto": ("auto", "default"),
+    **{
+        lever: ("auto", str(LEVERS / f"{lever}.yaml"))
+        for lever in (
+            "olo_288",
+            "netvlad_256",
+            "lite0_320",
+            "gem_on_olo",
+            "one_pass_lite1",
+            "bf16_gem_olo",
+        )
+    },
 }
+DEFAULT_ROWS = ["after", "openvino", "fast"]
+NORDLAND = "nordland_s_w"
 
 
 def write_yaml(config: HierarchyConfig, folder: Path) -> Path:
@@ -86,20 +120,46 @@ def build_rate(config_yaml: Path, tmp: Path, index: Path) -> float:
     return float(summary.images_per_s)
 
 
-def recalls(config: HierarchyConfig, cache: FeatureCache) -> dict[str, float]:
-    out = {}
-    for name, (r, q) in GARDENS_POINT_PROTOCOLS.items():
-        data = EvalData.frames(dataset_root() / r, dataset_root() / q, 2)
-        rep = evaluate(config, data, cache=cache, skip_curves=list(config.method_ids))
-        out[name] = float(rep["hierarchy"]["combined_recall_at_1"])
+def protocols(nordland_frames: int) -> dict[str, EvalData]:
+    """The three Gardens Point protocols and, unless ``nordland_frames`` is 0, Nordland summer
+    -> winter's first ``nordland_frames`` frames of each traverse (+-2 frames)."""
+    out = {
+        name: EvalData.frames(dataset_root() / r, dataset_root() / q, 2)
+        for name, (r, q) in GARDENS_POINT_PROTOCOLS.items()
+    }
+    if nordland_frames:
+        n = nordland_frames
+        data = protocol_data(NORDLAND)
+        out[NORDLAND] = replace(
+            data, reference=data.reference[:n], query=data.query[:n], gt=data.gt[:n, :n]
+        )
     return out
+
+
+def recalls(
+    config: HierarchyConfig, cache: FeatureCache, data: dict[str, EvalData]
+) -> tuple[dict[str, float], dict[str, list[bool]]]:
+    """recall@1 of the hierarchy per protocol, and whether each query's answer was right."""
+    recall, correct = {}, {}
+    for name, d in data.items():
+        rep = evaluate(config, d, cache=cache, skip_curves=list(config.method_ids))
+        matches = np.asarray(rep["hierarchy"]["matches"], dtype=np.int64)
+        right = [bool(m >= 0 and d.gt[i, m]) for i, m in enumerate(matches)]
+        recall[name] = float(rep["hierarchy"]["combined_recall_at_1"])
+        if abs(recall[name] - float(np.mean(right))) > 1e-9:
+            raise RuntimeError(f"{name}: recall {recall[name]} but {np.mean(right)} right")
+        correct[name] = right
+    return recall, correct
 
 
 def main() -> int:
     ap = parser(__doc__)
     ap.add_argument("--images", type=int, default=20, help="queries timed on one thread")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds per HTTP phase")
-    ap.add_argument("--rows", nargs="*", default=list(ROWS), choices=list(ROWS))
+    ap.add_argument("--rows", nargs="*", default=DEFAULT_ROWS, choices=list(ROWS))
+    ap.add_argument(
+        "--nordland-frames", type=int, default=1000, help="Nordland frames per traverse (0: none)"
+    )
     add_cache_dir(ap)
     add_json(ap, type=Path)
     args = ap.parse_args()
@@ -107,12 +167,13 @@ def main() -> int:
     cache = FeatureCache(args.cache_dir)
     gp = dataset_root() / "gardens_point"
     timed = EvalData.frames(gp / "day_right", gp / "night_right", 2)
+    data = protocols(args.nordland_frames)
     table: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         for row in args.rows:
-            runtime, which = ROWS[row]
-            set_cnn_runtime(runtime)
+            set_cnn_runtime(ROWS[row][0])
+            runtime, which = cnn_runtime(), ROWS[row][1]  # auto: the runtime it chose
             config = load_config(which)
             config_yaml = write_yaml(config, tmp)
             bank = ScoreBank.build(config, timed, cache=cache)
@@ -120,19 +181,24 @@ def main() -> int:
             index = tmp / f"index-{row}"
             rate = build_rate(config_yaml, tmp, index)
             load = http(config_yaml, index, runtime, args.duration, tmp / f"{row}-load.json")
+            recall, correct = recalls(config, cache, data)
             table[row] = {
                 "runtime": runtime,
-                "config": which,
+                "config": config.name,  # the preset's name, or the lever config's
+                "digest": config.digest(),
                 "query": q,
                 "http": load,
                 "build_images_per_s": rate,
-                "recall": recalls(config, cache),
+                "recall": recall,
+                "correct": correct,
             }
-            print(f"{row}: {json.dumps(table[row])}", flush=True)
+            print(f"{row}: {json.dumps({k: v for k, v in table[row].items() if k != 'correct'})}")
+            if args.json:  # a row at a time: an interrupted run keeps the rows it measured
+                write_record(args.json, {"rows": table}, args)
     print(f"\nMachine: {machine()}; one run of every row.\n")
-    names = " / ".join(GARDENS_POINT_PROTOCOLS)
+    names = " / ".join(data)
     print(
-        "| row | runtime, passes | one query, 1 thread (extract + hierarchy) | HTTP p50, 1 client "
+        "| row | config, runtime | one query, 1 thread (extract + hierarchy) | HTTP p50, 1 client "
         f"| answers/s, 8 clients (errors) | build, images/s | recall@1 {names} |"
     )
     print("|---|---|---:|---:|---:|---:|---|")
@@ -140,15 +206,12 @@ def main() -> int:
         q, phases = r["query"], {p["clients"]: p for p in r["http"]["phases"]}
         one, eight = phases[1], phases[8]
         errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
-        passes = 3 if r["config"] == "default" else 1
-        rec = " / ".join(f"{r['recall'][p]:.3f}" for p in GARDENS_POINT_PROTOCOLS)
+        rec = " / ".join(f"{r['recall'][p]:.3f}" for p in r["recall"])
         print(
-            f"| {row} | {r['runtime']}, {passes} | {q['total_ms']:.1f} ms "
+            f"| {row} | {r['config']}, {r['runtime']} | {q['total_ms']:.1f} ms "
             f"({q['extract_ms']:.1f} + {q['hierarchy_ms']:.1f}) | {one['p50_ms']:.1f} ms "
             f"| {eight['answers_per_s']:.1f} ({errors}) | {r['build_images_per_s']:.1f} | {rec} |"
         )
-    if args.json:
-        write_record(args.json, {"rows": table}, args)
     return 0
 
 
