@@ -2769,6 +2769,82 @@ def speed_cpu_per_query_avx512(root: Path) -> str:
     return _speed_table(root, SPEED_TABLE_AVX512)
 
 
+LEVERS_TABLE = "docs/experiments/cpu_levers/levers_table.json"
+
+
+@generator("cpu_levers.levers_table")
+def cpu_levers_table(root: Path) -> str:
+    """``python -m bench.speed_table --rows ... --json``: every lever in one run, against the
+    default hierarchy in the same CNN runtime (the ``openvino`` row against ``after``, ONNX
+    Runtime): time ratios and, per route, recall@1 with the paired sign test."""
+    data = load(root, LEVERS_TABLE)
+    rows = data["rows"]
+    routes = list(next(iter(rows.values()))["recall"])
+
+    def baseline(name: str) -> str:
+        r = rows[name]
+        same = [
+            n for n, b in rows.items() if b["config"] == "default" and b["runtime"] == r["runtime"]
+        ]
+        if r["config"] == "default":
+            return "after" if name != "after" and "after" in rows else name
+        return same[0] if same else "after"
+
+    out = []
+    for name, r in rows.items():
+        base = rows[baseline(name)]
+        q, bq = r["query"]["total_ms"], base["query"]["total_ms"]
+        phases = {p["clients"]: p for p in r["http"]["phases"]}
+        one, eight = phases[1], phases[8]
+        errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
+        cells = []
+        worst = 0.0
+        for route in routes:
+            rec, brec = r["recall"][route], base["recall"][route]
+            worst = min(worst, rec - brec)
+            if r is base:
+                cells.append(f3(rec))
+                continue
+            w, l, pv = sign_test(r["correct"][route], base["correct"][route])
+            cells.append(f"{f3(rec)} ({100 * (rec - brec):+.1f}; {w}/{l}, p {pvalue(pv)})")
+        out.append(
+            [
+                name,
+                f"`{r['config']}` (`{short(r['digest'])}`)",
+                r["runtime"],
+                "" if r is base else baseline(name),
+                f"{q:.1f} ms" + ("" if r is base else f" ({bq / q:.2f}x)"),
+                f"{one['p50_ms']:.1f} ms",
+                f"{eight['answers_per_s']:.1f} ({errors})",
+                f1(r["build_images_per_s"]),
+                *cells,
+                "" if r is base else ("yes" if worst >= -0.01 - 1e-9 else "no"),
+            ]
+        )
+    header = [
+        "row",
+        "config (digest)",
+        "CNN runtime",
+        "against",
+        "one query, 1 thread (speed-up)",
+        "HTTP p50, 1 client",
+        "answers/s, 8 clients (errors)",
+        "build, images/s (`default`: with its map prior)",
+        *[f"recall@1 {PROTOCOL_TITLES[x]} (points; won/lost)" for x in routes],
+        "within 1 point everywhere",
+    ]
+    a = data["arguments"]
+    return table(header, out) + source(
+        LEVERS_TABLE,
+        data,
+        preset=", ".join(dict.fromkeys(r["config"] for r in rows.values())),
+        digest_text="config digests in the rows",
+        extra=f"one run of every row; queries: median of {a['images']} night_right frames "
+        f"against the 200 day_right references; HTTP: {a['duration']:g} s per phase; "
+        f"Nordland: its first {a['nordland_frames']} frames of each traverse",
+    )
+
+
 def _speed_table(root: Path, rel: str) -> str:
     data = load(root, rel)
     names = " / ".join(PROTOCOL_TITLES[p].removeprefix("GP ") for p in GP)
