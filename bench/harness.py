@@ -45,7 +45,7 @@ from hmpf.config import HierarchyConfig, load_config
 from hmpf.datasets import GARDENS_POINT_PROTOCOLS, dataset_root
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.study import split_data
-from hmpf.runtime import cnn_runtime, default_cache_dir, machine_description
+from hmpf.runtime import auto_cnn_runtime, default_cache_dir, machine_description
 
 __all__ = [
     "NORDLAND",
@@ -87,7 +87,15 @@ NORDLAND = ("nordland_64x32/summer", "nordland_64x32/winter")
 #: relative to :func:`hmpf.datasets.dataset_root`.
 PROTOCOLS = {**GARDENS_POINT_PROTOCOLS, "nordland_s_w": NORDLAND}
 #: The packages whose versions :func:`machine_details` reports.
-PACKAGES = ("numpy", "scipy", "opencv-contrib-python-headless", "torch", "onnxruntime", "faiss-cpu")
+PACKAGES = (
+    "numpy",
+    "scipy",
+    "opencv-contrib-python-headless",
+    "torch",
+    "onnxruntime",
+    "openvino",
+    "faiss-cpu",
+)
 
 
 # -- arguments ---------------------------------------------------------------------------------
@@ -253,12 +261,13 @@ def _version(package: str) -> str | None:
 
 
 def machine_details() -> dict[str, Any]:
-    """The machine as fields: CPU model, cores, load, Python, OS, package versions and the
-    CNN runtime the process runs by default (``auto`` chooses it by CPU)."""
+    """The machine as fields: CPU model, cores, load, Python, OS, package versions, and the
+    CNN runtime ``auto`` (the default) chooses on it (a bench that sets runtimes per row
+    records each row's own)."""
     cpu = machine_description().rsplit(", ", 2)[0]
     return {
         "cpu": cpu,
-        "cnn_runtime": cnn_runtime(),
+        "cnn_runtime_auto": auto_cnn_runtime(),
         "cores": os.cpu_count(),
         "load_1min": os.getloadavg()[0],
         "python": platform.python_version(),

@@ -12,7 +12,7 @@ one pass. For each variant:
   and on the whole protocols (200 references, 200 queries);
 * the query's extraction on one compute thread (``extract_query``: every method, Gist
   included, as the service extracts a query), median ms over ``--images`` day_right images,
-  with the default CNN runtime (ONNX Runtime).
+  with the default CNN runtime (ONNX Runtime when this was measured).
 
 Choice rule (training parts only): the fastest variant whose mean training recall is at
 least the three-pass default's minus 0.5 points. Its test recall is then compared with the

@@ -1,23 +1,26 @@
 """Before / after: the default hierarchy's speed with each of its speed levers, one run.
 
-    python -m bench.speed_table [--images 20] [--duration 20] [--rows before onnx after]
-        [--json F]
+    python -m bench.speed_table [--images 20] [--duration 20] [--rows after openvino ...]
+        [--nordland-frames 1000] [--json F]
 
 Rows (the same machine, images and run):
 
 * ``before``: the default hierarchy in torch (GeM 224 x 224, NetVLAD 288 x 512, OLO 416 x 416:
   three EfficientNet-Lite0 passes per query);
-* ``after``: the same in ONNX Runtime, the default runtime;
+* ``after``: the same in ONNX Runtime (the default runtime until 2026-12-07);
 * ``fast``: the ``fast`` preset in ONNX Runtime (one shared 224 x 384 pass);
 * ``openvino``: the default hierarchy in OpenVINO (``HMPF_CNN_RUNTIME=openvino``, float32:
   the same answers as ONNX Runtime; needs the ``openvino`` extra);
-* the levers measured and not adopted, each a config of ``bench/cpu_levers/`` in the default
-  runtime (``auto``: OpenVINO on a CPU with AVX-512, ONNX Runtime elsewhere): ``olo_288``
+* the levers that change the passes (measured, not adopted), each a config of
+  ``bench/cpu_levers/`` in the default runtime (``auto``: OpenVINO on a CPU with AVX-512,
+  ONNX Runtime elsewhere): ``olo_288``
   (OLO's pass at 288 x 288), ``netvlad_256`` (NetVLAD's at 256 x 448), ``lite0_320`` (GeM and
   OLO share one Lite0 pass at 320 x 320), ``gem_on_olo`` (GeM reads OLO's pass),
   ``one_pass_lite1`` (every method reads one Lite1 pass), ``bf16_gem_olo`` (GeM and OLO in
-  bfloat16 through OpenVINO). The default rows are ``after``, ``openvino``, ``fast`` and
-  ``default_auto`` (the default hierarchy in the default runtime: the levers' baseline).
+  bfloat16 through OpenVINO); and ``default_auto``, the default hierarchy in the default
+  runtime. The default rows are ``after``, ``openvino`` and ``fast``. A lever row is compared
+  with the row of the default hierarchy in the same runtime (``openvino`` on a CPU with
+  AVX-512, ``after`` elsewhere).
 
 Columns:
 

@@ -84,7 +84,7 @@ def choose_cnn_runtime(cpu_flags: set[str], openvino_installed: bool) -> str:
     (``avx512f``; AMX CPUs have it too), else ``onnx``.
 
     Measured, the default preset, one run each: AMD EPYC with AVX-512 BF16 1.18x one query,
-    1.18x HTTP p50 and answers/s with 8 clients, 1.07x build (docs/experiments/speed/
+    1.18x HTTP p50 and answers/s with 8 clients, 1.08x build (docs/experiments/speed/
     speed_table_avx512.json); Intel Xeon with AMX 1.26x one query (cpu_levers/openvino_amx.json);
     AMD EPYC with AVX2 only 1.00x one query and 0.97x answers/s with 8 clients
     (cpu_levers/openvino.md): there ONNX Runtime stays."""
@@ -93,8 +93,20 @@ def choose_cnn_runtime(cpu_flags: set[str], openvino_installed: bool) -> str:
 
 @functools.cache
 def auto_cnn_runtime() -> str:
-    """:func:`choose_cnn_runtime` for this machine (read once per process)."""
-    return choose_cnn_runtime(cpu_flags(), importlib.util.find_spec("openvino") is not None)
+    """:func:`choose_cnn_runtime` for this machine (read once per process; the CPU flags from
+    ``/proc/cpuinfo``: Linux on x86, elsewhere ``onnx``). Where the CPU has AVX-512, openvino
+    is imported to see that it works: an installed package that fails to import leaves
+    ``onnx``."""
+    flags = cpu_flags()
+    if choose_cnn_runtime(flags, openvino_installed=True) == "onnx":
+        return "onnx"  # openvino would not be chosen: not imported
+    try:
+        installed = importlib.util.find_spec("openvino") is not None
+        if installed:
+            import openvino  # noqa: F401  (the openvino extra)
+    except Exception:  # a broken install: ONNX Runtime, as without the package
+        installed = False
+    return choose_cnn_runtime(flags, installed)
 
 
 def _resolve(name: str, what: str) -> str:

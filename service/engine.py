@@ -58,7 +58,7 @@ from hmpf.errors import ConfigError
 from hmpf.hierarchy import Hierarchy, HierarchyResult, ScoreFn
 from hmpf.index import layout
 from hmpf.index.reader import IndexReader
-from hmpf.runtime import cnn_runtime, set_compute_threads
+from hmpf.runtime import set_compute_threads
 from hmpf.sequence import MotionSketch, SequenceFilter
 from service.track import binding_digest
 
@@ -367,6 +367,13 @@ class Engine:
             if loaded.verification == "checking"
             else f"files verified in {loaded.reader.verify_seconds or 0.0:.2f} s"
         )
+        # what runs the CNN methods' passes: the process's runtime, torch for a backbone
+        # without an exported model, openvino-bf16 for a bf16 method
+        cnn = {
+            m.session_runtime()
+            for m in loaded.reader.methods.values()
+            if hasattr(m, "session_runtime")
+        }
         log.info(
             "index %s version %s loaded (%d references, %d experiences; %s; CNN runtime %s)",
             self.root,
@@ -374,7 +381,7 @@ class Engine:
             loaded.reader.n,
             loaded.reader.n_rows - loaded.reader.n,
             how,
-            cnn_runtime(),
+            ", ".join(sorted(cnn)) or "none (no CNN method)",
         )
 
     def _sound_fallback(self, old: Loaded | None) -> Loaded | None:
@@ -478,7 +485,10 @@ class Engine:
                 log.exception("on_corrupt failed")
 
     def _warm_up(self, loaded: Loaded) -> None:
-        """Load weights and build lazy structures now rather than in the first request."""
+        """Load weights and build lazy structures now rather than in the first request: with
+        the requests' compute threads, since a CNN model's session (an OpenVINO compile) is
+        made per thread count."""
+        set_compute_threads(self.threads)  # process-wide, as each pool thread sets it
         rng = np.random.default_rng(0)
         image = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
         feats = loaded.reader.extract_query(image)

@@ -33,8 +33,8 @@ Preprocessing: RGB resized to the input size with OpenCV ``INTER_AREA`` (antiali
 shrinking; the aspect ratio is not kept, as in the paper's pipelines), scaled to [0, 1] and
 normalised with the ImageNet mean and standard deviation the model was converted with.
 
-ONNX Runtime (the default CNN runtime on the CPU) runs the same folded model, exported per
-input size (:mod:`hmpf.backbones.onnx_runtime`); its maps equal torch's within float32
+ONNX Runtime (the default CNN runtime on CPUs without AVX-512) runs the same folded model,
+exported per input size (:mod:`hmpf.backbones.onnx_runtime`); its maps equal torch's within float32
 rounding (below 3e-5 at the default sizes).
 """
 

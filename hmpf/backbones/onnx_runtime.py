@@ -1,6 +1,7 @@
 """Backbone forward passes in ONNX Runtime: the torch model exported once, cached on disk.
 
-The ``onnx`` CNN runtime (:func:`hmpf.runtime.cnn_runtime`, the default) runs a backbone's
+The ``onnx`` CNN runtime (:func:`hmpf.runtime.cnn_runtime`; the default's choice where the
+CPU has no AVX-512 or openvino is not installed) runs a backbone's
 :meth:`~hmpf.backbones.base.Backbone.forward_maps` for one set of layers at one input size
 through an ONNX Runtime session instead of torch: on one CPU thread EfficientNet-Lite0 runs
 about 1.7-1.9x faster than the (already BN-folded, channels-last) torch model

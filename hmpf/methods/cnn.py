@@ -12,8 +12,8 @@ set (VLAD centroids, PCA whitening, an OLO vocabulary). :func:`~hmpf.methods.bas
 and :func:`~hmpf.methods.base.fit_many` run that over every group of a hierarchy.
 
 The forward pass runs the backbone's exported ONNX model or torch (:meth:`CnnMethod.runtime`):
-``onnx`` (ONNX Runtime) by default on the CPU, or ``openvino`` / ``openvino-bf16``, for
-backbones that export (:attr:`~hmpf.backbones.base.Backbone.onnx`,
+``onnx`` (ONNX Runtime) or ``openvino`` (``auto``, the default, chooses by CPU), or
+``openvino-bf16``, for backbones that export (:attr:`~hmpf.backbones.base.Backbone.onnx`,
 :mod:`hmpf.backbones.onnx_runtime`); ``torch``, the reference implementation, with
 ``HMPF_CNN_RUNTIME=torch`` (:func:`hmpf.runtime.set_cnn_runtime`), on other devices and for
 the other backbones. All but ``openvino-bf16`` give the same maps within float32 rounding.
@@ -359,8 +359,8 @@ def _require_torch_for(head: CnnMethod, layers: Sequence[str]) -> None:
     if head.stored_from is not None:
         raise MissingDependencyError(
             f"HMPF_CNN_RUNTIME={cnn_runtime()} runs {c.backbone} in torch, which is not "
-            "installed: pip install 'hmpf[cnn]', or serve with HMPF_CNN_RUNTIME=onnx (the "
-            f"default) from the models stored in {head.stored_from}"
+            "installed: pip install 'hmpf[cnn]', or serve with HMPF_CNN_RUNTIME=auto (the "
+            f"default) or onnx from the models stored in {head.stored_from}"
         )
     require_torch()
 

@@ -327,3 +327,33 @@ def test_stored_models_in_openvino_give_the_onnx_answers(
                 assert _max_diff(a[mid], b[mid]) <= ATOL
             ra, rb = hier.run(reader.scorer(a), reader.n), hier.run(reader.scorer(b), reader.n)
             assert ra.match == rb.match
+
+
+def test_the_service_warm_up_makes_the_sessions_requests_use(
+    built: dict[str, Path], monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``hmpf-serve`` loads a version on its main thread before any request thread has set
+    its compute threads; the warm-up must still make the sessions of the requests' thread
+    count (else the first request compiles every model again, and both stay in memory)."""
+    from hmpf import runtime
+    from service.engine import Engine
+
+    monkeypatch.setattr(runtime, "_threads", None)
+    monkeypatch.setenv("HMPF_THREADS", "2")  # the process's default: not the workers'
+    engine = Engine(built["new"], workers=1, queue=1, threads_per_worker=1)
+    try:
+        with caplog.at_level("INFO", logger="hmpf.service"):
+            loaded = engine.load()
+        # the load's log line names what runs the CNN passes (GeM and OLO: the process's)
+        assert f"; CNN runtime {runtime.cnn_runtime()})" in caplog.text, caplog.text
+        models = [
+            m
+            for cm in loaded.reader.methods.values()
+            if isinstance(cm, CnnMethod)
+            for m in (cm.stored_models or {}).values()
+        ]
+        assert len(models) == 3
+        for m in models:
+            assert {threads for threads, _ in m._sessions} == {1}, m._sessions
+    finally:
+        engine.close()

@@ -194,9 +194,10 @@ def test_runtime_setting_and_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("HMPF_CNN_RUNTIME", "Torch")
     assert runtime.cnn_runtime() == "torch"
     monkeypatch.delenv("HMPF_CNN_RUNTIME")
-    assert runtime.cnn_runtime() == runtime.auto_cnn_runtime()  # the default: auto
+    monkeypatch.setattr(runtime, "auto_cnn_runtime", lambda: "openvino-bf16")  # a sentinel
+    assert runtime.cnn_runtime() == "openvino-bf16"  # the default: whatever auto chooses
     monkeypatch.setenv("HMPF_CNN_RUNTIME", " Auto ")
-    assert runtime.cnn_runtime() == runtime.auto_cnn_runtime()
+    assert runtime.cnn_runtime() == "openvino-bf16"
     monkeypatch.setenv("HMPF_CNN_RUNTIME", "tensorrt")
     with pytest.raises(
         ConfigError,
@@ -219,12 +220,31 @@ def test_auto_runs_openvino_only_with_avx512_and_the_package() -> None:
     assert runtime.choose_cnn_runtime(set(), openvino_installed=True) == "onnx"  # no cpuinfo
     for flags in (avx2, avx512, amx):
         assert runtime.choose_cnn_runtime(flags, openvino_installed=False) == "onnx"
-    # this machine: what its own flags and packages choose, read once
-    here = runtime.choose_cnn_runtime(runtime.cpu_flags(), find_spec("openvino") is not None)
-    assert runtime.auto_cnn_runtime() == here
-    assert ("avx512f" in runtime.cpu_flags()) == (
-        "AVX-512" in runtime.machine_description() or "AMX" in runtime.machine_description()
-    )
+
+
+@pytest.fixture
+def fresh_auto() -> Iterator[None]:
+    """``auto_cnn_runtime`` reads the machine again in the test, and after it."""
+    runtime.auto_cnn_runtime.cache_clear()
+    yield
+    runtime.auto_cnn_runtime.cache_clear()
+
+
+def test_auto_without_cpuinfo_or_with_a_broken_openvino_runs_onnx(
+    fresh_auto: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib.util
+
+    monkeypatch.setattr(runtime, "_cpuinfo", lambda: {})  # no /proc/cpuinfo (macOS, ARM)
+    assert runtime.auto_cnn_runtime() == "onnx"
+    runtime.auto_cnn_runtime.cache_clear()
+    monkeypatch.setattr(runtime, "_cpuinfo", lambda: {"flags": "avx2 avx512f"})
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: object())  # "installed"
+    monkeypatch.setitem(sys.modules, "openvino", None)  # ... but its import fails
+    assert runtime.auto_cnn_runtime() == "onnx"
+    runtime.auto_cnn_runtime.cache_clear()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)  # not installed
+    assert runtime.auto_cnn_runtime() == "onnx"
 
 
 def test_set_cnn_runtime_auto_passes_the_chosen_runtime_on(monkeypatch: pytest.MonkeyPatch) -> None:
