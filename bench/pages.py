@@ -2795,9 +2795,6 @@ def cpu_levers_table(root: Path) -> str:
     for name, r in rows.items():
         base = rows[baseline(name)]
         q, bq = r["query"]["total_ms"], base["query"]["total_ms"]
-        phases = {p["clients"]: p for p in r["http"]["phases"]}
-        one, eight = phases[1], phases[8]
-        errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
         cells = []
         worst = 0.0
         for route in routes:
@@ -2818,8 +2815,7 @@ def cpu_levers_table(root: Path) -> str:
                 r["runtime"],
                 "" if r is base else baseline(name),
                 f"{q:.1f} ms" + ("" if r is base else f" ({bq / q:.2f}x)"),
-                f"{one['p50_ms']:.1f} ms" if same_work else "",
-                f"{eight['answers_per_s']:.1f} ({errors})" if same_work else "",
+                *(_http_cells(r) if same_work else ["", ""]),
                 f1(r["build_images_per_s"]) if same_work else "",
                 *cells,
                 "" if r is base else ("yes" if worst >= -0.01 - 1e-9 else "no"),
@@ -2849,23 +2845,28 @@ def cpu_levers_table(root: Path) -> str:
     )
 
 
+def _http_cells(row: dict[str, Any]) -> list[str]:
+    """A ``bench.speed_table`` row's HTTP cells: a lone client's p50, and answers/s with 8
+    clients with the errors (and 503s) of both phases."""
+    phases = {p["clients"]: p for p in row["http"]["phases"]}
+    one, eight = phases[1], phases[8]
+    errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
+    return [f"{one['p50_ms']:.1f} ms", f"{eight['answers_per_s']:.1f} ({errors})"]
+
+
 def _speed_table(root: Path, rel: str) -> str:
     data = load(root, rel)
     names = " / ".join(PROTOCOL_TITLES[p].removeprefix("GP ") for p in GP)
     rows = []
     for row, r in data["rows"].items():
         q = r["query"]
-        phases = {p["clients"]: p for p in r["http"]["phases"]}
-        one, eight = phases[1], phases[8]
-        errors = sum(sum(p["errors"].values()) + int(p["503"]) for p in (one, eight))
         rows.append(
             [
                 row,
                 f"`{r['config']}` (`{short(r.get('digest') or preset_digest(r['config']))}`)",
                 r["runtime"],
                 f"{q['total_ms']:.1f} ms ({q['extract_ms']:.1f} + {q['hierarchy_ms']:.1f})",
-                f"{one['p50_ms']:.1f} ms",
-                f"{eight['answers_per_s']:.1f} ({errors})",
+                *_http_cells(r),
                 f1(r["build_images_per_s"]),
                 " / ".join(f3(r["recall"][p]) for p in GP),
             ]
