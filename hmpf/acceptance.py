@@ -81,7 +81,7 @@ __all__ = [
 AcceptedBy = Literal["p_correct", "quality", "lock"]
 
 #: The features a single-frame answer has, so all a single-frame model may read.
-SINGLE_MODEL_FEATURES = (*FEATURES, "ref_z", "ref_z_low", *MAP_FEATURES)
+SINGLE_MODEL_FEATURES = (*FEATURES, "ref_z", "ref_z_low", "cand_z", "cand_z_low", *MAP_FEATURES)
 
 #: Combined quality (z-score over the final candidates) an answer needs when neither the
 #: settings nor the config give a threshold and there is no model. Measured with

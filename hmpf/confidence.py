@@ -75,7 +75,7 @@ FEATURES = (
 SEQUENCE_FEATURES = ("sequence_mass", "sequence_logit", "sequence_agrees")
 #: Absolute evidence, added when a :class:`ReferenceProfile` is given (``sequence_ref_z``
 #: with an estimate too).
-PROFILE_FEATURES = ("ref_z", "ref_z_low", "sequence_ref_z")
+PROFILE_FEATURES = ("ref_z", "ref_z_low", "cand_z", "cand_z_low", "sequence_ref_z")
 #: A property of the map, the same for every answer, added when the profile knows it
 #: (:attr:`ReferenceProfile.map_prior`, stored by ``hmpf-index build --map-prior``).
 MAP_FEATURES = ("map_prior",)
@@ -242,9 +242,14 @@ def answer_features(
     the map's references with each other, so a query from a place the map does not hold
     can look as good as a right one); ``ref_z_low``, ``min(ref_z, 0)``: a hinge, so that a
     linear model can weigh a score below what unrelated frames get (a frame of a place the
-    map does not hold) more steeply than it weighs how far above them a score lies; with an
-    estimate too, ``sequence_ref_z``, the same at the estimate's reference. No raw score
-    there (not scored, a result without raw scores): 0, an unrelated reference's score. A
+    map does not hold) more steeply than it weighs how far above them a score lies;
+    ``cand_z``, the highest of the same z-scores over the final tier's candidates (whether
+    the frame scores above unrelated places *anywhere* among them: a frame of a mapped place
+    whose answer is wrong usually does, a frame from elsewhere does not; over a fixed number
+    of candidates, not the whole map, so its scale does not grow with the map), and
+    ``cand_z_low``, ``min(cand_z, 0)``; with an estimate too, ``sequence_ref_z``, the same
+    at the estimate's reference. No raw score there (not scored, a result without raw
+    scores): 0, an unrelated reference's score. A
     profile that knows its map's prior (:attr:`ReferenceProfile.map_prior`) adds
     ``map_prior``, the same for every answer.
 
@@ -323,6 +328,10 @@ def answer_features(
         raw = tiers[0].raw if tiers else {}
         out["ref_z"] = _finite(profile.z(raw, match), 0.0) if answered else 0.0
         out["ref_z_low"] = min(out["ref_z"], 0.0)
+        cand_z = profile.z_many(raw, np.unique(cands)) if answered else np.empty(0)
+        cand_z = cand_z[np.isfinite(cand_z)]
+        out["cand_z"] = max(float(cand_z.max()), out["ref_z"]) if cand_z.size else out["ref_z"]
+        out["cand_z_low"] = min(out["cand_z"], 0.0)
         if estimate is not None:
             ref = int(estimate.ref)
             out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0
@@ -494,22 +503,36 @@ class ReferenceProfile:
         NaN). The lowest, not the mean: a right answer looks alike to every method, while
         a query from elsewhere can fool one (NetVLAD's centroids, fitted on the map, can
         place a foreign image close to a reference)."""
-        vals = []
+        return float(self.z_many(raw, np.array([ref], dtype=np.int64))[0])
+
+    def z_many(self, raw: Mapping[str, np.ndarray], refs: np.ndarray) -> np.ndarray:
+        """:meth:`z` at each of ``refs`` (ids outside the map: NaN), as one array."""
+        refs = np.asarray(refs, dtype=np.int64).ravel()
+        ok = (refs >= 0) & (refs < self.n)
+        best = np.full(len(refs), np.inf)
         for i, mid in enumerate(self.methods):
             if isinstance(raw, Spread):
                 # A tier's entries (an approximate tier 1's fill): read there, no array.
-                if mid not in raw or not 0 <= ref < raw.n:
+                if mid not in raw:
                     continue
-                x = float(raw.at(mid, np.array([ref]))[0])
+                inside = ok & (refs < raw.n)
+                x = np.full(len(refs), np.nan)
+                x[inside] = raw.at(mid, refs[inside])
             else:
                 r = raw.get(mid)
-                if r is None or not 0 <= ref < len(r):
+                if r is None:
                     continue
-                x = float(r[ref])
-            mu, sd = self.mean[i, ref], self.std[i, ref]
-            if math.isfinite(x) and math.isfinite(mu) and math.isfinite(sd) and sd > 0:
-                vals.append(self.sign[i] * (x - mu) / sd)
-        return float(min(vals)) if vals else float("nan")
+                r = np.asarray(r)
+                inside = ok & (refs < len(r))
+                x = np.full(len(refs), np.nan)
+                x[inside] = r[refs[inside]]
+            at = np.where(inside, refs, 0)
+            mu, sd = self.mean[i, at], self.std[i, at]
+            good = inside & np.isfinite(x) & np.isfinite(mu) & np.isfinite(sd) & (sd > 0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                v = self.sign[i] * (x - mu) / sd
+            best = np.where(good, np.minimum(best, v), best)
+        return np.where(np.isfinite(best), best, np.nan)
 
 
 def absolute_evidence(result: HierarchyResult, profile: ReferenceProfile | None) -> float:
@@ -648,16 +671,7 @@ class ConfidenceModel:
         Z = np.hstack([np.ones((len(y), 1)), ((X - mean) / scale)[:, free]])
         penalty = np.full(Z.shape[1], float(l2))
         penalty[0] = 0.0
-        w = np.zeros(Z.shape[1])
-        for _ in range(max_iter):
-            p = _sigmoid(Z @ w + offset)
-            grad = Z.T @ (sw * (p - y)) + penalty * w
-            hess = (Z * (sw * p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
-            # A tiny ridge keeps the step defined when l2 = 0 and a column is constant.
-            step = np.linalg.solve(hess + 1e-12 * np.eye(len(w)), grad)
-            w = w - step
-            if np.max(np.abs(step)) < tol:
-                break
+        w = _newton(Z, offset, y, sw, penalty, max_iter, tol)
         coef = np.ones(len(names))
         coef[free] = w[1:]
         return cls(
@@ -666,6 +680,85 @@ class ConfidenceModel:
             tuple(float(v) for v in scale),
             tuple(float(v) for v in coef),
             float(w[0]),
+            float(l2),
+        )
+
+    @classmethod
+    def fit_staged(
+        cls,
+        X: np.ndarray,
+        y: np.ndarray,
+        feature_names: Sequence[str],
+        staged: Sequence[str],
+        *,
+        l2: float = 1.0,
+        sample_weight: np.ndarray | None = None,
+        offsets: Sequence[str] = (),
+        max_iter: int = 100,
+        tol: float = 1e-10,
+    ) -> ConfidenceModel:
+        """A model fitted in two stages: first :meth:`fit` over the features not in
+        ``staged``; then only the coefficients of ``staged`` (raw values: mean 0, scale 1;
+        no intercept refitted), with the first stage's log-odds as a fixed offset. One
+        ordinary model over every feature (what :meth:`to_dict` stores is version 1).
+
+        What it is for: a term that is 0 for nearly every in-map answer, such as the hinges
+        ``ref_z_low`` and ``cand_z_low`` (a frame scoring below what unrelated places get),
+        lowers the probability of answers to frames from off the map without moving any
+        other answer's: where the staged features are 0 the model predicts what the first
+        stage does (to rounding), so the answers accepted there stay the same. Fitted
+        jointly instead, a hinge reshapes every other coefficient (measured: fewer day
+        answers accepted, docs/experiments/acceptance/README.md).
+
+        Raises:
+            ModelError: as :meth:`fit`; a staged name that is not a feature, or every
+                feature staged.
+        """
+        names = tuple(str(n) for n in feature_names)
+        later = tuple(str(n) for n in staged)
+        unknown = sorted(set(later) - set(names))
+        if unknown:
+            raise ModelError(f"staged {unknown} are not features")
+        first = [i for i, n in enumerate(names) if n not in set(later)]
+        if not first:
+            raise ModelError("a staged fit needs a feature in its first stage")
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim != 2 or X.shape[1] != len(names):
+            raise ModelError(f"X must be (n, {len(names)}), got shape {X.shape}")
+        if not later:
+            return cls.fit(
+                X, y, names, l2=l2, sample_weight=sample_weight, offsets=offsets,
+                max_iter=max_iter, tol=tol,
+            )  # fmt: skip
+        base = cls.fit(
+            X[:, first],
+            y,
+            [names[i] for i in first],
+            l2=l2,
+            sample_weight=sample_weight,
+            offsets=offsets,
+            max_iter=max_iter,
+            tol=tol,
+        )
+        cols = [names.index(n) for n in later]
+        H = X[:, cols]
+        if not np.isfinite(H).all():
+            raise ModelError("non-finite feature values")
+        sw = np.ones(len(H)) if sample_weight is None else np.asarray(sample_weight, np.float64)
+        yy = np.asarray(y, dtype=np.float64).ravel()
+        beta = _newton(H, base.logit(X[:, first]), yy, sw, np.full(len(cols), l2), max_iter, tol)
+        # (mean, scale, coef) per feature: the first stage's, and the staged ones' raw.
+        terms = {
+            n: (m, s, c)
+            for n, m, s, c in zip(base.features, base.mean, base.scale, base.coef, strict=True)
+        }
+        terms.update({n: (0.0, 1.0, float(b)) for n, b in zip(later, beta, strict=True)})
+        return cls(
+            names,
+            tuple(terms[n][0] for n in names),
+            tuple(terms[n][1] for n in names),
+            tuple(terms[n][2] for n in names),
+            base.intercept,
             float(l2),
         )
 
@@ -834,6 +927,31 @@ def _number(x: Any, key: str) -> float:
     if not math.isfinite(x):
         raise ModelError(f"'{key}' holds a non-finite number {x!r}")
     return float(x)
+
+
+def _newton(
+    Z: np.ndarray,
+    offset: np.ndarray,
+    y: np.ndarray,
+    sw: np.ndarray,
+    penalty: np.ndarray,
+    max_iter: int,
+    tol: float,
+) -> np.ndarray:
+    """Coefficients ``w`` minimising the weighted log-loss of ``sigmoid(Z @ w + offset)``
+    plus ``penalty * w**2 / 2``: Newton's method (iteratively reweighted least squares)
+    from zero."""
+    w = np.zeros(Z.shape[1])
+    for _ in range(max_iter):
+        p = _sigmoid(Z @ w + offset)
+        grad = Z.T @ (sw * (p - y)) + penalty * w
+        hess = (Z * (sw * p * (1 - p))[:, None]).T @ Z + np.diag(penalty)
+        # A tiny ridge keeps the step defined when l2 = 0 and a column is constant.
+        step = np.linalg.solve(hess + 1e-12 * np.eye(len(w)), grad)
+        w = w - step
+        if np.max(np.abs(step)) < tol:
+            break
+    return w
 
 
 def _log_sigmoid(t: np.ndarray) -> np.ndarray:

@@ -56,6 +56,7 @@ __all__ = [
     "OUTSIDE_SHARE",
     "SEQUENCE_MODEL_FEATURES",
     "SINGLE_FEATURES",
+    "STAGED_FEATURES",
     "Answers",
     "acceptance_figures",
     "apply_acceptance",
@@ -84,6 +85,12 @@ OUTSIDE_SHARE = 0.1
 #: (:meth:`~hmpf.confidence.ConfidenceModel.fit`'s ``offsets``): ``map_prior``, the log-odds
 #: of the map's pseudo-query recall (a per-map prior; ``bench/map_prior.py``).
 OFFSET_FEATURES = frozenset({"map_prior"})
+#: Features fitted in a second stage, on top of the model of the others
+#: (:meth:`~hmpf.confidence.ConfidenceModel.fit_staged`): the hinges ``ref_z_low`` and
+#: ``cand_z_low`` (a frame scoring below what unrelated places get, at the answer or at
+#: every candidate) are 0 for nearly every in-map answer, so they lower the probability of
+#: frames from off the map and leave the other answers' as they were.
+STAGED_FEATURES = frozenset({"ref_z_low", "cand_z_low"})
 
 
 def _fit(
@@ -93,15 +100,17 @@ def _fit(
     w: np.ndarray,
     inside: np.ndarray | None = None,
 ) -> ConfidenceModel:
-    """The models' one fit: L2 :data:`L2`, weights ``w``, :data:`OFFSET_FEATURES` as offsets;
-    with ``inside`` (which rows are in-map answers), a gated model
-    (:meth:`ConfidenceModel.fit_gated`) where there are rows of both kinds."""
+    """The models' one fit: L2 :data:`L2`, weights ``w``, :data:`OFFSET_FEATURES` as offsets,
+    :data:`STAGED_FEATURES` in a second stage; with ``inside`` (which rows are in-map
+    answers), a gated model (:meth:`ConfidenceModel.fit_gated`, every feature in one stage)
+    where there are rows of both kinds."""
     offsets = [n for n in names if n in OFFSET_FEATURES]
     if inside is not None and inside.any() and not inside.all():
         return ConfidenceModel.fit_gated(
             X, y, names, inside, l2=L2, sample_weight=w, offsets=offsets
         )
-    return ConfidenceModel.fit(X, y, names, l2=L2, sample_weight=w, offsets=offsets)
+    staged = [n for n in names if n in STAGED_FEATURES]
+    return ConfidenceModel.fit_staged(X, y, names, staged, l2=L2, sample_weight=w, offsets=offsets)
 
 
 class Answers:

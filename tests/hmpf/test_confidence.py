@@ -227,6 +227,67 @@ def test_offsets_enter_the_log_odds_unfitted() -> None:
         ConfidenceModel.fit(X, y, names[:3], offsets=["map_prior"])
 
 
+def test_a_staged_fit_is_the_first_stage_plus_the_likelihoods_maximum_in_the_rest() -> None:
+    """fit_staged: the first stage is exactly :meth:`fit` over the other features (with the
+    offsets); the staged coefficients (raw, no intercept) maximise the weighted, penalised
+    likelihood with the first stage's log-odds fixed (scipy's optimiser on that objective);
+    where the staged features are 0 the model predicts what the first stage does."""
+    X, y, _, _ = synthetic(500, seed=5)
+    rng = np.random.default_rng(6)
+    prior = np.where(np.arange(len(y)) % 3 == 0, 1.2, -0.7)
+    # two hinges, 0 on most rows, low where the label is mostly wrong
+    h1 = np.minimum(X[:, 0] + rng.normal(0, 0.5, len(y)), 0.0) * (rng.random(len(y)) < 0.3)
+    h2 = np.minimum(h1 * 0.5 + rng.normal(0, 0.3, len(y)), 0.0)
+    names = ["quality", "agreement", "ref_z_low", "map_prior", "cand_z_low"]
+    Xs = np.column_stack([X[:, 0], X[:, 1], h1, prior, h2])
+    sw = rng.uniform(0.5, 2.0, len(y))
+    m = ConfidenceModel.fit_staged(
+        Xs, y, names, ["ref_z_low", "cand_z_low"], l2=1.0, sample_weight=sw, offsets=["map_prior"]
+    )
+    assert m.features == tuple(names)
+    first = ConfidenceModel.fit(
+        Xs[:, [0, 1, 3]], y, ["quality", "agreement", "map_prior"], sample_weight=sw,
+        offsets=["map_prior"],
+    )  # fmt: skip
+    assert m.intercept == first.intercept
+    for name, mean, scale, coef in zip(
+        first.features, first.mean, first.scale, first.coef, strict=True
+    ):
+        i = names.index(name)
+        assert (m.mean[i], m.scale[i], m.coef[i]) == (mean, scale, coef)
+    off = first.logit(Xs[:, [0, 1, 3]])
+    H = Xs[:, [2, 4]]
+    t = y.astype(float)
+
+    def objective(b: np.ndarray) -> tuple[float, np.ndarray]:
+        s = off + H @ b
+        loss = np.sum(sw * (np.logaddexp(0, s) - t * s)) + 0.5 * np.sum(b**2)
+        grad = H.T @ (sw * (1 / (1 + np.exp(-s)) - t)) + b
+        return float(loss), grad
+
+    best = minimize(objective, np.zeros(2), jac=True, method="BFGS", options={"gtol": 1e-10})
+    assert (m.mean[2], m.scale[2], m.mean[4], m.scale[4]) == (0.0, 1.0, 0.0, 1.0)
+    np.testing.assert_allclose([m.coef[2], m.coef[4]], best.x, atol=1e-6)
+    assert m.coef[2] > 0 or m.coef[4] > 0  # a hinge that is low where answers are wrong
+    zero = (h1 == 0) & (h2 == 0)
+    assert zero.any() and not zero.all()
+    np.testing.assert_allclose(m.logit(Xs)[zero], off[zero], rtol=1e-13, atol=1e-13)
+    # one ordinary model: stored as version 1 and read back the same
+    d = m.to_dict()
+    assert d["version"] == 1 and "gate" not in d
+    np.testing.assert_array_equal(ConfidenceModel.from_dict(d).predict(Xs), m.predict(Xs))
+    # nothing staged: fit itself
+    assert ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], []) == ConfidenceModel.fit(
+        X, y, ["x1", "x2", "x3"]
+    )
+    with pytest.raises(ModelError, match="not features"):
+        ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x4"])
+    with pytest.raises(ModelError, match="first stage"):
+        ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x1", "x2", "x3"])
+    with pytest.raises(ModelError, match="shape"):
+        ConfidenceModel.fit_staged(X[:, :2], y, ["x1", "x2", "x3"], ["x3"])
+
+
 def test_separable_data_gives_finite_coefficients() -> None:
     X = np.array([[0.0], [1.0], [2.0], [3.0]])
     m = ConfidenceModel.fit(X, np.array([0, 0, 1, 1]), ["quality"], l2=1.0)
@@ -485,6 +546,52 @@ def test_profile_z_is_the_lowest_signed_z_and_skips_what_is_missing() -> None:
     assert math.isnan(prof.z({}, 0)) and math.isnan(prof.z({"dot": np.zeros(2)}, 5))
 
 
+def test_profile_z_many_is_z_at_each_reference() -> None:
+    from hmpf.confidence import ReferenceProfile
+    from hmpf.fusion import Spread
+
+    rng = np.random.default_rng(3)
+    n = 12
+    prof = ReferenceProfile(
+        ("dot", "dist", "gone"),
+        (1.0, -1.0, 1.0),
+        rng.normal(size=(3, n)),
+        np.abs(rng.normal(size=(3, n))) * np.where(rng.random((3, n)) < 0.2, 0.0, 1.0),
+    )
+    raw = {"dot": rng.normal(size=n), "dist": rng.normal(size=n)}
+    raw["dot"][[2, 5]] = NAN
+    raw["dist"][[5, 7]] = NAN
+    refs = np.array([0, 2, 5, 7, 11, -1, n, 3])
+
+    def brute(scores: dict[str, np.ndarray], known: set[int] | None = None) -> np.ndarray:
+        out = []
+        for r in refs:
+            vals = []
+            for i, m in enumerate(prof.methods):
+                if m not in scores or not 0 <= r < n or (known is not None and r not in known):
+                    continue
+                x, mu, sd = scores[m][r], prof.mean[i, r], prof.std[i, r]
+                if np.isfinite(x) and sd > 0:
+                    vals.append(prof.sign[i] * (x - mu) / sd)
+            out.append(min(vals) if vals else NAN)
+        return np.array(out)
+
+    got = prof.z_many(raw, refs)
+    want = brute(raw)
+    assert prof.z(raw, 0) == pytest.approx(want[0])
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)])
+    assert np.isnan(got[[2, 5, 6]]).all()  # both scores missing; outside the map
+    # The same from a tier's entries (an approximate tier 1): only the entries are known.
+    index = np.array([0, 3, 7, 11])
+    spread = Spread(n, index, {m: raw[m][index] for m in raw})
+    got_s = prof.z_many(spread, refs)
+    want_s = brute(raw, set(index.tolist()))
+    np.testing.assert_array_equal(np.isnan(got_s), np.isnan(want_s))
+    np.testing.assert_allclose(got_s[~np.isnan(got_s)], want_s[~np.isnan(want_s)])
+    assert np.isnan(got_s[1])  # reference 2 is not an entry
+
+
 def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     from hmpf.confidence import PROFILE_FEATURES, ReferenceProfile
 
@@ -497,10 +604,19 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     f = answer_features(res, ROUTES, profile=prof)
     assert f["ref_z"] == pytest.approx((raw[3] - 0.1) / 0.2)
     assert f["ref_z_low"] == 0.0  # above what unrelated frames score: the hinge is flat
-    assert {k: v for k, v in f.items() if k not in ("ref_z", "ref_z_low")} == plain
+    # cand_z: the best of the final candidates (3, 4, 8, 0): reference 8.
+    assert f["cand_z"] == pytest.approx((raw[8] - 0.1) / 0.2) and f["cand_z_low"] == 0.0
+    profiled = ("ref_z", "ref_z_low", "cand_z", "cand_z_low")
+    assert {k: v for k, v in f.items() if k not in profiled} == plain
     low = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.5), np.full((1, 10), 0.2))
     f_low = answer_features(res, ROUTES, profile=low)
     assert f_low["ref_z_low"] == f_low["ref_z"] == pytest.approx((raw[3] - 0.5) / 0.2)
+    assert f_low["cand_z"] == pytest.approx((raw[8] - 0.5) / 0.2) and f_low["cand_z_low"] == 0.0
+    # Every candidate below what unrelated frames score (a frame from elsewhere).
+    off = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.9), np.full((1, 10), 0.2))
+    f_off = answer_features(res, ROUTES, profile=off)
+    assert f_off["cand_z_low"] == f_off["cand_z"] == pytest.approx((raw[8] - 0.9) / 0.2)
+    assert f_off["ref_z"] < f_off["cand_z"] < 0
     est = Estimate(ref=7, mass=0.9, locked=True, speed=1.0, frames=3)
     g = answer_features(res, ROUTES, estimate=est, profile=prof)
     assert g["sequence_ref_z"] == pytest.approx((raw[7] - 0.1) / 0.2)
