@@ -542,6 +542,47 @@ def acceptance_stay_rule(root: Path) -> str:
     )
 
 
+OFFMAP_HINGE = "docs/experiments/acceptance/offmap_hinge.json"
+
+
+@generator("acceptance.offmap_hinge")
+def acceptance_offmap_hinge(root: Path) -> str:
+    """``python -m bench.offmap_hinge``: the single-frame model's off-map hinges, per
+    variant and route: the training parts held out (the choice) and the test parts."""
+    data = load(root, OFFMAP_HINGE)
+    rows = []
+    for variant, routes in data["train"].items():
+        name = f"**{variant}**" if variant == data["chosen"] else variant
+        test = data["test"][variant]
+        for route, t in routes.items():
+            s, h = test["shipped_fit"][route], test["held_out"][route]
+            rows.append(
+                [
+                    name,
+                    route,
+                    f3(t["ece_in_map"]),
+                    f3(t["foreign_mean_p"]),
+                    f3(t["removed_mean_p"]),
+                    accepted(s),
+                    f3(s["foreign_mean_p"]),
+                    accepted(h),
+                    f3(h["foreign_mean_p"]),
+                ]
+            )
+    header = [
+        "hinges (second stage)",
+        "route",
+        "training, held out: ECE in the map",
+        "another data set's frames: mean p_correct",
+        "removed stretches: mean p_correct",
+        "test, shipped fit: accepted (precision)",
+        "another data set's frames: mean p_correct",
+        "test, held out: accepted (precision)",
+        "another data set's frames: mean p_correct",
+    ]
+    return table(header, rows) + source(OFFMAP_HINGE, data)
+
+
 SINGLE_CEILING = "docs/experiments/acceptance/single_ceiling.json"
 
 
