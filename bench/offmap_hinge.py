@@ -8,7 +8,9 @@ model gave such frames a ``p_correct`` of about a third on the Gardens Point map
 accepted: the threshold keeps them out, but the number is not a probability there). Their
 evidence says where they come from: their tier-1 scores lie below what unrelated places
 score at the answer (``ref_z`` < 0) and at every other candidate (``cand_z`` < 0), which
-almost no in-map answer does. The hinges ``ref_z_low`` and ``cand_z_low`` (``min(z, 0)``)
+almost no in-map answer does. The hinges ``ref_z_low`` (``min(ref_z, 0)``) and
+``cand_z_low`` (``min(cand_z - knot, 0)``: the best of a dozen or more candidates lies above
+0 even for a frame that scores like unrelated places, so its knot is tried at 0, 0.5 and 1)
 carry that, fitted in a second stage on top of the shipped model
 (:data:`hmpf.evaluation.acceptance.STAGED_FEATURES`,
 :meth:`~hmpf.confidence.ConfidenceModel.fit_staged`), so answers whose hinges are 0 keep
@@ -20,7 +22,8 @@ one route out (each route's training answers predicted by the model fitted on th
 routes' training parts): the in-map answers' ECE, and the mean ``p_correct`` of the
 route's foreign training frames (another data set against its map) and of its removed
 stretches (its own queries with their references taken out). The choice: the variant
-whose highest foreign mean ``p_correct`` over the routes is lowest. The *test* parts are
+whose highest foreign mean ``p_correct`` over the routes is lowest (the shipped knot,
+:data:`hmpf.confidence.CAND_Z_KNOT`, is recorded beside it). The *test* parts are
 reported for every variant (shipped fit and held-out folds: accepted share, precision,
 ECE, another route's frames' mean ``p_correct``), not used.
 
@@ -48,8 +51,9 @@ from bench.shipped_acceptance import (
     training_part,
 )
 from hmpf.acceptance import Policy
-from hmpf.confidence import expected_calibration_error
+from hmpf.confidence import CAND_Z_KNOT, expected_calibration_error
 from hmpf.evaluation.acceptance import (
+    Answers,
     RoutePart,
     apply_acceptance,
     route_out_of_fold,
@@ -59,20 +63,32 @@ from hmpf.features import FeatureCache
 from hmpf.runtime import default_cache_dir
 from hmpf.sequence import RouteMap
 
-__all__ = ["VARIANTS", "choose", "training_figures"]
+__all__ = ["HINGES", "VARIANTS", "choose", "set_knot", "training_figures"]
 
-#: Variant name -> hinges added to the single-frame model (fitted in a second stage).
-VARIANTS: dict[str, tuple[str, ...]] = {
-    "none": (),
-    "ref_z_low": ("ref_z_low",),
-    "ref_z_low+cand_z_low": ("ref_z_low", "cand_z_low"),
+#: The hinges a variant may add.
+HINGES = ("ref_z_low", "cand_z_low")
+#: Variant name -> (hinges added to the single-frame model, fitted in a second stage;
+#: ``cand_z_low``'s knot: ``min(cand_z - knot, 0)``, None where it is not used).
+VARIANTS: dict[str, tuple[tuple[str, ...], float | None]] = {
+    "none": ((), None),
+    "ref_z_low": (("ref_z_low",), None),
+    **{f"ref_z_low+cand_z_low@{k:g}": (HINGES, k) for k in (0.0, 0.5, 1.0)},
 }
+
+
+def set_knot(answers: Answers | None, knot: float | None) -> None:
+    """Give every answer's ``cand_z_low`` the knot ``knot`` (from its ``cand_z``), in
+    place; None: leave them."""
+    if answers is None or knot is None:
+        return
+    for f in answers.features:
+        f["cand_z_low"] = min(f["cand_z"] - knot, 0.0)
 
 
 def with_hinges(recipe: Recipe, hinges: tuple[str, ...]) -> Recipe:
     """``recipe`` with its single-frame model's hinges replaced by ``hinges`` (placed
     before ``map_prior``, as ``--single-extra`` places them)."""
-    plain = tuple(f for f in recipe.single if f not in VARIANTS["ref_z_low+cand_z_low"])
+    plain = tuple(f for f in recipe.single if f not in HINGES)
     head = tuple(f for f in plain if f != "map_prior")
     tail = ("map_prior",) if "map_prior" in plain else ()
     return recipe._replace(single=head + hinges + tail)
@@ -104,8 +120,9 @@ def training_figures(
     return out
 
 
-def test_figures(route: Route, policy: Policy) -> dict[str, Any]:
-    """The single-frame policy on the route's test part and its foreign frames."""
+def test_figures(route: Route, policy: Policy, knot: float | None = None) -> dict[str, Any]:
+    """The single-frame policy on the route's test part and its foreign frames (with
+    ``cand_z_low``'s knot ``knot``, :func:`set_knot`)."""
     bank, config = route.test, route.config
     routes = RouteMap.from_metadata(bank.n_db)
     results = bank.results(config)
@@ -113,6 +130,8 @@ def test_figures(route: Route, policy: Policy) -> dict[str, Any]:
     nq, nf = route.n_test, route.n_foreign
     single = single_answers(results[:nq], bank.gt[:nq], routes, profile)
     foreign = single_answers(results[nq : nq + nf], None, routes, profile)
+    set_knot(single, knot)
+    set_knot(foreign, knot)
     fs = apply_acceptance(policy, foreign)
     return {
         **_figures(apply_acceptance(policy, single), single),
@@ -171,20 +190,24 @@ def main() -> int:
         "config": args.config,
         "recipe": base.describe(),
         "map_priors": priors,
-        "variants": {k: list(v) for k, v in VARIANTS.items()},
+        "variants": {k: {"hinges": list(h), "knot": kn} for k, (h, kn) in VARIANTS.items()},
+        "shipped_knot": CAND_Z_KNOT,
         "train": {},
         "test": {},
     }
-    for v, hinges in VARIANTS.items():
+    for v, (hinges, knot) in VARIANTS.items():
+        for part in singles:
+            set_knot(part.answers, knot)
+            set_knot(part.outside, knot)
         recipe = with_hinges(base, hinges)
         report["train"][v] = training_figures(singles, n_train, recipe.single, recipe.single_share)
         shipped, _ = fit_recipe(parts, recipe)
         folds = held_out(parts, recipe)
         report["test"][v] = {
             "single_threshold": shipped.model_threshold,
-            "shipped_fit": {r.name: test_figures(r, shipped) for r in routes},
+            "shipped_fit": {r.name: test_figures(r, shipped, knot) for r in routes},
             "held_out": {
-                r.name: test_figures(r, f) for r, (f, _) in zip(routes, folds, strict=True)
+                r.name: test_figures(r, f, knot) for r, (f, _) in zip(routes, folds, strict=True)
             },
         }
         print(f"{v} ({time.perf_counter() - t0:.0f} s)", flush=True)

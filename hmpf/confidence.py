@@ -36,6 +36,7 @@ if TYPE_CHECKING:  # annotations only: hmpf.hierarchy sits above this module (it
 
 __all__ = [
     "ALL_FEATURES",
+    "CAND_Z_KNOT",
     "MAP_FEATURES",
     "FEATURES",
     "FORMAT",
@@ -81,6 +82,11 @@ PROFILE_FEATURES = ("ref_z", "ref_z_low", "cand_z", "cand_z_low", "sequence_ref_
 MAP_FEATURES = ("map_prior",)
 #: Every feature a model may use.
 ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES
+#: ``cand_z_low`` is ``min(cand_z - CAND_Z_KNOT, 0)``: the best of a dozen or more candidates'
+#: z-scores lies above 0 even for a frame that scores like unrelated places (the largest of
+#: several draws), so the hinge starts a little above 0. Chosen among 0, 0.5 and 1 on the
+#: training parts (``bench/offmap_hinge.py``).
+CAND_Z_KNOT = 0.5
 #: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
 LOGIT_CLIP = 20.0
 
@@ -247,9 +253,9 @@ def answer_features(
     the frame scores above unrelated places *anywhere* among them: a frame of a mapped place
     whose answer is wrong usually does, a frame from elsewhere does not; over a fixed number
     of candidates, not the whole map, so its scale does not grow with the map), and
-    ``cand_z_low``, ``min(cand_z, 0)``; with an estimate too, ``sequence_ref_z``, the same
-    at the estimate's reference. No raw score there (not scored, a result without raw
-    scores): 0, an unrelated reference's score. A
+    ``cand_z_low``, ``min(cand_z - CAND_Z_KNOT, 0)`` (:data:`CAND_Z_KNOT`); with an estimate
+    too, ``sequence_ref_z``, the same at the estimate's reference. No raw score there (not
+    scored, a result without raw scores): 0, an unrelated reference's score. A
     profile that knows its map's prior (:attr:`ReferenceProfile.map_prior`) adds
     ``map_prior``, the same for every answer.
 
@@ -331,7 +337,7 @@ def answer_features(
         cand_z = profile.z_many(raw, np.unique(cands)) if answered else np.empty(0)
         cand_z = cand_z[np.isfinite(cand_z)]
         out["cand_z"] = max(float(cand_z.max()), out["ref_z"]) if cand_z.size else out["ref_z"]
-        out["cand_z_low"] = min(out["cand_z"], 0.0)
+        out["cand_z_low"] = min(out["cand_z"] - CAND_Z_KNOT, 0.0)
         if estimate is not None:
             ref = int(estimate.ref)
             out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0

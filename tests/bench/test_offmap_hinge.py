@@ -94,6 +94,12 @@ def test_variants_recipes_and_the_choice(oh):
         *base.single[:-1], "ref_z_low", "map_prior",
     )  # fmt: skip
     assert oh.with_hinges(recipe.of(False), ("cand_z_low",)).single[-1] == "cand_z_low"
+    assert {k for _, k in oh.VARIANTS.values()} >= {None, 0.5}  # the shipped knot is tried
+    ans = Answers([{"cand_z": 0.2}, {"cand_z": 1.7}], np.zeros(2, bool), np.zeros(2), np.arange(2))
+    oh.set_knot(ans, 0.5)
+    assert [f["cand_z_low"] for f in ans.features] == [pytest.approx(-0.3), 0.0]
+    oh.set_knot(ans, None)  # left as it is
+    assert ans.features[0]["cand_z_low"] == pytest.approx(-0.3)
     train = {
         "none": {"a": {"foreign_mean_p": 0.4}, "b": {"foreign_mean_p": 0.1}},
         "one": {"a": {"foreign_mean_p": 0.2}, "b": {"foreign_mean_p": 0.25}},

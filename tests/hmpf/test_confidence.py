@@ -593,7 +593,7 @@ def test_profile_z_many_is_z_at_each_reference() -> None:
 
 
 def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
-    from hmpf.confidence import PROFILE_FEATURES, ReferenceProfile
+    from hmpf.confidence import CAND_Z_KNOT, PROFILE_FEATURES, ReferenceProfile
 
     res = make_result()
     raw = np.linspace(0.0, 0.9, 10)
@@ -606,6 +606,7 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     assert f["ref_z_low"] == 0.0  # above what unrelated frames score: the hinge is flat
     # cand_z: the best of the final candidates (3, 4, 8, 0): reference 8.
     assert f["cand_z"] == pytest.approx((raw[8] - 0.1) / 0.2) and f["cand_z_low"] == 0.0
+    assert CAND_Z_KNOT == 0.5
     profiled = ("ref_z", "ref_z_low", "cand_z", "cand_z_low")
     assert {k: v for k, v in f.items() if k not in profiled} == plain
     low = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.5), np.full((1, 10), 0.2))
@@ -615,8 +616,14 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     # Every candidate below what unrelated frames score (a frame from elsewhere).
     off = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.9), np.full((1, 10), 0.2))
     f_off = answer_features(res, ROUTES, profile=off)
-    assert f_off["cand_z_low"] == f_off["cand_z"] == pytest.approx((raw[8] - 0.9) / 0.2)
+    assert f_off["cand_z"] == pytest.approx((raw[8] - 0.9) / 0.2)
+    assert f_off["cand_z_low"] == pytest.approx(f_off["cand_z"] - CAND_Z_KNOT)
     assert f_off["ref_z"] < f_off["cand_z"] < 0
+    # Just above what unrelated frames score, below the knot: the hinge is not yet flat.
+    near = ReferenceProfile(("a",), (1.0,), np.full((1, 10), 0.75), np.full((1, 10), 0.2))
+    f_near = answer_features(res, ROUTES, profile=near)
+    assert 0 < f_near["cand_z"] < CAND_Z_KNOT
+    assert f_near["cand_z_low"] == pytest.approx(f_near["cand_z"] - CAND_Z_KNOT)
     est = Estimate(ref=7, mass=0.9, locked=True, speed=1.0, frames=3)
     g = answer_features(res, ROUTES, estimate=est, profile=prof)
     assert g["sequence_ref_z"] == pytest.approx((raw[7] - 0.1) / 0.2)
