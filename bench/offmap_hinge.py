@@ -35,6 +35,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
+
 from bench.harness import ROOT, add_json, parser, provenance, write_record
 from bench.shipped_acceptance import (
     ROUTES,
@@ -63,7 +65,15 @@ from hmpf.features import FeatureCache
 from hmpf.runtime import default_cache_dir
 from hmpf.sequence import RouteMap
 
-__all__ = ["HINGES", "VARIANTS", "choose", "set_knot", "training_figures"]
+__all__ = [
+    "HINGES",
+    "VARIANTS",
+    "below_unrelated",
+    "choose",
+    "hinged",
+    "set_knot",
+    "training_figures",
+]
 
 #: The hinges a variant may add.
 HINGES = ("ref_z_low", "cand_z_low")
@@ -94,13 +104,30 @@ def with_hinges(recipe: Recipe, hinges: tuple[str, ...]) -> Recipe:
     return recipe._replace(single=head + hinges + tail)
 
 
+def hinged(features: list[dict[str, float]], names: tuple[str, ...]) -> float:
+    """The share of answers with one of the hinges among ``names`` below 0 (answers whose
+    probability the second stage moves)."""
+    hinges = [n for n in names if n in HINGES]
+    if not features or not hinges:
+        return 0.0
+    return float(np.mean([any(f[n] < 0 for n in hinges) for f in features]))
+
+
+def below_unrelated(features: list[dict[str, float]]) -> float:
+    """The share of answers whose ``ref_z`` is below 0 (the answer scores below what
+    unrelated places get there)."""
+    return float(np.mean([f["ref_z"] < 0 for f in features])) if features else 0.0
+
+
 def training_figures(
     parts: list[RoutePart], n_train: list[int], names: tuple[str, ...], share: float
 ) -> dict[str, dict[str, float]]:
     """Per route of ``parts`` (single-frame training parts, :func:`training_part`), leave
     one route out: the in-map answers' ECE and share right, the mean ``p_correct`` of its
     foreign frames (outside answers whose query index is at or past ``n_train``, the
-    route's in-map query count) and of its removed stretches (the other outside answers)."""
+    route's in-map query count) and of its removed stretches (the other outside answers);
+    the shares of in-map answers and foreign frames the hinges move (:func:`hinged`) and
+    whose answer scores below unrelated places (:func:`below_unrelated`)."""
     p, y, g, inside = route_out_of_fold(parts, names, outside_share=share, by="routes")
     out: dict[str, dict[str, float]] = {}
     for k, (part, nq) in enumerate(zip(parts, n_train, strict=True)):
@@ -109,6 +136,7 @@ def training_figures(
         p_in, right = p[rows & inside], y[rows & inside].astype(bool)
         p_out = p[rows & ~inside]
         foreign = part.outside.query >= nq
+        away = [f for f, a in zip(part.outside.features, foreign, strict=True) if a]
         out[part.name] = {
             "ece_in_map": expected_calibration_error(p_in, right),
             "right_in_map": float(right.mean()),
@@ -116,13 +144,20 @@ def training_figures(
             "foreign_n": int(foreign.sum()),
             "removed_mean_p": float(p_out[~foreign].mean()),
             "removed_n": int((~foreign).sum()),
+            "in_map_hinged": hinged(part.answers.features, names),
+            "in_map_below_unrelated": below_unrelated(part.answers.features),
+            "foreign_hinged": hinged(away, names),
+            "foreign_below_unrelated": below_unrelated(away),
         }
     return out
 
 
-def test_figures(route: Route, policy: Policy, knot: float | None = None) -> dict[str, Any]:
+def test_figures(
+    route: Route, policy: Policy, knot: float | None = None, names: tuple[str, ...] = ()
+) -> dict[str, Any]:
     """The single-frame policy on the route's test part and its foreign frames (with
-    ``cand_z_low``'s knot ``knot``, :func:`set_knot`)."""
+    ``cand_z_low``'s knot ``knot``, :func:`set_knot`); with the model's features
+    ``names``, the shares the hinges move."""
     bank, config = route.test, route.config
     routes = RouteMap.from_metadata(bank.n_db)
     results = bank.results(config)
@@ -137,6 +172,10 @@ def test_figures(route: Route, policy: Policy, knot: float | None = None) -> dic
         **_figures(apply_acceptance(policy, single), single),
         "foreign_accepted": fs["accepted"],
         "foreign_mean_p": _mean_p(fs),
+        "in_map_hinged": hinged(single.features, names),
+        "in_map_below_unrelated": below_unrelated(single.features),
+        "foreign_hinged": hinged(foreign.features, names),
+        "foreign_below_unrelated": below_unrelated(foreign.features),
     }
 
 
@@ -205,9 +244,10 @@ def main() -> int:
         folds = held_out(parts, recipe)
         report["test"][v] = {
             "single_threshold": shipped.model_threshold,
-            "shipped_fit": {r.name: test_figures(r, shipped, knot) for r in routes},
+            "shipped_fit": {r.name: test_figures(r, shipped, knot, recipe.single) for r in routes},
             "held_out": {
-                r.name: test_figures(r, f, knot) for r, (f, _) in zip(routes, folds, strict=True)
+                r.name: test_figures(r, f, knot, recipe.single)
+                for r, (f, _) in zip(routes, folds, strict=True)
             },
         }
         print(f"{v} ({time.perf_counter() - t0:.0f} s)", flush=True)

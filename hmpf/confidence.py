@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # annotations only: hmpf.hierarchy sits above this module (it
 __all__ = [
     "ALL_FEATURES",
     "CAND_Z_KNOT",
+    "CAND_Z_TOP",
     "MAP_FEATURES",
     "FEATURES",
     "FORMAT",
@@ -87,6 +88,10 @@ ALL_FEATURES = FEATURES + SEQUENCE_FEATURES + PROFILE_FEATURES + MAP_FEATURES
 #: several draws), so the hinge starts a little above 0. Chosen among 0, 0.5 and 1 on the
 #: training parts (``bench/offmap_hinge.py``).
 CAND_Z_KNOT = 0.5
+#: ``cand_z`` reads at most this many final candidates, the best by Combined z: the default's
+#: final tier holds up to 20; a single-tier config's final candidates are the whole map, over
+#: which the best of the z-scores would grow with the map's size.
+CAND_Z_TOP = 20
 #: ``sequence_logit`` is clipped to +-this (a mass of 1 - 2e-9 or more reads as certain).
 LOGIT_CLIP = 20.0
 
@@ -249,13 +254,15 @@ def answer_features(
     can look as good as a right one); ``ref_z_low``, ``min(ref_z, 0)``: a hinge, so that a
     linear model can weigh a score below what unrelated frames get (a frame of a place the
     map does not hold) more steeply than it weighs how far above them a score lies;
-    ``cand_z``, the highest of the same z-scores over the final tier's candidates (whether
-    the frame scores above unrelated places *anywhere* among them: a frame of a mapped place
-    whose answer is wrong usually does, a frame from elsewhere does not; over a fixed number
-    of candidates, not the whole map, so its scale does not grow with the map), and
+    ``cand_z``, the highest of the same z-scores over the answer and the final tier's
+    candidates, at most :data:`CAND_Z_TOP` of them (the best by Combined z): whether the
+    frame scores above unrelated places *anywhere* among them (a frame of a mapped place
+    whose answer is wrong usually does, a frame from elsewhere does not; over a bounded
+    number of candidates, not the whole map, so its scale does not grow with the map), and
     ``cand_z_low``, ``min(cand_z - CAND_Z_KNOT, 0)`` (:data:`CAND_Z_KNOT`); with an estimate
     too, ``sequence_ref_z``, the same at the estimate's reference. No raw score there (not
-    scored, a result without raw scores): 0, an unrelated reference's score. A
+    scored, a result without raw scores): 0, an unrelated reference's score (and
+    ``cand_z_low`` 0 where no candidate has a z-score). A
     profile that knows its map's prior (:attr:`ReferenceProfile.map_prior`) adds
     ``map_prior``, the same for every answer.
 
@@ -334,10 +341,14 @@ def answer_features(
         raw = tiers[0].raw if tiers else {}
         out["ref_z"] = _finite(profile.z(raw, match), 0.0) if answered else 0.0
         out["ref_z_low"] = min(out["ref_z"], 0.0)
-        cand_z = profile.z_many(raw, np.unique(cands)) if answered else np.empty(0)
-        cand_z = cand_z[np.isfinite(cand_z)]
-        out["cand_z"] = max(float(cand_z.max()), out["ref_z"]) if cand_z.size else out["ref_z"]
-        out["cand_z_low"] = min(out["cand_z"] - CAND_Z_KNOT, 0.0)
+        vals = np.empty(0)
+        if answered:
+            best = top_k(z, CAND_Z_TOP) if len(cands) > CAND_Z_TOP else np.arange(len(cands))
+            vals = profile.z_many(raw, np.unique(np.append(cands[best], match)))
+            vals = vals[np.isfinite(vals)]
+        # No z-score anywhere (no answer, no raw scores): no evidence, 0 like ref_z's.
+        out["cand_z"] = float(vals.max()) if vals.size else 0.0
+        out["cand_z_low"] = min(out["cand_z"] - CAND_Z_KNOT, 0.0) if vals.size else 0.0
         if estimate is not None:
             ref = int(estimate.ref)
             out["sequence_ref_z"] = _finite(profile.z(raw, ref), 0.0) if 0 <= ref < n_db else 0.0
@@ -717,14 +728,19 @@ class ConfidenceModel:
         answers accepted, docs/experiments/acceptance/README.md).
 
         Raises:
-            ModelError: as :meth:`fit`; a staged name that is not a feature, or every
-                feature staged.
+            ModelError: as :meth:`fit`; a duplicate name, a staged name that is not a
+                feature or is an offset too, or every feature staged.
         """
         names = tuple(str(n) for n in feature_names)
         later = tuple(str(n) for n in staged)
+        if len(set(names)) != len(names) or len(set(later)) != len(later):
+            raise ModelError("duplicate feature names")
         unknown = sorted(set(later) - set(names))
         if unknown:
             raise ModelError(f"staged {unknown} are not features")
+        both = sorted(set(later) & set(offsets))
+        if both:
+            raise ModelError(f"{both} cannot be both staged and offsets")
         first = [i for i, n in enumerate(names) if n not in set(later)]
         if not first:
             raise ModelError("a staged fit needs a feature in its first stage")

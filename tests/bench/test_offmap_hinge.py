@@ -82,6 +82,11 @@ def test_training_figures_are_each_route_predicted_by_the_others(oh):
         assert fig["removed_mean_p"] == pytest.approx(p_out[:40].mean())
         # frames far below unrelated places get less than the route's own removed places
         assert fig["foreign_mean_p"] < fig["removed_mean_p"]
+        low_in = np.mean([f["ref_z"] < 0 for f in part.answers.features])
+        low_away = np.mean([f["ref_z"] < 0 for f in part.outside.features[40:]])
+        assert fig["in_map_hinged"] == fig["in_map_below_unrelated"] == pytest.approx(low_in)
+        assert fig["foreign_hinged"] == fig["foreign_below_unrelated"] == pytest.approx(low_away)
+        assert fig["in_map_hinged"] < 0.2 < 0.9 < fig["foreign_hinged"]
 
 
 def test_variants_recipes_and_the_choice(oh):
@@ -100,6 +105,14 @@ def test_variants_recipes_and_the_choice(oh):
     assert [f["cand_z_low"] for f in ans.features] == [pytest.approx(-0.3), 0.0]
     oh.set_knot(ans, None)  # left as it is
     assert ans.features[0]["cand_z_low"] == pytest.approx(-0.3)
+    feats = [
+        {"ref_z": 0.3, "ref_z_low": 0.0, "cand_z_low": -0.1},
+        {"ref_z": -1.0, "ref_z_low": -1.0},
+    ]
+    assert oh.hinged(feats[:1], ("quality", "ref_z_low")) == 0.0
+    assert oh.hinged(feats[:1], ("ref_z_low", "cand_z_low")) == 1.0  # cand_z below its knot
+    assert oh.hinged(feats[1:], ("ref_z_low",)) == 1.0 and oh.hinged(feats, ("quality",)) == 0.0
+    assert oh.below_unrelated(feats) == 0.5 and oh.below_unrelated([]) == 0.0
     train = {
         "none": {"a": {"foreign_mean_p": 0.4}, "b": {"foreign_mean_p": 0.1}},
         "one": {"a": {"foreign_mean_p": 0.2}, "b": {"foreign_mean_p": 0.25}},

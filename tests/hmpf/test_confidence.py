@@ -286,6 +286,12 @@ def test_a_staged_fit_is_the_first_stage_plus_the_likelihoods_maximum_in_the_res
         ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x1", "x2", "x3"])
     with pytest.raises(ModelError, match="shape"):
         ConfidenceModel.fit_staged(X[:, :2], y, ["x1", "x2", "x3"], ["x3"])
+    with pytest.raises(ModelError, match="duplicate"):
+        ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x3", "x3"])
+    with pytest.raises(ModelError, match="duplicate"):
+        ConfidenceModel.fit_staged(X, y, ["x1", "x3", "x3"], ["x3"])
+    with pytest.raises(ModelError, match="both staged and offsets"):
+        ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x3"], offsets=["x3"])
 
 
 def test_separable_data_gives_finite_coefficients() -> None:
@@ -629,13 +635,52 @@ def test_features_with_a_profile_read_the_raw_tier1_scores() -> None:
     assert g["sequence_ref_z"] == pytest.approx((raw[7] - 0.1) / 0.2)
     # A result without raw scores, or an unscored reference: an unrelated one's score (0).
     res.tiers[0].raw = {}
-    assert answer_features(res, ROUTES, estimate=est, profile=prof)["sequence_ref_z"] == 0.0
+    bare = answer_features(res, ROUTES, estimate=est, profile=prof)
+    assert bare["sequence_ref_z"] == 0.0
+    # ... and no z-score at any candidate: no evidence, both cand_z and its hinge 0
+    assert bare["cand_z"] == bare["cand_z_low"] == 0.0
     # A model over the absolute evidence cannot be applied without the profile.
     m = ConfidenceModel(("ref_z",), (0.0,), (1.0,), (1.0,), 0.0)
     with pytest.raises(ModelError, match="ref_z"):
         m.predict(plain)
     with pytest.raises(ModelError, match="ref_z"):
         feature_matrix([plain], m.features)
+
+
+def test_cand_z_reads_the_best_final_candidates_and_an_approximate_tier1() -> None:
+    """cand_z: the highest z over the answer and at most CAND_Z_TOP final candidates, the
+    best by Combined z (a single-tier config's candidates are the whole map); read from an
+    approximate tier 1's entries as from whole arrays; no answer: no evidence."""
+    from hmpf.confidence import CAND_Z_KNOT, CAND_Z_TOP, ReferenceProfile
+    from hmpf.fusion import Spread
+
+    n = 60
+    routes = RouteMap.from_metadata(n)
+    raw = np.linspace(0.0, 0.59, n)
+    prof = ReferenceProfile(("a",), (1.0,), np.full((1, n), 0.5), np.full((1, n), 0.1))
+    F = np.arange(n, dtype=np.int64)
+    combined = -np.arange(n, dtype=float)  # reference 0 best, the last ones worst
+    t1 = TierResult(["a"], None, {"a": raw.copy()}, F, 0.0, {"a": raw.copy()})
+    res = HierarchyResult(0, 2.0, F, combined, [t1])
+    f = answer_features(res, routes, profile=prof)
+    # Only the CAND_Z_TOP best by Combined z (references 0..19) count: raw rises with the id.
+    top = CAND_Z_TOP - 1
+    assert f["cand_z"] == pytest.approx((raw[top] - 0.5) / 0.1)
+    assert f["cand_z_low"] == pytest.approx(min(f["cand_z"] - CAND_Z_KNOT, 0.0))
+    assert f["cand_z"] < 0 and f["ref_z"] == pytest.approx((raw[0] - 0.5) / 0.1)
+    # The same scores as an approximate tier 1's entries (a few references scored).
+    index = np.array([0, 3, top, 40])
+    t1.raw = Spread(n, index, {"a": raw[index]})
+    g = answer_features(res, routes, profile=prof)
+    assert g["cand_z"] == pytest.approx(f["cand_z"]) and g["ref_z"] == f["ref_z"]
+    t1.raw = Spread(n, np.array([0, 3, 40]), {"a": raw[[0, 3, 40]]})  # the top not scored
+    assert answer_features(res, routes, profile=prof)["cand_z"] == pytest.approx(
+        (raw[3] - 0.5) / 0.1
+    )
+    # No answer: every feature at its no-evidence value.
+    none = HierarchyResult(-1, float("nan"), np.zeros(0, np.int64), np.zeros(0), [t1])
+    h = answer_features(none, routes, profile=prof)
+    assert h["cand_z"] == h["cand_z_low"] == h["ref_z"] == 0.0
 
 
 def test_a_profile_that_knows_its_maps_prior_gives_every_answer_map_prior() -> None:
