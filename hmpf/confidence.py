@@ -343,8 +343,8 @@ def answer_features(
         out["ref_z_low"] = min(out["ref_z"], 0.0)
         vals = np.empty(0)
         if answered:
-            best = top_k(z, CAND_Z_TOP) if len(cands) > CAND_Z_TOP else np.arange(len(cands))
-            vals = profile.z_many(raw, np.unique(np.append(cands[best], match)))
+            pool = top_k(z, CAND_Z_TOP) if len(cands) > CAND_Z_TOP else np.arange(len(cands))
+            vals = profile.z_many(raw, np.unique(np.append(cands[pool], match)))
             vals = vals[np.isfinite(vals)]
         # No z-score anywhere (no answer, no raw scores): no evidence, 0 like ref_z's.
         out["cand_z"] = float(vals.max()) if vals.size else 0.0
