@@ -719,7 +719,7 @@ class ConfidenceModel:
         no intercept refitted), with the first stage's log-odds as a fixed offset. One
         ordinary model over every feature (what :meth:`to_dict` stores is version 1).
 
-        What it is for: a term that is 0 for nearly every in-map answer, such as the hinges
+        What it is for: a term that is 0 for most in-map answers, such as the hinges
         ``ref_z_low`` and ``cand_z_low`` (a frame scoring below what unrelated places get),
         lowers the probability of answers to frames from off the map without moving any
         other answer's: where the staged features are 0 the model predicts what the first

@@ -88,8 +88,8 @@ OFFSET_FEATURES = frozenset({"map_prior"})
 #: Features fitted in a second stage, on top of the model of the others
 #: (:meth:`~hmpf.confidence.ConfidenceModel.fit_staged`): the hinges ``ref_z_low`` and
 #: ``cand_z_low`` (a frame scoring below what unrelated places get, at the answer or at
-#: every candidate) are 0 for nearly every in-map answer, so they lower the probability of
-#: frames from off the map and leave the other answers' as they were.
+#: every candidate) are 0 for most in-map answers, so they lower the probability of frames
+#: from off the map and leave those answers' as they were.
 STAGED_FEATURES = frozenset({"ref_z_low", "cand_z_low"})
 
 
