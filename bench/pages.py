@@ -584,8 +584,6 @@ def acceptance_offmap_hinge(root: Path) -> str:
     shares = []
     for route, t in data["train"][chosen].items():
         s = data["test"][chosen]["shipped_fit"][route]
-        if "in_map_hinged" not in t:
-            break  # a record from before these shares were kept
         shares.append(
             [
                 route,
@@ -596,20 +594,18 @@ def acceptance_offmap_hinge(root: Path) -> str:
                 pct(1 - s["foreign_hinged"]),
             ]
         )
-    more = ""
-    if shares:
-        more = f"\nWhat the chosen variant's hinges reach (`{chosen}`):\n\n" + table(
-            [
-                "route",
-                "in-map answers moved (a hinge below 0), training part",
-                "the same, test part",
-                "another data set's frames scoring at or above unrelated places at "
-                "their answer (ref_z >= 0), training",
-                "the same, test",
-                "another data set's frames no hinge moves, test",
-            ],
-            shares,
-        )
+    more = f"\nWhat the chosen variant's hinges reach (`{chosen}`):\n\n" + table(
+        [
+            "route",
+            "in-map answers moved (a hinge below 0), training part",
+            "the same, test part",
+            "another data set's frames scoring at or above unrelated places at "
+            "their answer (ref_z >= 0), training",
+            "the same, test",
+            "another data set's frames no hinge moves, test",
+        ],
+        shares,
+    )
     return table(header, rows) + more + source(OFFMAP_HINGE, data)
 
 

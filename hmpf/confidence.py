@@ -339,13 +339,16 @@ def answer_features(
         )
     if profile is not None:
         raw = tiers[0].raw if tiers else {}
-        out["ref_z"] = _finite(profile.z(raw, match), 0.0) if answered else 0.0
-        out["ref_z_low"] = min(out["ref_z"], 0.0)
         vals = np.empty(0)
+        out["ref_z"] = 0.0
         if answered:
+            # One pass over the answer and the best candidates: ref_z is the answer's entry.
             pool = top_k(z, CAND_Z_TOP) if len(cands) > CAND_Z_TOP else np.arange(len(cands))
-            vals = profile.z_many(raw, np.unique(np.append(cands[pool], match)))
+            refs = np.unique(np.append(cands[pool], match))
+            vals = profile.z_many(raw, refs)
+            out["ref_z"] = _finite(float(vals[np.searchsorted(refs, match)]), 0.0)
             vals = vals[np.isfinite(vals)]
+        out["ref_z_low"] = min(out["ref_z"], 0.0)
         # No z-score anywhere (no answer, no raw scores): no evidence, 0 like ref_z's.
         out["cand_z"] = float(vals.max()) if vals.size else 0.0
         out["cand_z_low"] = min(out["cand_z"] - CAND_Z_KNOT, 0.0) if vals.size else 0.0
