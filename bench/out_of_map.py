@@ -17,7 +17,13 @@ as the service runs them). Three policies per map:
   own procedure (:func:`shipped_acceptance.held_out`) on the *other* routes' training parts
   only: how the shipped procedure carries to a map it never saw;
 * ``no_model``: the quality / lock rules (what a preset without a shipped model decides),
-  for comparison.
+  for comparison;
+* ``calibrated``: the route's own models, as ``hmpf-calibrate --config <preset> --fit-only
+  --sequence`` fits them on the route's training part (the frames without ground truth
+  beyond the route's own; :func:`hmpf.evaluation.calibrate.fit_config_acceptance`, its
+  filter settings with them). Its single-frame model keeps the shipped model's off-map
+  hinges (:func:`hmpf.evaluation.acceptance.carried_terms`); the entry's
+  ``calibrated_fit.without_carried`` gives the same fit without them, for comparison.
 
 Each map is a route of ``bench/shipped_acceptance.py`` (Gardens Point's three protocols,
 Nordland summer -> winter, the preset on all), split as ``hmpf-calibrate`` splits it
@@ -65,6 +71,7 @@ from bench.shipped_acceptance import (
     route_policies,
     spread,
 )
+from hmpf.acceptance import Policy
 from hmpf.config import HierarchyConfig
 from hmpf.evaluation.acceptance import (
     Answers,
@@ -72,6 +79,7 @@ from hmpf.evaluation.acceptance import (
     sequence_answers,
     single_answers,
 )
+from hmpf.evaluation.calibrate import fit_config_acceptance
 from hmpf.evaluation.evaluate import EvalData
 from hmpf.evaluation.study import ScoreBank
 from hmpf.features import FeatureCache, default_cache_dir
@@ -84,7 +92,7 @@ GOAL = 0.01
 GOAL_MEAN_P = 0.1
 #: The goal for the lock on the map.
 GOAL_FLIPS = 2.0
-POLICIES = ("shipped", "held_out", "no_model")
+POLICIES = ("shipped", "held_out", "no_model", "calibrated")
 
 
 # -- pure helpers -------------------------------------------------------------------------------
@@ -217,6 +225,42 @@ def removed_answers(
     return single, seq, outside
 
 
+def calibrated(
+    route: Route, preset: HierarchyConfig, cache: FeatureCache
+) -> tuple[Policy, FilterParams, dict[str, Any]]:
+    """The route's own acceptance, as ``hmpf-calibrate --config <preset> --fit-only
+    --sequence`` fits it on the route's training part (no foreign frames: the calibrator
+    has none): the policy, its filter settings and what the fit says (thresholds, the
+    off-map terms carried from ``preset``'s shipped model, and, for comparison, the
+    foreign frames' single-frame figures of the same fit without them)."""
+    bank = ScoreBank.build(route.config, route.train_data, cache=cache)
+    bank.map_prior = route.map_prior
+    fit = fit_config_acceptance(preset, bank, sequence=True)
+    assert fit.sequence_params is not None and fit.confidence is not None
+    params = fit.sequence_params
+    policy = Policy.of(fit.config.acceptance, lock_mass=params.lock_mass)
+    plain = fit_config_acceptance(
+        preset.model_copy(update={"acceptance": None}), bank, sequence=False
+    )
+    bare = Policy.of(plain.config.acceptance, lock_mass=params.lock_mass)
+    ev = evaluate(route, bare, params)
+    return (
+        policy,
+        params,
+        {
+            "thresholds": policy.describe(),
+            "carried": fit.confidence["single"].get("carried", {}),
+            "filter": {k: getattr(params, k) for k in params.__dataclass_fields__},
+            "without_carried": {
+                "single_threshold": bare.model_threshold,
+                "foreign_single_mean_p": ev["foreign"]["single_mean_p"],
+                "foreign_single_accepted": ev["foreign"]["single_accepted"],
+                "in_map_single": ev["single"],
+            },
+        },
+    )
+
+
 # -- the run ------------------------------------------------------------------------------------
 
 
@@ -293,17 +337,33 @@ def main() -> int:
     for i, route in enumerate(sets.routes):
         if route.name not in names:
             continue
-        r_single, r_seq, outside = removed_answers(route, config, params, cache)
+        own, own_params, own_fit = calibrated(route, sets.shipped_config, cache)
         entry: dict[str, Any] = {
             "foreign": ROUTES[route.name][2],
             "n_test": route.n_test,
             "n_reference_test": route.test.n_db,
             "n_reference_train": route.train.n_db,
             "held_out_fit": held_out_fit(sets, i),
+            "calibrated_fit": own_fit,
         }
-        for key, (policy, models) in route_policies(sets, i).items():
+        policies = {
+            **{k: (pol, models, params) for k, (pol, models) in route_policies(sets, i).items()},
+            "calibrated": (
+                own,
+                f"calibrated: hmpf-calibrate --config {args.config} --fit-only --sequence "
+                "on the route's training part",
+                own_params,
+            ),
+        }
+        # The removed protocol's drives through the preset's filter and the calibrated one.
+        removed_of = {
+            "preset": removed_answers(route, config, params, cache),
+            "calibrated": removed_answers(route, config, own_params, cache),
+        }
+        for key, (policy, models, p) in policies.items():
+            r_single, r_seq, outside = removed_of["calibrated" if key == "calibrated" else "preset"]
             who = label(args.config, digest, models)
-            ev = evaluate(route, policy, params)
+            ev = evaluate(route, policy, p)
             ev["sequence"] = {
                 k: v for k, v in ev["sequence"].items() if k not in ("p_correct", "correct")
             }

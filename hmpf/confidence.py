@@ -772,17 +772,14 @@ class ConfidenceModel:
         sw = np.ones(len(H)) if sample_weight is None else np.asarray(sample_weight, np.float64)
         yy = np.asarray(y, dtype=np.float64).ravel()
         beta = _newton(H, base.logit(X[:, first]), yy, sw, np.full(len(cols), l2), max_iter, tol)
-        # (mean, scale, coef) per feature: the first stage's, and the staged ones' raw.
-        terms = {
-            n: (m, s, c)
-            for n, m, s, c in zip(base.features, base.mean, base.scale, base.coef, strict=True)
-        }
-        terms.update({n: (0.0, 1.0, float(b)) for n, b in zip(later, beta, strict=True)})
+        both = base.with_terms(dict(zip(later, (float(b) for b in beta), strict=True)))
+        # In the caller's column order.
+        order = [both.features.index(n) for n in names]
         return cls(
             names,
-            tuple(terms[n][0] for n in names),
-            tuple(terms[n][1] for n in names),
-            tuple(terms[n][2] for n in names),
+            tuple(both.mean[i] for i in order),
+            tuple(both.scale[i] for i in order),
+            tuple(both.coef[i] for i in order),
             base.intercept,
             float(l2),
         )
@@ -829,6 +826,35 @@ class ConfidenceModel:
         )
         main = cls.fit(X[inside], y_in, names, l2=l2, sample_weight=sw[inside], offsets=offsets)
         return replace(main, gate=gate)
+
+    def with_terms(self, terms: Mapping[str, float]) -> ConfidenceModel:
+        """This model with raw terms added to its log-odds: per name in ``terms``, a feature
+        with mean 0, scale 1 and the given coefficient (the form of :meth:`fit_staged`'s
+        second stage). What it is for: terms fitted elsewhere, kept as they are, such as
+        a shipped model's off-map hinges carried into a route's own model
+        (:func:`hmpf.evaluation.acceptance.carried_terms`): where they are 0 the model
+        predicts as before.
+
+        Raises:
+            ModelError: a gated model, a name the model already has, or a coefficient that
+                is not finite.
+        """
+        if self.gate is not None:
+            raise ModelError("terms cannot be added to a gated model")
+        names = tuple(str(n) for n in terms)
+        taken = sorted(set(names) & set(self.features))
+        if taken:
+            raise ModelError(f"the model already has {taken}")
+        coef = tuple(float(terms[n]) for n in names)
+        if not all(math.isfinite(c) for c in coef):
+            raise ModelError("non-finite term coefficients")
+        return replace(
+            self,
+            features=self.features + names,
+            mean=self.mean + (0.0,) * len(names),
+            scale=self.scale + (1.0,) * len(names),
+            coef=self.coef + coef,
+        )
 
     def logit(self, X: np.ndarray) -> np.ndarray:
         """(n,) log-odds of (n, d) features (columns in :attr:`features` order): of the

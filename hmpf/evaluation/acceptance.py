@@ -29,7 +29,7 @@ trust the model's in-sample fit (as ``bench/confidence.py``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -60,6 +60,7 @@ __all__ = [
     "Answers",
     "acceptance_figures",
     "apply_acceptance",
+    "carried_terms",
     "concat_answers",
     "decide",
     "fit_acceptance",
@@ -278,6 +279,29 @@ def outside_floor(p_outside: np.ndarray, max_rate: float) -> float:
     return float(np.nextafter(p[k], np.inf))
 
 
+def carried_terms(acceptance: AcceptanceSettings | None) -> dict[str, float]:
+    """The staged terms (:data:`STAGED_FEATURES`) of ``acceptance``'s single-frame model with
+    their coefficients: what a route's own fit carries over (:func:`fit_acceptance`'s
+    ``carried``). Empty without a model, for a gated one, or where a staged feature was
+    fitted with the others (not raw: mean 0, scale 1).
+
+    Why carry them: the shipped model's hinges ``ref_z_low`` and ``cand_z_low`` were fitted
+    on frames of other data sets (bench/shipped_acceptance.py, bench/offmap_hinge.py); a
+    route's own training part has none (its out-of-map answers are the same route's
+    neighbouring places, which score like the map), so a hinge fitted there learns next to
+    nothing (measured: docs/calibration.md)."""
+    if acceptance is None or acceptance.model is None:
+        return {}
+    model = ConfidenceModel.from_dict(acceptance.model)
+    if model.gate is not None:
+        return {}
+    return {
+        n: c
+        for n, m, sc, c in zip(model.features, model.mean, model.scale, model.coef, strict=True)
+        if n in STAGED_FEATURES and m == 0.0 and sc == 1.0
+    }
+
+
 def fit_acceptance(
     answers: Answers,
     names: Sequence[str],
@@ -286,10 +310,14 @@ def fit_acceptance(
     *,
     outside_share: float = OUTSIDE_SHARE,
     gate: bool = False,
+    carried: Mapping[str, float] | None = None,
 ) -> tuple[ConfidenceModel, float, dict[str, Any]]:
     """The model fitted on ``answers`` and its threshold for ``target`` precision, chosen on
     out-of-fold predictions; with the training figures at that threshold. ``gate``: a gated
     model (:meth:`ConfidenceModel.fit_gated`) where there are ``outside`` answers.
+    ``carried``: raw terms with fixed coefficients (:func:`carried_terms`) added to every
+    fit (:meth:`ConfidenceModel.with_terms`), the out-of-fold ones too, so the threshold is
+    chosen on the model as it will predict.
 
     With ``outside`` (answers to queries from places the map does not hold,
     :func:`outside_answers`): they join the fit as wrong answers weighing together
@@ -301,7 +329,13 @@ def fit_acceptance(
         ModelError: too few answers, or only right or only wrong ones (nothing to learn).
     """
     n_in = len(answers)
-    X = feature_matrix(answers.features, names)
+    extra = dict(carried or {})
+    if set(extra) & set(names):
+        raise ModelError(f"carried terms {sorted(set(extra) & set(names))} are fitted features")
+    if extra and gate:
+        raise ModelError("carried terms cannot be added to a gated model")
+    cols = (*names, *extra)
+    X = feature_matrix(answers.features, cols)
     y = answers.correct.astype(np.float64)
     if n_in < 2 * FOLDS or y.min() == y.max():
         raise ModelError(
@@ -314,14 +348,22 @@ def fit_acceptance(
     query = answers.query
     n_out = 0 if outside is None else len(outside)
     if outside is not None and n_out and outside_share > 0:
-        X = np.vstack([X, feature_matrix(outside.features, names)])
+        X = np.vstack([X, feature_matrix(outside.features, cols)])
         y = np.concatenate([y, np.zeros(n_out)])
         w = np.concatenate([w, np.full(n_out, outside_share / (1 - outside_share) * n_in / n_out)])
         query = np.concatenate([query, outside.query])
     else:
         n_out = 0
     inside = np.arange(len(y)) < n_in if gate else None
-    model = _fit(X, y, names, w, inside)
+    fitted = len(names)
+
+    def fit_rows(rows: np.ndarray) -> ConfidenceModel:
+        m = _fit(
+            X[rows, :fitted], y[rows], names, w[rows], None if inside is None else inside[rows]
+        )
+        return m.with_terms(extra) if extra else m
+
+    model = fit_rows(np.ones(len(y), bool))
     groups = _folds(query)
     oof = np.empty(len(y))
     for g in np.unique(groups):
@@ -329,8 +371,7 @@ def fit_acceptance(
         if y[~hold].min() == y[~hold].max():  # a fold's complement with one class
             oof[hold] = model.predict(X[hold])
             continue
-        fold = _fit(X[~hold], y[~hold], names, w[~hold], None if inside is None else inside[~hold])
-        oof[hold] = fold.predict(X[hold])
+        oof[hold] = fit_rows(~hold).predict(X[hold])
     floor = outside_floor(oof[n_in:], 1.0 - target) if n_out else 0.0
     threshold = threshold_for_precision(oof[:n_in], answers.correct, target, floor=floor)
     p_all = np.asarray(model.predict(X))

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -43,6 +43,7 @@ from hmpf.evaluation.acceptance import (
     Answers,
     acceptance_figures,
     apply_acceptance,
+    carried_terms,
     fit_acceptance,
     outside_answers,
     sequence_answers,
@@ -452,6 +453,8 @@ def fit_config_acceptance(
         )
     if outcome is None:
         outcome = train.run(config)
+    # The given model's off-map hinges, fitted on frames a route's training part lacks.
+    carried = carried_terms(config.acceptance) if outside else {}
     acceptance, acc = _z_acceptance(outcome, target_precision)
     config = config.model_copy(update={"acceptance": acceptance})
     fit = AcceptanceFit(config, acc)
@@ -462,8 +465,9 @@ def fit_config_acceptance(
         fit.config = config.model_copy(update={"sequence": sequence_settings(fit.sequence_params)})
     if model:
         fit.config, fit.confidence = _fit_models(
-            fit.config, train, target_precision, fit.sequence_params, outside=outside
-        )
+            fit.config, train, target_precision, fit.sequence_params, outside=outside,
+            carried=carried,
+        )  # fmt: skip
     return fit
 
 
@@ -689,10 +693,12 @@ def _fit_models(
     seq_params: FilterParams | None,
     *,
     outside: bool = True,
+    carried: Mapping[str, float] | None = None,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """``config`` with its confidence models fitted on the training part, and their
     training figures (:mod:`hmpf.evaluation.acceptance`); with ``outside``, with the
-    training part's own out-of-map answers."""
+    training part's own out-of-map answers; ``carried``: terms the single-frame model
+    keeps as they are (:func:`~hmpf.evaluation.acceptance.carried_terms`)."""
     assert config.acceptance is not None
     routes = RouteMap.from_metadata(train.n_db)
     results = train.results(config)
@@ -712,8 +718,9 @@ def _fit_models(
         seq = sequence_answers(results, train.gt, routes, seq_params, drives, profile)
         modes.append(("sequence", SEQUENCE_MODEL_FEATURES, seq, out_seq))
     for mode, names, answers, negatives in modes:
+        keep = dict(carried or {}) if mode == "single" else {}
         try:
-            m, thr, figs = fit_acceptance(answers, names, target_precision, negatives)
+            m, thr, figs = fit_acceptance(answers, names, target_precision, negatives, carried=keep)
         except ModelError as e:
             # No model for this mode: the z (or mass) rule decides, and the report says why.
             out[mode] = {"features": list(names), "skipped": str(e)}
@@ -725,6 +732,8 @@ def _fit_models(
         )
         update |= {key: m.to_dict(), thr_key: thr}
         out[mode] = {"features": list(names), **figs}
+        if keep:
+            out[mode]["carried"] = keep
     acceptance = config.acceptance.model_copy(update=update)
     # Validate as a config read from disk would be.
     acceptance = AcceptanceSettings.model_validate(acceptance.model_dump())
@@ -884,6 +893,15 @@ def _confidence_lines(report: dict[str, Any]) -> list[str]:
                 f"| {mode} | {rule} | {f['threshold']:.4g} | {_fmt(f.get('ece'))} | "
                 f"{f['accepted']:.3f} | {_fmt(f['precision'])} |"
             )
+    carried = tr.get("single", {}).get("carried")
+    if carried:
+        terms = ", ".join(f"{n} {c:.3f}" for n, c in carried.items())
+        lines += [
+            "",
+            f"The single-frame model keeps the given config's off-map terms as they were "
+            f"({terms}): fitted on frames of other data sets, which a route's training part "
+            "does not have.",
+        ]
     return lines
 
 

@@ -294,6 +294,36 @@ def test_a_staged_fit_is_the_first_stage_plus_the_likelihoods_maximum_in_the_res
         ConfidenceModel.fit_staged(X, y, ["x1", "x2", "x3"], ["x3"], offsets=["x3"])
 
 
+def test_terms_added_to_a_model_are_raw_log_odds_and_nothing_else_moves() -> None:
+    """with_terms: each term adds coefficient x value to the log-odds (mean 0, scale 1),
+    the rest of the model as it was; refused for a gated model, a name already there, or a
+    coefficient that is not finite."""
+    X, y, _, _ = synthetic(300, seed=8)
+    m = ConfidenceModel.fit(X, y, ["x1", "x2", "x3"])
+    w = m.with_terms({"ref_z_low": 0.4, "cand_z_low": 1.5})
+    assert w.features == ("x1", "x2", "x3", "ref_z_low", "cand_z_low")
+    assert (w.mean[:3], w.scale[:3], w.coef[:3], w.intercept) == (
+        m.mean,
+        m.scale,
+        m.coef,
+        m.intercept,
+    )
+    rng = np.random.default_rng(9)
+    H = np.minimum(rng.normal(0, 1, (len(y), 2)), 0.0)
+    np.testing.assert_allclose(
+        w.logit(np.hstack([X, H])), m.logit(X) + 0.4 * H[:, 0] + 1.5 * H[:, 1], atol=1e-12
+    )
+    assert m.with_terms({}) == m
+    with pytest.raises(ModelError, match="already has"):
+        m.with_terms({"x2": 1.0})
+    with pytest.raises(ModelError, match="non-finite"):
+        m.with_terms({"h": float("nan")})
+    inside = np.arange(len(y)) % 4 != 0
+    gated = ConfidenceModel.fit_gated(X, y, ["x1", "x2", "x3"], inside)
+    with pytest.raises(ModelError, match="gated"):
+        gated.with_terms({"h": 1.0})
+
+
 def test_separable_data_gives_finite_coefficients() -> None:
     X = np.array([[0.0], [1.0], [2.0], [3.0]])
     m = ConfidenceModel.fit(X, np.array([0, 0, 1, 1]), ["quality"], l2=1.0)

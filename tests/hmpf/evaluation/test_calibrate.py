@@ -650,3 +650,82 @@ def test_outside_answers_and_the_threshold_that_keeps_them_out(banks):
     assert thr >= figs["outside"]["floor"]
     _, thr0, figs0 = fit_acceptance(inside, SINGLE_FEATURES, target)
     assert "outside" not in figs0
+
+
+def test_a_routes_own_fit_carries_the_given_models_off_map_terms(banks):
+    """carried_terms reads the staged hinges of a single-frame model (the shipped default's
+    among them) and nothing else; fit_acceptance with ``carried`` fits the other features
+    exactly as without, adds the terms as they were, and chooses the threshold on the
+    out-of-fold predictions of that model (so an answer the terms lower can fall below it)."""
+    from hmpf.confidence import ConfidenceModel, ModelError, feature_matrix, threshold_for_precision
+    from hmpf.config import AcceptanceSettings
+    from hmpf.evaluation.acceptance import (
+        OUTSIDE_SHARE,
+        SINGLE_FEATURES,
+        _fit,
+        _folds,
+        carried_terms,
+        fit_acceptance,
+        outside_answers,
+        outside_floor,
+        single_answers,
+    )
+    from hmpf.sequence import RouteMap
+
+    shipped = load_config("default").acceptance
+    assert shipped is not None and shipped.model is not None
+    sm = ConfidenceModel.from_dict(shipped.model)
+    want = {n: c for n, c in zip(sm.features, sm.coef, strict=True) if n.endswith("_low")}
+    assert carried_terms(shipped) == want and set(want) == {"ref_z_low", "cand_z_low"}
+    assert carried_terms(None) == {} and carried_terms(AcceptanceSettings(threshold=3.0)) == {}
+
+    pool, train, _, _, _ = banks
+    config = derive_config(pool, [(("gist", "hog"), 5), (("kaze",), 1)], None)
+    profile = train.profile(config)
+    inside = single_answers(
+        train.results(config), train.gt, RouteMap.from_metadata(train.n_db), profile
+    )
+    single, _ = outside_answers(train, config, profile)
+    target = 0.9
+    plain, _, _ = fit_acceptance(inside, SINGLE_FEATURES, target, single)
+    kept, thr, figs = fit_acceptance(inside, SINGLE_FEATURES, target, single, carried=want)
+    assert kept.features == (*SINGLE_FEATURES, "ref_z_low", "cand_z_low")
+    assert kept == plain.with_terms(want)
+    # the out-of-fold predictions recomputed fold by fold, the terms added to each fold
+    names = kept.features
+    n_in, n_out = len(inside), len(single)
+    X = feature_matrix([*inside.features, *single.features], names)
+    y = np.concatenate([inside.correct, np.zeros(n_out)]).astype(float)
+    share = OUTSIDE_SHARE / (1 - OUTSIDE_SHARE) * n_in / n_out
+    w = np.concatenate([np.ones(n_in), np.full(n_out, share)])
+    # where a hinge is below 0 the terms lower p, elsewhere nothing moves
+    low = (X[:, -2:] < 0).any(axis=1)
+    assert low.any(), "no answer where a hinge is below 0: the check is empty"
+    p_kept, p_plain = kept.predict(X), plain.predict(X[:, :-2])
+    assert np.all(p_kept[low] < p_plain[low]) and np.all(p_kept[~low] == p_plain[~low])
+    assert figs["threshold"] == thr and 0 < thr <= 1
+    groups = _folds(np.concatenate([inside.query, single.query]))
+    oof = np.empty(len(y))
+    for g in np.unique(groups):
+        hold = groups == g
+        fold = _fit(X[~hold, :-2], y[~hold], SINGLE_FEATURES, w[~hold]).with_terms(want)
+        oof[hold] = fold.predict(X[hold])
+    floor = outside_floor(oof[n_in:], 1 - target)
+    assert figs["outside"]["floor"] == floor
+    assert thr == threshold_for_precision(oof[:n_in], inside.correct, target, floor=floor)
+    # names that are fitted and carried at once, or carried into a gated model: refused
+    with pytest.raises(ModelError, match="fitted features"):
+        fit_acceptance(inside, SINGLE_FEATURES, target, single, carried={"ref_z": 1.0})
+    with pytest.raises(ModelError, match="gated"):
+        fit_acceptance(inside, SINGLE_FEATURES, target, single, carried=want, gate=True)
+    # a gated model, or a hinge fitted with the others (not raw), carries nothing
+    gated = ConfidenceModel.fit_gated(
+        np.array([[0.0], [1.0], [2.0], [3.0], [0.5], [2.5]]),
+        np.array([0, 0, 1, 1, 0, 1]),
+        ["ref_z_low"],
+        np.array([True, True, True, True, False, False]),
+    )
+    joint = ConfidenceModel(("ref_z", "ref_z_low"), (1.0, -0.3), (1.0, 0.5), (0.5, 0.4), 0.1)
+    for m in (gated, joint):
+        acc = AcceptanceSettings(threshold=3.0, model=m.to_dict(), model_threshold=0.9)
+        assert carried_terms(acc) == {}

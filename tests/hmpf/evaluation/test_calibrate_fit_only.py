@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
+import yaml
 
 from hmpf.config import AcceptanceSettings, load_config, parse_config
 from hmpf.datasets import frame_ground_truth, list_images
@@ -150,6 +151,42 @@ def test_fit_only_fits_what_the_search_fits_for_its_winner(route):
     assert plain.config.acceptance is not None and plain.config.acceptance.model is None
     assert plain.config.acceptance.threshold == fitted.acceptance.threshold
     assert plain.config.sequence == fitted.sequence and plain.confidence is None
+
+
+def test_fit_only_keeps_the_given_models_off_map_terms(route):
+    """A given config whose single-frame model has staged off-map hinges (as the shipped
+    default's): the route's own model fits its features as without and keeps the hinges'
+    coefficients as they were; the report and leaderboard say so. ``outside=False`` (no
+    off-map answers, ``--no-outside``) keeps nothing of them."""
+    from hmpf.confidence import ConfidenceModel
+    from hmpf.evaluation.acceptance import SINGLE_FEATURES
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
+    info, train = route
+    hinges = {"ref_z_low": 0.4, "cand_z_low": 1.5}
+    stale = ConfidenceModel(SINGLE_FEATURES, (0.0,) * 4, (1.0,) * 4, (1.0,) * 4, 0.0)
+    acc = AcceptanceSettings(
+        threshold=99.0, model=stale.with_terms(hinges).to_dict(), model_threshold=0.5
+    )
+    given = parse_config(yaml.safe_load(GIVEN)).model_copy(update={"acceptance": acc})
+    bare = given.model_copy(update={"acceptance": None})
+    kept = fit_config_acceptance(given, train, target_precision=0.9)
+    plain = fit_config_acceptance(bare, train, target_precision=0.9)
+    assert kept.config.acceptance is not None and plain.config.acceptance is not None
+    km = ConfidenceModel.from_dict(kept.config.acceptance.model)
+    pm = ConfidenceModel.from_dict(plain.config.acceptance.model)
+    assert pm.features == SINGLE_FEATURES and km == pm.with_terms(hinges)
+    assert km.coef != stale.with_terms(hinges).coef  # refitted, not copied
+    assert kept.confidence is not None and kept.confidence["single"]["carried"] == hinges
+    assert "carried" not in (plain.confidence or {})["single"]
+    none = fit_config_acceptance(given, train, target_precision=0.9, outside=False)
+    assert none.config.acceptance is not None
+    assert ConfidenceModel.from_dict(none.config.acceptance.model).features == SINGLE_FEATURES
+    fitted, rep = fit_only(given, train, None, target_precision=0.9)
+    assert fitted.acceptance == kept.config.acceptance
+    assert "off-map terms as they were (ref_z_low 0.400, cand_z_low 1.500)" in (
+        leaderboard_markdown(rep)
+    )
 
 
 @pytest.mark.parametrize(
