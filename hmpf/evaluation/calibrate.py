@@ -453,8 +453,9 @@ def fit_config_acceptance(
         )
     if outcome is None:
         outcome = train.run(config)
+    given = config.acceptance
     # The given model's off-map hinges, fitted on frames a route's training part lacks.
-    carried = carried_terms(config.acceptance) if outside else {}
+    carried = carried_terms(given) if outside else {}
     acceptance, acc = _z_acceptance(outcome, target_precision)
     config = config.model_copy(update={"acceptance": acceptance})
     fit = AcceptanceFit(config, acc)
@@ -468,7 +469,38 @@ def fit_config_acceptance(
             fit.config, train, target_precision, fit.sequence_params, outside=outside,
             carried=carried,
         )  # fmt: skip
+        fit.config = _carry_stay(fit.config, given, fit.confidence)
     return fit
+
+
+def _carry_stay(
+    config: HierarchyConfig, given: AcceptanceSettings | None, figures: dict[str, Any]
+) -> HierarchyConfig:
+    """``config`` with the given acceptance's sequence stay threshold (at most the fitted
+    entry threshold) and its evidence floor, where both have a sequence model; noted in
+    ``figures["sequence"]["stay"]``.
+
+    Why carry them: without a stay threshold an estimate that stays right is accepted on
+    one frame and not the next as its probability wavers about the entry threshold (a
+    route's own models: 15-30 flips per 100 frames on the Gardens Point training drives);
+    the shipped one (0.9, floor -0.5) was chosen across routes with drives that leave the
+    map (bench/shipped_acceptance.py, bench/stay_rule.py), which one route's training
+    part cannot do (docs/calibration.md)."""
+    acc = config.acceptance
+    if (
+        acc is None
+        or acc.sequence_model is None
+        or acc.sequence_threshold is None
+        or given is None
+        or given.sequence_stay_threshold is None
+    ):
+        return config
+    stay = min(given.sequence_stay_threshold, acc.sequence_threshold)
+    floor = given.sequence_stay_ref_z
+    figures.setdefault("sequence", {})["stay"] = {"threshold": stay, "ref_z": floor}
+    acc = acc.model_copy(update={"sequence_stay_threshold": stay, "sequence_stay_ref_z": floor})
+    acc = AcceptanceSettings.model_validate(acc.model_dump())
+    return config.model_copy(update={"acceptance": acc})
 
 
 #: Method settings that do not change a method's scores (where and how many at once).
@@ -893,6 +925,14 @@ def _confidence_lines(report: dict[str, Any]) -> list[str]:
                 f"| {mode} | {rule} | {f['threshold']:.4g} | {_fmt(f.get('ece'))} | "
                 f"{f['accepted']:.3f} | {_fmt(f['precision'])} |"
             )
+    stay = tr.get("sequence", {}).get("stay")
+    if stay:
+        floor = "" if stay["ref_z"] is None else f", evidence floor {stay['ref_z']:g}"
+        lines += [
+            "",
+            f"The sequence model keeps the given config's stay threshold: "
+            f"{stay['threshold']:.3f}{floor} (hysteresis, chosen across routes).",
+        ]
     carried = tr.get("single", {}).get("carried")
     if carried:
         terms = ", ".join(f"{n} {c:.3f}" for n, c in carried.items())

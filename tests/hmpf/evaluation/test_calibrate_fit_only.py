@@ -189,6 +189,58 @@ def test_fit_only_keeps_the_given_models_off_map_terms(route):
     )
 
 
+def test_fit_only_with_sequence_keeps_the_given_stay_threshold(route):
+    """A given config with a sequence stay threshold and evidence floor (as the shipped
+    default's): the route's own sequence model gets them (the threshold at most the fitted
+    entry threshold), the report and leaderboard say so; a given config without them gets
+    none, and so does a fit without models."""
+    from hmpf.confidence import ConfidenceModel
+    from hmpf.evaluation.acceptance import SEQUENCE_MODEL_FEATURES, SINGLE_FEATURES
+    from hmpf.evaluation.calibrate import leaderboard_markdown
+
+    info, train = route
+    single = ConfidenceModel(SINGLE_FEATURES, (0.0,) * 4, (1.0,) * 4, (1.0,) * 4, 0.0)
+    seq = ConfidenceModel(SEQUENCE_MODEL_FEATURES, (0.0,) * 3, (1.0,) * 3, (1.0,) * 3, 0.0)
+    acc = AcceptanceSettings(
+        threshold=99.0,
+        model=single.to_dict(),
+        model_threshold=0.5,
+        sequence_model=seq.to_dict(),
+        sequence_threshold=0.999,
+        sequence_stay_threshold=0.9,
+        sequence_stay_ref_z=-0.5,
+    )
+    # one weak method, so that the training drive has wrong estimates to fit on
+    weak = {**yaml.safe_load(GIVEN), "tiers": [{"methods": ["sad"], "k": 1}]}
+    given = parse_config(weak).model_copy(update={"acceptance": acc})
+    fitted, rep = fit_only(given, train, None, target_precision=0.9, sequence=True)
+    got = fitted.acceptance
+    assert got is not None and got.sequence_model is not None, rep["train"]["confidence"]
+    assert got.sequence_model != seq.to_dict()  # refitted on the route
+    assert got.sequence_threshold is not None
+    assert got.sequence_stay_threshold == min(0.9, got.sequence_threshold)
+    assert got.sequence_stay_ref_z == -0.5
+    stay = rep["train"]["confidence"]["sequence"]["stay"]
+    assert stay == {"threshold": got.sequence_stay_threshold, "ref_z": -0.5}
+    assert "keeps the given config's stay threshold" in leaderboard_markdown(rep)
+    # the given config without a stay threshold: none
+    bare = given.model_copy(
+        update={
+            "acceptance": acc.model_copy(
+                update={"sequence_stay_threshold": None, "sequence_stay_ref_z": None}
+            )
+        }
+    )
+    plain, rep2 = fit_only(bare, train, None, target_precision=0.9, sequence=True)
+    assert plain.acceptance is not None and plain.acceptance.sequence_stay_threshold is None
+    assert "stay" not in rep2["train"]["confidence"]["sequence"]
+    assert plain.acceptance.sequence_model == got.sequence_model
+    # no models: nothing to carry
+    nomodel = fit_config_acceptance(given, train, target_precision=0.9, sequence=True, model=False)
+    assert nomodel.config.acceptance is not None
+    assert nomodel.config.acceptance.sequence_stay_threshold is None
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
