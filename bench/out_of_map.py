@@ -22,8 +22,9 @@ as the service runs them). Three policies per map:
   --sequence`` fits them on the route's training part (the frames without ground truth
   beyond the route's own; :func:`hmpf.evaluation.calibrate.fit_config_acceptance`, its
   filter settings with them). Its single-frame model keeps the shipped model's off-map
-  hinges (:func:`hmpf.evaluation.acceptance.carried_terms`); the entry's
-  ``calibrated_fit.without_carried`` gives the same fit without them, for comparison.
+  hinges (:func:`hmpf.evaluation.acceptance.carried_terms`) and its sequence model the
+  shipped stay threshold and evidence floor; the entry's ``calibrated_fit.without_carried``
+  and ``without_stay`` give the same fit without them, for comparison.
 
 Each map is a route of ``bench/shipped_acceptance.py`` (Gardens Point's three protocols,
 Nordland summer -> winter, the preset on all), split as ``hmpf-calibrate`` splits it
@@ -54,6 +55,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -232,7 +234,8 @@ def calibrated(
     --sequence`` fits it on the route's training part (no foreign frames: the calibrator
     has none): the policy, its filter settings and what the fit says (thresholds, the
     off-map terms carried from ``preset``'s shipped model, and, for comparison, the
-    foreign frames' single-frame figures of the same fit without them)."""
+    foreign frames' single-frame figures of the same fit without them, and the test part's
+    sequence figures without the stay threshold it carries)."""
     bank = ScoreBank.build(route.config, route.train_data, cache=cache)
     bank.map_prior = route.map_prior
     fit = fit_config_acceptance(preset, bank, sequence=True)
@@ -244,6 +247,8 @@ def calibrated(
     )
     bare = Policy.of(plain.config.acceptance, lock_mass=params.lock_mass)
     ev = evaluate(route, bare, params)
+    unstayed = replace(policy, sequence_stay_threshold=None, sequence_stay_ref_z=None)
+    q = evaluate(route, unstayed, params)["sequence"]
     return (
         policy,
         params,
@@ -256,6 +261,9 @@ def calibrated(
                 "foreign_single_mean_p": ev["foreign"]["single_mean_p"],
                 "foreign_single_accepted": ev["foreign"]["single_accepted"],
                 "in_map_single": ev["single"],
+            },
+            "without_stay": {
+                k: q[k] for k in ("accepted", "precision", "flips_per_100", "recall_at_1")
             },
         },
     )
