@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PAGE_DIRS = ("docs/results", "docs/experiments")
 #: pages outside those folders that hold generated blocks
 PAGE_FILES = (
+    "docs/calibration.md",
     "docs/scale.md",
     "docs/operators-guide.md",
     "docs/deployment-container.md",
@@ -607,6 +608,50 @@ def acceptance_offmap_hinge(root: Path) -> str:
         shares,
     )
     return table(header, rows) + more + source(OFFMAP_HINGE, data)
+
+
+OUT_OF_MAP = "docs/experiments/acceptance/out_of_map.json"
+
+
+@generator("calibration.own_models")
+def calibration_own_models(root: Path) -> str:
+    """``python -m bench.out_of_map``'s ``calibrated`` policy: a route's own models
+    (``hmpf-calibrate --config default --fit-only --sequence`` on its training part) on its
+    test part, with and without what they keep from the shipped ones."""
+    data = load(root, OUT_OF_MAP)
+    rows = []
+    for name, m in data["maps"].items():
+        fit, own = m["calibrated_fit"], m["calibrated"]
+        plain, unstayed = fit["without_carried"], fit["without_stay"]
+        q = own["sequence"]
+        rows.append(
+            [
+                name,
+                f3(plain["foreign_single_mean_p"]),
+                f3(own["foreign"]["single_mean_p"]),
+                accepted(plain["in_map_single"]),
+                accepted(own["single"]),
+                f"{accepted(unstayed)}, {f1(unstayed['flips_per_100'])}",
+                f"{accepted(q)}, {f1(q['flips_per_100'])}",
+                f3(q["recall_at_1"]),
+            ]
+        )
+    header = [
+        "route (test part)",
+        "another data set's frames, single frame: mean p_correct, without the hinges",
+        "with them",
+        "in the map, single frame: accepted (precision), without the hinges",
+        "with them",
+        "sequence mode: accepted (precision), flips / 100, without the stay threshold",
+        "with it",
+        "sequence recall@1 (the route's own filter settings)",
+    ]
+    return table(header, rows) + source(
+        OUT_OF_MAP,
+        data,
+        extra="a route's own models: `hmpf-calibrate --config default --fit-only --sequence` "
+        "on its training part; Nordland: its first 800 frames",
+    )
 
 
 SINGLE_CEILING = "docs/experiments/acceptance/single_ceiling.json"

@@ -772,14 +772,14 @@ class ConfidenceModel:
         sw = np.ones(len(H)) if sample_weight is None else np.asarray(sample_weight, np.float64)
         yy = np.asarray(y, dtype=np.float64).ravel()
         beta = _newton(H, base.logit(X[:, first]), yy, sw, np.full(len(cols), l2), max_iter, tol)
-        both = base.with_terms(dict(zip(later, (float(b) for b in beta), strict=True)))
+        whole = base.with_terms(dict(zip(later, (float(b) for b in beta), strict=True)))
         # In the caller's column order.
-        order = [both.features.index(n) for n in names]
+        order = [whole.features.index(n) for n in names]
         return cls(
             names,
-            tuple(both.mean[i] for i in order),
-            tuple(both.scale[i] for i in order),
-            tuple(both.coef[i] for i in order),
+            tuple(whole.mean[i] for i in order),
+            tuple(whole.scale[i] for i in order),
+            tuple(whole.coef[i] for i in order),
             base.intercept,
             float(l2),
         )
