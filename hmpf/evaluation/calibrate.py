@@ -404,7 +404,8 @@ class AcceptanceFit:
 
     Attributes:
         config: the hierarchy with its ``acceptance`` (and, in sequence mode, its
-            ``sequence``) replaced; everything else as given, so its digest is unchanged.
+            ``sequence``) replaced (keeping what :func:`fit_config_acceptance` says it
+            keeps); everything else as given, so its digest is unchanged.
         acceptance: the z threshold's training figures (:func:`acceptance_threshold`).
         sequence_params: the sequence filter's chosen settings (sequence mode), or None.
         sequence: their training figures (sequence mode), or None.
@@ -437,7 +438,10 @@ def fit_config_acceptance(
     settings and lock threshold are chosen too (from the config's own ``sequence:`` as the
     base; written as ``sequence:``); with ``model`` the confidence models are fitted
     (:func:`_fit_models`, with ``outside`` on the training part's out-of-map answers too).
-    Any acceptance the config had is replaced as a whole.
+    Any acceptance the config had is replaced, but for what one route cannot teach: its
+    single-frame model's staged off-map hinges (:func:`~hmpf.evaluation.acceptance.carried_terms`;
+    not without ``outside``) and, with ``sequence``, its stay threshold and evidence floor
+    (:func:`_carry_stay`), which the fitted models keep.
 
     Args:
         outcome: ``config``'s outcome on ``train`` when already known (the search's trial).

@@ -702,7 +702,8 @@ def test_a_routes_own_fit_carries_the_given_models_off_map_terms(banks):
     low = (X[:, -2:] < 0).any(axis=1)
     assert low.any(), "no answer where a hinge is below 0: the check is empty"
     p_kept, p_plain = kept.predict(X), plain.predict(X[:, :-2])
-    assert np.all(p_kept[low] < p_plain[low]) and np.all(p_kept[~low] == p_plain[~low])
+    assert np.all(p_kept[low] < p_plain[low])
+    np.testing.assert_allclose(p_kept[~low], p_plain[~low], rtol=1e-12, atol=0)
     assert figs["threshold"] == thr and 0 < thr <= 1
     groups = _folds(np.concatenate([inside.query, single.query]))
     oof = np.empty(len(y))
@@ -718,14 +719,14 @@ def test_a_routes_own_fit_carries_the_given_models_off_map_terms(banks):
         fit_acceptance(inside, SINGLE_FEATURES, target, single, carried={"ref_z": 1.0})
     with pytest.raises(ModelError, match="gated"):
         fit_acceptance(inside, SINGLE_FEATURES, target, single, carried=want, gate=True)
-    # a gated model, or a hinge fitted with the others (not raw), carries nothing
-    gated = ConfidenceModel.fit_gated(
-        np.array([[0.0], [1.0], [2.0], [3.0], [0.5], [2.5]]),
-        np.array([0, 0, 1, 1, 0, 1]),
-        ["ref_z_low"],
-        np.array([True, True, True, True, False, False]),
+    # a gated model (its main part holding a raw hinge), or a hinge fitted with the others
+    # (not raw), carries nothing
+    gate = ConfidenceModel(("ref_z",), (0.0,), (1.0,), (1.0,), 0.0)
+    gated = ConfidenceModel(
+        ("ref_z", "ref_z_low"), (1.0, 0.0), (1.0, 1.0), (0.5, 0.4), 0.1, gate=gate
     )
+    raw = ConfidenceModel(("ref_z", "ref_z_low"), (1.0, 0.0), (1.0, 1.0), (0.5, 0.4), 0.1)
     joint = ConfidenceModel(("ref_z", "ref_z_low"), (1.0, -0.3), (1.0, 0.5), (0.5, 0.4), 0.1)
-    for m in (gated, joint):
+    for m, carried in ((gated, {}), (joint, {}), (raw, {"ref_z_low": 0.4})):
         acc = AcceptanceSettings(threshold=3.0, model=m.to_dict(), model_threshold=0.9)
-        assert carried_terms(acc) == {}
+        assert carried_terms(acc) == carried

@@ -13,6 +13,7 @@ from hmpf.datasets import frame_ground_truth, list_images
 from hmpf.errors import ConfigError
 from hmpf.evaluation.calibrate import (
     SearchSpace,
+    _carry_stay,
     calibrate,
     fit_config_acceptance,
     fit_only,
@@ -176,7 +177,6 @@ def test_fit_only_keeps_the_given_models_off_map_terms(route):
     km = ConfidenceModel.from_dict(kept.config.acceptance.model)
     pm = ConfidenceModel.from_dict(plain.config.acceptance.model)
     assert pm.features == SINGLE_FEATURES and km == pm.with_terms(hinges)
-    assert km.coef != stale.with_terms(hinges).coef  # refitted, not copied
     assert kept.confidence is not None and kept.confidence["single"]["carried"] == hinges
     assert "carried" not in (plain.confidence or {})["single"]
     none = fit_config_acceptance(given, train, target_precision=0.9, outside=False)
@@ -223,6 +223,31 @@ def test_fit_only_with_sequence_keeps_the_given_stay_threshold(route):
     stay = rep["train"]["confidence"]["sequence"]["stay"]
     assert stay == {"threshold": got.sequence_stay_threshold, "ref_z": -0.5}
     assert "keeps the given config's stay threshold" in leaderboard_markdown(rep)
+    # a given stay above the route's entry threshold: capped at it (the step alone)
+    low = got.model_copy(
+        update={
+            "sequence_threshold": 0.8,
+            "sequence_stay_threshold": None,
+            "sequence_stay_ref_z": None,
+        }
+    )
+    figures: dict = {}
+    capped = _carry_stay(fitted.model_copy(update={"acceptance": low}), acc, figures).acceptance
+    assert capped is not None and capped.sequence_threshold == 0.8
+    assert capped.sequence_stay_threshold == 0.8 and capped.sequence_stay_ref_z == -0.5
+    assert figures["sequence"]["stay"] == {"threshold": 0.8, "ref_z": -0.5}
+    # no sequence model fitted (a training drive all right or all wrong): no stay threshold
+    no_seq = got.model_copy(
+        update={
+            "sequence_model": None,
+            "sequence_threshold": None,
+            "sequence_stay_threshold": None,
+            "sequence_stay_ref_z": None,
+        }
+    )
+    figures = {}
+    kept = _carry_stay(fitted.model_copy(update={"acceptance": no_seq}), acc, figures)
+    assert kept.acceptance == no_seq and figures == {}
     # the given config without a stay threshold: none
     bare = given.model_copy(
         update={
