@@ -471,9 +471,8 @@ def fit_config_acceptance(
     if model:
         fit.config, fit.confidence = _fit_models(
             fit.config, train, target_precision, fit.sequence_params, outside=outside,
-            carried=carried,
+            carried=carried, stay_from=given,
         )  # fmt: skip
-        fit.config = _carry_stay(fit.config, given, fit.confidence)
     return fit
 
 
@@ -730,11 +729,15 @@ def _fit_models(
     *,
     outside: bool = True,
     carried: Mapping[str, float] | None = None,
+    stay_from: AcceptanceSettings | None = None,
 ) -> tuple[HierarchyConfig, dict[str, Any]]:
     """``config`` with its confidence models fitted on the training part, and their
     training figures (:mod:`hmpf.evaluation.acceptance`); with ``outside``, with the
     training part's own out-of-map answers; ``carried``: terms the single-frame model
-    keeps as they are (:func:`~hmpf.evaluation.acceptance.carried_terms`)."""
+    keeps as they are (:func:`~hmpf.evaluation.acceptance.carried_terms`); ``stay_from``:
+    the acceptance whose stay threshold the sequence model keeps (:func:`_carry_stay`),
+    with the training drives' figures as the policy then decides them (``as_decided``:
+    the threshold is chosen frame by frame, without it)."""
     assert config.acceptance is not None
     routes = RouteMap.from_metadata(train.n_db)
     results = train.results(config)
@@ -773,7 +776,13 @@ def _fit_models(
     acceptance = config.acceptance.model_copy(update=update)
     # Validate as a config read from disk would be.
     acceptance = AcceptanceSettings.model_validate(acceptance.model_dump())
-    return config.model_copy(update={"acceptance": acceptance}), out
+    config = _carry_stay(config.model_copy(update={"acceptance": acceptance}), stay_from, out)
+    if seq_params is not None and "stay" in out.get("sequence", {}):
+        decided = apply_acceptance(
+            config.acceptance, seq, sequence=True, lock_mass=seq_params.lock_mass
+        )
+        out["sequence"]["stay"]["as_decided"] = _figures(decided)
+    return config, out
 
 
 def _test_models(
@@ -937,6 +946,12 @@ def _confidence_lines(report: dict[str, Any]) -> list[str]:
             f"The sequence model keeps the given config's stay threshold: "
             f"{stay['threshold']:.3f}{floor} (hysteresis, chosen across routes).",
         ]
+        if stay.get("as_decided"):
+            d = stay["as_decided"]
+            lines[-1] += (
+                f" With it the training drives' answers are accepted {d['accepted']:.3f} at "
+                f"precision {_fmt(d['precision'])} (the threshold was chosen without it)."
+            )
     carried = tr.get("single", {}).get("carried")
     if carried:
         terms = ", ".join(f"{n} {c:.3f}" for n, c in carried.items())

@@ -221,8 +221,14 @@ def test_fit_only_with_sequence_keeps_the_given_stay_threshold(route):
     assert got.sequence_stay_threshold == min(0.9, got.sequence_threshold)
     assert got.sequence_stay_ref_z == -0.5
     stay = rep["train"]["confidence"]["sequence"]["stay"]
-    assert stay == {"threshold": got.sequence_stay_threshold, "ref_z": -0.5}
-    assert "keeps the given config's stay threshold" in leaderboard_markdown(rep)
+    assert (stay["threshold"], stay["ref_z"]) == (got.sequence_stay_threshold, -0.5)
+    # the training drives as the policy decides them, the stay included
+    d = stay["as_decided"]
+    assert 0 <= d["accepted"] <= 1 and d["n"] == rep["train"]["confidence"]["sequence"]["n"]
+    assert d["rule"] == "p_correct" and d["threshold"] == got.sequence_threshold
+    board = leaderboard_markdown(rep)
+    assert "keeps the given config's stay threshold" in board
+    assert f"accepted {d['accepted']:.3f}" in board
     # a given stay above the route's entry threshold: capped at it (the step alone)
     low = got.model_copy(
         update={
