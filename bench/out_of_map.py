@@ -201,10 +201,11 @@ def in_map_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def removed_answers(
-    route: Route, config: HierarchyConfig, params: FilterParams, cache: FeatureCache
-) -> tuple[Answers, Answers, np.ndarray]:
+    route: Route, config: HierarchyConfig, params: Sequence[FilterParams], cache: FeatureCache
+) -> tuple[Answers, list[Answers], np.ndarray]:
     """The route's test queries answered against its training part's references (single
-    frame; sequence mode, driven in order), and which of them are off that map."""
+    frame; sequence mode, driven in order through the filter of each of ``params``), and
+    which of them are off that map."""
     data = route.data
     r_train, _ = block_parts(len(data.reference))
     _, q_test = block_parts(len(data.query))
@@ -223,8 +224,8 @@ def removed_answers(
     results = bank.results(config)
     profile = bank.profile(config)
     single = single_answers(results, gt, routes, profile)
-    seq = sequence_answers(results, gt, routes, params, None, profile)
-    return single, seq, outside
+    seqs = [sequence_answers(results, gt, routes, p, None, profile) for p in params]
+    return single, seqs, outside
 
 
 def calibrated(
@@ -364,12 +365,11 @@ def main() -> int:
             ),
         }
         # The removed protocol's drives through the preset's filter and the calibrated one.
-        removed_of = {
-            "preset": removed_answers(route, config, params, cache),
-            "calibrated": removed_answers(route, config, own_params, cache),
-        }
+        r_single, (r_preset, r_own), outside = removed_answers(
+            route, config, (params, own_params), cache
+        )
         for key, (policy, models, p) in policies.items():
-            r_single, r_seq, outside = removed_of["calibrated" if key == "calibrated" else "preset"]
+            r_seq = r_own if key == "calibrated" else r_preset
             who = label(args.config, digest, models)
             ev = evaluate(route, policy, p)
             ev["sequence"] = {
